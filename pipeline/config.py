@@ -1,0 +1,113 @@
+"""Plain, hashable stage configurations. Every cache key is derived from these (see ``pipeline.cache``)."""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from dataclasses import dataclass, field
+
+from pipeline.errors import ImtuneError
+
+STRATEGIES = ("both", "either", "uni")
+
+
+def config_hash(obj, n: int = 16) -> str:
+    """Stable hex digest of a dataclass / dict / scalar (sorted-key JSON)."""
+    if dataclasses.is_dataclass(obj):
+        obj = dataclasses.asdict(obj)
+    blob = json.dumps(obj, sort_keys=True, default=str).encode()
+    return hashlib.sha1(blob).hexdigest()[:n]
+
+
+@dataclass(frozen=True)
+class FeatureConfig:
+    """Local feature extraction.
+
+    name: registry name (``tune list``), e.g. ``sift``, ``rootsift``, ``orb``.
+    num_features: keypoint budget per image (the paper's two categories: 2048 and 8000).
+    low_threshold: use the lowered detection threshold of the paper, so the budget is reached.
+    upright: orientation fixed to 0 and duplicate (x, y) keypoints removed; ``upright_plus``
+        refills to the budget after removing duplicates (the paper's "upright++").
+    clahe: "none" | "detector" | "descriptor" | "both" — CLAHE before detection and/or description.
+    mr_size: descriptor support scale (SIFT mrSize multiplier; None = library default).
+    max_side: IMC resizing convention — images resized so the long side is at most this (px).
+    options: extractor-specific extra options as sorted (key, value) pairs.
+    """
+    name: str = "sift"
+    num_features: int = 8000
+    low_threshold: bool = True
+    upright: bool = False
+    upright_plus: bool = False
+    clahe: str = "none"
+    mr_size: float | None = None
+    max_side: int = 1024
+    options: tuple = ()
+
+    def __post_init__(self):
+        if self.num_features <= 0:
+            raise ImtuneError(f"num_features must be positive, got {self.num_features}")
+        if self.clahe not in ("none", "detector", "descriptor", "both"):
+            raise ImtuneError(f"clahe must be none|detector|descriptor|both, got {self.clahe!r}")
+
+
+@dataclass(frozen=True)
+class MatchConfig:
+    """Tentative matching from the cached k-NN tables.
+
+    ratio: Lowe's ratio test threshold r in (0, 1]; 1 = no test.
+    strategy: "both" (mutual NN, intersection), "either" (union), "uni" (i -> j only).
+    distance_threshold: drop matches whose descriptor distance exceeds this (None = off).
+    fginn: first-geometric-inconsistent NN: the second neighbour must lie > fginn_px from the first.
+    method: "exact" brute force (default) or "flann" (4 KD-trees, 128 checks / LSH for binary).
+    """
+    ratio: float = 1.0
+    strategy: str = "both"
+    distance_threshold: float | None = None
+    fginn: bool = False
+    fginn_px: float = 10.0
+    method: str = "exact"
+
+    def __post_init__(self):
+        if not (0.0 < float(self.ratio) <= 1.0):
+            raise ImtuneError(f"ratio r must be in (0, 1], got {self.ratio}")
+        if self.strategy not in STRATEGIES:
+            raise ImtuneError(f"unknown matching strategy {self.strategy!r} (choose from {', '.join(STRATEGIES)})")
+        if self.method not in ("exact", "flann"):
+            raise ImtuneError(f"unknown matcher {self.method!r} (choose exact or flann)")
+        if self.distance_threshold is not None and self.distance_threshold < 0:
+            raise ImtuneError(f"distance threshold must be >= 0, got {self.distance_threshold}")
+
+
+@dataclass(frozen=True)
+class GeometryConfig:
+    """Robust estimation of F.
+
+    ransac: estimator registry name (``tune list``), e.g. ``degensac``, ``magsac++``, ``cv-usac``.
+    threshold: inlier threshold eta in pixels (at the working resolution, long side <= 1024 px).
+    confidence: RANSAC confidence (the protocol fixes 0.999999).
+    max_iters: iteration cap Gamma.
+    seed: random seed passed to estimators that accept one.
+    """
+    ransac: str = "degensac"
+    threshold: float = 0.5
+    confidence: float = 0.999999
+    max_iters: int = 50000
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.threshold < 0:
+            raise ImtuneError(f"inlier threshold must be >= 0 px, got {self.threshold}")
+        if not (0.0 < self.confidence < 1.0):
+            raise ImtuneError(f"confidence must be in (0, 1), got {self.confidence}")
+        if self.max_iters < 1:
+            raise ImtuneError(f"max-iters must be >= 1, got {self.max_iters}")
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    feature: FeatureConfig = field(default_factory=FeatureConfig)
+    matching: MatchConfig = field(default_factory=MatchConfig)
+    geometry: GeometryConfig = field(default_factory=GeometryConfig)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)

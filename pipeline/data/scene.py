@@ -1,0 +1,91 @@
+"""The one Scene model every loader produces.
+
+Conventions: poses are world-to-camera (x_cam = R X + t); intrinsics K are for the image *as stored on
+disk* (``ImageInfo.size``); the pipeline rescales them with the image (IMC convention, long side <= 1024
+px) through :func:`pipeline.data.resize.scaled_K`. A pair's ground-truth relative pose maps camera-i
+coordinates to camera-j coordinates: x_j = R_ij x_i + t_ij.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+
+@dataclass
+class ImageInfo:
+    """One image. ``size`` is (width, height) in px of the file on disk; K is 3x3 for that size."""
+    name: str
+    path: Path
+    K: np.ndarray | None = None
+    R: np.ndarray | None = None  # 3x3 world-to-camera rotation
+    t: np.ndarray | None = None  # (3,) world-to-camera translation
+    size: tuple[int, int] | None = None
+    depth_path: Path | None = None  # optional depth map (IMC-PT h5 'depth'), same size as the image
+
+
+@dataclass
+class Pair:
+    """An evaluation pair (names of two images of the scene).
+
+    R, t: ground-truth relative pose (camera i -> camera j). When None, derived from absolute poses.
+    K_i, K_j: per-pair intrinsics overriding the images' (pairs-with-GT lists carry K per pair).
+    covisibility: the paper's co-visibility in [0, 1]; None where unknown.
+    """
+    i: str
+    j: str
+    R: np.ndarray | None = None
+    t: np.ndarray | None = None
+    K_i: np.ndarray | None = None
+    K_j: np.ndarray | None = None
+    covisibility: float | None = None
+
+    @property
+    def key(self) -> str:
+        return f"{self.i}|{self.j}"
+
+
+@dataclass
+class Scene:
+    """A scene: images, evaluation pairs, optional 3D points and multiview bags.
+
+    points3d: (P, 3) world points; observations: image name -> (point indices (n,), keypoints (n, 2) px).
+    bags: bag size -> list of tuples of image names.
+    """
+    name: str
+    root: Path
+    images: dict[str, ImageInfo]
+    pairs: list[Pair] = field(default_factory=list)
+    points3d: np.ndarray | None = None
+    observations: dict[str, tuple[np.ndarray, np.ndarray]] | None = None
+    bags: dict[int, list[tuple[str, ...]]] | None = None
+    source: str = ""  # loader name
+
+    def relative_pose(self, pair: Pair) -> tuple[np.ndarray, np.ndarray]:
+        """Ground-truth (R_ij, t_ij) of a pair; t is not normalised."""
+        if pair.R is not None and pair.t is not None:
+            return np.asarray(pair.R, float), np.asarray(pair.t, float).reshape(3)
+        a, b = self.images[pair.i], self.images[pair.j]
+        if a.R is None or b.R is None:
+            raise ValueError(f"scene {self.name}: no ground-truth pose for pair {pair.key}")
+        R = b.R @ a.R.T
+        t = b.t.reshape(3) - R @ a.t.reshape(3)
+        return R, t
+
+    def intrinsics(self, pair: Pair) -> tuple[np.ndarray, np.ndarray]:
+        """(K_i, K_j) for the images as stored on disk."""
+        Ki = pair.K_i if pair.K_i is not None else self.images[pair.i].K
+        Kj = pair.K_j if pair.K_j is not None else self.images[pair.j].K
+        return np.asarray(Ki, float), np.asarray(Kj, float)
+
+    def select_pairs(self, min_covisibility: float | None = 0.1) -> list[Pair]:
+        """The protocol's pairs: co-visibility >= threshold where known, all listed pairs otherwise."""
+        if min_covisibility is None:
+            return list(self.pairs)
+        return [p for p in self.pairs if p.covisibility is None or p.covisibility >= min_covisibility]
+
+
+def all_pairs(names: list[str]) -> list[Pair]:
+    """Every unordered pair (i < j in the given order)."""
+    return [Pair(a, b) for k, a in enumerate(names) for b in names[k + 1:]]

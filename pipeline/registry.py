@@ -1,0 +1,57 @@
+"""One tiny registry class, one instance per plug-in family (features, estimators, pre-filters).
+
+    EXTRACTORS = Registry("feature")
+    @EXTRACTORS.register("sift")
+    class SIFT(Extractor): ...
+    EXTRACTORS.get("sift")          # -> class, or ImtuneError naming the unknown name
+    EXTRACTORS.availability()       # -> {name: (available, reason)} for `tune list`
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+from pipeline.errors import ImtuneError, UnavailableError
+
+
+class Registry:
+    def __init__(self, kind: str):
+        self.kind = kind
+        self._items: dict[str, object] = {}
+        self._describe: dict[str, str] = {}
+
+    def register(self, name: str, description: str = "") -> Callable:
+        def deco(obj):
+            if name in self._items:
+                raise ValueError(f"{self.kind} {name!r} registered twice")
+            self._items[name] = obj
+            self._describe[name] = description or (obj.__doc__ or "").strip().splitlines()[0] if (obj.__doc__ or description) else ""
+            return obj
+        return deco
+
+    def names(self) -> list[str]:
+        return list(self._items)
+
+    def __contains__(self, name: str) -> bool:
+        return name in self._items
+
+    def get(self, name: str):
+        if name not in self._items:
+            raise ImtuneError(f"unknown {self.kind} {name!r} (known: {', '.join(sorted(self._items))})")
+        return self._items[name]
+
+    def description(self, name: str) -> str:
+        return self._describe.get(name, "")
+
+    def availability(self) -> dict[str, tuple[bool, str]]:
+        """name -> (available, reason). An entry is available if its ``check_available()`` returns
+        without raising; the reason is the UnavailableError message otherwise."""
+        out = {}
+        for name, obj in self._items.items():
+            check = getattr(obj, "check_available", None)
+            try:
+                if check is not None:
+                    check()
+                out[name] = (True, "")
+            except UnavailableError as e:
+                out[name] = (False, str(e))
+        return out
