@@ -1,0 +1,178 @@
+"""Cheap checks on image files, without decoding pixels.
+
+``image_size`` reads (width, height) in px from the JPEG SOF / PNG IHDR header (falls back to a full decode for
+other formats). ``check_image_file`` raises :class:`ImtuneError` naming the file when it is missing, empty or a
+truncated JPEG / PNG (OpenCV silently returns None for some corrupt files and decodes truncated JPEGs partially
+with only a libjpeg warning, so the bytes are checked here). EXIF orientation is ignored everywhere: sizes and
+intrinsics refer to the pixel grid as stored.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from pipeline.errors import ImtuneError
+
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm")
+_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+_PNG_IEND = b"IEND\xaeB`\x82"
+# SOF markers carrying the frame size (C4 = DHT, C8 = JPG, CC = DAC are not frames).
+_SOF_MARKERS = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+def is_image_file(path: Path) -> bool:
+    """True for a regular file with a common image extension (case-insensitive), hidden files excluded."""
+    return path.is_file() and not path.name.startswith(".") and path.suffix.lower() in IMAGE_EXTENSIONS
+
+
+def list_images(folder: Path) -> list[str]:
+    """Sorted file names of the images directly inside ``folder`` ([] when it does not exist)."""
+    if not folder.is_dir():
+        return []
+    return sorted(p.name for p in folder.iterdir() if is_image_file(p))
+
+
+def jpeg_end(data: bytes) -> int | None:
+    """Offset just past the JPEG's end-of-image marker, walking its segments; None if truncated or malformed.
+
+    Trailing bytes after EOI (e.g. appended metadata) are allowed; the entropy-coded data after each SOS is
+    skipped by searching for the next real marker (0xFF not followed by a stuffed 0x00 or a restart marker).
+    """
+    n = len(data)
+    if n < 4 or data[:2] != b"\xff\xd8":
+        return None
+    i = 2
+    while i < n:
+        if data[i] != 0xFF:
+            return None
+        while i < n and data[i] == 0xFF:  # fill bytes
+            i += 1
+        if i >= n:
+            return None
+        marker = data[i]
+        i += 1
+        if marker == 0xD9:
+            return i
+        if marker == 0x01 or 0xD0 <= marker <= 0xD7:  # standalone markers
+            continue
+        if i + 2 > n:
+            return None
+        length = int.from_bytes(data[i:i + 2], "big")
+        if length < 2 or i + length > n:
+            return None
+        i += length
+        if marker == 0xDA:  # start of scan: skip entropy-coded data up to the next marker
+            while True:
+                j = data.find(b"\xff", i)
+                if j < 0 or j + 1 >= n:
+                    return None
+                nxt = data[j + 1]
+                if nxt == 0x00 or 0xD0 <= nxt <= 0xD7:
+                    i = j + 2
+                    continue
+                if nxt == 0xFF:
+                    i = j + 1
+                    continue
+                i = j
+                break
+    return None
+
+
+def _read_tail(path: Path, n: int = 64) -> bytes:
+    with open(path, "rb") as f:
+        f.seek(0, os.SEEK_END)
+        size = f.tell()
+        f.seek(max(0, size - n))
+        return f.read()
+
+
+def check_image_file(path: Path, full: bool = False) -> None:
+    """Raise ImtuneError if ``path`` is missing, empty, or a JPEG / PNG that does not end properly.
+
+    The common case reads only the file's last bytes; a JPEG not ending with FFD9 (possibly a trailer after EOI)
+    is parsed in full. ``full=True`` always parses JPEGs in full.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ImtuneError(f"image not found: {path}")
+    try:
+        if path.stat().st_size == 0:
+            raise ImtuneError(f"image file is empty: {path}")
+        with open(path, "rb") as f:
+            head = f.read(8)
+        if head[:2] == b"\xff\xd8":
+            tail = _read_tail(path).rstrip(b"\x00")
+            if full or not tail.endswith(b"\xff\xd9"):
+                if jpeg_end(path.read_bytes()) is None:
+                    raise ImtuneError(f"truncated or corrupt JPEG (no end-of-image marker): {path}")
+        elif head == _PNG_MAGIC:
+            if _PNG_IEND not in _read_tail(path):
+                raise ImtuneError(f"truncated or corrupt PNG (no IEND chunk): {path}")
+    except OSError as e:
+        raise ImtuneError(f"cannot read image {path}: {e.strerror or e}") from None
+
+
+def check_image_bytes(path: Path, data: bytes) -> None:
+    """Like :func:`check_image_file` on bytes already read (always a full JPEG parse)."""
+    if not data:
+        raise ImtuneError(f"image file is empty: {path}")
+    if data[:2] == b"\xff\xd8" and jpeg_end(data) is None:
+        raise ImtuneError(f"truncated or corrupt JPEG (no end-of-image marker): {path}")
+    if data[:8] == _PNG_MAGIC and _PNG_IEND not in data[-64:]:
+        raise ImtuneError(f"truncated or corrupt PNG (no IEND chunk): {path}")
+
+
+def _jpeg_size(f) -> tuple[int, int] | None:
+    if f.read(2) != b"\xff\xd8":
+        return None
+    while True:
+        b = f.read(1)
+        while b == b"\xff":
+            b = f.read(1)
+        if not b:
+            return None
+        marker = b[0]
+        if marker == 0x01 or 0xD0 <= marker <= 0xD7:
+            continue
+        if marker in (0xD9, 0xDA):
+            return None
+        raw = f.read(2)
+        if len(raw) < 2:
+            return None
+        length = int.from_bytes(raw, "big")
+        if marker in _SOF_MARKERS:
+            seg = f.read(5)
+            if len(seg) < 5:
+                return None
+            h, w = int.from_bytes(seg[1:3], "big"), int.from_bytes(seg[3:5], "big")
+            return (w, h) if w > 0 and h > 0 else None
+        f.seek(length - 2, os.SEEK_CUR)
+        nxt = f.read(1)
+        if nxt != b"\xff":
+            return None
+        f.seek(-1, os.SEEK_CUR)
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) in px of the image as stored (EXIF orientation ignored). ImtuneError if unreadable."""
+    path = Path(path)
+    if not path.is_file():
+        raise ImtuneError(f"image not found: {path}")
+    try:
+        with open(path, "rb") as f:
+            head = f.read(24)
+            if head[:8] == _PNG_MAGIC and head[12:16] == b"IHDR":
+                return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+            if head[:2] == b"\xff\xd8":
+                f.seek(0)
+                size = _jpeg_size(f)
+                if size is not None:
+                    return size
+    except OSError as e:
+        raise ImtuneError(f"cannot read image {path}: {e.strerror or e}") from None
+    import cv2  # other formats (or odd JPEGs): decode
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)  # as stored, no EXIF rotation
+    if img is None:
+        raise ImtuneError(f"unreadable image: {path}")
+    return int(img.shape[1]), int(img.shape[0])

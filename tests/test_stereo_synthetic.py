@@ -1,0 +1,93 @@
+"""The stereo task's geometry on synthetic scenes with known poses."""
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from pipeline.config import GeometryConfig, MatchConfig, PipelineConfig
+from pipeline.data.scene import ImageInfo, Pair, Scene
+from pipeline.metrics.pose import pose_error_deg
+from pipeline.tasks.prepare import ImageFeatures
+from pipeline.tasks.stereo import evaluate_pair, pose_from_F
+
+
+def skew(v):
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
+def synthetic_two_view(n=600, outliers=0.3, noise=0.3, seed=0, rot_deg=20.0):
+    rng = np.random.default_rng(seed)
+    K1 = np.array([[800.0, 0, 511.5], [0, 800.0, 383.5], [0, 0, 1]])
+    K2 = np.array([[760.0, 0, 500.0], [0, 770.0, 390.0], [0, 0, 1]])
+    R = Rotation.from_rotvec(np.radians(rot_deg) * np.array([0.1, 1.0, 0.05]) / np.linalg.norm([0.1, 1.0, 0.05])).as_matrix()
+    t = np.array([-1.0, 0.1, 0.2])
+    X = np.c_[rng.uniform(-3, 3, n), rng.uniform(-2, 2, n), rng.uniform(6, 12, n)]
+    x1 = (K1 @ X.T).T
+    x1 = x1[:, :2] / x1[:, 2:]
+    Xc2 = (R @ X.T).T + t
+    x2 = (K2 @ Xc2.T).T
+    x2 = x2[:, :2] / x2[:, 2:]
+    x1 += rng.normal(0, noise, x1.shape)
+    x2 += rng.normal(0, noise, x2.shape)
+    n_out = int(outliers * n)
+    x2[:n_out] = np.c_[rng.uniform(0, 1024, n_out), rng.uniform(0, 768, n_out)]
+    F = np.linalg.inv(K2).T @ skew(t) @ R @ np.linalg.inv(K1)
+    return K1, K2, R, t, x1.astype(np.float32), x2.astype(np.float32), F / np.linalg.norm(F)
+
+
+def test_pose_from_true_F_recovers_the_pose():
+    K1, K2, R, t, x1, x2, F = synthetic_two_view(outliers=0.0, noise=0.0)
+    R_est, t_est = pose_from_F(F, K1, K2, x1.astype(float), x2.astype(float))
+    err, er, et = pose_error_deg(R, t, R_est, t_est)
+    assert err < 0.01, (er, et)
+
+
+def test_pose_from_transposed_F_is_wrong():
+    # guards the x2^T F x1 convention: the transpose must not give the right pose
+    K1, K2, R, t, x1, x2, F = synthetic_two_view(outliers=0.0, noise=0.0)
+    R_est, t_est = pose_from_F(F.T, K1, K2, x1.astype(float), x2.astype(float))
+    assert pose_error_deg(R, t, R_est, t_est)[0] > 1.0
+
+
+class _Tables:
+    pass
+
+
+def _scene_and_features(K1, K2, R, t, x1, x2):
+    scene = Scene("syn", root=None, images={
+        "a": ImageInfo("a", path=None, K=K1, size=(1024, 768)),
+        "b": ImageInfo("b", path=None, K=K2, size=(1024, 768))},
+        pairs=[Pair("a", "b", R=R, t=t)])
+    rng = np.random.default_rng(1)
+    d = rng.normal(size=(len(x1), 32)).astype(np.float32)
+    fa = ImageFeatures("ka", x1, d, False, 1.0, 1.0, 1024, 768, 0.0)
+    fb = ImageFeatures("kb", x2, d, False, 1.0, 1.0, 1024, 768, 0.0)
+    return scene, fa, fb, d
+
+
+@pytest.mark.parametrize("ransac,eta", [("degensac", 1.0), ("magsac++", 2.0), ("cv-usac", 1.0)])
+def test_evaluate_pair_end_to_end_on_synthetic_matches(ransac, eta):
+    from pipeline.geometry import get_estimator
+    from pipeline.matching.knn import knn_tables
+    K1, K2, R, t, x1, x2, _ = synthetic_two_view()
+    scene, fa, fb, d = _scene_and_features(K1, K2, R, t, x1, x2)
+    tables = knn_tables(d, d, binary=False, k=2)  # identical descriptors: match i <-> i
+    conf = PipelineConfig(matching=MatchConfig(ratio=1.0, strategy="both"),
+                          geometry=GeometryConfig(ransac=ransac, threshold=eta, max_iters=5000))
+    rec = evaluate_pair(scene, scene.pairs[0], fa, fb, tables, 0.0, conf, get_estimator(ransac))
+    assert rec["failure"] is None
+    assert rec["NM"] == len(x1)
+    assert 0.6 * len(x1) <= rec["NI"] <= 0.8 * len(x1)  # 70% are inliers
+    assert rec["err"] < 2.0, rec
+
+
+def test_too_few_matches_is_a_recorded_failure():
+    from pipeline.geometry import get_estimator
+    from pipeline.matching.knn import knn_tables
+    K1, K2, R, t, x1, x2, _ = synthetic_two_view(n=6, outliers=0.0)
+    scene, fa, fb, d = _scene_and_features(K1, K2, R, t, x1, x2)
+    conf = PipelineConfig(matching=MatchConfig(ratio=1.0))
+    rec = evaluate_pair(scene, scene.pairs[0], fa, fb, knn_tables(d, d, binary=False, k=2), 0.0, conf,
+                        get_estimator("degensac"))
+    assert math.isinf(rec["err"]) and "fewer than 8" in rec["failure"]

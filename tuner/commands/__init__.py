@@ -1,0 +1,1 @@
+"""`tune` subcommands, one module each; each has register(subparsers)."""

@@ -1,0 +1,129 @@
+"""Shared CLI options -> PipelineConfig, data folder resolution, and the evaluate call behind
+``tune evaluate``.
+
+Data folder precedence (first wins): ``--data``, the ``IMTUNE_DATA`` environment variable, the
+``data:`` key of ``imtune.yaml`` (current directory, then the project root), then the built-in
+default ``../shared/data/strecha`` next to the project.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+import yaml
+
+from pipeline.config import FeatureConfig, GeometryConfig, MatchConfig, PipelineConfig
+from pipeline.errors import ImtuneError
+
+PROJECT_ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_DATA = PROJECT_ROOT.parent / "shared" / "data" / "strecha"
+
+
+def project_config() -> tuple[dict, Path | None]:
+    """The first ``imtune.yaml`` found (cwd, then project root), parsed with yaml.safe_load."""
+    for p in (Path.cwd() / "imtune.yaml", PROJECT_ROOT / "imtune.yaml"):
+        if p.is_file():
+            try:
+                d = yaml.safe_load(p.read_text()) or {}
+            except yaml.YAMLError as e:
+                raise ImtuneError(f"{p}: invalid YAML ({str(e).splitlines()[0]})")
+            if not isinstance(d, dict):
+                raise ImtuneError(f"{p}: expected a mapping at top level")
+            return d, p
+    return {}, None
+
+
+def resolve_data(cli_value: str | None = None) -> Path:
+    """The data folder, by the precedence in this module's docstring. Raises if it does not exist."""
+    if cli_value:
+        p, src = Path(cli_value), "--data"
+    elif os.environ.get("IMTUNE_DATA"):
+        p, src = Path(os.environ["IMTUNE_DATA"]), "IMTUNE_DATA"
+    else:
+        conf, where = project_config()
+        if conf.get("data"):
+            p = Path(conf["data"])
+            if not p.is_absolute():
+                p = where.parent / p
+            src = str(where)
+        else:
+            p, src = DEFAULT_DATA, "default"
+    p = p.expanduser().resolve()
+    if not p.is_dir():
+        raise ImtuneError(f"data folder {p} (from {src}) does not exist")
+    return p
+
+
+def add_pipeline_options(ap: argparse.ArgumentParser, tuning: bool = False) -> None:
+    """Options that define one pipeline configuration (and, for `tune`, the fixed part of a study)."""
+    g = ap.add_argument_group("pipeline")
+    g.add_argument("--feature", default="sift", help="feature registry name (see `tune list`)")
+    g.add_argument("--num-features", type=int, default=8000, help="keypoints per image (paper: 2048 or 8000)")
+    g.add_argument("--no-low-threshold", action="store_true", help="keep the detector's default threshold")
+    g.add_argument("--upright", action="store_true", help="orientation fixed, duplicates removed")
+    g.add_argument("--upright-plus", action="store_true", help="upright, refilled to the budget (upright++)")
+    g.add_argument("--clahe", default="none", choices=["none", "detector", "descriptor", "both"])
+    g.add_argument("--mr-size", type=float, default=None, help="descriptor support scale (SIFT mrSize)")
+    g.add_argument("--max-side", type=int, default=1024, help="resize so the long side is at most this (px)")
+    g.add_argument("--matcher", default="exact", choices=["exact", "flann"])
+    g.add_argument("--strategy", default="both", help="both | either | uni")
+    g.add_argument("--distance-threshold", type=float, default=None)
+    g.add_argument("--fginn", action="store_true", help="FGINN: 2nd neighbour > 10 px from the first")
+    g.add_argument("--ransac", default="degensac", help="estimator registry name (see `tune list`)")
+    g.add_argument("--confidence", type=float, default=0.999999)
+    if not tuning:
+        g.add_argument("--ratio", type=float, default=0.85, help="ratio test r in (0, 1]; 1 = off")
+        g.add_argument("--threshold", type=float, default=0.5, help="inlier threshold eta, px")
+        g.add_argument("--max-iters", type=int, default=50000, help="RANSAC iteration cap Gamma")
+    g.add_argument("--seed", type=int, default=0)
+    d = ap.add_argument_group("data")
+    d.add_argument("--data", default=None, help="data folder (else $IMTUNE_DATA, imtune.yaml, ../shared/data/strecha)")
+    d.add_argument("--scenes", default=None, help="comma-separated scene names")
+    d.add_argument("--covisibility", type=float, default=0.1, help="minimum pair co-visibility where known")
+    d.add_argument("--cache", default=None, help="cache folder (else $IMTUNE_CACHE or ~/.cache/imtune)")
+    o = ap.add_argument_group("output")
+    o.add_argument("--json", action="store_true", help="print one JSON object")
+    o.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def build_config(args: argparse.Namespace, **overrides) -> PipelineConfig:
+    """PipelineConfig from parsed options; ``overrides`` (ratio, threshold, max_iters, strategy, ...)
+    win over the options. Validates names against the registries (one-line error if unknown)."""
+    from pipeline.features import EXTRACTORS
+    from pipeline.geometry import ESTIMATORS
+    v = dict(vars(args))
+    v.update(overrides)
+    EXTRACTORS.get(v["feature"])
+    ESTIMATORS.get(v["ransac"])
+    fc = FeatureConfig(name=v["feature"], num_features=int(v["num_features"]), low_threshold=not v["no_low_threshold"],
+                       upright=bool(v["upright"] or v["upright_plus"]), upright_plus=bool(v["upright_plus"]),
+                       clahe=v["clahe"], mr_size=v["mr_size"], max_side=int(v["max_side"]))
+    mc = MatchConfig(ratio=float(v["ratio"]), strategy=v["strategy"], distance_threshold=v["distance_threshold"],
+                     fginn=bool(v["fginn"]), method=v["matcher"])
+    gc = GeometryConfig(ransac=v["ransac"], threshold=float(v["threshold"]), confidence=float(v["confidence"]),
+                        max_iters=int(v["max_iters"]), seed=int(v["seed"]))
+    return PipelineConfig(feature=fc, matching=mc, geometry=gc)
+
+
+def load_scenes(data_root: Path, names: list[str] | str | None, split: str = "val"):
+    """Scenes by name (a list or a comma-separated string), or the data set's default split."""
+    from pipeline.data import default_splits, list_scenes, load_scene
+    if isinstance(names, str):
+        names = [n.strip() for n in names.split(",") if n.strip()]
+    if not names:
+        names = list_scenes(data_root) if split == "all" else default_splits(data_root)[split]
+    return [load_scene(data_root, n) for n in names]
+
+
+def evaluate_config(conf: PipelineConfig, data_root: Path, scenes=None, cache_dir=None,
+                    min_covisibility: float | None = 0.1, progress: bool = False,
+                    with_pairs: bool = False) -> dict:
+    """Evaluate one configuration on the stereo task; returns the JSON-able result of `tune evaluate`."""
+    from pipeline.cache import H5Cache
+    from pipeline.tasks.stereo import evaluate_stereo
+    scene_objs = load_scenes(data_root, scenes, split="all")
+    res = evaluate_stereo(scene_objs, conf, H5Cache(cache_dir), min_covisibility=min_covisibility,
+                          progress=progress)
+    return {"config": conf.to_dict(), "data": str(data_root), "scenes": [s.name for s in scene_objs],
+            "stereo": res.to_dict(with_pairs=with_pairs)}
