@@ -127,6 +127,8 @@ def _jpeg_size(f) -> tuple[int, int] | None:
         return None
     while True:
         b = f.read(1)
+        if b != b"\xff":
+            return None
         while b == b"\xff":
             b = f.read(1)
         if not b:
@@ -140,6 +142,8 @@ def _jpeg_size(f) -> tuple[int, int] | None:
         if len(raw) < 2:
             return None
         length = int.from_bytes(raw, "big")
+        if length < 2:
+            return None
         if marker in _SOF_MARKERS:
             seg = f.read(5)
             if len(seg) < 5:

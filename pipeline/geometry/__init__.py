@@ -19,13 +19,14 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.geometry.base import EstimateResult, Estimator, Sizes, sampson_distance
+from pipeline.geometry.imc import imc_geom_to_config
 from pipeline.geometry.registry import ESTIMATORS
 from pipeline.geometry import (  # noqa: F401  (imported so that every backend registers)
     pydegensac_backend, magsac_backend, gcransac_backend, opencv_backend, poselib_backend,
     colmap_backend,
 )
 
-__all__ = ["ESTIMATORS", "Estimator", "EstimateResult", "Sizes", "get_estimator", "estimate",
+__all__ = ["ESTIMATORS", "Estimator", "EstimateResult", "Sizes", "get_estimator", "estimate", "imc_geom_to_config",
            "sampson_distance"]
 
 _INSTANCES: dict[str, Estimator] = {}

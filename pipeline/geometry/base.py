@@ -110,7 +110,10 @@ class Estimator(ABC):
     - ``uses_threshold``: the inlier threshold eta (px) is used (False for LMedS and the 8-point fit);
     - ``uses_iterations``: the iteration cap Gamma is used (False for the 8-point fit);
     - ``seedable``: results are reproducible for a fixed ``seed`` (False: the library draws its own
-      randomness and exposes no seed);
+      randomness and exposes no seed, so repeated runs differ);
+    - ``seed_used``: the seed reaches the library, so different seeds give different random runs
+      (False for OpenCV, whose robust methods use a fixed internal seed: reproducible, but the
+      protocol's repeated test runs are identical; and for the non-seedable backends);
     - ``threshold_kind``: what eta bounds ("sampson": Sampson distance; "epipolar-line": distance to
       the epipolar line in both images; "none");
     - ``package``: the pip package behind the backend (for ``check_available`` messages).
@@ -119,6 +122,7 @@ class Estimator(ABC):
     uses_threshold: bool = True
     uses_iterations: bool = True
     seedable: bool = True
+    seed_used: bool = True
     threshold_kind: str = "sampson"
     package: str = ""
     name: str = ""
@@ -154,7 +158,8 @@ class Estimator(ABC):
         if sizes is None:
             sizes = sizes_from_points(p1, p2)
         try:
-            raw = self._solve(p1, p2, float(threshold), float(confidence), int(max_iters), int(seed), sizes)
+            max_iters = min(max(int(max_iters), 1), 2**31 - 1)
+            raw = self._solve(p1, p2, float(threshold), float(confidence), max_iters, int(seed), sizes)
         except Exception:  # noqa: BLE001 - a library error is a recorded failure, never a crash
             return self._failure(m)
         return self._finish(raw, p1, p2, float(threshold))
@@ -176,7 +181,9 @@ class Estimator(ABC):
             return True
         if not (np.all(np.isfinite(p1)) and np.all(np.isfinite(p2))):
             return True
-        if len(np.unique(np.concatenate([p1, p2], axis=1), axis=0)) < self.min_matches:
+        both = np.concatenate([p1[:64], p2[:64]], axis=1)  # cheap common case: a prefix suffices
+        if len(np.unique(both, axis=0)) < self.min_matches and \
+                len(np.unique(np.concatenate([p1, p2], axis=1), axis=0)) < self.min_matches:
             return True
         if np.all(np.ptp(p1, axis=0) == 0) or np.all(np.ptp(p2, axis=0) == 0):
             return True  # every point of one image identical: F is not determined

@@ -28,6 +28,7 @@ class GCRansac(Estimator):
     name = "gcransac"
     package = "pygcransac"
     seedable = False
+    seed_used = False
     sampler: int = 0
     min_iters: int = 50
     spatial_coherence_weight: float = 0.0  # library default

@@ -26,6 +26,7 @@ from pipeline.geometry.registry import ESTIMATORS
 class _PyMagsac(Estimator):
     package = "pymagsac"
     seedable = False
+    seed_used = False
     use_magsac_plus_plus: bool = True
     sampler: int = 0
     min_iters: int = 50

@@ -12,8 +12,11 @@ and a (9, 3) stack of up to three solutions when exactly 7 points are given (han
 - FM_LMEDS ignores the threshold (its inlier band comes from the median residual).
 - FM_8POINT is a plain least-squares fit on all matches: meant for already-filtered (custom)
   matches; every match is reported as an inlier, threshold and iterations are ignored.
-- OpenCV takes no seed argument: we call ``cv2.setRNGSeed(seed)`` before each call (FM_RANSAC and
-  LMedS draw from cv::theRNG; the USAC methods are reproducible by construction).
+- OpenCV takes no seed argument. We call ``cv2.setRNGSeed(seed)`` before each call, as asked, but
+  measured in 5.0.0 it changes nothing: FM_RANSAC / FM_LMEDS and the USAC methods all seed their
+  own generators with a fixed value, so every run is reproducible and independent of ``seed``
+  (``seed_used = False``). Varying it would need the ``UsacParams`` overload
+  (``randomGeneratorState``), which does not reproduce the USAC_* presets exactly; not done.
 """
 from __future__ import annotations
 
@@ -25,6 +28,7 @@ from pipeline.geometry.registry import ESTIMATORS
 
 class _OpenCV(Estimator):
     package = "opencv-contrib-python-headless"
+    seed_used = False
     method_name: str = ""
 
     @classmethod

@@ -7,7 +7,8 @@ enable_degeneracy_check, seed)`` returns F with x2^T F x1 = 0 (no transpose need
 with ``error_type="sampson"`` a match is an inlier when its Sampson distance is <= px_th.
 ``symmetric_error_check=True`` (the default, and what the official IMC benchmark uses) additionally
 drops a few matches; we keep the library default. A zero F means "no model". ``seed`` >= 0 makes a
-run reproducible (-1 draws a fresh seed).
+run reproducible (-1 lets the library pick a seed; we always pass the caller's seed, masked to
+0..2^31-1).
 """
 from __future__ import annotations
 
@@ -35,7 +36,7 @@ class _PyDegensac(Estimator):
                 pts1, pts2, px_th=threshold, conf=confidence, max_iters=max_iters,
                 laf_consistensy_coef=-1.0, error_type=self.error_type,
                 symmetric_error_check=self.symmetric_error_check,
-                enable_degeneracy_check=self.enable_degeneracy_check, seed=int(seed))
+                enable_degeneracy_check=self.enable_degeneracy_check, seed=int(seed) & 0x7FFFFFFF)
         if F is None or not np.any(F):
             return RawSolution(None, None, t.seconds)
         return RawSolution(F, mask, t.seconds)

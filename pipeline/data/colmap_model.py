@@ -1,0 +1,129 @@
+"""A COLMAP sparse model as ground truth, read with pycolmap.
+
+Scene layout: ``<scene>/images/`` plus ``<scene>/sparse/`` or ``<scene>/sparse/<n>/`` holding
+cameras/images/points3D as ``.bin`` or ``.txt`` (also ``<scene>/dense/{images,sparse}`` as in the IMC-PT training
+archives). With several ``sparse/<n>`` models the one with the most registered images is used. Only registered
+images are kept. K is the camera's calibration matrix (px); lens distortion of non-pinhole models is ignored.
+Poses world-to-camera in model units; ``points3d`` (P, 3) and per-image observations (point indices, xy px).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.data._common import pick_scene, scene_dirs
+from pipeline.data.imagefile import check_image_file
+from pipeline.data.scene import ImageInfo, Scene, all_pairs
+from pipeline.errors import ImtuneError
+
+NAME = "colmap"
+_PARTS = ("cameras", "images", "points3D")
+
+
+def is_model_dir(p: Path) -> bool:
+    """True if ``p`` holds cameras/images/points3D, all .bin or all .txt."""
+    return any(all((p / f"{n}{ext}").is_file() for n in _PARTS) for ext in (".bin", ".txt"))
+
+
+def _model_candidates(sdir: Path) -> list[Path]:
+    out = []
+    for base in (sdir / "sparse", sdir / "dense" / "sparse"):
+        if is_model_dir(base):
+            out.append(base)
+        elif base.is_dir():
+            out += [p for p in sorted(base.iterdir()) if p.is_dir() and is_model_dir(p)]
+        if out:
+            break
+    return out
+
+
+def _image_dir(sdir: Path) -> Path:
+    for cand in (sdir / "images", sdir / "dense" / "images"):
+        if cand.is_dir():
+            return cand
+    return sdir / "images"
+
+
+def _is_scene(p: Path) -> bool:
+    return bool(_model_candidates(p))
+
+
+def detect(root: Path) -> bool:
+    return bool(scene_dirs(root, _is_scene))
+
+
+def list_scenes(root: Path) -> list[str]:
+    return list(scene_dirs(root, _is_scene))
+
+
+def read_model(path: Path):
+    """pycolmap.Reconstruction from a model folder; ImtuneError naming it if missing or unreadable."""
+    import pycolmap
+
+    path = Path(path)
+    if not is_model_dir(path):
+        raise ImtuneError(f"not a COLMAP model (need cameras, images, points3D as .bin or .txt): {path}")
+    for n in _PARTS:
+        f = path / f"{n}.bin"
+        if f.is_file() and f.stat().st_size == 0:
+            raise ImtuneError(f"unreadable COLMAP model {path}: {f.name} is empty")
+    try:
+        return pycolmap.Reconstruction(str(path))
+    except Exception as e:  # pycolmap raises ValueError / RuntimeError with multi-line C++ messages
+        msg = " ".join(str(e).split())
+        raise ImtuneError(f"unreadable COLMAP model {path}: {msg}") from None
+
+
+def load_colmap(root: Path, scene: str | None = None, model: Path | None = None, image_dir: Path | None = None,
+                verify: bool = True) -> Scene:
+    """Load a COLMAP model as a Scene: registered images (K, R, t, size), 3D points and observations, all pairs
+    of registered images (co-visibility unknown: compute it from the points). ``model`` / ``image_dir``
+    override the folders found in the scene. ``verify`` checks every image file exists and is complete."""
+    root = Path(root)
+    if model is not None:
+        sdir, name = root, scene or root.name
+        models = [Path(model)]
+    else:
+        dirs = scene_dirs(root, _is_scene)
+        name = pick_scene(root, scene, list(dirs), NAME)
+        sdir = dirs[name]
+        models = _model_candidates(sdir)
+    recs = [(read_model(m), m) for m in models]
+    rec, mdir = max(recs, key=lambda r: r[0].num_reg_images())
+    img_dir = Path(image_dir) if image_dir is not None else _image_dir(sdir)
+
+    images: dict[str, ImageInfo] = {}
+    id_to_name: dict[int, str] = {}
+    for image_id in sorted(rec.reg_image_ids()):
+        im = rec.images[image_id]
+        cam = rec.cameras[im.camera_id]
+        pose = im.cam_from_world  # a method in pycolmap 4.x, a property in older versions
+        pose = pose() if callable(pose) else pose
+        path = img_dir / im.name
+        if verify:
+            check_image_file(path)
+        images[im.name] = ImageInfo(name=im.name, path=path, K=np.asarray(cam.calibration_matrix(), float),
+                                    R=np.asarray(pose.rotation.matrix(), float),
+                                    t=np.asarray(pose.translation, float).reshape(3),
+                                    size=(int(cam.width), int(cam.height)))
+        id_to_name[image_id] = im.name
+    if not images:
+        raise ImtuneError(f"COLMAP model {mdir} has no registered images")
+
+    point_ids = sorted(rec.point3D_ids())
+    index = {pid: k for k, pid in enumerate(point_ids)}
+    points3d = np.array([rec.points3D[p].xyz for p in point_ids], dtype=np.float64).reshape(-1, 3)
+    observations = {}
+    for image_id, image_name in id_to_name.items():
+        idx, xy = [], []
+        for p2 in rec.images[image_id].points2D:
+            if p2.has_point3D() and p2.point3D_id in index:
+                idx.append(index[p2.point3D_id])
+                xy.append(p2.xy)
+        observations[image_name] = (np.asarray(idx, dtype=np.int64), np.asarray(xy, dtype=np.float64).reshape(-1, 2))
+    return Scene(name=name, root=sdir, images=images,
+                 pairs=all_pairs(list(images)), points3d=points3d, observations=observations, source=NAME)
+
+
+load = load_colmap

@@ -1,0 +1,260 @@
+"""Fetch the public data sets from their original homes (urllib only), into ``<dest>/<name>/``.
+
+    from pipeline.data.download import download
+    download("strecha", "../shared/data")        # -> ../shared/data/strecha/<scene>/...
+
+Each source is a file or an archive (zip / tar*) with an optional sha256. ``base_url`` (or the environment
+variable IMTUNE_DOWNLOAD_BASE) replaces scheme and host of every URL, keeping its path: a mirror or a local test
+server. Everything is assembled in a temporary folder inside ``dest`` and renamed into place at the end, so an
+interrupted download never leaves a partial data set. Strecha images are downsampled by exactly 2 after download
+(3072x2048 -> 1536x1024, area interpolation, JPEG quality 95; fx, fy, skew halved, c' = c/2 - 0.25, size halved),
+the layout ``../shared/data`` uses.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import socket
+import tarfile
+import tempfile
+import urllib.error
+import urllib.parse
+import urllib.request
+import zipfile
+from http.client import HTTPException
+from pathlib import Path
+from typing import Callable, NamedTuple
+
+from pipeline.data.imagefile import check_image_file, is_image_file
+from pipeline.errors import ImtuneError
+
+ENV_BASE = "IMTUNE_DOWNLOAD_BASE"
+TIMEOUT_S = 60.0
+_CHUNK = 1 << 20
+
+
+class Source(NamedTuple):
+    """One thing to fetch: ``url``; ``sha256`` hex digest or None (not checked); ``kind`` "file" | "zip" | "tar"
+    (any tar compression); ``target``: path inside the data set folder it ends up at ("" = the folder itself);
+    ``member``: for archives, the folder or file inside the archive to take ("" = the whole archive)."""
+    url: str
+    sha256: str | None
+    kind: str
+    target: str
+    member: str = ""
+
+
+_GH = "https://raw.githubusercontent.com"
+_STRECHA_REPO = f"{_GH}/openMVG/SfM_quality_evaluation/master/Benchmarking_Camera_Calibration_2008"
+STRECHA_SCENES = {"fountain-P11": 11, "Herz-Jesus-P8": 8, "entry-P10": 10}
+_HLOC_SACRE = f"{_GH}/cvg/Hierarchical-Localization/master/datasets/sacre_coeur/mapping"
+SACRE_COEUR_IMAGES = (
+    "02928139_3448003521.jpg", "03903474_1471484089.jpg", "10265353_3838484249.jpg", "17295357_9106075285.jpg",
+    "32809961_8274055477.jpg", "44120379_8371960244.jpg", "51091044_3486849416.jpg", "60584745_2207571072.jpg",
+    "71295362_4051449754.jpg", "93341989_396310999.jpg")
+_SUPERGLUE_ASSETS = f"{_GH}/magicleap/SuperGluePretrainedNetwork/master/assets"
+# The 15 ScanNet pairs of SuperGlue's scannet_sample_pairs_with_gt.txt: scene, frame of image 0, frame of image 1.
+_SCANNET_PAIRS = (
+    ("0711", "001680", "001995"), ("0713", "001320", "002025"), ("0721", "000375", "002745"),
+    ("0722", "000045", "000735"), ("0726", "000135", "000210"), ("0737", "000930", "001095"),
+    ("0738", "000885", "001065"), ("0743", "000000", "001275"), ("0744", "000585", "002310"),
+    ("0747", "000000", "001530"), ("0752", "000075", "001440"), ("0755", "000120", "002055"),
+    ("0758", "000165", "000510"), ("0768", "001095", "003435"), ("0806", "000225", "001095"))
+SCANNET_IMAGES = tuple(f"scene{s}_00_frame-{f}.jpg" for s, *fr in _SCANNET_PAIRS for f in fr)
+_IMW2020 = "https://www.cs.ubc.ca/research/kmyi_data/imw2020"
+
+
+def _strecha_sources() -> list[Source]:
+    out = []
+    for scene, n in STRECHA_SCENES.items():
+        for k in range(n):
+            f = f"{k:04d}.jpg"
+            out.append(Source(f"{_STRECHA_REPO}/{scene}/images/{f}", None, "file", f"{scene}/images/{f}"))
+            out.append(Source(f"{_STRECHA_REPO}/{scene}/gt_dense_cameras/{f}.camera", None, "file",
+                              f"{scene}/gt_dense_cameras/{f}.camera"))
+    return out
+
+
+#: data set name -> what to fetch. Checksums are None where no published digest exists (upstream files on a
+#: branch may change); pass verified digests here to pin them.
+SOURCES: dict[str, list[Source]] = {
+    "strecha": _strecha_sources(),
+    "sacre_coeur": [Source(f"{_HLOC_SACRE}/{f}", None, "file", f"images/{f}") for f in SACRE_COEUR_IMAGES],
+    "scannet_sample": [Source(f"{_SUPERGLUE_ASSETS}/scannet_sample_pairs_with_gt.txt", None, "file",
+                              "pairs_with_gt.txt")]
+    + [Source(f"{_SUPERGLUE_ASSETS}/scannet_sample_images/{f}", None, "file", f"images/{f}") for f in SCANNET_IMAGES],
+    # IMC-PT 2020 validation scenes with ground truth (reichstag, sacre_coeur, st_peters_square), benchmark layout
+    # <scene>/set_100/{images,calibration,depth_maps,new-vis-pairs,sub_set}.
+    "phototourism": [Source(f"{_IMW2020}/ValidationData/imw2020-valid.tar.gz", None, "tar", "", "imw2020-valid")],
+}
+
+
+def _strecha_downsample(folder: Path) -> None:
+    """Halve every Strecha image and rescale its camera file (pixel-centre convention), in place."""
+    import cv2
+    import numpy as np
+
+    from pipeline.data.resize import scaled_K
+    from pipeline.data.strecha import read_camera, write_camera
+
+    for cam_path in sorted(folder.glob("*/gt_dense_cameras/*.camera")):
+        img_path = cam_path.parent.parent / "images" / cam_path.name[: -len(".camera")]
+        cam = read_camera(cam_path)
+        img = cv2.imread(str(img_path), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise ImtuneError(f"unreadable downloaded image {img_path}")
+        h, w = img.shape[:2]
+        if (w, h) != cam["size"]:
+            raise ImtuneError(f"{cam_path} states size {cam['size'][0]}x{cam['size'][1]} but {img_path} is {w}x{h}")
+        w2, h2 = int(round(w / 2)), int(round(h / 2))
+        small = cv2.resize(img, (w2, h2), interpolation=cv2.INTER_AREA)
+        ok, buf = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, 95])
+        if not ok:
+            raise ImtuneError(f"cannot encode {img_path}")
+        img_path.write_bytes(np.asarray(buf).tobytes())
+        write_camera(cam_path, scaled_K(cam["K"], w2 / w, h2 / h), cam["dist"], cam["R"], cam["C"], (w2, h2))
+
+
+#: data set name -> step run on the assembled folder before it is moved into place.
+POSTPROCESS: dict[str, Callable[[Path], None]] = {"strecha": _strecha_downsample}
+
+
+def resolve_url(url: str, base_url: str | None) -> str:
+    """``url`` with scheme and host replaced by ``base_url`` (its path prefix kept), or ``url`` unchanged."""
+    if not base_url:
+        return url
+    path = urllib.parse.urlsplit(url).path
+    return base_url.rstrip("/") + "/" + path.lstrip("/")
+
+
+def _fetch(url: str, out: Path, sha256: str | None, quiet: bool) -> None:
+    """Stream ``url`` to ``out`` with a progress bar; ImtuneError (one line) on any network or checksum error."""
+    from tqdm import tqdm
+
+    digest = hashlib.sha256()
+    try:
+        with urllib.request.urlopen(url, timeout=TIMEOUT_S) as r, open(out, "wb") as f:
+            total = r.headers.get("Content-Length")
+            total = int(total) if total and total.isdigit() else None
+            got = 0
+            with tqdm(total=total, unit="B", unit_scale=True, desc=Path(out).name, leave=False,
+                      disable=quiet or (total is not None and total < 8 * _CHUNK)) as bar:
+                while chunk := r.read(_CHUNK):
+                    f.write(chunk)
+                    digest.update(chunk)
+                    got += len(chunk)
+                    bar.update(len(chunk))
+    except urllib.error.HTTPError as e:
+        raise ImtuneError(f"download failed: {url}: HTTP {e.code} {e.reason}") from None
+    except urllib.error.URLError as e:
+        raise ImtuneError(f"download failed: {url}: {e.reason}") from None
+    except (socket.timeout, TimeoutError) as e:
+        raise ImtuneError(f"download failed: {url}: timed out ({e})") from None
+    except (HTTPException, ConnectionError, OSError) as e:
+        raise ImtuneError(f"download failed: {url}: {type(e).__name__}: {e}") from None
+    if total is not None and got != total:
+        raise ImtuneError(f"download failed: {url}: incomplete ({got} of {total} bytes)")
+    if sha256 and digest.hexdigest() != sha256.lower():
+        raise ImtuneError(f"download failed: {url}: sha256 mismatch (got {digest.hexdigest()}, expected {sha256})")
+
+
+def _inside(root: Path, member: str) -> bool:
+    target = (root / member).resolve()
+    return target == root.resolve() or root.resolve() in target.parents
+
+
+def _extract(archive: Path, kind: str, out: Path, url: str) -> None:
+    """Extract safely (no absolute paths, no '..', no links leaving ``out``); ImtuneError if corrupt."""
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        if kind == "zip":
+            with zipfile.ZipFile(archive) as z:
+                bad = [n for n in z.namelist() if not _inside(out, n)]
+                if bad:
+                    raise ImtuneError(f"unsafe path in archive from {url}: {bad[0]}")
+                z.extractall(out)
+        elif kind == "tar":
+            with tarfile.open(archive) as t:
+                members = t.getmembers()
+                bad = [m.name for m in members if not _inside(out, m.name)
+                       or ((m.issym() or m.islnk()) and not _inside(out, str(Path(m.name).parent / m.linkname)))
+                       or m.isdev()]
+                if bad:
+                    raise ImtuneError(f"unsafe path in archive from {url}: {bad[0]}")
+                if hasattr(tarfile, "data_filter"):
+                    t.extractall(out, filter="data")
+                else:  # pragma: no cover - Python without extraction filters
+                    t.extractall(out)
+        else:
+            raise ImtuneError(f"unknown archive kind {kind!r} for {url}")
+    except (zipfile.BadZipFile, tarfile.TarError, EOFError, OSError) as e:
+        raise ImtuneError(f"corrupt archive from {url}: {type(e).__name__}: {e}") from None
+
+
+def _place(src: Path, dst: Path) -> None:
+    """Move ``src`` (file or folder) to ``dst``, merging into an existing folder."""
+    if src.is_dir() and dst.is_dir():
+        for child in src.iterdir():
+            _place(child, dst / child.name)
+        return
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    if dst.exists():
+        shutil.rmtree(dst) if dst.is_dir() else dst.unlink()
+    shutil.move(str(src), str(dst))
+
+
+def download(name: str, dest: str | Path, base_url: str | None = None, *, force: bool = False,
+             quiet: bool = False) -> Path:
+    """Download data set ``name`` (a key of SOURCES) into ``<dest>/<name>`` and return that folder.
+
+    An existing ``<dest>/<name>`` is kept as is unless ``force``. ``base_url`` (default: $IMTUNE_DOWNLOAD_BASE)
+    redirects every URL to another host, keeping the path. Errors are ImtuneError with a one-line message.
+    """
+    if name not in SOURCES:
+        raise ImtuneError(f"unknown data set {name!r} (available: {', '.join(SOURCES)})")
+    dest = Path(dest)
+    final = dest / name
+    if final.exists() and not force:
+        return final
+    base = base_url if base_url is not None else os.environ.get(ENV_BASE) or None
+    try:
+        dest.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{name}-download-", dir=dest))
+    except OSError as e:
+        raise ImtuneError(f"cannot write to {dest}: {e.strerror or e}") from None
+    from tqdm import tqdm
+
+    try:
+        stage, fetched = tmp / name, tmp / "_fetched"
+        stage.mkdir()
+        fetched.mkdir()
+        sources = SOURCES[name]
+        for k, src in enumerate(tqdm(sources, desc=f"download {name}", unit="file", disable=quiet)):
+            url = resolve_url(src.url, base)
+            file = fetched / f"{k:05d}-{Path(urllib.parse.urlsplit(url).path).name or 'download'}"
+            _fetch(url, file, src.sha256, quiet)
+            if src.kind == "file":
+                _place(file, stage / src.target if src.target else stage / file.name)
+                continue
+            xdir = tmp / f"_x{k:05d}"
+            _extract(file, src.kind, xdir, url)
+            file.unlink()
+            member = xdir / src.member if src.member else xdir
+            if not member.exists():
+                raise ImtuneError(f"archive from {url} has no {src.member!r}")
+            _place(member, stage / src.target if src.target else stage / (member.name if member.is_file() else ""))
+            shutil.rmtree(xdir, ignore_errors=True)
+        for f in stage.rglob("*"):  # a truncated image fails here, not hours later
+            if is_image_file(f):
+                check_image_file(f)
+        if name in POSTPROCESS:
+            POSTPROCESS[name](stage)
+        if final.exists():
+            os.replace(final, tmp / "_old")
+        os.replace(stage, final)
+    except OSError as e:
+        raise ImtuneError(f"cannot write data set {name} to {dest}: {e.strerror or e}") from None
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return final

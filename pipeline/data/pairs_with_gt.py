@@ -1,0 +1,118 @@
+"""SuperGlue / LoFTR "pairs with ground truth" text lists (ScanNet, YFCC100M, ... test pairs).
+
+One line per pair: ``name0 name1 rot0 rot1 K0(9) K1(9) T_0to1(16)`` — K row-major in px, T_0to1 the row-major 4x4
+mapping camera-0 coordinates to camera-1 coordinates (translation in the dataset's units: metres for ScanNet).
+rot0 / rot1 are EXIF rotation codes; only 0 is supported (the intrinsics refer to the stored pixel grid).
+Image names are paths as written, resolved against ``<root>/images/`` first, then ``<root>/``. The scene is the
+folder holding the list; its name is the folder name. Stereo only: images carry K but no absolute pose.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.data._common import check_K, check_rotation, parse_floats, pick_scene, scene_dirs
+from pipeline.data.imagefile import check_image_file, image_size
+from pipeline.data.scene import ImageInfo, Pair, Scene
+from pipeline.errors import ImtuneError
+
+NAME = "pairs_with_gt"
+DEFAULT_FILE = "pairs_with_gt.txt"
+_NUMS = 2 + 9 + 9 + 16
+
+
+def find_pairs_file(folder: Path) -> Path | None:
+    """``pairs_with_gt.txt``, else the single ``*pairs_with_gt*.txt`` in ``folder``; None if there is none."""
+    folder = Path(folder)
+    if (folder / DEFAULT_FILE).is_file():
+        return folder / DEFAULT_FILE
+    found = sorted(p for p in folder.glob("*pairs_with_gt*.txt") if p.is_file()) if folder.is_dir() else []
+    return found[0] if len(found) == 1 else None
+
+
+def _is_scene(p: Path) -> bool:
+    return find_pairs_file(p) is not None
+
+
+def detect(root: Path) -> bool:
+    return bool(scene_dirs(root, _is_scene))
+
+
+def list_scenes(root: Path) -> list[str]:
+    return list(scene_dirs(root, _is_scene))
+
+
+def read_pairs_file(path: Path) -> list[tuple[str, str, np.ndarray, np.ndarray, np.ndarray]]:
+    """Parse the list: [(name0, name1, K0, K1, T_0to1 4x4)]. Blank lines and ``#`` comments are skipped;
+    a malformed line raises ImtuneError naming the file and the line number."""
+    path = Path(path)
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as e:
+        raise ImtuneError(f"cannot read pairs file {path}: {e}") from None
+    out = []
+    for lineno, line in enumerate(lines, 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        where = f"{path}, line {lineno}"
+        tokens = line.split()
+        if len(tokens) != 2 + _NUMS:
+            raise ImtuneError(f"{where}: expected 2 names and {_NUMS} numbers, found {len(tokens)} fields")
+        v = parse_floats(" ".join(tokens[2:]), _NUMS, where)
+        if v[0] != 0 or v[1] != 0:
+            raise ImtuneError(f"{where}: EXIF rotation codes {v[0]:g} {v[1]:g} are not supported (only 0)")
+        K0, K1 = check_K(v[2:11], f"{where} (K0)"), check_K(v[11:20], f"{where} (K1)")
+        T = v[20:36].reshape(4, 4)
+        if np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-6:
+            raise ImtuneError(f"{where}: T_0to1 last row must be 0 0 0 1")
+        check_rotation(T[:3, :3], f"{where} (T_0to1)", tol=1e-3)
+        out.append((tokens[0], tokens[1], K0, K1, T))
+    return out
+
+
+def _resolve(root: Path, name: str) -> Path:
+    for cand in (root / "images" / name, root / name):
+        if cand.is_file():
+            return cand
+    return root / "images" / name
+
+
+def load_pairs_with_gt(root: Path, scene: str | None = None, pairs_file: Path | None = None,
+                       verify: bool = True) -> Scene:
+    """Load a pairs-with-GT list as a stereo-only Scene (per-pair R, t and K; image K from the first listing).
+
+    ``root``: the folder holding the list (or a folder of such folders, with ``scene``); ``pairs_file`` overrides
+    the list's location. ``verify`` checks every image exists and is complete, and reads its size.
+    """
+    root = Path(root)
+    if pairs_file is not None:
+        sdir, name = root, scene or root.name
+        pfile = Path(pairs_file)
+    else:
+        dirs = scene_dirs(root, _is_scene)
+        name = pick_scene(root, scene, list(dirs), NAME)
+        sdir = dirs[name]
+        pfile = find_pairs_file(sdir)
+    if not pfile.is_file():
+        raise ImtuneError(f"pairs file not found: {pfile}")
+    rows = read_pairs_file(pfile)
+    if not rows:
+        raise ImtuneError(f"no pairs in {pfile}")
+    images: dict[str, ImageInfo] = {}
+    pairs: list[Pair] = []
+    for n0, n1, K0, K1, T in rows:
+        for n, K in ((n0, K0), (n1, K1)):
+            if n not in images:
+                path = _resolve(sdir, n)
+                size = None
+                if verify:
+                    check_image_file(path)
+                    size = image_size(path)
+                images[n] = ImageInfo(name=n, path=path, K=K, size=size)
+        pairs.append(Pair(n0, n1, R=T[:3, :3].copy(), t=T[:3, 3].copy(), K_i=K0, K_j=K1))
+    return Scene(name=name, root=sdir, images=images, pairs=pairs, source=NAME)
+
+
+load = load_pairs_with_gt

@@ -1,0 +1,95 @@
+"""`tune evaluate` end to end on the real Strecha and ScanNet data; bad input gives one line and exit != 0."""
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import DATA, ROOT
+
+
+def tune(*args, env=None, timeout=600):
+    e = dict(os.environ)
+    e.update(env or {})
+    return subprocess.run([sys.executable, "-m", "tuner", *args], capture_output=True, text=True,
+                          cwd=ROOT, env=e, timeout=timeout)
+
+
+@pytest.fixture(scope="module")
+def module_cache(tmp_path_factory):
+    return str(tmp_path_factory.mktemp("cache"))
+
+
+def test_evaluate_json_on_fountain(strecha, module_cache):
+    r = tune("evaluate", "--feature", "sift", "--num-features", "2048", "--ratio", "0.85", "--strategy", "both",
+             "--ransac", "degensac", "--threshold", "0.5", "--max-iters", "20000", "--data", str(strecha),
+             "--scenes", "fountain-P11", "--json", env={"IMTUNE_CACHE": module_cache})
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    st = out["stereo"]
+    for k in ("mAA5", "mAA10", "NF", "NM", "NI", "pairs", "scenes"):
+        assert k in st
+    assert st["pairs"] == 55  # all 11 choose 2 pairs: Strecha has no co-visibility yet
+    assert 1500 <= st["NF"] <= 2048
+    assert st["NI"] > 50 and st["NM"] >= st["NI"]
+    # fountain-P11 with laser ground truth is easy for tuned SIFT: most pairs within a few degrees
+    assert st["mAA10"] > 0.6
+    assert st["mAA5"] <= st["mAA10"]
+    assert set(st["scenes"]) == {"fountain-P11"}
+
+
+def test_evaluate_table_output_on_scannet(scannet, module_cache):
+    r = tune("evaluate", "--feature", "sift", "--num-features", "2048", "--ratio", "0.8", "--ransac", "cv-usac",
+             "--threshold", "1.0", "--data", str(scannet), "--quiet", env={"IMTUNE_CACHE": module_cache})
+    assert r.returncode == 0, r.stderr
+    assert "scannet_sample" in r.stdout and "mAA10" in r.stdout
+    row = [ln for ln in r.stdout.splitlines() if ln.startswith("| scannet_sample")][0]
+    assert row.split("|")[2].strip() == "15"  # 15 pairs
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["--feature", "nosuch"], "nosuch"),
+    (["--ransac", "nosuch"], "nosuch"),
+    (["--feature", "surf"], "surf"),
+    (["--ratio", "0"], "ratio"),
+    (["--ratio", "1.5"], "ratio"),
+    (["--threshold", "-1"], "threshold"),
+    (["--scenes", "no-such-scene"], "no-such-scene"),
+    (["--strategy", "sideways"], "sideways"),
+])
+def test_bad_input_is_one_line_and_nonzero(strecha, module_cache, args, needle):
+    r = tune("evaluate", "--data", str(strecha), "--scenes", "fountain-P11", "--num-features", "256", *args,
+             env={"IMTUNE_CACHE": module_cache}, timeout=300)
+    assert r.returncode != 0
+    lines = [ln for ln in r.stderr.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1, r.stderr
+    assert needle in lines[0] and "Traceback" not in r.stderr
+
+
+def test_missing_data_folder(tmp_path):
+    r = tune("evaluate", "--data", str(tmp_path / "absent"), timeout=120)
+    assert r.returncode != 0 and "absent" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_truncated_image_is_one_line(strecha, tmp_path, module_cache):
+    import shutil
+    dst = tmp_path / "strecha" / "fountain-P11"
+    shutil.copytree(strecha / "fountain-P11", dst)
+    img = dst / "images" / "0003.jpg"
+    img.write_bytes(img.read_bytes()[: img.stat().st_size // 2])
+    r = tune("evaluate", "--data", str(tmp_path / "strecha"), "--scenes", "fountain-P11", "--num-features", "256",
+             env={"IMTUNE_CACHE": module_cache}, timeout=300)
+    assert r.returncode != 0 and "0003.jpg" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_list_shows_availability():
+    r = tune("list", "--json", timeout=120)
+    assert r.returncode == 0, r.stderr
+    rows = {(x["family"], x["name"]): x for x in json.loads(r.stdout)}
+    assert rows[("feature", "sift")]["available"] == "yes"
+    assert rows[("feature", "surf")]["available"] == "no" and rows[("feature", "surf")]["note"]
+    for name in ("pyransac", "degensac", "magsac", "magsac++", "gcransac", "cv-ransac", "cv-usac", "cv-magsac",
+                 "cv-accurate", "cv-lmeds", "cv-8pt", "poselib", "colmap"):
+        assert rows[("estimator", name)]["available"] == "yes", name

@@ -1,0 +1,131 @@
+"""COLMAP sparse-model loader: a synthetic model written in COLMAP's text format, then as binary via pycolmap."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+from scipy.spatial.transform import Rotation
+
+from pipeline.data import detect_format, list_scenes, load_colmap, load_scene
+from pipeline.errors import ImtuneError
+
+W, H = 120, 90
+
+
+def _project(K, R, t, X):
+    x = (X @ R.T + t) @ K.T
+    return x[:, :2] / x[:, 2:]
+
+
+def write_colmap_text(model: Path, images_dir: Path, n_images: int = 4, n_points: int = 30, seed: int = 0):
+    """cameras.txt / images.txt / points3D.txt of a scene of cameras around the origin looking at it."""
+    rng = np.random.default_rng(seed)
+    model.mkdir(parents=True, exist_ok=True)
+    images_dir.mkdir(parents=True, exist_ok=True)
+    cams = [("PINHOLE", [100.0, 102.0, 59.5, 44.5]), ("SIMPLE_RADIAL", [95.0, 60.0, 45.0, 0.0])]
+    X = rng.uniform(-1, 1, (n_points, 3))
+    truth, obs = {}, {}
+    img_lines = []
+    for k in range(n_images):
+        name = f"view_{k}.jpg"
+        cv2.imwrite(str(images_dir / name), rng.integers(0, 255, (H, W), dtype=np.uint8))
+        R = Rotation.from_euler("y", 20 * k - 30, degrees=True).as_matrix()
+        t = np.array([0.1 * k, -0.05, 4.0])
+        cam_id = 1 + k % 2
+        f, *rest = cams[cam_id - 1][1]
+        K = (np.array([[f, 0, rest[1]], [0, rest[0], rest[2]], [0, 0, 1]]) if cam_id == 1
+             else np.array([[f, 0, rest[0]], [0, f, rest[1]], [0, 0, 1]]))
+        x = _project(K, R, t, X)
+        seen = np.flatnonzero(rng.random(n_points) < 0.8)
+        q = Rotation.from_matrix(R).as_quat()  # x y z w
+        img_lines.append(f"{k + 1} {q[3]:.17g} {q[0]:.17g} {q[1]:.17g} {q[2]:.17g} {t[0]:.17g} {t[1]:.17g} {t[2]:.17g} {cam_id} {name}")
+        pts = [f"{x[p, 0]:.17g} {x[p, 1]:.17g} {p + 1}" for p in seen] + ["1.0 2.0 -1"]  # one untriangulated keypoint
+        img_lines.append(" ".join(pts))
+        truth[name] = (K, R, t)
+        obs[name] = (seen, x[seen])
+    (model / "cameras.txt").write_text("# Camera list\n" + "".join(
+        f"{i + 1} {m} {W} {H} {' '.join(map(repr, p))}\n" for i, (m, p) in enumerate(cams)))
+    (model / "images.txt").write_text("# Image list\n" + "\n".join(img_lines) + "\n")
+    lines = []
+    for p in range(n_points):
+        track = [(k + 1, int(np.flatnonzero(obs[f"view_{k}.jpg"][0] == p)[0]))
+                 for k in range(n_images) if p in obs[f"view_{k}.jpg"][0]]
+        if len(track) < 2:
+            continue
+        lines.append(f"{p + 1} {X[p, 0]:.17g} {X[p, 1]:.17g} {X[p, 2]:.17g} 128 128 128 0.5 "
+                     + " ".join(f"{i} {j}" for i, j in track))
+    (model / "points3D.txt").write_text("# 3D points\n" + "\n".join(lines) + "\n")
+    kept = sorted(int(ln.split()[0]) - 1 for ln in lines)
+    return truth, obs, X, kept
+
+
+def _check(scene, truth, obs, X, kept):
+    assert scene.source == "colmap" and len(scene.images) == len(truth)
+    n = len(truth)
+    assert len(scene.pairs) == n * (n - 1) // 2
+    for name, (K, R, t) in truth.items():
+        im = scene.images[name]
+        np.testing.assert_allclose(im.K, K, atol=1e-9)
+        np.testing.assert_allclose(im.R, R, atol=1e-9)
+        np.testing.assert_allclose(im.t, t, atol=1e-9)
+        assert im.size == (W, H) and im.path.is_file()
+    assert scene.points3d.shape == (len(kept), 3)
+    np.testing.assert_allclose(scene.points3d, X[kept], atol=1e-12)
+    for name, (idx, xy) in scene.observations.items():
+        ids = np.array(kept)[idx]  # back to the synthetic point numbers
+        seen, x = obs[name]
+        sel = np.isin(seen, kept)
+        np.testing.assert_array_equal(np.sort(ids), np.sort(seen[sel]))
+        order = np.argsort(ids)
+        np.testing.assert_allclose(xy[order], x[sel][np.argsort(seen[sel])], atol=1e-9)
+        # observations reproject: the model and the poses agree
+        K, R, t = truth[name]
+        np.testing.assert_allclose(_project(K, R, t, scene.points3d[idx]), xy, atol=1e-6)
+
+
+def test_colmap_text_model_round_trips(tmp_path):
+    truth, obs, X, kept = write_colmap_text(tmp_path / "ds" / "bridge" / "sparse", tmp_path / "ds" / "bridge" / "images")
+    assert detect_format(tmp_path / "ds") == "colmap"
+    assert list_scenes(tmp_path / "ds") == ["bridge"]
+    _check(load_scene(tmp_path / "ds", "bridge"), truth, obs, X, kept)
+
+
+def test_colmap_binary_model_in_numbered_folder(tmp_path):
+    sdir = tmp_path / "bridge"
+    truth, obs, X, kept = write_colmap_text(tmp_path / "txt", sdir / "images")
+    rec = pycolmap.Reconstruction(str(tmp_path / "txt"))
+    (sdir / "sparse" / "0").mkdir(parents=True)
+    rec.write_binary(str(sdir / "sparse" / "0"))
+    # a smaller second model: the loader takes the one with the most registered images
+    write_colmap_text(tmp_path / "txt_small", tmp_path / "unused", n_images=3, seed=1)
+    (sdir / "sparse" / "1").mkdir()
+    pycolmap.Reconstruction(str(tmp_path / "txt_small")).write_binary(str(sdir / "sparse" / "1"))
+    assert pycolmap.Reconstruction(str(sdir / "sparse" / "1")).num_reg_images() == len(truth) - 1
+    _check(load_colmap(sdir), truth, obs, X, kept)
+
+
+def test_unreadable_model_names_it(tmp_path):
+    sdir = tmp_path / "broken"
+    write_colmap_text(sdir / "sparse", sdir / "images")
+    (sdir / "sparse" / "cameras.txt").write_text("1 NOT_A_MODEL 10 10 1 2 3\n")
+    with pytest.raises(ImtuneError, match="unreadable COLMAP model .*broken/sparse"):
+        load_colmap(sdir)
+    bdir = tmp_path / "bin" / "sparse"
+    bdir.mkdir(parents=True)
+    for n in ("cameras", "images", "points3D"):
+        (bdir / f"{n}.bin").write_bytes(b"")
+    (tmp_path / "bin" / "images").mkdir()
+    with pytest.raises(ImtuneError, match="unreadable COLMAP model .*bin/sparse"):
+        load_colmap(tmp_path / "bin")
+
+
+def test_missing_image_file(tmp_path):
+    sdir = tmp_path / "s"
+    write_colmap_text(sdir / "sparse", sdir / "images")
+    (sdir / "images" / "view_2.jpg").unlink()
+    with pytest.raises(ImtuneError, match="view_2.jpg"):
+        load_colmap(sdir)
+    assert len(load_colmap(sdir, verify=False).images) == 4

@@ -1,0 +1,274 @@
+"""The time budget: estimator seconds per pair against the iteration cap Gamma, measured on this machine.
+
+The paper caps every estimator's iterations so that it spends at most B seconds per image pair
+(B = 0.5 s on validation, 1 s on test). :func:`calibrate` measures the cost curve — median (and 90th
+percentile) estimator seconds per pair against max_iters — on a sample of the validation pairs'
+tentative matches, and :meth:`Calibration.gamma_max` reads off Gamma_max(B), the largest cap whose
+median time per pair stays within B (log-log interpolation between measured points).
+
+Calibrations are stored per machine, estimator, feature configuration, calibration matches and data
+in ``<studies dir>/budgets.json`` (written atomically under a file lock, so workers starting together
+measure once), and copied into each study's user attributes when the study is created.
+"""
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import fcntl
+import json
+import math
+import os
+import socket
+import tempfile
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import ImtuneError
+
+GAMMA_START = 100
+GAMMA_CEILING = 1_000_000
+BUDGETS_FILE = "budgets.json"
+
+
+@dataclass
+class Calibration:
+    """One measured cost curve.
+
+    curve: [(max_iters, median seconds per pair, 90th-percentile seconds per pair), ...] sorted by
+    max_iters; pairs: how many pairs were timed per point; ratio / threshold: the matches and eta used;
+    ceiling: the largest cap ever allowed."""
+    estimator: str
+    feature: dict
+    ratio: float
+    threshold: float
+    pairs: int
+    curve: list
+    host: str = ""
+    created: str = ""
+    data_fingerprint: str = ""
+    ceiling: int = GAMMA_CEILING
+    seconds: float = 0.0  # wall time the measurement took
+
+    def gamma_max(self, budget: float) -> int:
+        """Largest max_iters whose median estimator time per pair is <= ``budget`` seconds."""
+        pts = sorted((int(g), float(m)) for g, m, *_ in self.curve)
+        if not pts:
+            raise ImtuneError(f"calibration of {self.estimator}: empty curve")
+        ok = [(g, m) for g, m in pts if m <= budget]
+        if not ok:  # even the smallest cap is too slow: extrapolate linearly down
+            g0, m0 = pts[0]
+            return max(1, _round_down(g0 * budget / max(m0, 1e-9)))
+        g_lo, m_lo = ok[-1]
+        above = [(g, m) for g, m in pts if g > g_lo and m > budget]
+        if not above:
+            if g_lo >= self.ceiling or len(pts) < 2:
+                return _round_down(min(g_lo, self.ceiling))
+            # the curve never crossed B (measurement stopped early or the estimator terminates early):
+            # extrapolate the last segment's slope, at most 10x, never past the ceiling
+            (g1, m1), (g2, m2) = pts[-2], pts[-1]
+            if m2 <= m1 * 1.05:  # flat: time no longer grows with the cap (early termination)
+                return _round_down(self.ceiling if g2 >= self.ceiling else min(self.ceiling, g2 * 10))
+            slope = math.log(m2 / m1) / math.log(g2 / g1)
+            g = g2 * (budget / m2) ** (1.0 / max(slope, 1e-3))
+            return _round_down(min(g, g2 * 10, self.ceiling))
+        g_hi, m_hi = above[0]
+        if m_lo <= 0:
+            return _round_down(g_lo)
+        t = (math.log(budget) - math.log(m_lo)) / (math.log(m_hi) - math.log(m_lo))
+        g = math.exp(math.log(g_lo) + t * (math.log(g_hi) - math.log(g_lo)))
+        return _round_down(min(max(g, g_lo), g_hi, self.ceiling))
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Calibration":
+        names = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in names})
+
+
+def _round_down(g: float) -> int:
+    """Two significant digits, rounded down (a cap is a bound, never rounded up past the budget)."""
+    g = max(float(g), 1.0)
+    e = max(int(math.floor(math.log10(g))) - 1, 0)
+    return int(math.floor(g / 10 ** e) * 10 ** e)
+
+
+def calibration_key(estimator: str, feature_conf, ratio: float, threshold: float, data_fingerprint: str) -> str:
+    from pipeline.config import config_hash
+    return "|".join([socket.gethostname(), estimator, config_hash(feature_conf, 10),
+                     f"r={ratio:g}", f"eta={threshold:g}", data_fingerprint])
+
+
+# -- the store --------------------------------------------------------------------------------------
+
+@contextmanager
+def _locked(path: Path):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(str(path) + ".lock", "a+") as fh:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+
+
+def _read_store(path: Path) -> dict:
+    if not path.is_file():
+        return {}
+    try:
+        d = json.loads(path.read_text())
+        return d if isinstance(d, dict) else {}
+    except (OSError, ValueError):
+        return {}  # a damaged store is re-measured, never trusted
+
+
+def _write_store(path: Path, data: dict) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=".budgets.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            json.dump(data, fh, indent=1, sort_keys=True)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def stored_calibration(studies_dir: Path, key: str) -> Calibration | None:
+    d = _read_store(Path(studies_dir) / BUDGETS_FILE).get(key)
+    return Calibration.from_dict(d) if d else None
+
+
+def list_calibrations(studies_dir: Path) -> dict[str, Calibration]:
+    return {k: Calibration.from_dict(v) for k, v in _read_store(Path(studies_dir) / BUDGETS_FILE).items()}
+
+
+# -- measuring --------------------------------------------------------------------------------------
+
+def calibration_matches(scenes, conf, cache, max_pairs: int = 8, progress: bool = False):
+    """Tentative matches of up to ``max_pairs`` validation pairs (evenly spread over all pairs), at
+    the working resolution: list of (pts1, pts2, sizes)."""
+    from pipeline.matching.filter import filter_matches
+    from pipeline.tasks.stereo import prepare_scene
+    allp = [(s, p) for s, pairs in scenes for p in pairs]
+    if not allp:
+        raise ImtuneError("calibration: no validation pairs")
+    idx = np.unique(np.linspace(0, len(allp) - 1, min(max_pairs, len(allp))).round().astype(int))
+    chosen: dict[str, tuple] = {}
+    for k in idx:
+        s, p = allp[k]
+        chosen.setdefault(s.name, (s, []))[1].append(p)
+    out = []
+    for s, pairs in chosen.values():
+        feats, tables = prepare_scene(s, conf, cache, pairs, progress=progress)
+        for p in pairs:
+            tab, _ = tables[p.key]
+            fi, fj = feats[p.i], feats[p.j]
+            m, _ = filter_matches(tab, conf.matching, fi.keypoints, fj.keypoints)
+            if len(m) < 8:
+                continue
+            out.append((fi.keypoints[m[:, 0]].astype(np.float64), fj.keypoints[m[:, 1]].astype(np.float64),
+                        ((fi.width, fi.height), (fj.width, fj.height))))
+    if not out:
+        raise ImtuneError("calibration: no validation pair has 8 or more tentative matches at "
+                          f"r={conf.matching.ratio}; cannot time the estimator")
+    return out
+
+
+def measure_curve(estimator_name: str, matches, threshold: float, confidence: float, budget: float,
+                  seed: int = 0, ceiling: int = GAMMA_CEILING, progress: bool = False) -> list:
+    """Time the estimator at increasing caps until the median time per pair exceeds ``budget``
+    (the next cap is aimed just past the budget, so measuring costs a few times B per pair)."""
+    from pipeline.geometry import get_estimator
+    est = get_estimator(estimator_name)
+    curve = []
+    g = GAMMA_START
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+        bar = tqdm(desc=f"calibrating {estimator_name}", unit="cap", leave=False)
+    try:
+        while True:
+            secs = []
+            for pts1, pts2, sizes in matches:
+                r = est.estimate(pts1, pts2, threshold, confidence, int(g), seed=seed, sizes=sizes)
+                secs.append(r.seconds)
+            med, p90 = float(np.median(secs)), float(np.percentile(secs, 90))
+            curve.append((int(g), med, p90))
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix_str(f"Gamma={g} median={med * 1000:.1f} ms/pair")
+            if med > budget or g >= ceiling:
+                break
+            if len(curve) >= 2 and med <= curve[-2][1] * 1.05 and g >= 100_000:
+                break  # flat: the estimator terminates early whatever the cap
+            # aim 1.3 x past the budget assuming time ~ cap, growing by 3x..10x per step
+            grow = 1.3 * budget / max(med, 1e-6)
+            g = int(min(ceiling, g * min(max(grow, 3.0), 10.0)))
+    finally:
+        if bar is not None:
+            bar.close()
+    return curve
+
+
+def calibrate(estimator_name: str, base_conf, scenes, cache, data_fingerprint: str, *,
+              budgets: tuple[float, ...] = (0.5,), ratio: float = 0.9, threshold: float = 0.5,
+              max_pairs: int = 8, studies_dir: Path | str | None = None, force: bool = False,
+              progress: bool = False, seed: int = 0) -> Calibration:
+    """Gamma_max calibration for ``estimator_name`` (reused from ``budgets.json`` unless ``force``).
+
+    scenes: [(Scene, [Pair, ...]), ...] validation scenes and their selected pairs; base_conf: the
+    study's PipelineConfig (feature and matching settings); ratio / threshold: the matches and eta
+    timed. The curve is measured up to the largest of ``budgets``."""
+    from pipeline.geometry import ESTIMATORS
+    cls = ESTIMATORS.get(estimator_name)
+    conf = dataclasses.replace(base_conf, matching=dataclasses.replace(base_conf.matching, ratio=float(ratio)))
+    key = calibration_key(estimator_name, conf.feature, ratio, threshold, data_fingerprint)
+    store = Path(studies_dir) / BUDGETS_FILE if studies_dir is not None else None
+    bmax = max(budgets)
+
+    def usable(c: Calibration | None) -> bool:
+        if c is None:
+            return False
+        top = max((m for _, m, *_ in c.curve), default=0.0)
+        gmax = max((g for g, *_ in c.curve), default=0)
+        return top > bmax or gmax >= c.ceiling or (len(c.curve) >= 2 and c.curve[-1][1] <= c.curve[-2][1] * 1.05)
+
+    if store is not None and not force:
+        c = stored_calibration(store.parent, key)
+        if usable(c):
+            return c
+    lock = _locked(store) if store is not None else _nullctx()
+    with lock:
+        if store is not None and not force:
+            c = stored_calibration(store.parent, key)  # another worker may have measured meanwhile
+            if usable(c):
+                return c
+        t0 = time.perf_counter()
+        if not getattr(cls, "uses_iterations", True):
+            curve = [(1, 0.0, 0.0)]
+        else:
+            matches = calibration_matches(scenes, conf, cache, max_pairs=max_pairs, progress=progress)
+            curve = measure_curve(estimator_name, matches, threshold, conf.geometry.confidence, bmax,
+                                  seed=seed, progress=progress)
+        cal = Calibration(estimator=estimator_name, feature=dataclasses.asdict(conf.feature), ratio=float(ratio),
+                          threshold=float(threshold), pairs=int(min(max_pairs, sum(len(p) for _, p in scenes))),
+                          curve=[list(c) for c in curve], host=socket.gethostname(),
+                          created=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+                          data_fingerprint=data_fingerprint, seconds=time.perf_counter() - t0)
+        if store is not None:
+            data = _read_store(store)
+            data[key] = cal.to_dict()
+            _write_store(store, data)
+    return cal
+
+
+@contextmanager
+def _nullctx():
+    yield

@@ -1,0 +1,405 @@
+"""The Optuna commands: `tune [run]`, `tune calibrate`, `tune test`, `tune table`, `tune results`,
+`tune plot`, `tune dashboard`, `tune studies`.
+
+    tune --feature sift --ransac degensac              # = tune run ...: tune, freeze, test
+    tune calibrate --feature sift --ransac magsac++    # Gamma_max(B) on this machine
+    tune test --study sift-8000-degensac-stereo        # frozen settings on the test scenes, 3 runs
+    tune table [--format csv|latex|json]               # optimal settings over all studies
+    tune results                                       # test results: NF, NI and mAA(10) per estimator
+    tune plot --study NAME                             # one HTML report
+    tune dashboard [--port 8080]                       # optuna-dashboard on 127.0.0.1
+
+Every command takes ``--storage URL`` (default ``sqlite:///<studies dir>/optuna.db``) and
+``--studies-dir DIR`` (default ``$IMTUNE_STUDIES``, else ``studies/`` in the project checkout, else
+``./studies``); see :mod:`tuner.storage`.
+"""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from pipeline.errors import ImtuneError
+from tuner.formatting import render
+from tuner.options import add_pipeline_options, build_config, resolve_data
+
+FORMATS = ("markdown", "csv", "latex", "json")
+
+
+def _storage_opts(ap) -> None:
+    g = ap.add_argument_group("storage")
+    g.add_argument("--storage", default=None,
+                   help="sqlite:///PATH, postgresql://USER:PASS@HOST:PORT/DB, mysql+pymysql://..., or journal:PATH "
+                        "(default sqlite:///<studies dir>/optuna.db)")
+    g.add_argument("--studies-dir", default=None,
+                   help="frozen settings, test results, reports, budgets.json (default $IMTUNE_STUDIES, else "
+                        "studies/ in the project checkout)")
+
+
+def _positive_int(s: str) -> int:
+    import argparse
+    try:
+        v = int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {s!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
+    return v
+
+
+def _positive_float(s: str) -> float:
+    import argparse
+    try:
+        v = float(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {s!r}") from None
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {v}")
+    return v
+
+
+def register(sub) -> None:
+    from tuner.study import PRUNERS, SAMPLERS, TASKS
+    ap = sub.add_parser("run", help="tune on the validation scenes, freeze the optimum, run the test scenes "
+                                    "(the default command)")
+    add_pipeline_options(ap, tuning=True)
+    ap.set_defaults(seed=None)
+    _storage_opts(ap)
+    t = ap.add_argument_group("study")
+    t.add_argument("--study", default=None, help="study name (default <feature>-<num_features>-<ransac>-<task>)")
+    t.add_argument("--task", default="stereo", help=f"{' | '.join(TASKS)}")
+    t.add_argument("--space", default=None, help="search-space YAML replacing the default of the estimator family")
+    t.add_argument("--fix", action="append", default=[], metavar="NAME=VALUE",
+                   help="pin a parameter (ratio, threshold, max_iters, strategy); repeatable")
+    t.add_argument("--n-trials", type=_positive_int, default=50,
+                   help="trials the study should hold (finished: complete + pruned); a rerun runs the missing ones")
+    t.add_argument("--timeout", type=_positive_float, default=None, help="stop this worker after this many seconds")
+    t.add_argument("--sampler", default="tpe", help=f"{' | '.join(SAMPLERS)} (default tpe)")
+    t.add_argument("--pruner", default="median", help=f"{' | '.join(PRUNERS)} (default median)")
+    t.add_argument("--startup-trials", type=_positive_int, default=None,
+                   help="random trials before TPE models (default: n_trials / 5, between 3 and 10)")
+    t.add_argument("--budget", type=_positive_float, default=0.5,
+                   help="B: median estimator seconds per pair allowed on validation (default 0.5)")
+    t.add_argument("--test-budget", type=_positive_float, default=1.0,
+                   help="estimator seconds per pair allowed on test (default 1.0)")
+    t.add_argument("--test-scenes", default=None, help="comma-separated test scenes (default: the data set's test split)")
+    t.add_argument("--max-pairs", type=_positive_int, default=None,
+                   help="use at most N pairs per scene (evenly spread; quick runs)")
+    t.add_argument("--chunk-pairs", type=_positive_int, default=12,
+                   help="pairs per pruning step (an intermediate value after each chunk)")
+    t.add_argument("--heartbeat", type=int, default=10,
+                   help="seconds between heartbeats of a running trial (RDB storages; 0 = off); a trial silent "
+                        "for 3 heartbeats is failed and retried once")
+    t.add_argument("--calibration-pairs", type=_positive_int, default=8, help="pairs timed by the automatic calibration")
+    t.add_argument("--recalibrate", action="store_true", help="measure Gamma_max again even if stored")
+    t.add_argument("--no-test", action="store_true", help="do not run the test scenes at the end")
+    t.add_argument("--test-runs", type=_positive_int, default=3)
+    t.add_argument("--retest", action="store_true", help="rerun the test even if test.json matches the frozen settings")
+    t.add_argument("--verbose", action="store_true", help="Optuna's per-trial log lines")
+    ap.set_defaults(func=run)
+
+    c = sub.add_parser("calibrate", help="measure estimator seconds per pair vs max-iters; store Gamma_max(B)")
+    add_pipeline_options(c, tuning=True)
+    _storage_opts(c)
+    c.add_argument("--budget", type=_positive_float, action="append", default=None,
+                   help="B in seconds per pair (repeatable; default 0.5 and 1.0)")
+    c.add_argument("--pairs", type=_positive_int, default=16, help="validation pairs timed per cap (default 16)")
+    c.add_argument("--max-pairs", type=_positive_int, default=None, help="pairs per scene considered")
+    c.add_argument("--space", default=None, help="search space whose 'calibration' section gives r and eta")
+    c.add_argument("--calibration-ratio", type=float, default=None, help="ratio test r of the timed matches")
+    c.add_argument("--calibration-threshold", type=float, default=None, help="eta (px) used while timing")
+    c.add_argument("--force", action="store_true", help="measure again even if stored")
+    c.set_defaults(func=run_calibrate)
+
+    te = sub.add_parser("test", help="run a study's frozen settings on the test scenes (3 runs, averaged)")
+    te.add_argument("--study", required=True)
+    _storage_opts(te)
+    te.add_argument("--data", default=None, help="data folder (default: the study's, else the usual precedence)")
+    te.add_argument("--scenes", default=None, help="comma-separated test scenes (default: the study's test split)")
+    te.add_argument("--runs", type=_positive_int, default=3)
+    te.add_argument("--max-pairs", type=_positive_int, default=None)
+    te.add_argument("--test-budget", type=_positive_float, default=None)
+    te.add_argument("--cache", default=None)
+    te.add_argument("--reuse", action="store_true", help="return test.json as is when it matches the frozen settings")
+    te.add_argument("--json", action="store_true")
+    te.add_argument("--quiet", action="store_true")
+    te.set_defaults(func=run_test_cmd)
+
+    for name, helptext, fn in (("table", "optimal-settings table over all studies in the storage", run_table),
+                               ("results", "test-results table (NF, NI and mAA(10) per estimator, rank)", run_results)):
+        p = sub.add_parser(name, help=helptext)
+        _storage_opts(p)
+        p.add_argument("--format", default="markdown", help="markdown | csv | latex | json")
+        p.add_argument("--task", default="stereo")
+        p.set_defaults(func=fn)
+
+    pl = sub.add_parser("plot", help="one HTML report of a study (plotly)")
+    pl.add_argument("--study", required=True)
+    _storage_opts(pl)
+    pl.add_argument("--out", default=None, help="HTML file (default <studies dir>/<study>/report.html)")
+    pl.set_defaults(func=run_plot)
+
+    d = sub.add_parser("dashboard", help="serve optuna-dashboard on the storage (127.0.0.1)")
+    _storage_opts(d)
+    d.add_argument("--port", type=int, default=8080)
+    d.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
+    d.set_defaults(func=run_dashboard)
+
+    ls = sub.add_parser("studies", help="list the studies in a storage")
+    _storage_opts(ls)
+    ls.add_argument("--json", action="store_true")
+    ls.set_defaults(func=run_studies)
+
+
+def _studies_dir(args) -> Path:
+    from tuner.storage import default_studies_dir
+    return Path(args.studies_dir).expanduser().resolve() if args.studies_dir else default_studies_dir()
+
+
+def _scenes(value):
+    if not value:
+        return None
+    return [n.strip() for n in value.split(",") if n.strip()]
+
+
+def _jsonable(o):
+    from tuner.freeze import _plain
+    return _plain(o)
+
+
+# -- tune run ---------------------------------------------------------------------------------------
+
+def settings_from_args(args):
+    """TuneSettings from the `tune run` options."""
+    from tuner.study import TuneSettings
+    base = build_config(args, ratio=1.0, threshold=0.5, max_iters=1000,
+                        seed=args.seed if args.seed is not None else 0)
+    quiet = bool(args.quiet or args.json)
+    return TuneSettings(
+        base=base, data_root=resolve_data(args.data), task=args.task, study_name=args.study,
+        storage=args.storage, studies_dir=_studies_dir(args), space_path=args.space, fixes=list(args.fix),
+        n_trials=args.n_trials, timeout=args.timeout, seed=args.seed, sampler=args.sampler, pruner=args.pruner,
+        startup_trials=args.startup_trials, budget=args.budget, test_budget=args.test_budget,
+        val_scenes=_scenes(args.scenes), test_scenes=_scenes(args.test_scenes), min_covisibility=args.covisibility,
+        max_pairs=args.max_pairs, chunk_pairs=args.chunk_pairs, cache_dir=args.cache,
+        heartbeat=args.heartbeat if args.heartbeat and args.heartbeat > 0 else None,
+        calibration_pairs=args.calibration_pairs, recalibrate=args.recalibrate, progress=not quiet,
+        test=not args.no_test, test_runs=args.test_runs, retest=args.retest)
+
+
+def run(args) -> int:
+    from tuner.study import tune
+    s = settings_from_args(args)
+    if args.verbose:
+        import optuna
+        optuna.logging.set_verbosity(optuna.logging.INFO)
+    out = tune(s)
+    if args.json:
+        print(json.dumps(_jsonable(out), indent=2))
+    else:
+        print_outcome(out)
+    return 0
+
+
+def print_outcome(out: dict) -> None:
+    c = out["counts"]
+    print(f"study {out['study']}  ({out['storage']})")
+    print(f"trials: {c['complete']} complete ({c['infeasible']} over budget), {c['pruned']} pruned, "
+          f"{c['fail']} failed; this worker ran {len(out['worker']['trials_run'])}")
+    f = out.get("frozen")
+    if f:
+        print(f"frozen: {out['frozen_path']}  (trial #{f['trial']})")
+        print(frozen_table(f))
+    t = out.get("test")
+    if t:
+        print()
+        print(test_table(t))
+
+
+def _fmt(v):
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return str(v)
+
+
+def frozen_table(f: dict) -> str:
+    rows = []
+    for k, v in f["params"].items():
+        rows.append({"parameter": k, "value": _fmt(v), "": "tuned"})
+    for k, v in f.get("fixed", {}).items():
+        rows.append({"parameter": k, "value": _fmt(v), "": "fixed"})
+    b = f.get("budget", {})
+    rows.append({"parameter": "budget", "value": f"{b.get('seconds_per_pair')} s/pair",
+                 "": f"Gamma_max {b.get('gamma_max')}"})
+    v = f.get("validation", {})
+    rows.append({"parameter": "validation mAA10", "value": _fmt(v.get("mAA10")),
+                 "": f"mAA5 {_fmt(v.get('mAA5'))}, NI {_fmt(v.get('NI'))}, "
+                     f"{_fmt(v.get('ransac_seconds_median'))} s/pair"})
+    return render(rows, "markdown", ["parameter", "value", ""])
+
+
+def test_table(t: dict) -> str:
+    cols = ["scene", "NF", "NM", "NI", "mAA5", "mAA10", "failed", "ransac_seconds_median"]
+    m = t["mean"]
+    rows = [dict(scene=name, **{k: s.get(k) for k in cols[1:]}) for name, s in m.get("scenes", {}).items()]
+    rows.append(dict(scene="mean", **{k: m.get(k) for k in cols[1:]}))
+    b = t.get("budget", {})
+    head = (f"test ({len(t.get('runs', []))} runs, mean; mAA10 std {_fmt(t.get('std', {}).get('mAA10', 0.0))}; "
+            f"within the {b.get('test_seconds_per_pair')} s/pair test budget: "
+            f"{'yes' if b.get('within_budget') else 'no'})")
+    return head + "\n" + render(rows, "markdown", cols)
+
+
+# -- tune calibrate ---------------------------------------------------------------------------------
+
+def run_calibrate(args) -> int:
+    from pipeline.cache import H5Cache
+    from tuner.budget import calibrate
+    from tuner.objective import ValidationSet
+    from tuner.options import load_scenes
+    from tuner.space import load_space
+    from tuner.study import _quiet_optuna
+    _quiet_optuna()
+    conf = build_config(args, ratio=1.0, threshold=0.5, max_iters=1000)
+    from pipeline.geometry import get_estimator
+    est = get_estimator(conf.geometry.ransac)
+    space = load_space(args.space, feature=conf.feature.name, estimator=conf.geometry.ransac)
+    ratio = args.calibration_ratio if args.calibration_ratio is not None else space.calibration["ratio"]
+    threshold = args.calibration_threshold if args.calibration_threshold is not None else space.calibration["threshold"]
+    from tuner.space import _check_value
+    ratio = _check_value("ratio", ratio, "--calibration-ratio")
+    threshold = _check_value("threshold", threshold, "--calibration-threshold")
+    budgets = tuple(args.budget or (0.5, 1.0))
+    root = resolve_data(args.data)
+    quiet = bool(args.quiet or args.json)
+    vs = ValidationSet.from_scenes(load_scenes(root, args.scenes, split="val"), args.covisibility, args.max_pairs)
+    cache = H5Cache(args.cache)
+    cal = calibrate(conf.geometry.ransac, conf, vs.scenes, cache, vs.fingerprint, budgets=budgets, ratio=ratio,
+                    threshold=threshold, max_pairs=args.pairs, studies_dir=_studies_dir(args), force=args.force,
+                    progress=not quiet, seed=int(args.seed or 0))
+    caps = {f"{b:g}": cal.gamma_max(b) for b in budgets}
+    if args.json:
+        print(json.dumps(_jsonable({"calibration": cal.to_dict(), "gamma_max": caps,
+                                    "uses_iterations": bool(getattr(est, "uses_iterations", True))}), indent=2))
+        return 0
+    print(f"{cal.estimator} on {cal.pairs} validation pairs of {', '.join(vs.scene_names)} "
+          f"({conf.feature.name} {conf.feature.num_features}, r={cal.ratio:g}, eta={cal.threshold:g} px; "
+          f"host {cal.host}; measured {cal.created})")
+    rows = [{"max_iters": g, "median s/pair": m, "p90 s/pair": p} for g, m, p in cal.curve]
+    print(render(rows, "markdown", ["max_iters", "median s/pair", "p90 s/pair"]))
+    for b, g in caps.items():
+        print(f"Gamma_max({b} s) = {g}")
+    return 0
+
+
+# -- tune test --------------------------------------------------------------------------------------
+
+def run_test_cmd(args) -> int:
+    import optuna
+    from pipeline.cache import H5Cache
+    from tuner.freeze import freeze, load_frozen, run_test, run_test_for_study
+    from tuner.storage import open_storage
+    from tuner.study import _quiet_optuna
+    _quiet_optuna()
+    sdir = _studies_dir(args)
+    storage = open_storage(args.storage, heartbeat=None, studies_dir=sdir)
+    try:
+        study = optuna.load_study(study_name=args.study, storage=storage)
+    except KeyError:
+        study = None
+    quiet = bool(args.quiet or args.json)
+    root = resolve_data(args.data) if args.data else None
+    kw = dict(scenes=_scenes(args.scenes), cache=H5Cache(args.cache), runs=args.runs, max_pairs=args.max_pairs,
+              test_budget=args.test_budget, progress=not quiet, reuse=args.reuse)
+    if study is not None:
+        frozen, path = freeze(study, sdir)
+        result = run_test_for_study(study, frozen, sdir, data_root=root, **kw)
+    else:
+        frozen = load_frozen(sdir, args.study)  # no such study in this storage: the frozen file alone
+        root = root or (Path(frozen.get("data", {}).get("root", "")) if frozen.get("data", {}).get("root") else None)
+        if root is None or not Path(root).is_dir():
+            root = resolve_data(None)
+        result = run_test(frozen, root, sdir, **kw)
+    if args.json:
+        print(json.dumps(_jsonable(result), indent=2))
+    else:
+        print(f"study {args.study}: frozen trial #{frozen['trial']} -> {Path(sdir) / args.study / 'test.json'}")
+        print(test_table(result))
+    return 0
+
+
+# -- tables, plot, dashboard, studies ----------------------------------------------------------------
+
+def _collect(args):
+    from tuner.reports import collect_studies
+    from tuner.storage import open_storage
+    from tuner.study import _quiet_optuna
+    _quiet_optuna()
+    if args.format not in FORMATS:
+        raise ImtuneError(f"unknown format {args.format!r} (choose {', '.join(FORMATS)})")
+    sdir = _studies_dir(args)
+    storage = open_storage(args.storage, heartbeat=None, studies_dir=sdir)
+    return collect_studies(storage, task=args.task, studies_dir=sdir)
+
+
+def run_table(args) -> int:
+    from tuner.reports import render_table, settings_rows
+    studies = _collect(args)
+    if not studies:
+        raise ImtuneError(f"no imtune {args.task} studies in the storage")
+    rows, cols = settings_rows(studies, args.format)
+    print(render_table(rows, cols, args.format))
+    return 0
+
+
+def run_results(args) -> int:
+    from tuner.reports import render_table, results_rows
+    studies = _collect(args)
+    rows, cols = results_rows(studies, args.format)
+    if not rows:
+        raise ImtuneError(f"no tested {args.task} study in the storage (run `tune test --study NAME`)")
+    print(render_table(rows, cols, args.format))
+    return 0
+
+
+def run_plot(args) -> int:
+    from tuner.freeze import study_dir
+    from tuner.plots import write_report
+    from tuner.storage import open_storage
+    from tuner.study import _quiet_optuna
+    _quiet_optuna()
+    sdir = _studies_dir(args)
+    storage = open_storage(args.storage, heartbeat=None, studies_dir=sdir)
+    out = Path(args.out) if args.out else study_dir(sdir, args.study) / "report.html"
+    path = write_report(storage, args.study, out)
+    print(str(path))
+    return 0
+
+
+def run_dashboard(args) -> int:
+    from tuner.dashboard import serve
+    serve(args.storage, host=args.host, port=args.port, studies_dir=_studies_dir(args))
+    return 0
+
+
+def run_studies(args) -> int:
+    import optuna
+    from tuner.storage import open_storage
+    from tuner.study import _quiet_optuna, best_feasible, trial_counts
+    _quiet_optuna()
+    storage = open_storage(args.storage, heartbeat=None, studies_dir=_studies_dir(args))
+    rows = []
+    for summ in optuna.get_all_study_summaries(storage, include_best_trial=False):
+        st = optuna.load_study(study_name=summ.study_name, storage=storage)
+        c = trial_counts(st)
+        b = best_feasible(st)
+        rows.append({"study": summ.study_name, "complete": c["complete"], "pruned": c["pruned"],
+                     "infeasible": c["infeasible"], "running": c["running"], "failed": c["fail"],
+                     "best mAA10": b.value if b else None, "best trial": b.number if b else None})
+    if args.json:
+        print(json.dumps(_jsonable(rows), indent=2))
+    elif rows:
+        print(render(rows, "markdown"))
+    else:
+        print("no studies", file=sys.stderr)
+    return 0

@@ -1,0 +1,46 @@
+"""optuna-dashboard on a study storage, bound to 127.0.0.1 unless told otherwise.
+
+    from tuner.dashboard import serve
+    serve("sqlite:///studies/optuna.db", port=8080)   # blocks until Ctrl-C
+
+The storage is opened like the workers open it (SQLite busy timeout + WAL), so the dashboard reads
+while workers write without "database is locked" (optuna-dashboard issue 545).
+"""
+from __future__ import annotations
+
+import socket
+import sys
+
+from pipeline.errors import ImtuneError
+
+
+def check_port(host: str, port: int) -> None:
+    """ImtuneError if (host, port) cannot be bound."""
+    fam = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(fam, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, int(port)))
+        except OSError as e:
+            raise ImtuneError(f"cannot serve the dashboard on {host}:{port}: {e.strerror or e}") from None
+
+
+def serve(storage_url: str | None = None, host: str = "127.0.0.1", port: int = 8080, studies_dir=None,
+          quiet: bool = False) -> None:
+    """Serve optuna-dashboard for the storage (default: the studies folder's SQLite file)."""
+    try:
+        from optuna_dashboard import run_server
+    except ImportError:
+        raise ImtuneError("optuna-dashboard is not installed: pip install optuna-dashboard") from None
+    from tuner.storage import open_storage, storage_label
+    if not (0 < int(port) < 65536):
+        raise ImtuneError(f"invalid port {port}")
+    storage = open_storage(storage_url, heartbeat=None, studies_dir=studies_dir)
+    check_port(host, port)
+    if not quiet:
+        shown = f"[{host}]" if ":" in host else host
+        print(f"optuna-dashboard: http://{shown}:{port}/  (storage {storage_label(storage_url, studies_dir)}; "
+              "Ctrl-C to stop)", file=sys.stderr, flush=True)
+    if host not in ("127.0.0.1", "localhost", "::1") and not quiet:
+        print(f"warning: the dashboard is reachable from other machines on {host}", file=sys.stderr, flush=True)
+    run_server(storage, host=host, port=int(port))

@@ -1,0 +1,461 @@
+"""Studies: create or resume, calibrate the budget, optimise, then freeze and test — the `tune` command.
+
+    from tuner.study import TuneSettings, tune
+    out = tune(TuneSettings(base=build_config(args, ratio=1, threshold=1, max_iters=1), data_root=...))
+
+Study names default to ``<feature>-<num_features>-<ransac>-<task>`` (feature variants such as
+upright or CLAHE are part of ``<feature>``). A study's user attributes record what it was created
+with — search space, fixed pipeline settings, budget (B, Gamma_max and the calibration curve), data
+fingerprint, code version — and rerunning the same command resumes it; rerunning with a different
+search space, pipeline, budget or data is a one-line error (name a new study with ``--study``).
+
+``n_trials`` is the study's target: a worker stops once COMPLETE + PRUNED (+ RUNNING in other
+workers) trials reach it, so rerunning an interrupted study, or starting N workers on one storage,
+runs exactly the missing trials (workers started at the same instant may overshoot by one each).
+"""
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import math
+import os
+import sys
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from pipeline.config import PipelineConfig
+from pipeline.errors import ImtuneError
+
+SAMPLERS = ("tpe", "random", "cmaes", "grid")
+PRUNERS = ("median", "none")
+TASKS = ("stereo",)
+SCHEMA = 1
+SEARCHED = {"ratio": ("matching", "ratio"), "strategy": ("matching", "strategy"),
+            "threshold": ("geometry", "threshold"), "max_iters": ("geometry", "max_iters")}
+
+
+def code_version() -> str:
+    """``imtune <version>`` plus the git commit of the checkout when there is one (read from .git)."""
+    try:
+        from importlib.metadata import version
+        v = version("imtune")
+    except Exception:  # noqa: BLE001
+        v = "0+unknown"
+    root = Path(__file__).resolve().parents[1] / ".git"
+    try:
+        head = (root / "HEAD").read_text().strip()
+        if head.startswith("ref:"):
+            ref = head.split(None, 1)[1]
+            p = root / ref
+            if p.is_file():
+                sha = p.read_text().strip()
+            else:
+                sha = ""
+                packed = root / "packed-refs"
+                if packed.is_file():
+                    for line in packed.read_text().splitlines():
+                        if line.endswith(" " + ref):
+                            sha = line.split()[0]
+        else:
+            sha = head
+        if sha:
+            v += f"+g{sha[:10]}"
+    except OSError:
+        pass
+    return v
+
+
+def feature_label(conf: PipelineConfig) -> str:
+    """The ``<feature>`` part of a study name: the name plus any non-default variant."""
+    f = conf.feature
+    tags = [f.name]
+    if f.upright_plus:
+        tags.append("upright++")
+    elif f.upright:
+        tags.append("upright")
+    if f.clahe != "none":
+        tags.append(f"clahe_{f.clahe}")
+    if not f.low_threshold:
+        tags.append("defthr")
+    if f.mr_size is not None:
+        tags.append(f"mr{f.mr_size:g}")
+    if f.max_side != 1024:
+        tags.append(f"side{f.max_side}")
+    m = conf.matching
+    if m.method != "exact":
+        tags.append(m.method)
+    if m.fginn:
+        tags.append("fginn")
+    return "_".join(tags[:1]) + ("+" + "+".join(tags[1:]) if len(tags) > 1 else "")
+
+
+def default_study_name(conf: PipelineConfig, task: str = "stereo") -> str:
+    return f"{feature_label(conf)}-{conf.feature.num_features}-{conf.geometry.ransac}-{task}"
+
+
+def fixed_pipeline(conf: PipelineConfig, searched) -> dict:
+    """The configuration with the searched parameters blanked (what must match on resume)."""
+    d = conf.to_dict()
+    for name in searched:
+        sec, key = SEARCHED[name]
+        d[sec][key] = None
+    return d
+
+
+@dataclass
+class TuneSettings:
+    """Everything one `tune` run needs. ``base`` is the fixed pipeline configuration (the searched
+    fields are placeholders). Times in seconds; budgets are median estimator seconds per pair."""
+    base: PipelineConfig
+    data_root: Path
+    task: str = "stereo"
+    study_name: str | None = None
+    storage: str | None = None
+    studies_dir: Path | None = None
+    space_path: str | None = None
+    fixes: list = field(default_factory=list)
+    n_trials: int = 50
+    timeout: float | None = None
+    seed: int | None = None
+    sampler: str = "tpe"
+    pruner: str = "median"
+    startup_trials: int | None = None
+    budget: float = 0.5
+    test_budget: float = 1.0
+    val_scenes: list | None = None
+    test_scenes: list | None = None
+    min_covisibility: float | None = 0.1
+    max_pairs: int | None = None
+    chunk_pairs: int = 12
+    cache_dir: str | None = None
+    heartbeat: int | None = 10
+    calibration_pairs: int = 8
+    recalibrate: bool = False
+    progress: bool = True
+    test: bool = True
+    test_runs: int = 3
+    retest: bool = False
+    log: object = None  # callable(str) for status lines; None = stderr unless progress is off
+
+    def say(self, msg: str) -> None:
+        if self.log is not None:
+            self.log(msg)
+        elif self.progress:
+            print(msg, file=sys.stderr, flush=True)
+
+
+@dataclass
+class StudyContext:
+    study: object
+    storage: object
+    name: str
+    space: object  # resolved SearchSpace
+    vs: object  # ValidationSet
+    objective: object
+    attrs: dict
+    cache: object
+    created: bool
+
+
+def _quiet_optuna():
+    import optuna
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
+    warnings.filterwarnings("ignore", category=FutureWarning, module="optuna")
+
+
+def make_sampler(name: str, seed: int | None, space, startup_trials: int | None = None):
+    """TPE (multivariate, constant liar for parallel workers), random, CMA-ES or grid."""
+    import optuna
+    if name not in SAMPLERS:
+        raise ImtuneError(f"unknown sampler {name!r} (choose from {', '.join(SAMPLERS)})")
+    if name == "tpe":
+        return optuna.samplers.TPESampler(seed=seed, n_startup_trials=int(startup_trials or 10), multivariate=True,
+                                          constant_liar=True)
+    if name == "random":
+        return optuna.samplers.RandomSampler(seed=seed)
+    if name == "cmaes":
+        try:
+            import cmaes  # noqa: F401
+        except ImportError:
+            raise ImtuneError("sampler cmaes needs the `cmaes` package: pip install cmaes") from None
+        return optuna.samplers.CmaEsSampler(seed=seed, n_startup_trials=int(startup_trials or 1),
+                                            warn_independent_sampling=False)
+    return optuna.samplers.GridSampler(space.grid(), seed=seed)
+
+
+def make_pruner(name: str):
+    import optuna
+    if name not in PRUNERS:
+        raise ImtuneError(f"unknown pruner {name!r} (choose from {', '.join(PRUNERS)})")
+    if name == "none":
+        return optuna.pruners.NopPruner()
+    return optuna.pruners.MedianPruner(n_startup_trials=5, n_warmup_steps=1)
+
+
+def load_study(storage, name: str):
+    """An existing study, or ImtuneError listing the studies in the storage."""
+    import optuna
+    try:
+        return optuna.load_study(study_name=name, storage=storage)
+    except KeyError:
+        names = [s.study_name for s in optuna.get_all_study_summaries(storage, include_best_trial=False)]
+        raise ImtuneError(f"no study {name!r} in the storage (studies: {', '.join(names) or 'none'})") from None
+
+
+def _first_difference(a, b, path="") -> str:
+    if isinstance(a, dict) and isinstance(b, dict):
+        for k in sorted(set(a) | set(b), key=str):
+            if k not in a or k not in b or a[k] != b[k]:
+                return _first_difference(a.get(k), b.get(k), f"{path}.{k}" if path else str(k))
+        return path
+    return f"{path}: {a!r} -> {b!r}" if path else f"{a!r} -> {b!r}"
+
+
+def check_compatible(name: str, stored: dict, mine: dict) -> None:
+    """Resume only with the same search space, pipeline, budget and validation data."""
+    import json
+
+    def norm(x):
+        return json.loads(json.dumps(x, default=str))
+    checks = [("search_space", "a different search space"),
+              ("pipeline", "a different pipeline configuration"),
+              ("data_fingerprint", "different validation data")]
+    for key, what in checks:
+        if norm(stored.get(key)) != norm(mine.get(key)):
+            diff = _first_difference(norm(stored.get(key)), norm(mine.get(key)))
+            raise ImtuneError(f"study {name!r} exists with {what} ({diff}); rerun with its original settings "
+                              "or name a new study with --study")
+    b_old = (stored.get("budget") or {}).get("seconds_per_pair")
+    b_new = mine["budget"]["seconds_per_pair"]
+    if b_old is not None and not math.isclose(float(b_old), float(b_new)):
+        raise ImtuneError(f"study {name!r} exists with budget {b_old} s per pair, not {b_new}; "
+                          "rerun with --budget {b_old} or name a new study with --study")
+
+
+def open_validation(s: TuneSettings):
+    """(scenes names, ValidationSet) for the settings' data and validation scenes."""
+    from tuner.objective import ValidationSet
+    from tuner.options import load_scenes
+    scenes = load_scenes(s.data_root, s.val_scenes, split="val")
+    if not scenes:
+        raise ImtuneError(f"no validation scenes in {s.data_root}")
+    return ValidationSet.from_scenes(scenes, s.min_covisibility, s.max_pairs, s.chunk_pairs)
+
+
+def test_scene_names(s: TuneSettings) -> list[str]:
+    if s.test_scenes:
+        return list(s.test_scenes)
+    from pipeline.data import default_splits
+    return list(default_splits(s.data_root).get("test", []))
+
+
+def setup_study(s: TuneSettings) -> StudyContext:
+    """Open the storage, load the validation data, create or resume the study (checking that it was
+    created with the same settings), calibrate the budget if the study is new, build the objective."""
+    import optuna
+    from pipeline.cache import H5Cache
+    from pipeline.geometry import get_estimator
+    from tuner.budget import calibrate
+    from tuner.objective import Objective
+    from tuner.space import SearchSpace, load_space
+    from tuner.storage import default_studies_dir, open_storage
+    _quiet_optuna()
+    if s.task not in TASKS:
+        raise ImtuneError(f"unknown task {s.task!r} (choose from {', '.join(TASKS)})")
+    if s.sampler not in SAMPLERS:
+        raise ImtuneError(f"unknown sampler {s.sampler!r} (choose from {', '.join(SAMPLERS)})")
+    make_pruner(s.pruner)
+    if not (s.budget > 0 and s.test_budget > 0):
+        raise ImtuneError("budgets must be > 0 seconds per pair")
+    if s.n_trials is not None and s.n_trials < 1:
+        raise ImtuneError(f"--n-trials must be >= 1, got {s.n_trials}")
+    get_estimator(s.base.geometry.ransac)  # unknown / unavailable estimator: one line, now
+    from pipeline.features import EXTRACTORS
+    EXTRACTORS.get(s.base.feature.name).check_available()
+    s.studies_dir = Path(s.studies_dir) if s.studies_dir else default_studies_dir()
+    space = load_space(s.space_path, feature=s.base.feature.name, estimator=s.base.geometry.ransac,
+                       fixes=s.fixes)
+    if not space.params:
+        raise ImtuneError("search space: every parameter is fixed; nothing to tune")
+    name = s.study_name or default_study_name(s.base, s.task)
+    storage = open_storage(s.storage, heartbeat=s.heartbeat, studies_dir=s.studies_dir)
+    cache = H5Cache(s.cache_dir)
+    vs = open_validation(s)
+    base = dataclasses.replace(s.base, geometry=dataclasses.replace(s.base.geometry, seed=int(s.seed or 0)))
+    mine = {
+        "imtune": SCHEMA, "task": s.task, "feature": feature_label(base), "feature_name": base.feature.name,
+        "num_features": base.feature.num_features, "ransac": base.geometry.ransac,
+        "pipeline": fixed_pipeline(base, list(space.params) + list(space.fixed)),
+        "search_space": space.spec(), "search_space_source": space.source,
+        "data_fingerprint": vs.fingerprint,
+        "data": {"root": str(s.data_root), "val_scenes": vs.scene_names, "test_scenes": test_scene_names(s),
+                 "min_covisibility": s.min_covisibility, "max_pairs": s.max_pairs, "pairs": vs.n_pairs},
+        "budget": {"seconds_per_pair": float(s.budget), "test_seconds_per_pair": float(s.test_budget),
+                   "statistic": "median estimator seconds per pair"},
+        "code_version": code_version(),
+    }
+    study = None
+    try:
+        study = optuna.load_study(study_name=name, storage=storage)
+    except KeyError:
+        pass
+    stored = dict(study.user_attrs) if study is not None else {}
+    if study is not None and stored.get("imtune") is None and len(study.trials) > 0:
+        raise ImtuneError(f"study {name!r} exists in the storage but was not created by imtune; name another with --study")
+    created = not stored.get("imtune")
+    if not created:
+        check_compatible(name, stored, mine)
+    s.say(f"validation: {', '.join(vs.scene_names)} ({vs.n_pairs} pairs) from {s.data_root}")
+    vs.prepare(base, cache, progress=s.progress)
+    if created:
+        cal = None
+        if space.needs_calibration:
+            cal = calibrate(base.geometry.ransac, base, vs.scenes, cache, vs.fingerprint,
+                            budgets=(s.budget,), ratio=space.calibration["ratio"],
+                            threshold=space.calibration["threshold"], max_pairs=s.calibration_pairs,
+                            studies_dir=s.studies_dir, force=s.recalibrate, progress=s.progress, seed=int(s.seed or 0))
+            gmax = cal.gamma_max(s.budget)
+            s.say(f"budget: {s.budget:g} s per pair -> Gamma_max = {gmax} for {base.geometry.ransac} "
+                  f"(calibrated on {cal.pairs} pairs, {len(cal.curve)} caps)")
+        else:
+            gmax = None
+        resolved = space.resolve(gmax)
+        mine["budget"].update(gamma_max=gmax, gamma_max_test=cal.gamma_max(s.test_budget) if cal else None,
+                              calibration=cal.to_dict() if cal else None)
+        mine["search_space_resolved"] = resolved.spec()
+        mine["created"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+        mine["sampler"] = s.sampler
+        study = optuna.create_study(study_name=name, storage=storage, direction="maximize", load_if_exists=True)
+        again = study.user_attrs
+        if not again.get("imtune"):
+            for k, v in mine.items():
+                if k != "imtune":
+                    study.set_user_attr(k, v)
+            study.set_user_attr("imtune", SCHEMA)  # last: marks the attributes complete
+        else:
+            check_compatible(name, again, mine)
+        stored = dict(study.user_attrs)
+    resolved = SearchSpace.from_spec(stored["search_space_resolved"], source=stored.get("search_space_source", ""))
+    resolved.calibration = space.calibration
+    objective = Objective(base, resolved, vs, cache, budget=float(stored["budget"]["seconds_per_pair"]))
+    return StudyContext(study=study, storage=storage, name=name, space=resolved, vs=vs, objective=objective,
+                        attrs=stored, cache=cache, created=created)
+
+
+def trial_counts(study) -> dict:
+    from optuna.trial import TrialState
+    counts = {st.name.lower(): 0 for st in TrialState}
+    infeasible = 0
+    for t in study.get_trials(deepcopy=False):
+        counts[t.state.name.lower()] += 1
+        if t.state == TrialState.COMPLETE and any(v > 0 for v in t.constraints.values()):
+            infeasible += 1
+    counts["infeasible"] = infeasible
+    return counts
+
+
+def best_feasible(study):
+    """The COMPLETE trial with the highest value among those within budget (None if none)."""
+    from optuna.trial import TrialState
+    best = None
+    for t in study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
+        if t.value is None or any(v > 0 for v in t.constraints.values()) or t.user_attrs.get("feasible") is False:
+            continue
+        key = (t.value, -float(t.user_attrs.get("ransac_seconds_median", 0.0)), -t.number)
+        if best is None or key > best[0]:
+            best = (key, t)
+    return best[1] if best else None
+
+
+def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
+    """Run trials until the study holds ``s.n_trials`` finished trials (or ``s.timeout``)."""
+    import optuna
+    from optuna.trial import TrialState
+    study = ctx.study
+    n_target = s.n_trials
+    if s.sampler == "grid":
+        n_target = min(n_target or 10**9, ctx.space.grid_size())
+    sampler = make_sampler(s.sampler, s.seed, ctx.space,
+                           s.startup_trials or max(3, min(10, (n_target or 50) // 5)))
+    study = optuna.load_study(study_name=ctx.name, storage=ctx.storage, sampler=sampler, pruner=make_pruner(s.pruner))
+    ctx.study = study
+
+    def finished(st) -> tuple[int, int]:
+        ts = st.get_trials(deepcopy=False, states=(TrialState.COMPLETE, TrialState.PRUNED, TrialState.RUNNING))
+        done = sum(1 for t in ts if t.state != TrialState.RUNNING)
+        return done, len(ts) - done
+
+    optuna.storages.fail_stale_trials(study)
+    done0, running0 = finished(study)
+    bar = None
+    if s.progress:
+        from tqdm.auto import tqdm
+        bar = tqdm(total=n_target, initial=min(done0, n_target), desc=f"{ctx.name}", unit="trial",
+                   dynamic_ncols=True)
+        _set_postfix(bar, study)
+
+    def callback(st, trial):
+        done, running = finished(st)
+        if bar is not None:
+            bar.n = min(done, n_target)
+            _set_postfix(bar, st)
+            bar.refresh()
+        if done + running >= n_target:
+            st.stop()
+
+    t0 = time.perf_counter()
+    try:
+        if done0 + running0 < n_target:
+            study.optimize(ctx.objective, n_trials=n_target, timeout=s.timeout, callbacks=[callback],
+                           gc_after_trial=False, show_progress_bar=False)
+    finally:
+        if bar is not None:
+            bar.close()
+    return {"trials_run": list(ctx.objective.trials_run), "seconds": time.perf_counter() - t0,
+            "target": n_target}
+
+
+def _set_postfix(bar, study) -> None:
+    b = best_feasible(study)
+    c = trial_counts(study)
+    parts = []
+    if b is not None:
+        parts.append(f"best mAA10={b.value:.4f} (#{b.number})")
+    if c["pruned"]:
+        parts.append(f"pruned={c['pruned']}")
+    if c["infeasible"]:
+        parts.append(f"infeasible={c['infeasible']}")
+    bar.set_postfix_str(", ".join(parts))
+
+
+def tune(s: TuneSettings) -> dict:
+    """The whole protocol: study (create or resume) -> trials -> freeze -> test. Returns a JSON-able
+    dict: study, storage (masked), counts, frozen settings, test results (None if skipped)."""
+    from optuna.trial import TrialState
+    from tuner.freeze import freeze, run_test_for_study
+    from tuner.storage import storage_label
+    ctx = setup_study(s)
+    s.say(f"study {ctx.name} in {storage_label(s.storage, s.studies_dir)} "
+          f"({'created' if ctx.created else 'resumed'}; sampler {s.sampler}, target {s.n_trials} trials)")
+    run = optimize(ctx, s)
+    out = {"study": ctx.name, "storage": storage_label(s.storage, s.studies_dir), "worker": run,
+           "counts": trial_counts(ctx.study), "frozen": None, "frozen_path": None, "test": None}
+    if best_feasible(ctx.study) is None:
+        raise ImtuneError(f"study {ctx.name!r}: no feasible completed trial yet (all over the "
+                          f"{ctx.attrs['budget']['seconds_per_pair']} s budget, pruned or failed); run more trials")
+    frozen, path = freeze(ctx.study, s.studies_dir)
+    out["frozen"], out["frozen_path"] = frozen, str(path)
+    others = [t for t in ctx.study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))]
+    if not s.test:
+        return out
+    if others:
+        s.say(f"{len(others)} trial(s) still running in other workers: skipping the test run "
+              f"(the last worker runs it; or `tune test --study {ctx.name}`)")
+        return out
+    out["test"] = run_test_for_study(ctx.study, frozen, s.studies_dir, data_root=s.data_root,
+                                     scenes=s.test_scenes, cache=ctx.cache, runs=s.test_runs,
+                                     max_pairs=s.max_pairs, progress=s.progress, reuse=not s.retest)
+    return out
