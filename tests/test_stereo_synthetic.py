@@ -79,7 +79,7 @@ def test_evaluate_pair_end_to_end_on_synthetic_matches(ransac, eta):
     assert rec["failure"] is None
     assert rec["NM"] == len(x1)
     assert 0.6 * len(x1) <= rec["NI"] <= 0.8 * len(x1)  # 70% are inliers
-    assert rec["err"] < 2.0, rec
+    assert rec["err"] < 3.0, rec  # 0.3 px noise, ~1:9 baseline-to-depth
 
 
 def test_too_few_matches_is_a_recorded_failure():

@@ -82,6 +82,14 @@ class Calibration:
         g = math.exp(math.log(g_lo) + t * (math.log(g_hi) - math.log(g_lo)))
         return _round_down(min(max(g, g_lo), g_hi, self.ceiling))
 
+    def covers(self, budget: float) -> bool:
+        """True when the measured curve reaches ``budget`` (so gamma_max(budget) is interpolated, not
+        extrapolated), or when the estimator's time no longer grows with the cap."""
+        meds = [float(m) for _, m, *_ in self.curve]
+        gmax = max((int(g) for g, *_ in self.curve), default=0)
+        flat = len(meds) >= 2 and meds[-1] <= meds[-2] * 1.05
+        return bool(meds) and (max(meds) > budget or gmax >= self.ceiling or flat)
+
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 
@@ -234,11 +242,7 @@ def calibrate(estimator_name: str, base_conf, scenes, cache, data_fingerprint: s
     bmax = max(budgets)
 
     def usable(c: Calibration | None) -> bool:
-        if c is None:
-            return False
-        top = max((m for _, m, *_ in c.curve), default=0.0)
-        gmax = max((g for g, *_ in c.curve), default=0)
-        return top > bmax or gmax >= c.ceiling or (len(c.curve) >= 2 and c.curve[-1][1] <= c.curve[-2][1] * 1.05)
+        return c is not None and c.covers(bmax)
 
     if store is not None and not force:
         c = stored_calibration(store.parent, key)

@@ -94,8 +94,10 @@ def build_config(args: argparse.Namespace, **overrides) -> PipelineConfig:
     from pipeline.geometry import ESTIMATORS
     v = dict(vars(args))
     v.update(overrides)
-    EXTRACTORS.get(v["feature"])
-    ESTIMATORS.get(v["ransac"])
+    for reg, name in ((EXTRACTORS, v["feature"]), (ESTIMATORS, v["ransac"])):
+        check = getattr(reg.get(name), "check_available", None)  # unknown name -> one-line error
+        if check is not None:
+            check()  # known but not runnable here (missing package / weights, non-free) -> one-line error
     fc = FeatureConfig(name=v["feature"], num_features=int(v["num_features"]), low_threshold=not v["no_low_threshold"],
                        upright=bool(v["upright"] or v["upright_plus"]), upright_plus=bool(v["upright_plus"]),
                        clahe=v["clahe"], mr_size=v["mr_size"], max_side=int(v["max_side"]))
@@ -106,24 +108,80 @@ def build_config(args: argparse.Namespace, **overrides) -> PipelineConfig:
     return PipelineConfig(feature=fc, matching=mc, geometry=gc)
 
 
-def load_scenes(data_root: Path, names: list[str] | str | None, split: str = "val"):
-    """Scenes by name (a list or a comma-separated string), or the data set's default split."""
+def load_scenes(data_root: Path, names: list[str] | str | None, split: str = "val", gt_dir=None,
+                ground_truth: bool = True):
+    """Scenes by name (a list or a comma-separated string), or the data set's default split.
+
+    With ``ground_truth`` (default), a ground truth built by `tune data build-gt` (in ``gt_dir``, default
+    $IMTUNE_CACHE/gt) is attached to each scene: 3D points, co-visibility of its pairs (so the stereo
+    pairs are selected at co-visibility >= 0.1), poses for SfM-built scenes."""
     from pipeline.data import default_splits, list_scenes, load_scene
+    from pipeline.data.ground_truth import prepare_scene_ground_truth
     if isinstance(names, str):
         names = [n.strip() for n in names.split(",") if n.strip()]
     if not names:
         names = list_scenes(data_root) if split == "all" else default_splits(data_root)[split]
-    return [load_scene(data_root, n) for n in names]
+    scenes = [load_scene(data_root, n) for n in names]
+    if ground_truth:
+        for sc in scenes:
+            prepare_scene_ground_truth(sc, gt_dir)
+    return scenes
+
+
+TASKS = ("stereo", "multiview", "both")
+
+
+def add_multiview_options(ap: argparse.ArgumentParser) -> None:
+    """Options of the multiview task (`tune evaluate --task multiview`)."""
+    g = ap.add_argument_group("multiview")
+    g.add_argument("--bags", default=None,
+                   help="bag sizes[:counts], e.g. 5,10,25 or 5:100,10:50,25:25 (default: the protocol's 100/50/25)")
+    g.add_argument("--bag-min-points", type=int, default=100, help="each image must see this many of the bag's 3D points")
+    g.add_argument("--bag-seed", type=int, default=0, help="seed of the bag sampling")
+    g.add_argument("--mv-intrinsics", default="colmap", choices=["colmap", "prior", "fixed"],
+                   help="colmap: COLMAP estimates them (official); prior: known K, refined; fixed: known K")
+    g.add_argument("--workers", type=int, default=None, help="bags in parallel (default: available CPUs)")
+    g.add_argument("--keep-models", default=None, help="keep every bag's COLMAP database and model in this folder")
+    g.add_argument("--gt-dir", default=None, help="built ground truth folder (default $IMTUNE_CACHE/gt or ~/.cache/imtune/gt)")
+
+
+def multiview_config(args: argparse.Namespace, **overrides):
+    """MultiviewConfig from parsed options (see ``add_multiview_options``)."""
+    from pipeline.data.bags import parse_bags
+    from pipeline.tasks.multiview import MultiviewConfig
+    v = dict(vars(args))
+    v.update(overrides)
+    return MultiviewConfig(bags=tuple(parse_bags(v.get("bags")).items()), min_points=int(v.get("bag_min_points", 100)),
+                           bag_seed=int(v.get("bag_seed", 0)), intrinsics=v.get("mv_intrinsics", "colmap"),
+                           seed=int(v.get("seed", 0) or 0))
 
 
 def evaluate_config(conf: PipelineConfig, data_root: Path, scenes=None, cache_dir=None,
                     min_covisibility: float | None = 0.1, progress: bool = False,
-                    with_pairs: bool = False) -> dict:
-    """Evaluate one configuration on the stereo task; returns the JSON-able result of `tune evaluate`."""
+                    with_pairs: bool = False, task: str = "stereo", multiview=None, workers: int | None = None,
+                    gt_dir=None, with_bags: bool = False, keep_models=None) -> dict:
+    """Evaluate one configuration; returns the JSON-able result of `tune evaluate`.
+
+    task: "stereo", "multiview" or "both" — the result has a "stereo" and/or a "multiview" section.
+    multiview: a ``pipeline.tasks.multiview.MultiviewConfig`` (default: the protocol's bags and settings);
+    workers: parallel bag processes; gt_dir: where built ground truth lives; with_bags: every bag record."""
     from pipeline.cache import H5Cache
-    from pipeline.tasks.stereo import evaluate_stereo
-    scene_objs = load_scenes(data_root, scenes, split="all")
-    res = evaluate_stereo(scene_objs, conf, H5Cache(cache_dir), min_covisibility=min_covisibility,
-                          progress=progress)
-    return {"config": conf.to_dict(), "data": str(data_root), "scenes": [s.name for s in scene_objs],
-            "stereo": res.to_dict(with_pairs=with_pairs)}
+    if task not in TASKS:
+        raise ImtuneError(f"unknown task {task!r} (choose from {', '.join(TASKS)})")
+    scene_objs = load_scenes(data_root, scenes, split="all", gt_dir=gt_dir)
+    cache = H5Cache(cache_dir)
+    out = {"config": conf.to_dict(), "data": str(data_root), "scenes": [s.name for s in scene_objs]}
+    if task in ("stereo", "both"):
+        from pipeline.tasks.stereo import evaluate_stereo
+        res = evaluate_stereo(scene_objs, conf, cache, min_covisibility=min_covisibility, progress=progress)
+        out["stereo"] = res.to_dict(with_pairs=with_pairs)
+    if task in ("multiview", "both"):
+        import dataclasses
+
+        from pipeline.tasks.multiview import MultiviewConfig, evaluate_multiview
+        mv = multiview or MultiviewConfig()
+        res = evaluate_multiview(scene_objs, conf, mv, cache, workers=workers, progress=progress,
+                                 keep_models=keep_models)
+        out["multiview_config"] = dataclasses.asdict(mv)
+        out["multiview"] = res.to_dict(with_bags=with_bags)
+    return out

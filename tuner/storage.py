@@ -89,6 +89,19 @@ def scrub(text: str, url: str | None) -> str:
     return mask_url(text)
 
 
+_DRIVERS = {"postgresql": (("psycopg2", "psycopg2"), ("psycopg", "psycopg"), ("pg8000", "pg8000")),
+            "mysql": (("MySQLdb", "mysqldb"), ("pymysql", "pymysql"), ("mysql.connector", "mysqlconnector")),
+            "mariadb": (("MySQLdb", "mysqldb"), ("pymysql", "pymysql"))}
+
+
+def _importable(mod: str) -> bool:
+    import importlib.util
+    try:
+        return importlib.util.find_spec(mod) is not None
+    except (ImportError, ValueError):
+        return False
+
+
 def classify(url: str) -> tuple[str, str]:
     """(kind, normalised) where kind is sqlite | rdb | journal. Raises ImtuneError if malformed."""
     if not isinstance(url, str) or not url.strip():
@@ -125,6 +138,11 @@ def classify(url: str) -> tuple[str, str]:
             raise ImtuneError(f"malformed storage URL {mask_url(url)!r}: no host ({EXPECTED})")
         if not u.database:
             raise ImtuneError(f"malformed storage URL {mask_url(url)!r}: no database name ({EXPECTED})")
+        if "+" not in u.drivername:  # no driver named: use one that is installed
+            for mod, driver in _DRIVERS.get(backend, ()):
+                if _importable(mod):
+                    u = u.set(drivername=f"{backend}+{driver}")
+                    return "rdb", u.render_as_string(hide_password=False)
         return "rdb", url
     raise ImtuneError(f"unsupported storage {mask_url(url)!r} (scheme {u.drivername!r}; {EXPECTED})")
 
@@ -203,7 +221,9 @@ def open_storage(url: str | None = None, *, heartbeat: int | None = DEFAULT_HEAR
     if hb:
         kwargs = dict(heartbeat_interval=hb, grace_period=int(grace_period or 3 * hb))
         if retry_stale:
-            kwargs["heartbeat_stale_trial_callback"] = optuna.storages.RetryHeartbeatStaleTrialCallback(max_retry=1)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # "experimental" since Optuna 2.8
+                kwargs["heartbeat_stale_trial_callback"] = optuna.storages.RetryHeartbeatStaleTrialCallback(max_retry=1)
     if kind == "sqlite":
         _prepare_sqlite(_sqlite_path(norm))
         engine_kwargs = {"connect_args": {"timeout": SQLITE_TIMEOUT_S}}

@@ -323,7 +323,7 @@ def setup_study(s: TuneSettings) -> StudyContext:
         else:
             gmax = None
         resolved = space.resolve(gmax)
-        mine["budget"].update(gamma_max=gmax, gamma_max_test=cal.gamma_max(s.test_budget) if cal else None,
+        mine["budget"].update(gamma_max=gmax, gamma_max_test=cal.gamma_max(s.test_budget) if cal and cal.covers(s.test_budget) else None,
                               calibration=cal.to_dict() if cal else None)
         mine["search_space_resolved"] = resolved.spec()
         mine["created"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")

@@ -214,19 +214,21 @@ def _init_worker():
     cdb.quiet(3)
 
 
-def run_bags(jobs: list[BagJob], workers: int = 2, progress: bool = False, desc: str = "bags") -> list[dict]:
+def run_bags(jobs: list[BagJob], workers: int = 2, progress: bool = False, desc: str = "bags",
+             fn=None) -> list[dict]:
     """Run bag jobs, in ``workers`` processes (spawn) or in this process when ``workers`` <= 1.
 
     Results come back in the order of ``jobs``. A worker that dies (COLMAP abort) breaks the pool: the
     bags in flight are retried one at a time in a fresh process, and a bag that kills its process again is
-    recorded as failed."""
+    recorded as failed. ``fn`` replaces :func:`run_bag` (a module-level function; tests)."""
     from tqdm.auto import tqdm
+    fn = fn or run_bag
     results: list[dict | None] = [None] * len(jobs)
     bar = tqdm(total=len(jobs), desc=desc, disable=not progress, leave=False)
     if workers <= 1 or len(jobs) <= 1:
         _init_worker_inline()
         for k, j in enumerate(jobs):
-            results[k] = run_bag(j)
+            results[k] = fn(j)
             bar.update(1)
         bar.close()
         return results  # type: ignore[return-value]
@@ -235,11 +237,11 @@ def run_bags(jobs: list[BagJob], workers: int = 2, progress: bool = False, desc:
     pending = list(order)
     suspects: list[int] = []
     while pending:
-        pending, broken = _pool_pass(jobs, pending, results, workers, bar)
+        pending, broken = _pool_pass(jobs, pending, results, workers, bar, fn)
         suspects.extend(broken)
     for k in suspects:  # isolate: one bag per fresh process
         if results[k] is None:
-            _, again = _pool_pass(jobs, [k], results, 1, bar)
+            _, again = _pool_pass(jobs, [k], results, 1, bar, fn)
             if again:
                 rec = _empty_record(jobs[k])
                 rec["failure"] = "COLMAP worker process died"
@@ -254,29 +256,30 @@ def _init_worker_inline():
     cdb.quiet(3)
 
 
-def _pool_pass(jobs, indices, results, workers, bar):
+def _pool_pass(jobs, indices, results, workers, bar, fn):
     """Submit ``indices`` to a fresh pool; returns (not yet submitted, in-flight when the pool broke)."""
     import multiprocessing as mp
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
     from concurrent.futures.process import BrokenProcessPool
     ctx = mp.get_context("spawn")
     todo = list(indices)
-    broken: list[int] = []
+    submitted: list[int] = []
     with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker) as ex:
         inflight = {}
         try:
             while todo or inflight:
                 while todo and len(inflight) < 2 * workers:
                     k = todo.pop(0)
-                    inflight[ex.submit(run_bag, jobs[k])] = k
+                    inflight[ex.submit(fn, jobs[k])] = k
+                    submitted.append(k)
                 done, _ = wait(list(inflight), return_when=FIRST_COMPLETED)
                 for f in done:
                     k = inflight.pop(f)
                     results[k] = f.result()
                     bar.update(1)
         except BrokenProcessPool:
-            broken = [k for k in inflight.values() if results[k] is None]
-    return todo, broken
+            pass
+    return todo, [k for k in submitted if results[k] is None]
 
 
 # ------------------------------------------------------------------------------------------ summary

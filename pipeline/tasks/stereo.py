@@ -91,14 +91,18 @@ def summarize(records: list[dict], nf: float) -> dict:
 
     def stat(f, a):
         return float(f(a)) if len(a) else 0.0
-    return {"mAA5": mean_average_accuracy(errs, 5), "mAA10": mean_average_accuracy(errs, 10),
-            "accuracy": [float(x) for x in accuracy_curve(errs, 10)],
-            "NF": float(nf), "NM": stat(np.mean, [r["NM"] for r in records]),
-            "NI": stat(np.mean, [r["NI"] for r in records]), "pairs": len(records),
-            "failed": int(sum(1 for r in records if not math.isfinite(r["err"]))),
-            "match_seconds": stat(np.mean, ms), "ransac_seconds": stat(np.mean, rs),
-            "ransac_seconds_median": stat(np.median, rs),
-            "ransac_seconds_p90": stat(lambda a: np.percentile(a, 90), rs)}
+    out = {"mAA5": mean_average_accuracy(errs, 5), "mAA10": mean_average_accuracy(errs, 10),
+           "accuracy": [float(x) for x in accuracy_curve(errs, 10)],
+           "NF": float(nf), "NM": stat(np.mean, [r["NM"] for r in records]),
+           "NI": stat(np.mean, [r["NI"] for r in records]), "pairs": len(records),
+           "failed": int(sum(1 for r in records if not math.isfinite(r["err"]))),
+           "match_seconds": stat(np.mean, ms), "ransac_seconds": stat(np.mean, rs),
+           "ransac_seconds_median": stat(np.median, rs),
+           "ransac_seconds_p90": stat(lambda a: np.percentile(a, 90), rs)}
+    if any(r.get("covisibility") is not None for r in records):  # the paper's breakdown (0+, 0.1+, ..., 0.6+)
+        from pipeline.metrics.breakdown import by_covisibility
+        out["covisibility"] = by_covisibility(records)
+    return out
 
 
 @dataclass
@@ -128,6 +132,10 @@ def combine(scene_summaries: dict[str, dict], records: list[dict]) -> dict:
     rs = np.array([r["ransac_seconds"] for r in records]) if records else np.zeros(1)
     out["ransac_seconds_median"] = float(np.median(rs))
     out["ransac_seconds_p90"] = float(np.percentile(rs, 90))
+    parts = [s["covisibility"] for s in scene_summaries.values() if "covisibility" in s]
+    if parts:  # co-visibility breakdown: mean over scenes per bin
+        from pipeline.metrics.breakdown import mean_breakdown
+        out["covisibility"] = mean_breakdown(parts)
     return out
 
 

@@ -1,25 +1,44 @@
-"""`tune evaluate`: one fixed configuration on the stereo task (JSON with --json, else a table)."""
+"""`tune evaluate`: one fixed configuration on the stereo and/or multiview task (JSON with --json, else tables)."""
 from __future__ import annotations
 
 import json
 import math
 
 from tuner.formatting import render
-from tuner.options import add_pipeline_options, build_config, evaluate_config, resolve_data
+from tuner.options import (TASKS, add_multiview_options, add_pipeline_options, build_config, evaluate_config,
+                           multiview_config, resolve_data)
 
 COLUMNS = ["scene", "pairs", "NF", "NM", "NI", "mAA5", "mAA10", "failed", "match_seconds", "ransac_seconds"]
+MV_COLUMNS = ["scene", "bag_size", "bags", "SR", "RC", "NL", "TL", "mAA5", "mAA10", "ATE", "failed", "NM", "seconds"]
 
 
 def register(sub) -> None:
     ap = sub.add_parser("evaluate", help="evaluate one fixed configuration")
     add_pipeline_options(ap)
+    ap.add_argument("--task", default="stereo", choices=list(TASKS), help="stereo (default), multiview or both")
+    add_multiview_options(ap)
     ap.add_argument("--pairs", action="store_true", help="include every pair record in the JSON")
+    ap.add_argument("--bag-records", action="store_true", help="include every multiview bag record in the JSON")
     ap.set_defaults(func=run)
 
 
 def stereo_rows(stereo: dict) -> list[dict]:
     rows = [dict(scene=name, **{k: s[k] for k in COLUMNS[1:]}) for name, s in stereo["scenes"].items()]
     rows.append(dict(scene="mean", **{k: stereo[k] for k in COLUMNS[1:]}))
+    return rows
+
+
+def multiview_rows(mv: dict) -> list[dict]:
+    """One row per scene and bag size, one per scene (mean over bag sizes), and the overall mean."""
+    rows = []
+
+    def row(scene, size, s):
+        return dict(scene=scene, bag_size=size, **{k: s.get(k) for k in MV_COLUMNS[2:]})
+    for name, s in mv["scenes"].items():
+        for size, ss in s.get("by_size", {}).items():
+            rows.append(row(name, size, ss))
+        rows.append(row(name, "all", s))
+    rows.append(row("mean", "all", mv))
     return rows
 
 
@@ -36,14 +55,21 @@ def _jsonable(o):
 def run(args) -> int:
     conf = build_config(args)
     data = resolve_data(args.data)
+    mv = multiview_config(args) if args.task in ("multiview", "both") else None
     out = evaluate_config(conf, data, args.scenes, cache_dir=args.cache,
                           min_covisibility=args.covisibility, progress=not (args.quiet or args.json),
-                          with_pairs=args.pairs)
+                          with_pairs=args.pairs, task=args.task, multiview=mv, workers=args.workers,
+                          gt_dir=args.gt_dir, with_bags=args.bag_records, keep_models=args.keep_models)
     if args.json:
         print(json.dumps(_jsonable(out), indent=2))
     else:
         c = conf
         print(f"{c.feature.name} ({c.feature.num_features}) | r={c.matching.ratio} {c.matching.strategy} | "
               f"{c.geometry.ransac} eta={c.geometry.threshold}px Gamma={c.geometry.max_iters} | data {data}")
-        print(render(stereo_rows(out["stereo"]), "markdown", COLUMNS))
+        if "stereo" in out:
+            print(render(stereo_rows(out["stereo"]), "markdown", COLUMNS))
+        if "multiview" in out:
+            print(f"multiview: COLMAP from tentative matches (intrinsics: {mv.intrinsics}); "
+                  f"SR, RC in %; ATE in ground-truth units")
+            print(render(multiview_rows(out["multiview"]), "markdown", MV_COLUMNS))
     return 0

@@ -1,0 +1,348 @@
+"""`tune viz`: the paper's qualitative figures as PNGs, and an HTML gallery of them.
+
+    tune viz --study sift-8000-degensac-stereo          # frozen settings: worst, best, random test pairs
+    tune viz --feature sift --ratio 0.85 --ransac degensac --threshold 0.5 --scenes fountain-P11
+    tune viz --study NAME --pairs '0000.jpg|0004.jpg,entry-P10:0002.jpg|0005.jpg'
+    tune viz --study NAME --pair 0000.jpg 0004.jpg      # the same, without quoting
+    tune viz --compare STUDY_A STUDY_B                  # or two YAML / JSON config files
+    tune viz --study NAME --task multiview [--bag 5:0]  # a reconstructed bag: keypoints in / not in the model
+
+Configurations: ``--study NAME`` reads ``<studies dir>/<study>/frozen.yaml`` (the validation optimum) and
+draws its test scenes (``--split val`` for the validation scenes); ``--config FILE`` reads a YAML or JSON file
+(a frozen.yaml, a pipeline dict with feature / matching / geometry sections, flat option names such as
+``feature: sift`` / ``ratio: 0.85``, or an official IMC benchmark method JSON); otherwise the pipeline options,
+exactly as `tune evaluate` takes them. ``--compare A B``: each of A and B is a config file or a study name.
+
+Output: PNGs in ``--out`` (default ``<studies dir>/<study>/viz`` for a study, else ``./imtune-viz``) and a
+gallery, ``gallery.html`` beside them (for a study: ``<studies dir>/<study>/gallery.html``, linked from the
+study's ``report.html`` when there is one). Re-running updates the gallery.
+
+Python: ``pipeline.viz.batch.render_pairs / render_compare / render_bags`` and ``pipeline.viz.gallery``;
+:func:`viz` below is the whole command as one call.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from pipeline.config import PipelineConfig
+from pipeline.errors import ImtuneError
+from tuner.options import add_multiview_options, add_pipeline_options, build_config, multiview_config, resolve_data
+
+
+@dataclass
+class Source:
+    """A configuration to draw: the config, its label, and the study it comes from (if any)."""
+    conf: PipelineConfig
+    label: str
+    study: str | None = None
+    frozen: dict | None = None
+    path: Path | None = None
+
+
+# ---------------------------------------------------------------------------------------------- sources
+
+def _default_namespace() -> argparse.Namespace:
+    ap = argparse.ArgumentParser(add_help=False)
+    add_pipeline_options(ap)
+    return ap.parse_args([])
+
+
+def _from_flat(d: dict, path: Path) -> PipelineConfig:
+    ns = _default_namespace()
+    known = set(vars(ns))
+    for k, v in d.items():
+        key = str(k).replace("-", "_")
+        if key not in known:
+            raise ImtuneError(f"{path}: unknown option {k!r} (expected pipeline option names such as feature, "
+                              f"num_features, ratio, strategy, ransac, threshold, max_iters)")
+        setattr(ns, key, v)
+    return build_config(ns)
+
+
+def _from_imc(method: dict, path: Path) -> PipelineConfig:
+    """An official IMC benchmark method (config_common + config_<dataset>_stereo) -> PipelineConfig."""
+    import dataclasses
+
+    from pipeline.config import FeatureConfig, GeometryConfig, MatchConfig
+    from pipeline.geometry import imc_geom_to_config
+    common = method.get("config_common") or {}
+    task = next((v for k, v in method.items() if k.startswith("config_") and k.endswith("_stereo")), None)
+    if not isinstance(task, dict):
+        raise ImtuneError(f"{path}: IMC method config has no config_<dataset>_stereo section")
+    name = str(common.get("descriptor") or common.get("keypoint") or "sift").lower()
+    name = {"siftdef": "sift", "rootsiftdef": "rootsift"}.get(name, name)
+    from pipeline.features import EXTRACTORS
+    EXTRACTORS.get(name)
+    fc = FeatureConfig(name=name, num_features=int(common.get("num_keypoints", 8000)))
+    m = task.get("matcher") or {}
+    filt = m.get("filtering") or {}
+    ratio = float(filt.get("threshold", 1.0)) if "ratio" in str(filt.get("type", "")) else 1.0
+    sym = m.get("symmetric") or {}
+    strategy = str(sym.get("reduce", "both")) if sym.get("enabled", True) else "uni"
+    mc = MatchConfig(ratio=min(1.0, ratio), strategy=strategy, fginn="fginn" in str(filt.get("type", "")),
+                     method="flann" if m.get("flann") else "exact")
+    gc = GeometryConfig(**imc_geom_to_config(task.get("geom") or {}))
+    return dataclasses.replace(PipelineConfig(), feature=fc, matching=mc, geometry=gc)
+
+
+def load_config_file(path: str | Path) -> Source:
+    """A configuration from a YAML / JSON file (see the module docstring); one-line ImtuneError if invalid."""
+    import yaml
+
+    from pipeline.viz.stereo import config_label
+    from tuner.freeze import pipeline_from_dict
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise ImtuneError(f"cannot read config file {path}: {e.strerror or e}") from None
+    try:
+        d = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
+    except (ValueError, yaml.YAMLError) as e:
+        raise ImtuneError(f"{path}: invalid {'JSON' if path.suffix.lower() == '.json' else 'YAML'} "
+                          f"({str(e).splitlines()[0]})") from None
+    if isinstance(d, list) and d and isinstance(d[0], dict) and "config_common" in d[0]:
+        d = d[0]
+    if not isinstance(d, dict) or not d:
+        raise ImtuneError(f"{path}: expected a mapping of configuration values")
+    if "config_common" in d:
+        conf = _from_imc(d, path)
+        return Source(conf, f"{d['config_common'].get('json_label', path.stem)}: {config_label(conf)}", path=path)
+    if isinstance(d.get("config"), dict):  # a frozen.yaml
+        conf = pipeline_from_dict(d["config"])
+        who = d.get("study") or path.stem
+        return Source(conf, f"{who}: {config_label(conf)}", study=None, frozen=d, path=path)
+    if any(isinstance(d.get(k), dict) for k in ("feature", "matching", "geometry")):
+        conf = pipeline_from_dict(d)
+    else:
+        conf = _from_flat(d, path)
+    return Source(conf, f"{path.stem}: {config_label(conf)}", path=path)
+
+
+def studies_dir(value: str | None = None) -> Path:
+    from tuner.storage import default_studies_dir
+    return Path(value).expanduser().resolve() if value else default_studies_dir()
+
+
+def load_study_source(name: str, sdir: Path) -> Source:
+    """The frozen settings of a study (``<sdir>/<study>/frozen.yaml``); one-line ImtuneError without them."""
+    from pipeline.viz.stereo import config_label
+    from tuner.freeze import load_frozen, pipeline_from_dict
+    frozen = load_frozen(sdir, name)
+    conf = pipeline_from_dict(frozen["config"])
+    trial = frozen.get("trial")
+    return Source(conf, f"{name}" + (f" (trial #{trial})" if trial is not None else "") + f": {config_label(conf)}",
+                  study=name, frozen=frozen)
+
+
+def resolve_source(spec: str, sdir: Path) -> Source:
+    """A config file path, else a study name."""
+    p = Path(spec).expanduser()
+    if p.is_file():
+        return load_config_file(p)
+    if p.suffix.lower() in (".yaml", ".yml", ".json") or "/" in spec:
+        raise ImtuneError(f"config file {p} does not exist")
+    return load_study_source(spec, sdir)
+
+
+# ---------------------------------------------------------------------------------------------- command
+
+def register(sub) -> None:
+    ap = sub.add_parser("viz", help="qualitative figures (matches coloured by error, multiview keypoints) and a gallery",
+                        description="Draw PNG figures of a configuration (a study's frozen settings, a config file "
+                                    "or the pipeline options) and write / update an HTML gallery.")
+    add_pipeline_options(ap)
+    add_multiview_options(ap)
+    s = ap.add_argument_group("what to draw")
+    s.add_argument("--study", default=None, help="draw this study's frozen settings (studies/<study>/frozen.yaml)")
+    s.add_argument("--config", default=None, help="draw the configuration in this YAML / JSON file")
+    s.add_argument("--compare", nargs=2, metavar=("A", "B"), default=None,
+                   help="the same pairs for two configurations (each a study name or a config file), side by side")
+    s.add_argument("--studies-dir", default=None, help="where studies live (default $IMTUNE_STUDIES, else studies/)")
+    s.add_argument("--split", default="test", choices=["val", "test"],
+                   help="with --study and no --scenes: the study's test (default) or validation scenes")
+    s.add_argument("--task", default="stereo", choices=["stereo", "multiview", "both"])
+    s.add_argument("--pairs", default=None, help="comma-separated pairs 'IMAGE1|IMAGE2' or 'SCENE:IMAGE1|IMAGE2' "
+                                                 "(quote them: '|' is the shell's pipe)")
+    s.add_argument("--pair", nargs=2, action="append", default=None, metavar=("IMAGE1", "IMAGE2"),
+                   help="one pair (repeatable); SCENE:IMAGE1 selects the scene")
+    s.add_argument("--worst", type=int, default=2, help="pairs with the largest pose error (default 2)")
+    s.add_argument("--best", type=int, default=2, help="pairs with the smallest pose error (default 2)")
+    s.add_argument("--random", type=int, default=2, help="a random sample of the other pairs (default 2)")
+    s.add_argument("--sample-seed", type=int, default=0, help="seed of the random sample of pairs")
+    s.add_argument("--num", type=int, default=3, help="--compare: the pairs on which A and B differ most (default 3)")
+    s.add_argument("--bag", action="append", default=None, metavar="SIZE:INDEX",
+                   help="multiview: this bag (repeatable; default the first bag of each size)")
+    f = ap.add_argument_group("figures")
+    f.add_argument("--out", default=None, help="PNG folder (default studies/<study>/viz, else ./imtune-viz)")
+    f.add_argument("--gallery", default=None, help="gallery HTML (default gallery.html beside the PNGs; "
+                                                   "studies/<study>/gallery.html for a study)")
+    f.add_argument("--no-gallery", action="store_true", help="write the PNGs only")
+    f.add_argument("--width", type=int, default=1600, help="figure width in px (default 1600)")
+    f.add_argument("--max-lines", type=int, default=200, help="at most this many match lines per figure (default 200)")
+    f.add_argument("--layout", default="horizontal", choices=["horizontal", "vertical"],
+                   help="images side by side (default) or one above the other")
+    f.add_argument("--no-depth", action="store_true", help="epipolar distance even where depth maps exist")
+    ap.set_defaults(func=run)
+
+
+def _pair_specs(args) -> list[str]:
+    from pipeline.viz.select import parse_pair_specs
+    specs = parse_pair_specs(args.pairs)
+    for a, b in args.pair or []:
+        if ":" in a:
+            sc, a = a.split(":", 1)
+            specs.append(f"{sc}:{a}|{b}")
+        else:
+            specs.append(f"{a}|{b}")
+    return specs
+
+
+def _parse_bags(values) -> list[tuple[int, int]] | None:
+    if not values:
+        return None
+    out = []
+    for v in values:
+        try:
+            size, index = (int(x) for x in str(v).split(":"))
+        except ValueError:
+            raise ImtuneError(f"--bag {v!r}: expected SIZE:INDEX, e.g. 5:0") from None
+        if size < 2 or index < 0:
+            raise ImtuneError(f"--bag {v!r}: size must be >= 2 and index >= 0")
+        out.append((size, index))
+    return out
+
+
+def _scenes_for(args, src: Source | None) -> tuple[Path, list[str] | None, float | None]:
+    """Data root, scene names (None: all) and minimum co-visibility for a run."""
+    data = (src.frozen or {}).get("data", {}) if src is not None else {}
+    if args.data:
+        root = resolve_data(args.data)
+    elif data.get("root") and Path(data["root"]).is_dir():
+        root = Path(data["root"])
+    else:
+        root = resolve_data(None)
+    names = None
+    if args.scenes:
+        names = [n.strip() for n in args.scenes.split(",") if n.strip()]
+    elif data:
+        names = list(data.get("test_scenes" if args.split == "test" else "val_scenes") or []) or None
+        if names is None and args.split == "test":
+            from pipeline.data import default_splits
+            names = list(default_splits(root).get("test", [])) or None
+    min_cov = args.covisibility
+    if src is not None and src.frozen and "min_covisibility" in data and args.covisibility == 0.1:
+        min_cov = data["min_covisibility"]
+    return root, names, min_cov
+
+
+def viz(args: argparse.Namespace) -> dict:
+    """The whole `tune viz` command as one call on parsed options; returns {"figures": [...], "gallery": path,
+    "out": folder, "failures": [...]}."""
+    from pipeline.cache import H5Cache
+    from pipeline.viz.batch import VizOptions, gallery_entries, render_bags, render_compare, render_pairs
+    from pipeline.viz.gallery import link_gallery, write_gallery
+    from tuner.freeze import study_dir
+    from tuner.options import load_scenes
+    chosen = [x for x in ("study", "config", "compare") if getattr(args, x)]
+    if len(chosen) > 1:
+        raise ImtuneError(f"give only one of --study, --config and --compare (got {', '.join('--' + c for c in chosen)})")
+    if args.width < 320:
+        raise ImtuneError(f"--width must be at least 320 px, got {args.width}")
+    sdir = studies_dir(args.studies_dir)
+    if args.compare:
+        sources = [resolve_source(s, sdir) for s in args.compare]
+    elif args.study:
+        sources = [load_study_source(args.study, sdir)]
+    elif args.config:
+        sources = [load_config_file(args.config)]
+    else:
+        conf = build_config(args)
+        from pipeline.viz.stereo import config_label
+        sources = [Source(conf, config_label(conf))]
+    primary = sources[0]
+    root, names, min_cov = _scenes_for(args, primary)
+    scenes = load_scenes(root, names, split="all", gt_dir=args.gt_dir)
+    study = primary.study
+    if args.out:
+        out_dir = Path(args.out).expanduser().resolve()
+        gallery = Path(args.gallery).expanduser().resolve() if args.gallery else out_dir / "gallery.html"
+    elif study:
+        out_dir = study_dir(sdir, study) / "viz"
+        gallery = Path(args.gallery).expanduser().resolve() if args.gallery else study_dir(sdir, study) / "gallery.html"
+    else:
+        out_dir = (Path.cwd() / "imtune-viz").resolve()
+        gallery = Path(args.gallery).expanduser().resolve() if args.gallery else out_dir / "gallery.html"
+    opts = VizOptions(width=int(args.width), max_lines=int(args.max_lines), layout=args.layout,
+                      use_depth=not args.no_depth, seed=int(args.sample_seed))
+    cache = H5Cache(args.cache)
+    progress = not (args.quiet or args.json)
+    specs = _pair_specs(args)
+    results, replace = [], set()
+    if args.compare:
+        results += render_compare(scenes, [(s.conf, s.label) for s in sources], out_dir, cache=cache,
+                                  pairs=specs or None, n=args.num, min_covisibility=min_cov, opts=opts,
+                                  progress=progress)
+    else:
+        if args.task in ("stereo", "both"):
+            results += render_pairs(scenes, primary.conf, out_dir, cache=cache, pairs=specs or None,
+                                    worst=args.worst, best=args.best, random=args.random,
+                                    sample_seed=args.sample_seed, min_covisibility=min_cov, label=primary.label,
+                                    opts=opts, progress=progress)
+            if not specs:
+                replace |= {"worst", "best", "random"}
+        if args.task in ("multiview", "both"):
+            mv = multiview_config(args)
+            results += render_bags(scenes, primary.conf, mv, out_dir, cache=cache, bags=_parse_bags(args.bag),
+                                   label=primary.label, opts=opts, progress=progress)
+    failures = [r for r in results if r.get("failure") and not r.get("png")]
+    if results and len(failures) == len(results):
+        raise ImtuneError(failures[0]["failure"])
+    out = {"out": str(out_dir), "gallery": None, "figures": results, "failures": [r["failure"] for r in failures]}
+    if not args.no_gallery:
+        links = {}
+        title = "imtune figures"
+        if study:
+            title = f"imtune study {study}: qualitative figures"
+            report = study_dir(sdir, study) / "report.html"
+            if report.is_file() and gallery.parent == report.parent:
+                link_gallery(report, gallery.name)
+                links["study report"] = "report.html"
+        scope = results[0]["config"] if results and replace else None
+        write_gallery(gallery, gallery_entries(results, gallery.parent), title=title,
+                      replace_sections=tuple(sorted(replace)), scope=scope, links=links)
+        out["gallery"] = str(gallery)
+    return out
+
+
+def _line(r: dict) -> str:
+    def deg(v):
+        return "inf" if v in (None, "inf") else f"{float(v):.2f}"
+    if r["section"] == "compare":
+        parts = [f"{p['label'].split(':')[0]}: NI {p.get('NI')} err {deg(p.get('err'))}" for p in r["panels"]]
+        return f"compare  {r['scene']} {r['pair']}  " + " | ".join(parts) + f"  -> {r['png']}"
+    if r["section"] == "multiview":
+        if not r.get("png"):
+            return f"multiview {r['scene']} bag {r['bag_size']}#{r['bag']}: {r['failure']}"
+        return (f"multiview {r['scene']} bag {r['bag_size']}#{r['bag']}  registered {len(r['registered'])}/"
+                f"{len(r['images'])} NL {r['NL']}  -> {r['png']}")
+    state = r["failure"] if r.get("failure") else f"err {deg(r.get('err'))} deg"
+    return f"{r['section']:<7} {r['scene']} {r['pair']}  NI {r.get('NI')}  {state}  [{r['error_kind']}]  -> {r['png']}"
+
+
+def run(args) -> int:
+    out = viz(args)
+    if args.json:
+        print(json.dumps(out, indent=2, default=str))
+        return 0
+    for r in out["figures"]:
+        print(_line(r))
+    for msg in out["failures"]:
+        print(f"tune viz: warning: {msg}", file=sys.stderr)
+    if out["gallery"]:
+        print(f"gallery: {out['gallery']}")
+    return 0
