@@ -59,6 +59,10 @@ class MatchConfig:
     distance_threshold: drop matches whose descriptor distance exceeds this (None = off).
     fginn: first-geometric-inconsistent NN: the second neighbour must lie > fginn_px from the first.
     method: "exact" brute force (default) or "flann" (4 KD-trees, 128 checks / LSH for binary).
+    prefilter: outlier pre-filter applied to the tentative matches before the estimator / COLMAP
+        (``pipeline.matching.prefilters``: none, gms, adalam, cne); prefilter_options: its (key, value) pairs.
+    custom_matches: folder of imported matches (IMC h5 layout, ``pipeline.matching.custom_matches``);
+        when set the matcher is skipped (ratio, strategy, distance threshold and FGINN do not apply).
     """
     ratio: float = 1.0
     strategy: str = "both"
@@ -66,6 +70,9 @@ class MatchConfig:
     fginn: bool = False
     fginn_px: float = 10.0
     method: str = "exact"
+    prefilter: str = "none"
+    prefilter_options: tuple = ()
+    custom_matches: str | None = None
 
     def __post_init__(self):
         if not (0.0 < float(self.ratio) <= 1.0):
@@ -76,6 +83,8 @@ class MatchConfig:
             raise ImtuneError(f"unknown matcher {self.method!r} (choose exact or flann)")
         if self.distance_threshold is not None and self.distance_threshold < 0:
             raise ImtuneError(f"distance threshold must be >= 0, got {self.distance_threshold}")
+        if not isinstance(self.prefilter, str) or not self.prefilter:
+            raise ImtuneError(f"prefilter must be a name (see `tune list`), got {self.prefilter!r}")
 
 
 @dataclass(frozen=True)

@@ -18,6 +18,7 @@ class Registry:
         self.kind = kind
         self._items: dict[str, object] = {}
         self._describe: dict[str, str] = {}
+        self._resolvers: list[Callable] = []
 
     def register(self, name: str, description: str = "") -> Callable:
         def deco(obj):
@@ -34,8 +35,18 @@ class Registry:
     def __contains__(self, name: str) -> bool:
         return name in self._items
 
+    def add_resolver(self, fn: Callable) -> None:
+        """``fn(name)`` -> an object for a name that is not registered (e.g. a composed feature name
+        ``det+aff+desc`` or ``custom:DIR``), or None to decline; it may raise ImtuneError for a name it
+        recognises but rejects. Consulted by ``get`` in the order added."""
+        self._resolvers.append(fn)
+
     def get(self, name: str):
         if name not in self._items:
+            for fn in self._resolvers:
+                obj = fn(name)
+                if obj is not None:
+                    return obj
             raise ImtuneError(f"unknown {self.kind} {name!r} (known: {', '.join(sorted(self._items))})")
         return self._items[name]
 

@@ -92,13 +92,13 @@ def test_scene_without_poses_cannot_use_the_poses_method(sacre_coeur, tmp_path):
 
 def test_sfm_ground_truth_from_an_image_folder(sacre_coeur, tmp_path):
     scene = load_scene(sacre_coeur)
-    names = list(scene.images)[:4]
-    scene = subset(scene, names)
-    gt, path = build_ground_truth(scene, tmp_path, GTConfig(**SMALL))
-    assert gt.method == "sfm" and len(gt.names) >= 3
+    names = list(scene.images)
+    # wide-baseline phototourism images need more features than SMALL to register (4096: ~15 s)
+    gt, path = build_ground_truth(scene, tmp_path, GTConfig(num_features=4096, max_image_size=1100))
+    assert gt.method == "sfm" and len(gt.names) >= 8
     assert sorted(gt.names + gt.meta["dropped"]) == sorted(names)
     assert gt.meta["reprojection"]["median_px"] < 1.0
-    fresh = subset(load_scene(sacre_coeur), names)
+    fresh = load_scene(sacre_coeur)
     assert attach_ground_truth(fresh, tmp_path)
     assert set(fresh.images) == set(gt.names)  # unregistered images dropped
     assert all(i.K is not None and i.R is not None for i in fresh.images.values())

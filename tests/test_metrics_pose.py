@@ -49,3 +49,12 @@ def test_maa_thresholds_are_1_to_tau_inclusive():
     assert mean_average_accuracy([], 10) == 0.0
     assert mean_average_accuracy([math.inf] * 4, 10) == 0.0
     assert mean_average_accuracy([0.0] * 4, 10) == 1.0
+
+
+def test_rotation_error_is_precise_for_tiny_angles():
+    R = Rotation.from_euler("xyz", [30, 40, 50], degrees=True).as_matrix()
+    for deg in (1e-4, 3e-3, 0.02):
+        d = Rotation.from_rotvec(np.radians(deg) * np.array([0.0, 0.0, 1.0])).as_matrix()
+        assert rotation_error_deg(R, R @ d) == pytest.approx(deg, rel=1e-3)
+    flip = Rotation.from_rotvec(np.pi * np.array([1.0, 0, 0])).as_matrix()
+    assert rotation_error_deg(np.eye(3), flip) == pytest.approx(180.0, abs=1e-6)

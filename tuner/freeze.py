@@ -80,7 +80,7 @@ def frozen_from_study(study) -> dict:
                           f"{attrs['budget']['seconds_per_pair']} s per pair budget); run more trials first")
     base = pipeline_from_dict(attrs["pipeline"])
     fixed = dict(attrs["search_space_resolved"].get("fixed", {}))
-    conf = config_for(base, dict(best.params), fixed)
+    conf = config_for(base, dict(best.params), fixed, seed=int(attrs.get("seed", 0)))
     searched = list(best.params)
     # parameters neither searched nor pinned keep the command line's value: record them as fixed too
     from tuner.study import SEARCHED
@@ -88,7 +88,8 @@ def frozen_from_study(study) -> dict:
     all_fixed = {k: cd[sec][key] for k, (sec, key) in SEARCHED.items() if k not in searched}
     ua = best.user_attrs
     validation = {k: ua.get(k) for k in ("mAA5", "mAA10", "NF", "NM", "NI", "ransac_seconds_median",
-                                         "ransac_seconds_p90", "match_seconds", "pairs", "failed", "scenes")}
+                                         "ransac_seconds_p90", "match_seconds", "failed", "scenes")}
+    validation["pairs"] = (ua.get("timing") or {}).get("pairs")
     budget = dict(attrs["budget"])
     budget.pop("calibration", None)
     return _plain({

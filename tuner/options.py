@@ -70,6 +70,10 @@ def add_pipeline_options(ap: argparse.ArgumentParser, tuning: bool = False) -> N
     g.add_argument("--strategy", default="both", help="both | either | uni")
     g.add_argument("--distance-threshold", type=float, default=None)
     g.add_argument("--fginn", action="store_true", help="FGINN: 2nd neighbour > 10 px from the first")
+    g.add_argument("--prefilter", default="none", metavar="NAME[:k=v,...]",
+                   help="outlier pre-filter between matching and the estimator: none | gms | adalam (see `tune list`)")
+    g.add_argument("--matches", default=None, metavar="custom:DIR",
+                   help="imported matches (IMC h5 layout) instead of the matcher; needs --feature custom:DIR")
     g.add_argument("--ransac", default="degensac", help="estimator registry name (see `tune list`)")
     g.add_argument("--confidence", type=float, default=0.999999)
     if not tuning:
@@ -98,11 +102,21 @@ def build_config(args: argparse.Namespace, **overrides) -> PipelineConfig:
         check = getattr(reg.get(name), "check_available", None)  # unknown name -> one-line error
         if check is not None:
             check()  # known but not runnable here (missing package / weights, non-free) -> one-line error
+    from pipeline.features.custom_h5 import PREFIX, parse_custom
+    from pipeline.matching.custom_matches import parse_matches_source
+    from pipeline.matching.prefilters import parse_prefilter_spec
+    if str(v["feature"]).startswith(PREFIX):  # custom:DIR -> absolute DIR (study names, cache keys, resume)
+        v["feature"] = PREFIX + str(parse_custom(v["feature"]))
+    prefilter, prefilter_options = parse_prefilter_spec(v.get("prefilter"))
+    custom_matches = parse_matches_source(v.get("matches"))
+    if custom_matches and not str(v["feature"]).startswith(PREFIX):
+        raise ImtuneError("--matches custom:DIR needs --feature custom:DIR (the match indices refer to those keypoints)")
     fc = FeatureConfig(name=v["feature"], num_features=int(v["num_features"]), low_threshold=not v["no_low_threshold"],
                        upright=bool(v["upright"] or v["upright_plus"]), upright_plus=bool(v["upright_plus"]),
                        clahe=v["clahe"], mr_size=v["mr_size"], max_side=int(v["max_side"]))
     mc = MatchConfig(ratio=float(v["ratio"]), strategy=v["strategy"], distance_threshold=v["distance_threshold"],
-                     fginn=bool(v["fginn"]), method=v["matcher"])
+                     fginn=bool(v["fginn"]), method=v["matcher"], prefilter=prefilter,
+                     prefilter_options=prefilter_options, custom_matches=custom_matches)
     gc = GeometryConfig(ransac=v["ransac"], threshold=float(v["threshold"]), confidence=float(v["confidence"]),
                         max_iters=int(v["max_iters"]), seed=int(v["seed"]))
     return PipelineConfig(feature=fc, matching=mc, geometry=gc)

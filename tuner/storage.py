@@ -172,6 +172,24 @@ def _prepare_sqlite(path: Path) -> None:
     # WAL is an optimisation: the busy timeout alone still prevents lock errors
 
 
+def _sqlite_pragmas(engine) -> None:
+    """Per connection: WAL with synchronous=NORMAL (a commit no longer waits for fsync; a killed
+    process loses nothing committed, only a power cut could lose the last commits) and the busy timeout
+    in SQLite itself as well as in the Python driver."""
+    from sqlalchemy import event
+
+    @event.listens_for(engine, "connect")
+    def _on_connect(dbapi_con, _record):
+        cur = dbapi_con.cursor()
+        try:
+            cur.execute(f"PRAGMA busy_timeout={int(SQLITE_TIMEOUT_S * 1000)}")
+            cur.execute("PRAGMA synchronous=NORMAL")
+        finally:
+            cur.close()
+
+    engine.dispose()  # connections opened while creating the tables reconnect with the pragmas
+
+
 def _retrying(fn, what: str, url: str, attempts: int = 8):
     from sqlalchemy.exc import DBAPIError, OperationalError, IntegrityError, ProgrammingError
     last = None
@@ -238,8 +256,11 @@ def open_storage(url: str | None = None, *, heartbeat: int | None = DEFAULT_HEAR
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # heartbeat_interval is "experimental"
         try:
-            return _retrying(lambda: optuna.storages.RDBStorage(norm, engine_kwargs=engine_kwargs, **kwargs),
-                             "open", url)
+            storage = _retrying(lambda: optuna.storages.RDBStorage(norm, engine_kwargs=engine_kwargs, **kwargs),
+                                "open", url)
+            if kind == "sqlite":
+                _sqlite_pragmas(storage.engine)
+            return storage
         except (ImportError, ModuleNotFoundError) as e:
             raise ImtuneError(f"storage {mask_url(url)}: the database driver is not installed "
                               f"({scrub(str(e.__cause__ or e), url)}); e.g. `pip install psycopg2-binary` "
@@ -248,6 +269,52 @@ def open_storage(url: str | None = None, *, heartbeat: int | None = DEFAULT_HEAR
             raise
         except Exception as e:  # noqa: BLE001 - a storage that cannot be opened is a one-line error
             raise ImtuneError(f"cannot open storage {mask_url(url)}: {scrub(str(e), url)}") from None
+
+
+def fail_stale_trials(study) -> list[int]:
+    """Fail (and re-enqueue once) the RUNNING trials of dead workers; returns their numbers.
+
+    Optuna's own check (``optuna.storages.fail_stale_trials``) only sees trials that recorded a
+    heartbeat; a worker killed between creating a trial and its first heartbeat (while the sampler
+    runs) leaves a RUNNING trial without one, which is failed here once it is older than the grace
+    period. Storages without heartbeats (journal files) are left alone."""
+    import datetime as _dt
+
+    import optuna
+    from optuna.trial import TrialState
+    before = {t.number for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))}
+    optuna.storages.fail_stale_trials(study)
+    backend = getattr(study._storage, "_backend", study._storage)
+    interval = getattr(backend, "heartbeat_interval", None)
+    if not interval:
+        return []
+    grace = getattr(backend, "grace_period", None) or 2 * interval
+    try:
+        from optuna.storages._rdb import models
+        running = study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))
+        session = backend.scoped_session()
+        try:
+            beating = {hb.trial_id for hb in session.query(models.TrialHeartbeatModel).all()}
+        finally:
+            backend.scoped_session.remove()
+        cb = backend.get_heartbeat_stale_trial_callback()
+        for t in running:
+            start = t.datetime_start.replace(tzinfo=None) if t.datetime_start else None
+            if t._trial_id in beating or start is None:
+                continue
+            # datetime_start is the creating worker's local time (Optuna's datetime.now())
+            if (_dt.datetime.now() - start).total_seconds() <= grace:
+                continue
+            try:
+                if backend.set_trial_state_values(t._trial_id, state=TrialState.FAIL):
+                    if cb is not None:
+                        cb(study, study._storage.get_trial(t._trial_id))
+            except optuna.exceptions.UpdateFinishedTrialError:
+                pass
+    except Exception:  # noqa: BLE001 - best effort beyond Optuna's own check
+        pass
+    after = {t.number for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))}
+    return sorted(before - after)
 
 
 def storage_label(url: str | None, studies_dir: Path | str | None = None) -> str:

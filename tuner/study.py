@@ -9,9 +9,10 @@ with — search space, fixed pipeline settings, budget (B, Gamma_max and the cal
 fingerprint, code version — and rerunning the same command resumes it; rerunning with a different
 search space, pipeline, budget or data is a one-line error (name a new study with ``--study``).
 
-``n_trials`` is the study's target: a worker stops once COMPLETE + PRUNED (+ RUNNING in other
-workers) trials reach it, so rerunning an interrupted study, or starting N workers on one storage,
-runs exactly the missing trials (workers started at the same instant may overshoot by one each).
+``n_trials`` is the study's target: a worker stops once the study holds that many finished (COMPLETE
+or PRUNED) trials, so rerunning an interrupted study runs exactly the missing trials, and N workers on
+one storage share the work (trials still running in other workers when the target is reached are
+finished and kept: at most N - 1 beyond the target).
 """
 from __future__ import annotations
 
@@ -32,6 +33,7 @@ SAMPLERS = ("tpe", "random", "cmaes", "grid")
 PRUNERS = ("median", "none")
 TASKS = ("stereo",)
 SCHEMA = 1
+DEFAULT_TRIALS = 50
 SEARCHED = {"ratio": ("matching", "ratio"), "strategy": ("matching", "strategy"),
             "threshold": ("geometry", "threshold"), "max_iters": ("geometry", "max_iters")}
 
@@ -96,11 +98,13 @@ def default_study_name(conf: PipelineConfig, task: str = "stereo") -> str:
 
 
 def fixed_pipeline(conf: PipelineConfig, searched) -> dict:
-    """The configuration with the searched parameters blanked (what must match on resume)."""
+    """The configuration with the searched parameters and the seed blanked (what must match on resume;
+    the estimator seed of a study is its user attribute ``seed``)."""
     d = conf.to_dict()
     for name in searched:
         sec, key = SEARCHED[name]
         d[sec][key] = None
+    d["geometry"]["seed"] = None
     return d
 
 
@@ -116,7 +120,7 @@ class TuneSettings:
     studies_dir: Path | None = None
     space_path: str | None = None
     fixes: list = field(default_factory=list)
-    n_trials: int = 50
+    n_trials: int | None = None  # None: 50, or the whole grid with the grid sampler
     timeout: float | None = None
     seed: int | None = None
     sampler: str = "tpe"
@@ -296,6 +300,7 @@ def setup_study(s: TuneSettings) -> StudyContext:
         "budget": {"seconds_per_pair": float(s.budget), "test_seconds_per_pair": float(s.test_budget),
                    "statistic": "median estimator seconds per pair"},
         "code_version": code_version(),
+        "seed": int(s.seed or 0),
     }
     study = None
     try:
@@ -340,6 +345,8 @@ def setup_study(s: TuneSettings) -> StudyContext:
         stored = dict(study.user_attrs)
     resolved = SearchSpace.from_spec(stored["search_space_resolved"], source=stored.get("search_space_source", ""))
     resolved.calibration = space.calibration
+    # every trial of a study uses the estimator seed the study was created with
+    base = dataclasses.replace(base, geometry=dataclasses.replace(base.geometry, seed=int(stored.get("seed", 0))))
     objective = Objective(base, resolved, vs, cache, budget=float(stored["budget"]["seconds_per_pair"]))
     return StudyContext(study=study, storage=storage, name=name, space=resolved, vs=vs, objective=objective,
                         attrs=stored, cache=cache, created=created)
@@ -374,22 +381,22 @@ def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
     """Run trials until the study holds ``s.n_trials`` finished trials (or ``s.timeout``)."""
     import optuna
     from optuna.trial import TrialState
+
+    from tuner.storage import fail_stale_trials
     study = ctx.study
-    n_target = s.n_trials
+    n_target = s.n_trials or (ctx.space.grid_size() if s.sampler == "grid" else DEFAULT_TRIALS)
     if s.sampler == "grid":
-        n_target = min(n_target or 10**9, ctx.space.grid_size())
+        n_target = min(n_target, ctx.space.grid_size())
     sampler = make_sampler(s.sampler, s.seed, ctx.space,
                            s.startup_trials or max(3, min(10, (n_target or 50) // 5)))
     study = optuna.load_study(study_name=ctx.name, storage=ctx.storage, sampler=sampler, pruner=make_pruner(s.pruner))
     ctx.study = study
 
-    def finished(st) -> tuple[int, int]:
-        ts = st.get_trials(deepcopy=False, states=(TrialState.COMPLETE, TrialState.PRUNED, TrialState.RUNNING))
-        done = sum(1 for t in ts if t.state != TrialState.RUNNING)
-        return done, len(ts) - done
+    def finished(st) -> int:
+        return len(st.get_trials(deepcopy=False, states=(TrialState.COMPLETE, TrialState.PRUNED)))
 
-    optuna.storages.fail_stale_trials(study)
-    done0, running0 = finished(study)
+    fail_stale_trials(study)  # trials of killed workers: FAIL, parameters re-enqueued once
+    done0 = finished(study)
     bar = None
     if s.progress:
         from tqdm.auto import tqdm
@@ -398,18 +405,19 @@ def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
         _set_postfix(bar, study)
 
     def callback(st, trial):
-        done, running = finished(st)
+        fail_stale_trials(st)
+        done = finished(st)
         if bar is not None:
             bar.n = min(done, n_target)
             _set_postfix(bar, st)
             bar.refresh()
-        if done + running >= n_target:
+        if done >= n_target:
             st.stop()
 
     t0 = time.perf_counter()
     try:
-        if done0 + running0 < n_target:
-            study.optimize(ctx.objective, n_trials=n_target, timeout=s.timeout, callbacks=[callback],
+        if done0 < n_target:
+            study.optimize(ctx.objective, n_trials=None, timeout=s.timeout, callbacks=[callback],
                            gc_after_trial=False, show_progress_bar=False)
     finally:
         if bar is not None:
@@ -439,7 +447,8 @@ def tune(s: TuneSettings) -> dict:
     from tuner.storage import storage_label
     ctx = setup_study(s)
     s.say(f"study {ctx.name} in {storage_label(s.storage, s.studies_dir)} "
-          f"({'created' if ctx.created else 'resumed'}; sampler {s.sampler}, target {s.n_trials} trials)")
+          f"({'created' if ctx.created else 'resumed'}; sampler {s.sampler}, target "
+          f"{s.n_trials or ('the grid' if s.sampler == 'grid' else DEFAULT_TRIALS)} trials)")
     run = optimize(ctx, s)
     out = {"study": ctx.name, "storage": storage_label(s.storage, s.studies_dir), "worker": run,
            "counts": trial_counts(ctx.study), "frozen": None, "frozen_path": None, "test": None}
@@ -448,6 +457,8 @@ def tune(s: TuneSettings) -> dict:
                           f"{ctx.attrs['budget']['seconds_per_pair']} s budget, pruned or failed); run more trials")
     frozen, path = freeze(ctx.study, s.studies_dir)
     out["frozen"], out["frozen_path"] = frozen, str(path)
+    from tuner.storage import fail_stale_trials
+    fail_stale_trials(ctx.study)
     others = [t for t in ctx.study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))]
     if not s.test:
         return out

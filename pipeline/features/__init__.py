@@ -6,7 +6,13 @@
     EXTRACTORS.availability()   # {name: (available, reason)}
 
 Registered here (OpenCV): sift, rootsift, orb, akaze, kaze, brisk, freak, beblid, teblid, surf
-(surf needs a non-free OpenCV build).
+(surf needs a non-free OpenCV build). Through kornia (learned and affine features, see
+``kornia_compose`` / ``kornia_e2e``): the paper's rows dog-tfeat, dog-mkd, dog-hardnet, dog-sosnet,
+dog-affnet-hardnet, keynet-hardnet, keynet-sosnet, dog-affine-sift, hessian-affnet-sift, ...; aliked,
+disk; any composed ``det[+affine][+orientation]+desc`` name (e.g. ``keynet+affnet+mkd``); and
+``custom:DIR`` (features imported from h5 files, ``custom_h5``). :func:`resolve_feature` resolves any of
+these names to its extractor class; ``EXTRACTORS.get`` does too. docs/extending.md shows how to register
+a new extractor.
 """
 from __future__ import annotations
 
@@ -20,8 +26,43 @@ from pipeline.features.base import Extractor, Features
 from pipeline.features.registry import EXTRACTORS
 # Importing the family modules registers their extractors.
 from pipeline.features import sift, orb, akaze, brisk, boost, surf  # noqa: F401,E402  (order = `tune list` order)
+# kornia families (torch/kornia are imported only when one of them runs)
+from pipeline.features import kornia_compose, kornia_e2e, custom_h5  # noqa: F401,E402
 
-__all__ = ["EXTRACTORS", "Extractor", "Features", "get_extractor", "extract"]
+__all__ = ["EXTRACTORS", "Extractor", "Features", "get_extractor", "extract", "resolve_feature"]
+
+
+def _resolve_dynamic(name: str):
+    """Names that are not registered one by one: ``custom:DIR`` and composed ``det+...+desc``."""
+    if not isinstance(name, str):
+        return None
+    if name.startswith(custom_h5.PREFIX):
+        return custom_h5.custom_class(name)
+    if "+" in name:
+        return kornia_compose.parse_composed(name)
+    return None
+
+
+EXTRACTORS.add_resolver(_resolve_dynamic)
+
+
+@EXTRACTORS.register("custom", "bring your own: --feature custom:DIR (IMC h5 import layout, docs/extending.md)")
+class _CustomPlaceholder(Extractor):
+    """Listed by `tune list`; the usable name is ``custom:DIR``."""
+
+    def __init__(self, conf):
+        raise ImtuneError(f"feature {conf.name!r}: give the folder, --feature custom:DIR (IMC h5 layout: "
+                          "DIR[/<scene>]/keypoints.h5, descriptors.h5)")
+
+    def extract(self, image):  # pragma: no cover - never constructed
+        raise NotImplementedError
+
+
+def resolve_feature(name: str) -> type[Extractor]:
+    """The extractor class of a feature name: a registered name (``tune list``), a composed
+    ``det[+affine][+orientation]+desc`` name, or ``custom:DIR``. One-line ImtuneError if unknown or
+    malformed (the class's ``check_available()`` says whether it can run here)."""
+    return EXTRACTORS.get(name)
 
 
 def get_extractor(conf: FeatureConfig | str | dict[str, Any]) -> Extractor:

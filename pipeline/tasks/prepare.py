@@ -15,6 +15,7 @@ import numpy as np
 from pipeline.cache import H5Cache, file_digest, make_key
 from pipeline.config import FeatureConfig, MatchConfig
 from pipeline.data.scene import ImageInfo
+from pipeline.errors import ImtuneError
 
 COUNTERS: Counter = Counter()  # "extract", "knn": number of real (uncached) computations in this process
 FEATURE_STAGE_VERSION = "1"
@@ -36,6 +37,8 @@ class ImageFeatures:
     scales: np.ndarray | None = None
     orientations: np.ndarray | None = None
     scores: np.ndarray | None = None
+    name: str = ""  # the image's name in its scene (custom matches are keyed by it)
+    path: str = ""  # the image file
 
 
 def feature_key(info: ImageInfo, conf: FeatureConfig) -> str:
@@ -51,10 +54,14 @@ def image_features(cache: H5Cache, info: ImageInfo, conf: FeatureConfig) -> Imag
 
     def compute():
         from pipeline.data.resize import load_image
-        from pipeline.features import extract
+        from pipeline.features import get_extractor
         image, sx, sy = load_image(info.path, max_side=conf.max_side)
         t0 = time.perf_counter()
-        f = extract(conf, image)
+        ext = get_extractor(conf)
+        if hasattr(ext, "extract_from_file"):  # imported features (custom:DIR) are read by image name
+            f = ext.extract_from_file(info, image, sx, sy)
+        else:
+            f = ext.extract(image)
         dt = time.perf_counter() - t0
         COUNTERS["extract"] += 1
         out = {"keypoints": np.asarray(f.keypoints, np.float32).reshape(-1, 2),
@@ -73,7 +80,8 @@ def image_features(cache: H5Cache, info: ImageInfo, conf: FeatureConfig) -> Imag
     return ImageFeatures(key=key, keypoints=a["keypoints"], descriptors=a["descriptors"],
                          binary=bool(a["binary"]), sx=float(a["scale"][0]), sy=float(a["scale"][1]),
                          width=int(a["size"][0]), height=int(a["size"][1]), seconds=float(a["seconds"]),
-                         scales=a.get("scales"), orientations=a.get("orientations"), scores=a.get("scores"))
+                         scales=a.get("scales"), orientations=a.get("orientations"), scores=a.get("scores"),
+                         name=info.name, path=str(info.path))
 
 
 def knn_k(conf: MatchConfig) -> int:
@@ -82,8 +90,18 @@ def knn_k(conf: MatchConfig) -> int:
 
 
 def pair_knn(cache: H5Cache, fi: ImageFeatures, fj: ImageFeatures, conf: MatchConfig):
-    """Both-direction k-NN tables of a pair (cached), and the seconds the search took when computed."""
+    """Both-direction k-NN tables of a pair (cached), and the seconds the search took when computed.
+
+    With ``conf.custom_matches`` no search runs: the tables returned (``CustomTables``) carry the imported
+    matches (read ``pair_matches`` for them; ``filter_matches`` on them gives the same matches when they are
+    one-to-one)."""
     from pipeline.matching.knn import KnnTables, knn_tables
+    if conf.custom_matches:
+        return custom_tables(fi, fj, conf), 0.0
+    for f in (fi, fj):
+        if f.descriptors.ndim != 2 or f.descriptors.shape[1] == 0:
+            raise ImtuneError(f"image {f.name or f.key}: the features have no descriptors (custom features without "
+                              "descriptors.h5 need custom matches: --matches custom:DIR)")
     k = knn_k(conf)
     key = make_key("knn", fi.key, fj.key, k, conf.method, KNN_STAGE_VERSION)
 
@@ -99,3 +117,43 @@ def pair_knn(cache: H5Cache, fi: ImageFeatures, fj: ImageFeatures, conf: MatchCo
     a = cache.get_or_compute("knn", key, compute)
     tab = KnnTables(**{f.name: a[f.name] for f in dataclasses.fields(KnnTables)})
     return tab, float(a["seconds"])
+
+
+# --------------------------------------------------------------------- tentative matches of a pair
+
+def custom_tables(fi: ImageFeatures, fj: ImageFeatures, conf: MatchConfig):
+    """``CustomTables`` of a pair from ``conf.custom_matches`` (imported matches; no search)."""
+    from pipeline.matching.custom_matches import load_pair_matches
+    from pipeline.matching.custom_matches import CustomTables
+    if not (fi.name and fj.name):
+        raise ImtuneError("custom matches need the image names of the pair (ImageFeatures.name)")
+    m = load_pair_matches(conf.custom_matches, fi.name, fj.name, fi.path, len(fi.keypoints), len(fj.keypoints))
+    return CustomTables.from_matches(m, len(fi.keypoints), len(fj.keypoints), knn_k(conf))
+
+
+def pair_matches(tables, conf: MatchConfig, fi: ImageFeatures, fj: ImageFeatures):
+    """The tentative matches a task hands to the estimator (or COLMAP): the matcher's (ratio test,
+    strategy, distance threshold, FGINN on the k-NN ``tables``) or the imported ones (custom matches),
+    then the pre-filter ``conf.prefilter``. Returns (matches (M, 2) int32 [i, j], distances (M,) float32;
+    0 for custom matches)."""
+    from pipeline.matching.filter import filter_matches
+    from pipeline.matching.custom_matches import CustomTables
+    if isinstance(tables, CustomTables):
+        m = np.asarray(tables.matches, np.int32).reshape(-1, 2)
+        d = np.zeros(len(m), np.float32)
+    else:
+        m, d = filter_matches(tables, conf, fi.keypoints, fj.keypoints)
+    if conf.prefilter and conf.prefilter != "none" and len(m):
+        from pipeline.matching.prefilters import PairContext, apply_prefilter
+        ratio = None
+        if not isinstance(tables, CustomTables) and np.asarray(tables.dist12).ndim == 2 \
+                and np.asarray(tables.dist12).shape[1] >= 2:
+            d12 = np.asarray(tables.dist12, np.float64)[m[:, 0]]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratio = np.where(np.isfinite(d12[:, 1]) & (d12[:, 1] > 0), d12[:, 0] / d12[:, 1], 0.0)
+        ctx = PairContext(fi.keypoints, fj.keypoints, (fi.width, fi.height), (fj.width, fj.height),
+                          fi.scales, fj.scales, fi.orientations, fj.orientations, ratio,
+                          None if isinstance(tables, CustomTables) else tables)
+        keep = apply_prefilter(conf.prefilter, m, ctx, conf.prefilter_options)
+        m, d = m[keep], d[keep]
+    return m, d

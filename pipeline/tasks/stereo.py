@@ -45,10 +45,10 @@ def pose_from_F(F: np.ndarray, K1: np.ndarray, K2: np.ndarray, pts1: np.ndarray,
 def evaluate_pair(scene: Scene, pair: Pair, fi: ImageFeatures, fj: ImageFeatures, tables, knn_seconds: float,
                   conf: PipelineConfig, estimator) -> dict:
     """One stereo record: NM, NI, errors (deg), seconds for matching and for the estimator, failure reason."""
-    from pipeline.matching.filter import filter_matches
+    from pipeline.tasks.prepare import pair_matches
     g = conf.geometry
     t0 = time.perf_counter()
-    matches, _ = filter_matches(tables, conf.matching, fi.keypoints, fj.keypoints)
+    matches, _ = pair_matches(tables, conf.matching, fi, fj)  # matcher (or custom matches), then pre-filter
     filter_seconds = time.perf_counter() - t0
     rec = {"pair": pair.key, "scene": scene.name, "NM": int(len(matches)), "NI": 0,
            "err": math.inf, "err_R": math.inf, "err_t": math.inf,

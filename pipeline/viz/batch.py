@@ -72,6 +72,17 @@ def _progress(it, desc: str, progress: bool, total=None):
     return tqdm(it, desc=desc, total=total, disable=not progress, leave=False)
 
 
+def _require_ground_truth(scenes: list[Scene]) -> None:
+    """Choosing pairs by pose error needs ground truth: a one-line error naming the first scene without it."""
+    from pipeline.viz.stereo import has_ground_truth
+    for sc in scenes:
+        bad = next((p for p in sc.pairs if not has_ground_truth(sc, p)), None)
+        if bad is not None:
+            raise ImtuneError(f"scene {sc.name} has no ground truth for pair {bad.key} (intrinsics and poses), so "
+                              f"pairs cannot be chosen by pose error: build it with `tune data build-gt --scenes "
+                              f"{sc.name}`, or name the pairs to draw with --pairs")
+
+
 def render_pairs(scenes: list[Scene], conf: PipelineConfig, out_dir: str | Path, *, cache=None,
                  pairs: list[str] | None = None, worst: int = 2, best: int = 2, random: int = 2,
                  sample_seed: int = 0, min_covisibility: float | None = 0.1, label: str | None = None,
@@ -94,6 +105,7 @@ def render_pairs(scenes: list[Scene], conf: PipelineConfig, out_dir: str | Path,
         todo = [(*find_pair(scenes, spec), "chosen") for spec in pairs]
     else:
         from pipeline.tasks.stereo import evaluate_stereo
+        _require_ground_truth(scenes)
         res = evaluate_stereo(scenes, conf, cache, min_covisibility=min_covisibility, progress=progress)
         if not res.records:
             raise ImtuneError(f"no evaluation pairs in {', '.join(s.name for s in scenes)} "
@@ -134,6 +146,7 @@ def render_compare(scenes: list[Scene], confs: list[tuple[PipelineConfig, str]],
         todo = [find_pair(scenes, spec) for spec in pairs]
     else:
         from pipeline.tasks.stereo import evaluate_stereo
+        _require_ground_truth(scenes)
         recs = [evaluate_stereo(scenes, c, cache, min_covisibility=min_covisibility, progress=progress).records
                 for c, _ in confs[:2]]
         by = {s.name: s for s in scenes}
@@ -253,8 +266,8 @@ def gallery_entries(results: list[dict], gallery_dir: str | Path) -> list:
             out.append(GalleryEntry(png=rel, section=sec, title=f"{r['scene']}: bag of {r['bag_size']} (#{r['bag']})",
                                     lines=lines, scope=r.get("config", ""), data=r))
         else:
-            state = f"FAILED ({r['failure']})" if r.get("failure") else \
-                f"pose error R {_fmt_deg(r.get('err_R'))}, t {_fmt_deg(r.get('err_t'))}"
+            state = f"FAILED ({r['failure']})" if r.get("failure") else "no ground truth" if r.get("no_ground_truth") \
+                else f"pose error R {_fmt_deg(r.get('err_R'))}, t {_fmt_deg(r.get('err_t'))}"
             lines = [f"NI {r.get('NI')} of NM {r.get('NM')}; {state}; error: {r.get('error_kind')}", r.get("label", "")]
             out.append(GalleryEntry(png=rel, section=sec, title=f"{r['scene']}: {r['pair']}", lines=lines,
                                     scope=r.get("config", ""), data=r))

@@ -150,7 +150,8 @@ def render_html(entries: list[GalleryEntry], title: str, links: dict, intro: str
             "</p></body></html>\n")
 
 
-def link_gallery(report_path: str | Path, href: str = "gallery.html", label: str = "Qualitative figures (gallery)") -> bool:
+def link_gallery(report_path: str | Path, href: str = "gallery.html",
+                 label: str = "Qualitative figures (gallery)") -> bool:
     """Add a link to the gallery at the top of an existing HTML report (once). Returns True if the report
     exists and links to it (now or already)."""
     p = Path(report_path)

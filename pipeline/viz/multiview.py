@@ -165,7 +165,8 @@ def bag_title(rec: dict, label: str | None = None) -> list[str]:
     names = rec.get("images", [])
     reg = rec.get("registered", [])
     parts = [f"{rec.get('scene')}:  bag of {rec.get('bag_size')} (#{rec.get('bag')})",
-             f"registered {len(reg)}/{len(names)}", f"NL {rec.get('NL', 0)} points", f"TL {float(rec.get('TL', 0)):.2f}"]
+             f"registered {len(reg)}/{len(names)}", f"NL {rec.get('NL', 0)} points",
+             f"TL {float(rec.get('TL', 0)):.2f}"]
     errs = rec.get("errors") or []
     if errs:
         parts.append(f"mAA(10°) {mean_average_accuracy(errs, 10):.3f}")
@@ -179,16 +180,19 @@ def bag_title(rec: dict, label: str | None = None) -> list[str]:
 
 
 def draw_bag(bag: BagReconstruction, *, title: list | str | None = None, label: str | None = None,
-             panel_width: int = 520, columns: int | None = None, images: dict | None = None) -> np.ndarray:
+             panel_width: int = 520, columns: int | None = None, images: dict | None = None,
+             max_width: int = 2200) -> np.ndarray:
     """A montage of the bag's images with their keypoints (blue: in the 3D model; red: not), a title
     (default :func:`bag_title`) and a legend. images: name -> image (default: read from ``bag.paths`` at the
-    working resolution). Returns BGR uint8."""
+    working resolution); panel_width: px per image, reduced so that the montage is at most ``max_width`` px
+    wide (5 columns for bags of more than 6 images, 3 for 5-6). Returns BGR uint8."""
     import cv2
 
     from pipeline.data.resize import load_image
     names = list(bag.names)
     cols = columns or min(len(names), 5 if len(names) > 6 else (3 if len(names) > 4 else len(names)))
     cols = max(1, cols)
+    panel_width = int(min(panel_width, (max_width - 8 * (cols - 1)) / cols))  # the montage stays <= max_width
     panels = []
     for n in names:
         if images is not None and n in images:
@@ -211,8 +215,9 @@ def draw_bag(bag: BagReconstruction, *, title: list | str | None = None, label: 
     head = np.full((int(0.6 * f) + int(1.5 * f) * len(lines) + int(0.3 * f), fw, 3), BACKGROUND, np.uint8)
     for k, ln in enumerate(lines):
         size = f * (1.1 if k == 0 else 0.95)
-        put_text(head, fit_text(ln, fw - 16, size, 700 if k == 0 else 400), 8, int(0.6 * f) + int(1.5 * f) * k + int(size),
-                 size, TEXT if k == 0 else SUBTLE, 700 if k == 0 else 400)
+        weight = 700 if k == 0 else 400
+        put_text(head, fit_text(ln, fw - 16, size, weight), 8, int(0.6 * f) + int(1.5 * f) * k + int(size),
+                 size, TEXT if k == 0 else SUBTLE, weight)
     leg = np.full((int(2.0 * f), fw, 3), BACKGROUND, np.uint8)
     x = 8
     cy = int(0.95 * f)

@@ -74,7 +74,8 @@ def _err(r: dict) -> float:
     return math.inf if math.isnan(e) else e
 
 
-def select_records(records: list[dict], worst: int = 2, best: int = 2, random: int = 2, seed: int = 0) -> list[tuple[dict, str]]:
+def select_records(records: list[dict], worst: int = 2, best: int = 2, random: int = 2,
+                   seed: int = 0) -> list[tuple[dict, str]]:
     """(record, reason) for the ``worst`` pairs (largest pose error; failures first, then fewest inliers),
     the ``best`` (smallest error, then most inliers) and ``random`` others (seeded), without repeats."""
     order_worst = sorted(records, key=lambda r: (-_err(r), r.get("NI", 0), r.get("pair", "")))
@@ -102,7 +103,8 @@ def select_records(records: list[dict], worst: int = 2, best: int = 2, random: i
     return out
 
 
-def disagreements(records_a: list[dict], records_b: list[dict], n: int = 3, cap_deg: float = 45.0) -> list[tuple[str, str]]:
+def disagreements(records_a: list[dict], records_b: list[dict], n: int = 3,
+                  cap_deg: float = 45.0) -> list[tuple[str, str]]:
     """(scene, pair) of the ``n`` pairs whose pose errors differ most between two evaluations (errors capped at
     ``cap_deg`` so that a failure counts as a large error, ties broken by the difference in inliers)."""
     b = {(r["scene"], r["pair"]): r for r in records_b}

@@ -23,7 +23,7 @@ import numpy as np
 from pipeline.config import PipelineConfig
 from pipeline.data.scene import Pair, Scene
 from pipeline.errors import ImtuneError
-from pipeline.viz.colors import BLUE, ERROR_MAX_PX, GREEN, RED, YELLOW, bgr, error_colors
+from pipeline.viz.colors import BLUE, ERROR_MAX_PX, RED, bgr, error_colors
 from pipeline.viz.gt import ERROR_KINDS, match_errors
 from pipeline.viz.text import fit_text, put_text, text_width
 
@@ -59,7 +59,8 @@ class PairMatches:
 
 def pair_matches(scene: Scene, pair: Pair, conf: PipelineConfig, cache=None, estimator=None) -> PairMatches:
     """Tentative matches, inliers and the stereo record of one pair, from the same cached stages as
-    ``evaluate_stereo`` (features, k-NN tables, ``filter_matches``, the estimator with the configured seed).
+    ``evaluate_stereo`` (features, k-NN tables, tentative matches and pre-filter, the estimator with the
+    configured seed).
 
     The record is ``evaluate_pair``'s own; the inliers come from a second, identical estimator call. For an
     estimator that is not seedable the two runs may differ: then the record is recomputed from the drawn run
@@ -67,7 +68,6 @@ def pair_matches(scene: Scene, pair: Pair, conf: PipelineConfig, cache=None, est
     from pipeline.cache import H5Cache
     from pipeline.data.resize import scaled_K
     from pipeline.geometry import get_estimator
-    from pipeline.matching.filter import filter_matches
     from pipeline.metrics.pose import pose_error_deg
     from pipeline.tasks.prepare import image_features, pair_knn
     from pipeline.tasks.stereo import MIN_MATCHES, evaluate_pair, pose_from_F
@@ -79,16 +79,21 @@ def pair_matches(scene: Scene, pair: Pair, conf: PipelineConfig, cache=None, est
     fi = image_features(cache, scene.images[pair.i], conf.feature)
     fj = image_features(cache, scene.images[pair.j], conf.feature)
     tab, knn_s = pair_knn(cache, fi, fj, conf.matching)
-    rec = evaluate_pair(scene, pair, fi, fj, tab, knn_s, conf, est)
-    matches, _ = filter_matches(tab, conf.matching, fi.keypoints, fj.keypoints)
+    gt = has_ground_truth(scene, pair)
+    if gt:
+        rec = evaluate_pair(scene, pair, fi, fj, tab, knn_s, conf, est)
+    else:  # the stereo task needs K and the pose: draw the matches anyway, without pose errors
+        rec = {"pair": pair.key, "scene": scene.name, "NM": 0, "NI": 0, "err": math.nan, "err_R": math.nan,
+               "err_t": math.nan, "covisibility": pair.covisibility, "failure": None, "no_ground_truth": True}
+    matches, _ = _tentative(tab, conf, fi, fj)
     pts1 = fi.keypoints[matches[:, 0]].astype(np.float64).reshape(-1, 2)
     pts2 = fj.keypoints[matches[:, 1]].astype(np.float64).reshape(-1, 2)
     sizes = ((fi.width, fi.height), (fj.width, fj.height))
-    try:
+    rec["NM"] = int(len(matches))
+    K1 = K2 = None
+    if gt:
         Ki, Kj = scene.intrinsics(pair)
         K1, K2 = scaled_K(Ki, fi.sx, fi.sy), scaled_K(Kj, fj.sx, fj.sy)
-    except (TypeError, ValueError):
-        K1 = K2 = None
     inl = np.zeros(len(pts1), bool)
     F = None
     if len(fi.keypoints) and len(fj.keypoints) and len(matches) >= MIN_MATCHES:
@@ -98,7 +103,11 @@ def pair_matches(scene: Scene, pair: Pair, conf: PipelineConfig, cache=None, est
             F = res.F
             inl = np.asarray(res.inliers, bool).reshape(-1)
         ni = int(inl.sum()) if F is not None else 0
-        if ni != rec["NI"]:  # a non-seedable estimator drew another sample: report the drawn run
+        if not gt:
+            rec["NI"] = ni
+            if F is None:
+                rec["failure"] = "estimator found no model"
+        elif ni != rec["NI"]:  # a non-seedable estimator drew another sample: report the drawn run
             rec = dict(rec, NI=ni, rerun=True, failure=None, err=math.inf, err_R=math.inf, err_t=math.inf)
             if F is None:
                 rec["failure"] = "estimator found no model"
@@ -111,6 +120,29 @@ def pair_matches(scene: Scene, pair: Pair, conf: PipelineConfig, cache=None, est
                     rec["err"], rec["err_R"], rec["err_t"] = pose_error_deg(R_gt, t_gt, R, t)
     return PairMatches(scene=scene, pair=pair, pts1=pts1, pts2=pts2, inliers=inl, F=F, K1=K1, K2=K2, sizes=sizes,
                        record=rec, conf=conf)
+
+
+def _tentative(tables, conf: PipelineConfig, fi, fj):
+    """The tentative matches the stereo task hands to the estimator: ``pipeline.tasks.prepare.pair_matches``
+    (matcher or imported matches, then the pre-filter) where it exists, else ``filter_matches``."""
+    try:
+        from pipeline.tasks.prepare import pair_matches as task_matches
+    except ImportError:
+        from pipeline.matching.filter import filter_matches
+        return filter_matches(tables, conf.matching, fi.keypoints, fj.keypoints)
+    return task_matches(tables, conf.matching, fi, fj)
+
+
+def has_ground_truth(scene: Scene, pair: Pair) -> bool:
+    """True when the pair has intrinsics (3x3) for both images and a ground-truth relative pose."""
+    try:
+        Ki, Kj = scene.intrinsics(pair)
+        if np.shape(Ki) != (3, 3) or np.shape(Kj) != (3, 3) or not (np.isfinite(Ki).all() and np.isfinite(Kj).all()):
+            return False
+        R, t = scene.relative_pose(pair)
+        return bool(np.isfinite(R).all() and np.isfinite(t).all())
+    except (ValueError, KeyError, TypeError, AttributeError):
+        return False
 
 
 # ---------------------------------------------------------------------------------------------- drawing
@@ -208,17 +240,17 @@ def _multiple(n: int, k: int) -> int:
     return int(math.ceil(n / k) * k)
 
 
-def _wrap(segments: list, max_width: int, size: float, sep: str = ";  ") -> list:
+def _wrap(segments: list, max_width: int, size: float, sep: str = ";  ", weight: int = 400) -> list:
     """Greedy line filling of text segments (each fitted to the width on its own)."""
     lines, cur = [], ""
     for seg in segments:
         cand = seg if not cur else cur + sep + seg
-        if text_width(cand, size) <= max_width:
+        if text_width(cand, size, weight) <= max_width:
             cur = cand
         else:
             if cur:
                 lines.append(cur)
-            cur = fit_text(seg, max_width, size)
+            cur = fit_text(seg, max_width, size, weight)
     if cur:
         lines.append(cur)
     return lines
@@ -263,8 +295,10 @@ def _legend(width: int, ss: int, font: float, error_kind: str, stats: dict, what
     segs = []
     if n == 0:
         segs = [kind, f"no {what} to draw"]
+    elif k == 0:
+        segs = [kind]
     else:
-        pct = (lambda c: f"{100.0 * c / k:.0f}%") if k else (lambda c: "-")
+        pct = (lambda c: f"{100.0 * c / k:.0f}%")  # noqa: E731
         segs.append(f"{kind}:  {pct(stats['le1'])} ≤ 1 px,  {pct(stats['le_max'])} ≤ {max_px:g} px,  "
                     f"{pct(stats['gt_max'])} > {max_px:g} px" +
                     (f",  {stats['unknown']} not computable" if stats["unknown"] else ""))
@@ -289,18 +323,23 @@ def _legend(width: int, ss: int, font: float, error_kind: str, stats: dict, what
 
 
 def _header(width: int, ss: int, font: float, lines: list) -> np.ndarray:
-    """Title band: the first line bold, the others regular (each fitted to the width)."""
+    """Title band: the first entry bold, the others regular. An entry is a string (fitted to the width) or a
+    list of segments (wrapped onto as many lines as needed)."""
     f = font * ss
     pad = int(0.6 * f)
     row = int(1.5 * f)
     if not lines:
         return np.zeros((0, width * ss, 3), np.uint8)
-    band = np.full((_multiple(pad + row * len(lines) + pad // 2, ss), width * ss, 3), BACKGROUND, np.uint8)
+    rows = []  # (text, size, weight, colour)
     for k, ln in enumerate(lines):
         size = f * (1.1 if k == 0 else 0.95)
         weight = 700 if k == 0 else 400
-        put_text(band, fit_text(str(ln), width * ss - 2 * pad, size, weight), pad, pad + row * k + int(size),
-                 size, TEXT if k == 0 else SUBTLE, weight)
+        segs = [str(x) for x in ln] if isinstance(ln, (list, tuple)) else [str(ln)]
+        for t in _wrap(segs, width * ss - 2 * pad, size, sep="      ", weight=weight):
+            rows.append((t, size, weight, TEXT if k == 0 else SUBTLE))
+    band = np.full((_multiple(pad + row * len(rows) + pad // 2, ss), width * ss, 3), BACKGROUND, np.uint8)
+    for k, (t, size, weight, col) in enumerate(rows):
+        put_text(band, t, pad, pad + row * k + int(size), size, col, weight)
     return band
 
 
@@ -312,7 +351,8 @@ def draw_matches(image1: np.ndarray, image2: np.ndarray, pts1: np.ndarray, pts2:
     """Draw matches between two images, coloured by error (px; NaN = not computable, drawn blue).
 
     image1, image2: gray (H, W) or RGB (H, W, 3) uint8, at the resolution of the points; pts1, pts2: (M, 2) px;
-    errors: (M,) px (None: all NaN); title: lines above the images (the first in bold); error_kind: "depth",
+    errors: (M,) px (None: all NaN); title: entries above the images (the first in bold), each a string or a
+    list of segments wrapped to the width; error_kind: "depth",
     "epipolar" or "none" (the legend says which measure); what: what the lines are ("inliers", "tentative
     matches"); max_lines: at most this many lines (seeded random sample); width: figure width in px
     (horizontal: both images; vertical: the wider image; never upscaled); layout: "horizontal" (side by side)
@@ -412,21 +452,24 @@ def _deg(v) -> str:
     return f"{v:.2f}°" if v < 10 else f"{v:.1f}°"
 
 
-def pair_title(scene_name: str, pair: Pair, rec: dict, label: str | None = None) -> list[str]:
-    """Title lines of a stereo figure: the pair, NI (and NM), the pose errors; then the configuration."""
-    head = f"{scene_name}:  {pair.i}  |  {pair.j}      NI {rec.get('NI', 0)} of NM {rec.get('NM', 0)}      "
+def pair_title(scene_name: str, pair: Pair, rec: dict, label: str | None = None) -> list:
+    """Title of a stereo figure: [segments of the first (bold) entry: the pair; NI and NM; the pose errors or
+    the failure], then the configuration (and co-visibility) — see ``draw_matches``' ``title``."""
+    head = [f"{scene_name}:  {pair.i}  |  {pair.j}", f"NI {rec.get('NI', 0)} of NM {rec.get('NM', 0)}"]
     if rec.get("failure"):
-        head += f"FAILED: {rec['failure']}"
+        head.append(f"FAILED: {rec['failure']}")
+    elif rec.get("no_ground_truth"):
+        head.append("no ground truth: pose error not computable")
     else:
-        head += f"pose error  R {_deg(rec.get('err_R'))}   t {_deg(rec.get('err_t'))}"
-    lines = [head]
+        head.append(f"pose error  R {_deg(rec.get('err_R'))}   t {_deg(rec.get('err_t'))}")
+    lines: list = [head]
     sub = []
     if label:
         sub.append(label)
     if pair.covisibility is not None:
         sub.append(f"co-visibility {pair.covisibility:.2f}")
     if sub:
-        lines.append("   ·   ".join(sub))
+        lines.append(sub)
     return lines
 
 
@@ -467,12 +510,14 @@ def render_pair(scene: Scene, pair: Pair, conf: PipelineConfig, cache=None, out:
     img1, img2 = load_pair_images(scene, pm, conf.feature.max_side)
     note = None
     if what != "inliers":
-        note = "the estimator returned no model: the lines are the tentative matches"
+        why = rec.get("failure") or "no model"
+        note = f"no inliers ({why}): the lines are the tentative matches"
     elif rec.get("rerun"):
         note = "this estimator is not seedable: figure and numbers are from a new run"
     fig = draw_matches(img1, img2, p1, p2, errors, title=pair_title(scene.name, pair, rec, label or config_label(conf)),
-                       error_kind=kind, what=what, max_lines=max_lines, width=width, layout=layout, seed=seed, note=note)
+                       error_kind=kind, what=what, max_lines=max_lines, width=width, layout=layout, seed=seed,
+                       note=note)
     png = fig.save(out) if out is not None else None
-    keys = ("NM", "NI", "err", "err_R", "err_t", "failure", "covisibility")
+    keys = ("NM", "NI", "err", "err_R", "err_t", "failure", "covisibility", "no_ground_truth")
     return {"scene": scene.name, "pair": pair.key, **{k: rec.get(k) for k in keys}, "error_kind": kind,
             "what": what, "stats": fig.stats, "png": str(png) if png is not None else None, "figure": fig}

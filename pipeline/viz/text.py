@@ -43,7 +43,8 @@ def put_text(img: np.ndarray, text: str, x: int, baseline: int, size: float, col
     import cv2
     face = _face()
     if face:
-        cv2.putText(img, text, (int(x), int(baseline)), tuple(int(c) for c in color_bgr), face, int(round(size)), weight)
+        color = tuple(int(c) for c in color_bgr)
+        cv2.putText(img, text, (int(x), int(baseline)), color, face, int(round(size)), weight)
         return int(x) + text_width(text, size, weight)
     scale = size / 30.0
     th = max(1, int(round(weight / 300 * scale)))

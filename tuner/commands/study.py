@@ -71,8 +71,9 @@ def register(sub) -> None:
     t.add_argument("--space", default=None, help="search-space YAML replacing the default of the estimator family")
     t.add_argument("--fix", action="append", default=[], metavar="NAME=VALUE",
                    help="pin a parameter (ratio, threshold, max_iters, strategy); repeatable")
-    t.add_argument("--n-trials", type=_positive_int, default=50,
-                   help="trials the study should hold (finished: complete + pruned); a rerun runs the missing ones")
+    t.add_argument("--n-trials", type=_positive_int, default=None,
+                   help="finished trials (complete + pruned) the study should hold; a rerun runs the missing ones "
+                        "(default 50; the whole grid with --sampler grid)")
     t.add_argument("--timeout", type=_positive_float, default=None, help="stop this worker after this many seconds")
     t.add_argument("--sampler", default="tpe", help=f"{' | '.join(SAMPLERS)} (default tpe)")
     t.add_argument("--pruner", default="median", help=f"{' | '.join(PRUNERS)} (default median)")

@@ -146,13 +146,17 @@ def resolve_source(spec: str, sdir: Path) -> Source:
         return load_config_file(p)
     if p.suffix.lower() in (".yaml", ".yml", ".json") or "/" in spec:
         raise ImtuneError(f"config file {p} does not exist")
+    from tuner.freeze import study_dir
+    if not (study_dir(sdir, spec) / "frozen.yaml").is_file():
+        raise ImtuneError(f"{spec!r} is neither a config file nor a study with frozen settings "
+                          f"({study_dir(sdir, spec) / 'frozen.yaml'} does not exist)")
     return load_study_source(spec, sdir)
 
 
 # ---------------------------------------------------------------------------------------------- command
 
 def register(sub) -> None:
-    ap = sub.add_parser("viz", help="qualitative figures (matches coloured by error, multiview keypoints) and a gallery",
+    ap = sub.add_parser("viz", help="qualitative figures (matches coloured by error, multiview keypoints), a gallery",
                         description="Draw PNG figures of a configuration (a study's frozen settings, a config file "
                                     "or the pipeline options) and write / update an HTML gallery.")
     add_pipeline_options(ap)
@@ -250,7 +254,8 @@ def viz(args: argparse.Namespace) -> dict:
     from tuner.options import load_scenes
     chosen = [x for x in ("study", "config", "compare") if getattr(args, x)]
     if len(chosen) > 1:
-        raise ImtuneError(f"give only one of --study, --config and --compare (got {', '.join('--' + c for c in chosen)})")
+        got = ", ".join("--" + c for c in chosen)
+        raise ImtuneError(f"give only one of --study, --config and --compare (got {got})")
     if args.width < 320:
         raise ImtuneError(f"--width must be at least 320 px, got {args.width}")
     sdir = studies_dir(args.studies_dir)
@@ -267,7 +272,7 @@ def viz(args: argparse.Namespace) -> dict:
     primary = sources[0]
     root, names, min_cov = _scenes_for(args, primary)
     scenes = load_scenes(root, names, split="all", gt_dir=args.gt_dir)
-    study = primary.study
+    study = next((s.study for s in sources if s.study), None)  # a comparison goes to its study's gallery
     if args.out:
         out_dir = Path(args.out).expanduser().resolve()
         gallery = Path(args.gallery).expanduser().resolve() if args.gallery else out_dir / "gallery.html"
@@ -330,7 +335,8 @@ def _line(r: dict) -> str:
             return f"multiview {r['scene']} bag {r['bag_size']}#{r['bag']}: {r['failure']}"
         return (f"multiview {r['scene']} bag {r['bag_size']}#{r['bag']}  registered {len(r['registered'])}/"
                 f"{len(r['images'])} NL {r['NL']}  -> {r['png']}")
-    state = r["failure"] if r.get("failure") else f"err {deg(r.get('err'))} deg"
+    state = r["failure"] if r.get("failure") else \
+        ("no ground truth" if r.get("no_ground_truth") else f"err {deg(r.get('err'))} deg")
     return f"{r['section']:<7} {r['scene']} {r['pair']}  NI {r.get('NI')}  {state}  [{r['error_kind']}]  -> {r['png']}"
 
 

@@ -1,0 +1,258 @@
+"""Machinery shared by the kornia-based extractors: weights, torch set-up, images and LAFs, batching.
+
+Nothing here imports torch or kornia at module import: ``import pipeline.features`` (and `tune list`)
+stay fast and work without them; availability checks are file checks.
+
+Weights
+-------
+Learned components load their published weights through kornia's own ``pretrained=True`` /
+``from_pretrained`` code, which reads ``<torch.hub.get_dir()>/checkpoints/<file>`` (``$TORCH_HOME/hub``)
+and downloads only when the file is missing. Before constructing a model we look the file up ourselves
+(:func:`find_weight`), in that directory and then in the project's offline copy
+``../shared/weights/torch/hub/checkpoints`` (beside the project, as ``../shared/data``), so that:
+
+- a present file loads offline (from the offline copy through a scoped ``torch.hub.set_dir``);
+- a missing file is a one-line :class:`UnavailableError` naming the file and the folders searched, and
+  nothing tries to download — unless ``IMTUNE_DOWNLOAD_WEIGHTS=1`` is set, in which case kornia
+  downloads it as usual into ``$TORCH_HOME/hub/checkpoints``.
+
+File names are kornia 0.9's (the basename of the first URL of each model; ``tests/test_kornia_features.py``
+checks them against the installed kornia).
+"""
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+import os
+import threading
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+import numpy as np
+
+from pipeline.errors import ImtuneError, UnavailableError
+
+PROJECT_ROOT = Path(__file__).resolve().parents[2]
+#: the offline copy of the published weights beside the project (see ../shared/data/README.md)
+SHARED_CHECKPOINTS = PROJECT_ROOT.parent / "shared" / "weights" / "torch" / "hub" / "checkpoints"
+DOWNLOAD_ENV = "IMTUNE_DOWNLOAD_WEIGHTS"
+
+#: component -> checkpoint file name, exactly as kornia 0.9 names it in its cache.
+WEIGHT_FILES: dict[str, str] = {
+    "affnet": "AffNet.pth",                          # kornia.feature.affine_shape.urls["affnet"]
+    "orinet": "OriNet.pth",                          # kornia.feature.orientation.urls["orinet"]
+    "keynet": "keynet_pytorch.pth",                  # kornia.feature.keynet.KeyNet_URL
+    "tfeat": "tfeat-liberty.params",                 # kornia.feature.tfeat.urls["liberty"]
+    "mkd": "mkd-concat-64.pth",                      # kornia.feature.mkd.urls["concat"] (PCA-whitening)
+    "hardnet": "checkpoint_liberty_with_aug.pth",    # kornia.feature.hardnet.urls["liberty_aug"]
+    "hardnet8": "hardnet8v2.pt",                     # kornia.feature.hardnet.urls["hardnet8v2"]
+    "sosnet": "sosnet_32x32_liberty.pth",            # kornia.feature.sosnet.urls["lib"]
+    "hynet": "HyNet_LIB.pth",                        # kornia.feature.hynet.urls["liberty"]
+    "aliked-t16": "aliked-t16.pth",                  # kornia.feature.aliked _CHECKPOINT_URLS
+    "aliked-n16": "aliked-n16.pth",
+    "aliked-n16rot": "aliked-n16rot.pth",
+    "aliked-n32": "aliked-n32.pth",
+    "disk-depth": "depth-save.pth",                  # kornia.feature.disk.urls["depth"]
+    "disk-epipolar": "epipolar-save.pth",            # kornia.feature.disk.urls["epipolar"]
+}
+
+#: Options every kornia-based extractor accepts. batch_size: patches (or LAFs) per network call;
+#: threads: torch intra-op threads (0 = the CPUs this process may use); clahe_clip / clahe_tiles: as
+#: the OpenCV extractors (CLAHE clip limit, tiles per side).
+COMMON_OPTIONS: dict[str, Any] = {"batch_size": 1024, "threads": 0, "clahe_clip": 2.0, "clahe_tiles": 8}
+COMMON_BOUNDS: dict[str, str] = {"batch_size": ">=1", "threads": ">=0", "clahe_clip": ">0", "clahe_tiles": ">=1"}
+
+
+# ----------------------------------------------------------------------------------------- versions
+
+def package_version(name: str) -> str:
+    """Installed version of a distribution (without importing it); "none" if absent."""
+    try:
+        from importlib.metadata import version
+        return version(name)
+    except Exception:
+        return "none"
+
+
+def require_torch_kornia() -> None:
+    """UnavailableError unless torch and kornia are importable."""
+    for mod in ("torch", "kornia"):
+        if importlib.util.find_spec(mod) is None:
+            raise UnavailableError(f"{mod} is not installed (pip install torch kornia)")
+
+
+# ------------------------------------------------------------------------------------------ weights
+
+def hub_checkpoints_dir() -> Path:
+    """``<torch.hub.get_dir()>/checkpoints`` without importing torch (unless it already is)."""
+    import sys
+    if "torch" in sys.modules:
+        return Path(sys.modules["torch"].hub.get_dir()) / "checkpoints"
+    home = os.environ.get("TORCH_HOME") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME", os.path.join(os.path.expanduser("~"), ".cache")), "torch")
+    return Path(os.path.expanduser(home)) / "hub" / "checkpoints"
+
+
+def weight_dirs() -> list[Path]:
+    """Where checkpoints are looked for, in order: torch's hub cache, then the offline copy."""
+    dirs = [hub_checkpoints_dir()]
+    if SHARED_CHECKPOINTS.resolve() != dirs[0].resolve():
+        dirs.append(SHARED_CHECKPOINTS)
+    return dirs
+
+
+def find_weight(file: str) -> Path | None:
+    for d in weight_dirs():
+        p = d / file
+        if p.is_file() and p.stat().st_size > 0:
+            return p
+    return None
+
+
+def downloads_allowed() -> bool:
+    return os.environ.get(DOWNLOAD_ENV, "").strip().lower() in ("1", "true", "yes")
+
+
+def require_weights(label: str, components: Iterable[str]) -> None:
+    """UnavailableError (one line: the file and the folders searched) if a component's weights are
+    missing and downloads are not allowed."""
+    require_torch_kornia()
+    if downloads_allowed():
+        return
+    for comp in components:
+        file = WEIGHT_FILES[comp]
+        if find_weight(file) is None:
+            where = " or ".join(str(d) for d in weight_dirs())
+            raise UnavailableError(f"{label}: weights {file} not found in {where} "
+                                   f"(set TORCH_HOME to a folder holding hub/checkpoints/{file}, "
+                                   f"or {DOWNLOAD_ENV}=1 to let kornia download it)")
+
+
+_HUB_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def weights_context(components: Iterable[str]):
+    """Make kornia's loader find the components' files: if they are only in the offline copy, point
+    ``torch.hub`` there for the duration (restored after)."""
+    import torch.hub
+    files = [WEIGHT_FILES[c] for c in components]
+    primary = Path(torch.hub.get_dir()) / "checkpoints"
+    if all((primary / f).is_file() for f in files) or not files:
+        yield
+        return
+    if all((SHARED_CHECKPOINTS / f).is_file() for f in files):
+        with _HUB_LOCK:  # (a model's files all live in one of the two folders)
+            prev = getattr(torch.hub, "_hub_dir", None)
+            torch.hub.set_dir(str(SHARED_CHECKPOINTS.parent))
+            try:
+                yield
+            finally:
+                torch.hub._hub_dir = prev
+        return
+    yield  # downloads allowed (require_weights checked before): kornia fetches into the hub cache
+
+
+_MODELS: dict[tuple, Any] = {}
+
+
+def cached_model(key: tuple, factory: Callable[[], Any], components: Iterable[str] = ()) -> Any:
+    """One instance per process of a (stateless, eval-mode) network: constructing one loads weights.
+    ``components``: keys of :data:`WEIGHT_FILES` the factory loads (checked first: never a download
+    unless allowed)."""
+    m = _MODELS.get(key)
+    if m is None:
+        comps = tuple(components)
+        require_weights(str(key[0]), comps)
+        with weights_context(comps):
+            m = factory()
+        if hasattr(m, "eval"):
+            m = m.eval()
+        _MODELS[key] = m
+    return m
+
+
+# -------------------------------------------------------------------------------------------- torch
+
+def available_cpus() -> int:
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def torch_setup(threads: int = 0):
+    """Import torch, set its intra-op threads (0 = the CPUs available to this process); returns torch."""
+    import torch
+    n = int(threads) or available_cpus()
+    if torch.get_num_threads() != n:
+        torch.set_num_threads(n)
+    return torch
+
+
+def to_tensor(image: np.ndarray):
+    """(H, W) uint8 -> (1, 1, H, W) float32 in [0, 1]."""
+    import torch
+    return torch.from_numpy(np.ascontiguousarray(image)).to(torch.float32).div_(255.0)[None, None]
+
+
+def clahe_images(img: np.ndarray, clahe: str, opts: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(detection image, description image) after the ``clahe`` setting (see FeatureConfig)."""
+    if clahe == "none":
+        return img, img
+    import cv2
+    t = int(opts["clahe_tiles"])
+    eq = cv2.createCLAHE(clipLimit=float(opts["clahe_clip"]), tileGridSize=(t, t)).apply(img)
+    return (eq if clahe in ("detector", "both") else img), (eq if clahe in ("descriptor", "both") else img)
+
+
+# --------------------------------------------------------------------------------------------- LAFs
+
+def make_lafs(xy: np.ndarray, scale: np.ndarray, angle_kornia_deg: np.ndarray):
+    """(1, N, 2, 3) float32 LAFs from centres (N, 2) px, half-sizes (N,) px and kornia angles (deg)."""
+    import torch
+    from kornia.feature import laf_from_center_scale_ori
+    n = len(xy)
+    c = torch.from_numpy(np.asarray(xy, np.float32).reshape(1, n, 2))
+    s = torch.from_numpy(np.asarray(scale, np.float32).reshape(1, n, 1, 1))
+    a = torch.from_numpy(np.asarray(angle_kornia_deg, np.float32).reshape(1, n, 1))
+    return laf_from_center_scale_ori(c, s, a)
+
+
+def chunked(fn: Callable, lafs, batch: int):
+    """Apply ``fn(lafs_chunk) -> tensor (1, n, ...)`` over chunks of ``batch`` LAFs; concatenated on dim 1."""
+    import torch
+    n = lafs.shape[1]
+    if n <= batch:
+        return fn(lafs)
+    return torch.cat([fn(lafs[:, i:i + batch]) for i in range(0, n, batch)], dim=1)
+
+
+def describe_patches(module, image_t, lafs, patch_size: int, batch: int) -> np.ndarray:
+    """Descriptors (N, D) float32 of the LAFs: patches sampled from the image pyramid
+    (``kornia.feature.extract_patches_from_pyramid``, anti-aliased) ``batch`` at a time, each batch
+    through ``module`` in one call."""
+    import torch
+    from kornia.feature import extract_patches_from_pyramid
+    n = lafs.shape[1]
+    out = []
+    for i in range(0, n, batch):
+        p = extract_patches_from_pyramid(image_t, lafs[:, i:i + batch], patch_size)
+        b = p.shape[1]
+        d = module(p.reshape(b, p.shape[2], patch_size, patch_size))
+        out.append(d.reshape(b, -1))
+    if not out:
+        return np.zeros((0, 0), np.float32)
+    return torch.cat(out).to(torch.float32).numpy()
+
+
+def kornia_to_cv_angle(a: np.ndarray) -> np.ndarray:
+    """kornia LAF orientation (deg) -> OpenCV ``KeyPoint.angle`` convention, in [0, 360)."""
+    return np.mod(-np.asarray(a, np.float32), np.float32(360.0)).astype(np.float32)
+
+
+def check_finite(name: str, desc: np.ndarray) -> np.ndarray:
+    if desc.size and not np.all(np.isfinite(desc)):
+        raise ImtuneError(f"feature {name!r}: the descriptor network returned NaN or inf "
+                          f"({int((~np.isfinite(desc)).any(1).sum())} of {len(desc)} descriptors)")
+    return desc

@@ -1,0 +1,297 @@
+"""Real short studies on fountain-P11 (2048 SIFT, a few pairs): objective, attributes, resume, freeze,
+test.json, tables, the HTML report, two SQLite workers, kill -9 and resume, journal storage."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from tests.conftest import DATA, ROOT
+
+STRECHA = DATA / "strecha"
+pytestmark = pytest.mark.skipif(not STRECHA.is_dir(), reason=f"real data not found at {STRECHA}")
+
+
+@pytest.fixture(scope="session")
+def tuner_cache(tmp_path_factory):
+    """One feature / k-NN cache for every tuner test module (same path in each: basetemp/tuner-cache)."""
+    d = tmp_path_factory.getbasetemp() / "tuner-cache"
+    d.mkdir(exist_ok=True)
+    return str(d)
+
+
+def tune(*args, cache, timeout=600, check=False):
+    env = dict(os.environ, IMTUNE_CACHE=cache)
+    r = subprocess.run([sys.executable, "-m", "tuner", *args], capture_output=True, text=True, cwd=ROOT, env=env,
+                       timeout=timeout)
+    if check:
+        assert r.returncode == 0, r.stderr[-3000:]
+    return r
+
+
+def quick(studies_dir, *extra, ransac="degensac", pairs=8):
+    return ["--data", str(STRECHA), "--feature", "sift", "--num-features", "2048", "--ransac", ransac,
+            "--scenes", "fountain-P11", "--test-scenes", "Herz-Jesus-P8", "--max-pairs", str(pairs),
+            "--chunk-pairs", "4", "--budget", "0.1", "--calibration-pairs", "4", "--studies-dir", str(studies_dir),
+            *extra]
+
+
+def load(storage, name):
+    import optuna
+    from tuner.storage import open_storage
+    return optuna.load_study(study_name=name, storage=open_storage(storage, heartbeat=None))
+
+
+@pytest.fixture(scope="module")
+def study_run(tmp_path_factory, tuner_cache):
+    """`tune` with 4 trials, then the test scenes: the JSON it prints and where it wrote."""
+    d = tmp_path_factory.mktemp("studies")
+    r = tune(*quick(d, "--n-trials", "4", "--seed", "3", "--json"), cache=tuner_cache, check=True)
+    return {"dir": d, "out": json.loads(r.stdout), "storage": f"sqlite:///{d}/optuna.db",
+            "name": "sift-2048-degensac-stereo"}
+
+
+def test_study_trials_and_attributes(study_run):
+    from optuna.trial import TrialState
+    out = study_run["out"]
+    assert out["study"] == study_run["name"]
+    assert out["storage"] == study_run["storage"]
+    assert (study_run["dir"] / "optuna.db").is_file()
+    st = load(study_run["storage"], study_run["name"])
+    finished = [t for t in st.trials if t.state in (TrialState.COMPLETE, TrialState.PRUNED)]
+    assert len(finished) == 4 == len(out["worker"]["trials_run"])
+    ua = st.user_attrs
+    assert len(ua["data_fingerprint"]) == 16
+    assert ua["budget"]["seconds_per_pair"] == 0.1 and ua["budget"]["gamma_max"] >= 100
+    assert ua["budget"]["calibration"]["curve"]
+    assert ua["code_version"].startswith("0.") or "+" in ua["code_version"]
+    assert ua["search_space"]["params"]["max_iters"]["high"] == "calibrated"
+    assert ua["search_space_resolved"]["params"]["max_iters"]["high"] == ua["budget"]["gamma_max"]
+    assert ua["data"]["val_scenes"] == ["fountain-P11"] and ua["data"]["pairs"] == 8
+    for t in st.trials:
+        if t.state != TrialState.COMPLETE:
+            continue
+        assert set(t.params) == {"ratio", "threshold", "max_iters"}
+        assert 0.6 <= t.params["ratio"] <= 1.0 and 0.1 <= t.params["threshold"] <= 2.0
+        assert t.params["max_iters"] <= ua["budget"]["gamma_max"]
+        for k in ("mAA5", "mAA10", "NF", "NM", "NI", "ransac_seconds_median", "ransac_seconds_p90",
+                  "match_seconds", "scenes", "failed", "failed_pairs", "feasible", "timing"):
+            assert k in t.user_attrs, k
+        assert t.user_attrs["mAA10"] == pytest.approx(t.value)
+        assert t.user_attrs["NF"] == pytest.approx(2048, rel=0.1)
+        assert t.user_attrs["scenes"]["fountain-P11"]["pairs"] == 8
+        assert sorted(t.intermediate_values) == [0, 1]  # 8 pairs in chunks of 4: two pruning steps
+        assert "budget" in t.constraints
+        assert (t.constraints["budget"] <= 0) == t.user_attrs["feasible"]
+    assert (study_run["dir"] / "budgets.json").is_file()
+
+
+def test_frozen_yaml(study_run):
+    out = study_run["out"]
+    path = study_run["dir"] / study_run["name"] / "frozen.yaml"
+    assert out["frozen_path"] == str(path)
+    f = yaml.safe_load(path.read_text())
+    st = load(study_run["storage"], study_run["name"])
+    best = st.trials[f["trial"]]
+    assert f["value"] == pytest.approx(best.value)
+    assert best.user_attrs["feasible"] and best.constraints["budget"] <= 0
+    assert all(best.value >= t.value for t in st.trials if t.value is not None and t.user_attrs.get("feasible"))
+    assert f["params"] == pytest.approx(best.params)
+    assert f["fixed"] == {"strategy": "both"}
+    c = f["config"]
+    assert c["matching"]["ratio"] == pytest.approx(f["params"]["ratio"])
+    assert c["geometry"]["threshold"] == pytest.approx(f["params"]["threshold"])
+    assert c["geometry"]["max_iters"] == f["params"]["max_iters"]
+    assert c["feature"]["num_features"] == 2048 and c["geometry"]["confidence"] == 0.999999
+    assert f["budget"]["seconds_per_pair"] == 0.1 and f["budget"]["gamma_max"] == st.user_attrs["budget"]["gamma_max"]
+    assert f["data"]["fingerprint"] == st.user_attrs["data_fingerprint"]
+    assert f["validation"]["mAA10"] == pytest.approx(best.value) and f["validation"]["pairs"] == 8
+
+
+def test_test_json_three_runs(study_run):
+    t = json.loads((study_run["dir"] / study_run["name"] / "test.json").read_text())
+    assert t["data"]["scenes"] == ["Herz-Jesus-P8"] and t["data"]["pairs"] == 8
+    assert [r["seed"] for r in t["runs"]] == [3, 4, 5]
+    assert t["mean"]["mAA10"] == pytest.approx(sum(r["mAA10"] for r in t["runs"]) / 3)
+    assert 0.0 <= t["mean"]["mAA10"] <= 1.0 and t["mean"]["NI"] > 0
+    assert t["budget"]["test_seconds_per_pair"] == 1.0 and t["budget"]["within_budget"] in (True, False)
+    assert study_run["out"]["test"]["mean"]["mAA10"] == pytest.approx(t["mean"]["mAA10"])
+    st = load(study_run["storage"], study_run["name"])
+    assert st.user_attrs["test"]["mAA10"] == pytest.approx(t["mean"]["mAA10"])
+
+
+def test_rerun_resumes_and_checks_the_space(study_run, tuner_cache):
+    d = study_run["dir"]
+    r = tune(*quick(d, "--n-trials", "6", "--no-test", "--json"), cache=tuner_cache, check=True)
+    out = json.loads(r.stdout)
+    assert len(out["worker"]["trials_run"]) == 2 and min(out["worker"]["trials_run"]) >= 4
+    assert out["counts"]["complete"] + out["counts"]["pruned"] == 6
+    # same name, different search space / budget: one line, exit 2, nothing run
+    for extra, needle in ((["--fix", "strategy=either"], "different search space"),
+                          (["--budget", "0.3"], "budget 0.1"),
+                          (["--scenes", "entry-P10"], "different validation data")):
+        r = tune(*quick(d, "--n-trials", "8", "--no-test", *extra), cache=tuner_cache)
+        assert r.returncode == 2, r.stderr
+        assert needle in r.stderr and r.stderr.strip().count("\n") == 0, r.stderr
+    assert len(load(study_run["storage"], study_run["name"]).trials) == 6
+
+
+def test_tune_test_command(study_run, tuner_cache):
+    r = tune("test", "--study", study_run["name"], "--studies-dir", str(study_run["dir"]), "--runs", "2", "--json",
+             cache=tuner_cache, check=True)
+    t = json.loads(r.stdout)
+    assert len(t["runs"]) == 2 and t["study"] == study_run["name"]
+    r = tune("test", "--study", study_run["name"], "--studies-dir", str(study_run["dir"]), "--quiet",
+             cache=tuner_cache, check=True)
+    assert "Herz-Jesus-P8" in r.stdout and "mAA10" in r.stdout
+
+
+@pytest.fixture(scope="module")
+def two_studies(study_run, tuner_cache):
+    """A second estimator on the same storage (magsac++), for the tables."""
+    tune(*quick(study_run["dir"], "--n-trials", "3", "--json", ransac="magsac++"), cache=tuner_cache, check=True)
+    return study_run
+
+
+def test_settings_table_formats(two_studies, tuner_cache):
+    d = two_studies["dir"]
+    md = tune("table", "--studies-dir", str(d), cache=tuner_cache, check=True).stdout
+    head = md.splitlines()[0]
+    for col in ("feature", "features", "eta degensac", "eta magsac++", "| r "):
+        assert col in head, head
+    rows = [ln for ln in md.splitlines() if ln.startswith("| sift")]
+    assert len(rows) == 1 and "2048" in rows[0]
+    csv_out = tune("table", "--studies-dir", str(d), "--format", "csv", cache=tuner_cache, check=True).stdout
+    import csv
+    import io
+    recs = list(csv.DictReader(io.StringIO(csv_out)))
+    assert recs[0]["feature"] == "sift" and 0.1 <= float(recs[0]["eta degensac"]) <= 2.0
+    assert 0.5 <= float(recs[0]["eta magsac++"]) <= 10.0 and 0.6 <= float(recs[0]["r"]) <= 1.0
+    tex = tune("table", "--studies-dir", str(d), "--format", "latex", cache=tuner_cache, check=True).stdout
+    assert tex.startswith(r"\begin{tabular}") and r"\end{tabular}" in tex
+    js = json.loads(tune("table", "--studies-dir", str(d), "--format", "json", cache=tuner_cache, check=True).stdout)
+    assert set(js[0]["studies"]) == {"degensac", "magsac++"}
+    bad = tune("table", "--studies-dir", str(d), "--format", "xml", cache=tuner_cache)
+    assert bad.returncode == 2 and "unknown format" in bad.stderr
+
+
+def test_results_table(two_studies, tuner_cache):
+    d = two_studies["dir"]
+    md = tune("results", "--studies-dir", str(d), cache=tuner_cache, check=True).stdout
+    head = md.splitlines()[0]
+    for col in ("rank", "NF", "NI degensac", "mAA10 degensac", "NI magsac++", "mAA10 magsac++"):
+        assert col in head, head
+    js = json.loads(tune("results", "--studies-dir", str(d), "--format", "json", cache=tuner_cache,
+                         check=True).stdout)
+    assert js[0]["rank"] == 1 and js[0]["NF"] == pytest.approx(2048, rel=0.1)
+    assert 0 <= js[0]["mAA10 degensac"] <= 1 and 0 <= js[0]["mAA10 magsac++"] <= 1
+
+
+def test_plot_html_report(two_studies, tuner_cache):
+    d = two_studies["dir"]
+    r = tune("plot", "--study", two_studies["name"], "--studies-dir", str(d), cache=tuner_cache, check=True)
+    path = Path(r.stdout.strip())
+    assert path == d / two_studies["name"] / "report.html"
+    html = path.read_text()
+    assert two_studies["name"] in html and "plotly" in html.lower()
+    for section in ("Optimisation history", "Parameter importances", "(eta, r) contour",
+                    "estimator seconds per pair", "eta across studies"):
+        assert section in html, section
+    assert html.count('class="plotly-graph-div"') >= 4
+    assert "magsac++" in html  # the across-studies curves include the other study
+
+
+def test_no_feasible_trial(tmp_path, tuner_cache):
+    args = quick(tmp_path, "--n-trials", "2", "--budget", "0.000001", "--study", "hopeless")
+    r = tune(*args, cache=tuner_cache)
+    assert r.returncode == 2 and "no feasible completed trial" in r.stderr, r.stderr
+    r = tune("test", "--study", "hopeless", "--studies-dir", str(tmp_path), cache=tuner_cache)
+    assert r.returncode == 2 and "no feasible completed trial" in r.stderr
+    assert r.stderr.strip().count("\n") == 0
+    assert not (tmp_path / "hopeless" / "frozen.yaml").exists()
+
+
+def _finished_numbers(storage, name):
+    from optuna.trial import TrialState
+    st = load(storage, name)
+    return st, sorted(t.number for t in st.trials if t.state in (TrialState.COMPLETE, TrialState.PRUNED))
+
+
+def test_two_sqlite_workers(tmp_path, tuner_cache):
+    args = quick(tmp_path, "--n-trials", "8", "--no-test", "--json", "--study", "shared")
+    env = dict(os.environ, IMTUNE_CACHE=tuner_cache)
+    procs = [subprocess.Popen([sys.executable, "-m", "tuner", *args], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    outs = [p.communicate(timeout=600) for p in procs]
+    for p, (so, se) in zip(procs, outs):
+        assert p.returncode == 0, se[-2000:]
+        assert "database is locked" not in se
+    runs = [set(json.loads(so)["worker"]["trials_run"]) for so, _ in outs]
+    assert runs[0] and runs[1] and not (runs[0] & runs[1])  # both worked, no trial twice
+    st, numbers = _finished_numbers(f"sqlite:///{tmp_path}/optuna.db", "shared")
+    assert set(numbers) == runs[0] | runs[1]  # every trial recorded, none lost
+    assert 8 <= len(numbers) <= 9 and len(st.trials) == len(numbers)
+    assert len({t.number for t in st.trials}) == len(st.trials)
+
+
+def test_kill9_then_resume(tmp_path, tuner_cache):
+    from optuna.trial import TrialState
+    storage = f"sqlite:///{tmp_path}/optuna.db"
+    # slow-ish trials (Gamma pinned high, eta small) so the kill lands inside a trial
+    args = quick(tmp_path, "--n-trials", "6", "--no-test", "--study", "killme", "--heartbeat", "1",
+                 "--fix", "max_iters=150000", "--fix", "threshold=0.2", "--budget", "5", "--chunk-pairs", "8")
+    env = dict(os.environ, IMTUNE_CACHE=tuner_cache)
+    p = subprocess.Popen([sys.executable, "-m", "tuner", *args, "--quiet"], cwd=ROOT, env=env,
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    before = []
+    try:
+        deadline = time.time() + 300
+        while time.time() < deadline and p.poll() is None:
+            time.sleep(0.2)
+            if not (tmp_path / "optuna.db").exists():
+                continue
+            try:
+                _, before = _finished_numbers(storage, "killme")
+            except Exception:  # noqa: BLE001 - study not created yet
+                continue
+            if len(before) >= 2:
+                break
+        assert p.poll() is None, "the worker ended before it could be killed"
+        os.kill(p.pid, signal.SIGKILL)
+        p.wait(timeout=30)
+    finally:
+        if p.poll() is None:
+            os.kill(p.pid, signal.SIGKILL)
+    st, after_kill = _finished_numbers(storage, "killme")
+    assert set(before) <= set(after_kill)  # nothing committed was lost
+    assert len(after_kill) < 6
+    time.sleep(3.5)  # past the grace period (3 heartbeats of 1 s): the interrupted trial is dead
+    r = tune(*args, "--json", cache=tuner_cache, check=True)
+    out = json.loads(r.stdout)
+    st, final = _finished_numbers(storage, "killme")
+    assert set(after_kill) <= set(final) and len(final) == 6
+    states = [t.state for t in st.trials]
+    assert TrialState.RUNNING not in states and TrialState.WAITING not in states
+    assert out["frozen"]["trial"] in final
+    # a trial the kill interrupted was failed by the heartbeat check and its parameters retried once
+    for t in st.trials:
+        if t.state == TrialState.FAIL:
+            assert any(u.system_attrs.get("failed_trial") == t.number for u in st.trials), t.number
+
+
+def test_journal_storage_and_password_free_attrs(tmp_path, tuner_cache):
+    j = tmp_path / "journal" / "optuna.log"
+    r = tune(*quick(tmp_path, "--n-trials", "2", "--no-test", "--json", "--storage", f"journal:{j}"),
+             cache=tuner_cache, check=True)
+    out = json.loads(r.stdout)
+    assert out["storage"] == f"journal:{j}" or str(j) in out["storage"]
+    assert j.is_file()
+    st = load(f"journal:{j}", out["study"])
+    assert len(st.trials) == 2
+    # user attributes never carry a storage URL (so never a password)
+    assert "://" not in json.dumps(st.user_attrs).replace("sqlite:", "")
