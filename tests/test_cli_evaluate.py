@@ -93,3 +93,10 @@ def test_list_shows_availability():
     for name in ("pyransac", "degensac", "magsac", "magsac++", "gcransac", "cv-ransac", "cv-usac", "cv-magsac",
                  "cv-accurate", "cv-lmeds", "cv-8pt", "poselib", "colmap"):
         assert rows[("estimator", name)]["available"] == "yes", name
+
+
+def test_scene_without_ground_truth_says_so(sacre_coeur, module_cache, tmp_path):
+    r = tune("evaluate", "--data", str(sacre_coeur), "--num-features", "256", "--quiet",
+             env={"IMTUNE_CACHE": module_cache, "IMTUNE_GT": str(tmp_path / "no-gt")}, timeout=300)
+    assert r.returncode != 0 and "Traceback" not in r.stderr
+    assert "no ground truth" in r.stderr and "build-gt" in r.stderr

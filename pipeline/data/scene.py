@@ -79,6 +79,17 @@ class Scene:
         Kj = pair.K_j if pair.K_j is not None else self.images[pair.j].K
         return np.asarray(Ki, float), np.asarray(Kj, float)
 
+    def missing_ground_truth(self, pairs: list[Pair] | None = None) -> str | None:
+        """Why these pairs cannot be evaluated against ground truth (None when they can)."""
+        for p in (self.pairs if pairs is None else pairs):
+            Ki, Kj = (p.K_i if p.K_i is not None else self.images[p.i].K,
+                      p.K_j if p.K_j is not None else self.images[p.j].K)
+            if Ki is None or Kj is None:
+                return f"no intrinsics for {p.i if Ki is None else p.j}"
+            if p.R is None and (self.images[p.i].R is None or self.images[p.j].R is None):
+                return f"no ground-truth pose for {p.i if self.images[p.i].R is None else p.j}"
+        return None
+
     def select_pairs(self, min_covisibility: float | None = 0.1) -> list[Pair]:
         """The protocol's pairs: co-visibility >= threshold where known, all listed pairs otherwise."""
         if min_covisibility is None:

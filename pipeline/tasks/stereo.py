@@ -15,6 +15,7 @@ import numpy as np
 
 from pipeline.cache import H5Cache
 from pipeline.config import PipelineConfig
+from pipeline.errors import ImtuneError
 from pipeline.data.resize import scaled_K
 from pipeline.data.scene import Pair, Scene
 from pipeline.metrics.pose import accuracy_curve, mean_average_accuracy, pose_error_deg
@@ -169,6 +170,10 @@ def evaluate_stereo(scenes: list[Scene], conf: PipelineConfig, cache: H5Cache | 
     summaries, all_records = {}, []
     for idx, scene in enumerate(scenes):
         pairs = scene.select_pairs(min_covisibility)
+        why = scene.missing_ground_truth(pairs)
+        if why:
+            raise ImtuneError(f"scene {scene.name} has no ground truth to evaluate against ({why}); "
+                              f"build it first: tune data build-gt --data {scene.root}")
         feats, tables = prepare_scene(scene, conf, cache, pairs, progress=progress)
         recs = []
         for p in tqdm(pairs, desc=f"{scene.name}: stereo", disable=not progress, leave=False):
