@@ -214,3 +214,21 @@ def test_flann_agrees_with_exact_binary():
     assert (fl.idx21[:, 0] == ex.idx21[:, 0]).mean() > 0.9
     ok = fl.idx12[:, 0] >= 0
     np.testing.assert_array_equal(fl.dist12[ok, 0], _ref_hamming(A, B)[np.flatnonzero(ok), fl.idx12[ok, 0]])
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_parallel_kernel_identical(monkeypatch, binary):
+    """The opt-in multi-threaded k=2 kernel (per-thread column state, merged) gives the same tables."""
+    rng = np.random.default_rng(11)
+    if binary:
+        A = rng.integers(0, 256, (301, 8), dtype=np.uint8)  # many Hamming ties: exercises the merge order
+        B = rng.integers(0, 256, (157, 8), dtype=np.uint8)
+    else:
+        A, B = _sift_like(rng, 301, 32), _sift_like(rng, 157, 32)
+    ref = knn_tables(A, B, binary=binary, k=2)
+    monkeypatch.setattr(knn_mod, "BLOCK_ROWS", 50)
+    for threads in (2, 3):
+        monkeypatch.setattr(knn_mod, "KERNEL_THREADS", threads)
+        tab = knn_tables(A, B, binary=binary, k=2)
+        for name in ("idx12", "dist12", "idx21", "dist21"):
+            np.testing.assert_array_equal(getattr(tab, name), getattr(ref, name))

@@ -58,7 +58,7 @@ def test_evaluate_both_tasks_json(small_strecha, capsys):
     root, cache = small_strecha
     rc, out, err = run_cli(["evaluate", "--data", str(root), "--task", "both", "--num-features", "2048",
                             "--bags", "5:2,6:1", "--workers", "2", "--ratio", "0.85", "--json",
-                            "--bag-records", "--covisibility", "0"], capsys)
+                            "--bag-records", "--covisibility", "0", "--intermediate"], capsys)
     assert rc == 0, err
     res = json.loads(out)
     st, mv = res["stereo"], res["multiview"]
@@ -70,6 +70,8 @@ def test_evaluate_both_tasks_json(small_strecha, capsys):
     assert set(mv["by_size"]) == {"5", "6"}
     assert len(mv["bag_records"]) == 3 and all(len(r["errors"]) == 10 for r in mv["bag_records"][:2])
     assert res["multiview_config"]["intrinsics"] == "colmap"
+    im = res["intermediate"]  # no depth maps on Strecha: the epipolar matching score only
+    assert im["pairs"] == 15 and 0.3 < im["epipolar_matching_score"] <= 1.0 and "repeatability" not in im
 
 
 def test_failing_bags_are_recorded_and_the_run_goes_on(small_strecha, capsys):

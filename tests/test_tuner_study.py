@@ -295,3 +295,71 @@ def test_journal_storage_and_password_free_attrs(tmp_path, tuner_cache):
     assert len(st.trials) == 2
     # user attributes never carry a storage URL (so never a password)
     assert "://" not in json.dumps(st.user_attrs).replace("sqlite:", "")
+
+
+def test_calibrate_command(tmp_path, tuner_cache):
+    args = ["calibrate", "--data", str(STRECHA), "--feature", "sift", "--num-features", "2048", "--ransac", "degensac",
+            "--scenes", "fountain-P11", "--max-pairs", "8", "--pairs", "4", "--budget", "0.02", "--budget", "0.08",
+            "--studies-dir", str(tmp_path), "--json"]
+    r = tune(*args, cache=tuner_cache, check=True)
+    out = json.loads(r.stdout)
+    g = out["gamma_max"]
+    assert set(g) == {"0.02", "0.08"} and 1 <= g["0.02"] <= g["0.08"] <= 1_000_000
+    curve = out["calibration"]["curve"]
+    assert len(curve) >= 2 and [c[0] for c in curve] == sorted(c[0] for c in curve)
+    assert curve[-1][1] > 0.08 or curve[-1][0] >= 1_000_000  # measured past the largest budget
+    stored = json.loads((tmp_path / "budgets.json").read_text())
+    assert len(stored) == 1 and next(iter(stored.values()))["estimator"] == "degensac"
+    again = json.loads(tune(*args, cache=tuner_cache, check=True).stdout)  # reused, not re-measured
+    assert again["calibration"]["created"] == out["calibration"]["created"]
+    md = tune(*args[:-1], "--quiet", cache=tuner_cache, check=True).stdout
+    assert "Gamma_max(0.08 s)" in md and "max_iters" in md
+    bad = tune("calibrate", "--ransac", "nosuch", "--data", str(STRECHA), "--studies-dir", str(tmp_path), cache=tuner_cache)
+    assert bad.returncode == 2 and "unknown estimator 'nosuch'" in bad.stderr
+
+
+@pytest.mark.parametrize("sampler", ["grid", "random", "cmaes"])
+def test_other_samplers(tmp_path, tuner_cache, sampler):
+    space = tmp_path / "small.yaml"
+    space.write_text("params:\n"
+                     "  ratio: {low: 0.7, high: 0.9, grid: [0.75, 0.85]}\n"
+                     "  threshold: {low: 0.3, high: 1.0, log: true, grid: [0.4, 0.8]}\n"
+                     "  max_iters: {type: int, low: 1000, high: calibrated, log: true}\n")
+    n = [] if sampler == "grid" else ["--n-trials", "3"]
+    r = tune(*quick(tmp_path, "--sampler", sampler, "--space", str(space), "--no-test", "--json", *n, pairs=4),
+             cache=tuner_cache, check=True)
+    out = json.loads(r.stdout)
+    st = load(f"sqlite:///{tmp_path}/optuna.db", out["study"])
+    params = [(t.params["ratio"], t.params["threshold"]) for t in st.trials]
+    if sampler == "grid":  # the whole 2 x 2 grid, each point once, Gamma at the cap
+        assert sorted(params) == [(0.75, 0.4), (0.75, 0.8), (0.85, 0.4), (0.85, 0.8)]
+        assert {t.params["max_iters"] for t in st.trials} == {st.user_attrs["budget"]["gamma_max"]}
+    else:
+        assert len(params) == 3 and all(0.7 <= r <= 0.9 and 0.3 <= e <= 1.0 for r, e in params)
+    assert st.user_attrs["sampler"] == sampler
+
+
+def test_ctrl_c_keeps_completed_trials(tmp_path, tuner_cache):
+    from optuna.trial import TrialState
+    args = quick(tmp_path, "--n-trials", "50", "--no-test", "--study", "interrupted", "--budget", "5",
+                 "--fix", "max_iters=150000", "--fix", "threshold=0.2", "--chunk-pairs", "8")
+    env = dict(os.environ, IMTUNE_CACHE=tuner_cache)
+    p = subprocess.Popen([sys.executable, "-m", "tuner", *args, "--quiet"], cwd=ROOT, env=env,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    storage = f"sqlite:///{tmp_path}/optuna.db"
+    deadline = time.time() + 300
+    done = []
+    while time.time() < deadline and p.poll() is None:
+        time.sleep(0.2)
+        try:
+            _, done = _finished_numbers(storage, "interrupted")
+        except Exception:  # noqa: BLE001 - not created yet
+            continue
+        if len(done) >= 2:
+            break
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 130 and "interrupted" in err and "Traceback" not in err
+    st, after = _finished_numbers(storage, "interrupted")
+    assert set(done) <= set(after)
+    assert not [t for t in st.trials if t.state == TrialState.RUNNING]  # the interrupted trial is FAIL, not RUNNING

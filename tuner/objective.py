@@ -184,6 +184,10 @@ class Objective:
                 trial.set_user_attr("pruned_at_pairs", int(summary.get("pairs", 0)))
                 trial.set_user_attr("ransac_seconds_median", med)
                 trial.set_user_attr("feasible", bool(med <= self.budget))
+                n = int(summary.get("pairs", 0))
+                trial.set_user_attr("timing", {"pairs": n, "budget": self.budget,
+                                               "ransac_seconds_total": float(summary.get("ransac_seconds", 0.0)) * n,
+                                               "evaluate_seconds": time.perf_counter() - t0})
                 if over:
                     trial.set_user_attr("pruned_reason", f"over budget: median {med:.3f} s > "
                                                          f"{self.prune_over_budget:g} x {self.budget:g} s")

@@ -173,12 +173,13 @@ def multiview_config(args: argparse.Namespace, **overrides):
 def evaluate_config(conf: PipelineConfig, data_root: Path, scenes=None, cache_dir=None,
                     min_covisibility: float | None = 0.1, progress: bool = False,
                     with_pairs: bool = False, task: str = "stereo", multiview=None, workers: int | None = None,
-                    gt_dir=None, with_bags: bool = False, keep_models=None) -> dict:
+                    gt_dir=None, with_bags: bool = False, keep_models=None, intermediate: bool = False) -> dict:
     """Evaluate one configuration; returns the JSON-able result of `tune evaluate`.
 
     task: "stereo", "multiview" or "both" — the result has a "stereo" and/or a "multiview" section.
     multiview: a ``pipeline.tasks.multiview.MultiviewConfig`` (default: the protocol's bags and settings);
-    workers: parallel bag processes; gt_dir: where built ground truth lives; with_bags: every bag record."""
+    workers: parallel bag processes; gt_dir: where built ground truth lives; with_bags: every bag record;
+    intermediate: add an "intermediate" section (repeatability, matching scores; pipeline.metrics.repeatability)."""
     from pipeline.cache import H5Cache
     if task not in TASKS:
         raise ImtuneError(f"unknown task {task!r} (choose from {', '.join(TASKS)})")
@@ -198,4 +199,8 @@ def evaluate_config(conf: PipelineConfig, data_root: Path, scenes=None, cache_di
                                  keep_models=keep_models)
         out["multiview_config"] = dataclasses.asdict(mv)
         out["multiview"] = res.to_dict(with_bags=with_bags)
+    if intermediate:
+        from pipeline.metrics.repeatability import evaluate_intermediate
+        out["intermediate"] = evaluate_intermediate(scene_objs, conf, cache, min_covisibility=min_covisibility,
+                                                    progress=progress)
     return out

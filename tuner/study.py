@@ -72,7 +72,10 @@ def code_version() -> str:
 def feature_label(conf: PipelineConfig) -> str:
     """The ``<feature>`` part of a study name: the name plus any non-default variant."""
     f = conf.feature
-    tags = [f.name]
+    name = f.name
+    if name.startswith("custom:"):  # imported features: the folder's name, not its path
+        name = "custom_" + (Path(name[len("custom:"):]).name or "features")
+    tags = [name]
     if f.upright_plus:
         tags.append("upright++")
     elif f.upright:
@@ -90,6 +93,10 @@ def feature_label(conf: PipelineConfig) -> str:
         tags.append(m.method)
     if m.fginn:
         tags.append("fginn")
+    if getattr(m, "prefilter", "none") not in ("none", None):
+        tags.append(str(m.prefilter))
+    if getattr(m, "custom_matches", None):
+        tags.append("custom_matches")
     return "_".join(tags[:1]) + ("+" + "+".join(tags[1:]) if len(tags) > 1 else "")
 
 
@@ -277,8 +284,6 @@ def setup_study(s: TuneSettings) -> StudyContext:
     if s.n_trials is not None and s.n_trials < 1:
         raise ImtuneError(f"--n-trials must be >= 1, got {s.n_trials}")
     get_estimator(s.base.geometry.ransac)  # unknown / unavailable estimator: one line, now
-    from pipeline.features import EXTRACTORS
-    EXTRACTORS.get(s.base.feature.name).check_available()
     s.studies_dir = Path(s.studies_dir) if s.studies_dir else default_studies_dir()
     space = load_space(s.space_path, feature=s.base.feature.name, estimator=s.base.geometry.ransac,
                        fixes=s.fixes)

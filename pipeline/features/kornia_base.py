@@ -124,8 +124,8 @@ def require_weights(label: str, components: Iterable[str]) -> None:
         if find_weight(file) is None:
             where = " or ".join(str(d) for d in weight_dirs())
             raise UnavailableError(f"{label}: weights {file} not found in {where} "
-                                   f"(set TORCH_HOME to a folder holding hub/checkpoints/{file}, "
-                                   f"or {DOWNLOAD_ENV}=1 to let kornia download it)")
+                                   f"(set TORCH_HOME to a folder with hub/checkpoints/{file}, "
+                                   f"or {DOWNLOAD_ENV}=1 to download it)")
 
 
 _HUB_LOCK = threading.Lock()
@@ -219,13 +219,7 @@ def make_lafs(xy: np.ndarray, scale: np.ndarray, angle_kornia_deg: np.ndarray):
     return laf_from_center_scale_ori(c, s, a)
 
 
-def chunked(fn: Callable, lafs, batch: int):
-    """Apply ``fn(lafs_chunk) -> tensor (1, n, ...)`` over chunks of ``batch`` LAFs; concatenated on dim 1."""
-    import torch
-    n = lafs.shape[1]
-    if n <= batch:
-        return fn(lafs)
-    return torch.cat([fn(lafs[:, i:i + batch]) for i in range(0, n, batch)], dim=1)
+PATCH_CHUNK = 8192
 
 
 def describe_patches(module, image_t, lafs, patch_size: int, batch: int) -> np.ndarray:
@@ -236,11 +230,15 @@ def describe_patches(module, image_t, lafs, patch_size: int, batch: int) -> np.n
     from kornia.feature import extract_patches_from_pyramid
     n = lafs.shape[1]
     out = []
-    for i in range(0, n, batch):
-        p = extract_patches_from_pyramid(image_t, lafs[:, i:i + batch], patch_size)
-        b = p.shape[1]
-        d = module(p.reshape(b, p.shape[2], patch_size, patch_size))
-        out.append(d.reshape(b, -1))
+    # The pyramid is built once per extract_patches_from_pyramid call: sample many LAFs per call
+    # (PATCH_CHUNK x 41 x 41 float32 is ~55 MB), run the network ``batch`` patches at a time.
+    step = max(batch, PATCH_CHUNK)
+    for i in range(0, n, step):
+        p = extract_patches_from_pyramid(image_t, lafs[:, i:i + step], patch_size)
+        p = p.reshape(p.shape[1], p.shape[2], patch_size, patch_size)
+        for j in range(0, len(p), batch):
+            d = module(p[j:j + batch])
+            out.append(d.reshape(d.shape[0], -1))
     if not out:
         return np.zeros((0, 0), np.float32)
     return torch.cat(out).to(torch.float32).numpy()

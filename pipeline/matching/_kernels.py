@@ -12,13 +12,13 @@ Conventions shared by every kernel here:
   ``KEY_NONE`` (int32 max, above every finite or infinite distance's key) marks "no neighbour".
 - Ties are broken by the smaller index: rows are scanned in increasing j, columns in increasing i, and an
   entry only displaces another on a strict ``<``.
-- Every kernel is serial and ``nogil``; see knn.py "Threads" for why (measured).
+- Every kernel is serial and ``nogil`` except ``top2_block_parallel`` (opt-in); see knn.py "Threads" for why.
 """
 from __future__ import annotations
 
 import numpy as np
 from llvmlite import ir
-from numba import njit, types
+from numba import njit, prange, types
 from numba.extending import intrinsic
 
 # no 'contract' (FMA) and no 'reassoc': the distance expression must evaluate identically in every loop.
@@ -199,6 +199,48 @@ def top2_block(H, na, nb, row0, rk1, rk2, ri1, ri2, c1k, c2k, c1i, c2i):
         rk2[i0] = b
         ri2[i0] = c
         ii += 1
+
+
+@njit(parallel=True, fastmath=_FM, boundscheck=False, nogil=True, cache=True)
+def top2_block_parallel(H, na, nb, row0, rk1, rk2, ri1, ri2, C1K, C2K, C1I, C2I):
+    """``top2_block`` on T row slices of the block at once (numba threads), thread t keeping its own column
+    state ``C*[t]`` (T, N2); merge them with ``merge_columns`` at the end. Not the default: see knn.py."""
+    m = H.shape[0]
+    T = C1K.shape[0]
+    for t in prange(T):
+        lo = (t * m) // T
+        hi = ((t + 1) * m) // T
+        if hi > lo:
+            top2_block(H[lo:hi], na, nb, row0 + lo, rk1, rk2, ri1, ri2, C1K[t], C2K[t], C1I[t], C2I[t])
+
+
+@njit(**_OPTS)
+def merge_columns(C1K, C2K, C1I, C2I, c1k, c2k, c1i, c2i):
+    """Merge per-thread column top-2 lists into one, ranking by (key, index)."""
+    T, n = C1K.shape
+    for j in range(n):
+        b1 = KEY_NONE
+        x1 = I32(-1)
+        b2 = KEY_NONE
+        x2 = I32(-1)
+        for t in range(T):
+            for q in range(2):
+                kk = C1K[t, j] if q == 0 else C2K[t, j]
+                xx = C1I[t, j] if q == 0 else C2I[t, j]
+                if xx < 0:
+                    continue
+                if x1 < 0 or kk < b1 or (kk == b1 and xx < x1):
+                    b2 = b1
+                    x2 = x1
+                    b1 = kk
+                    x1 = xx
+                elif x2 < 0 or kk < b2 or (kk == b2 and xx < x2):
+                    b2 = kk
+                    x2 = xx
+        c1k[j] = b1
+        c2k[j] = b2
+        c1i[j] = x1
+        c2i[j] = x2
 
 
 # --------------------------------------------------------------------------------------------- any k

@@ -31,7 +31,7 @@ from pipeline.matching.knn import KnnTables
 STEREO_FILES = ("matches_stereo_0.h5", "matches_stereo.h5", "matches.h5")
 MULTIVIEW_FILES = ("matches_multiview.h5", "matches.h5")
 
-_MEMO: dict[tuple, tuple[np.ndarray, str]] = {}
+_MEMO: dict[tuple, object] = {}  # file identity + pair / image -> parsed content
 
 
 @dataclass
@@ -82,11 +82,17 @@ def _keypoint_count(folder: Path, name: str) -> int | None:
     p = folder / "keypoints.h5"
     if not p.is_file():
         return None
-    with h5py.File(p, "r") as f:
-        for k in image_keys(name):
-            if k in f and hasattr(f[k], "shape"):
-                return int(f[k].shape[0])
-    return None
+    st = p.stat()
+    memo = ("count", str(p), st.st_size, st.st_mtime_ns, name)
+    if memo not in _MEMO:
+        n = None
+        with h5py.File(p, "r") as f:
+            for k in image_keys(name):
+                if k in f and hasattr(f[k], "shape"):
+                    n = int(f[k].shape[0])
+                    break
+        _MEMO[memo] = n
+    return _MEMO[memo]
 
 
 def _read_pair(path: Path, name_i: str, name_j: str) -> tuple[np.ndarray, str]:
@@ -130,15 +136,15 @@ def load_pair_matches(root: Path | str, name_i: str, name_j: str, path_i, n_i: i
     equal the counts in keypoints.h5 when that file is there)."""
     path = match_file(root, path_i, scene, task)
     m, key = _read_pair(path, name_i, name_j)
-    for col, n, nm in ((0, n_i, name_i), (1, n_j, name_j)):
-        bad = m[:, col][(m[:, col] < 0) | (m[:, col] >= n)]
-        if len(bad):
-            raise ImtuneError(f"{path}: key {key!r}: match index {int(bad[0])} out of range for image {nm} "
-                              f"({n} keypoints; {len(bad)} bad indices)")
     for n, nm in ((n_i, name_i), (n_j, name_j)):
         c = _keypoint_count(path.parent, nm)
         if c is not None and c != n:
             raise ImtuneError(f"{path}: custom matches index the {c} keypoints of {path.parent / 'keypoints.h5'} "
                               f"for image {nm}, but the feature in use has {n}: use --feature custom:DIR "
                               f"with --num-features >= {c}")
+    for col, n, nm in ((0, n_i, name_i), (1, n_j, name_j)):
+        bad = m[:, col][(m[:, col] < 0) | (m[:, col] >= n)]
+        if len(bad):
+            raise ImtuneError(f"{path}: key {key!r}: match index {int(bad[0])} out of range for image {nm} "
+                              f"({n} keypoints; {len(bad)} bad indices)")
     return m.astype(np.int32)

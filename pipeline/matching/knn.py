@@ -11,30 +11,34 @@ missing neighbours (fewer than k descriptors on the other side) have index -1 an
 
 How the exact search works (float descriptors)
 ----------------------------------------------
-The distance matrix is never materialised. Rows of image 1 are taken in blocks of ``BLOCK_BYTES`` (16 MB); for each
-block one BLAS SGEMM ``(-2 A_blk) B^T`` goes into a reused buffer (a few MB, so it is still in cache when it is
-read back), then one fused numba pass over the block adds the squared norms (``d^2 = |a|^2 + |b|^2 - 2ab``)
-and extracts the row top-2 *and* updates the running column top-2 (image 2 -> image 1) at the same time; see
-``_kernels.top2_block``. The expansion ranks neighbours; the distances kept are then recomputed exactly from
-the descriptors (``||a - b||``, float64 accumulation: a few ms), so near-zero distances are exact and the
-distance filter sees the same values as OpenCV, and each row is re-sorted by them.
+The distance matrix is never materialised. Rows of image 1 are taken in blocks of ``BLOCK_BYTES`` (32 MB =
+1024 rows at 8000 descriptors); for each block one BLAS SGEMM ``(-2 A_blk) B^T`` goes into a reused buffer,
+then one fused numba pass over the block (``_kernels.top2_block``) adds the squared norms
+(``d^2 = |a|^2 + |b|^2 - 2ab``) and, in the same pass, extracts each row's top-2 and updates the running
+column top-2 (image 2 -> image 1); nothing is sorted. The expansion only ranks neighbours: the distances kept
+are then recomputed exactly from the descriptors (``||a - b||``, float64 accumulation, ~2 ms for 8k x 2 x 2)
+and each row re-sorted by them, so a duplicate descriptor has distance exactly 0 and the distance filter sees
+the values OpenCV's ``NORM_L2`` would report.
 
-Binary descriptors are matched exactly by a numba popcount kernel (64-bit words, ``llvm.ctpop`` ->
-VPOPCNTQ/POPCNT) writing Hamming blocks that the same top-2 kernel consumes; on 8000 x 8000 ORB (256 bits) that
-measured faster than unpacking the bits to 0/1 float32 and running a 256-wide SGEMM (the alternative: exact too,
-as ``|a| + |b| - 2 a.b`` is an integer below 2^24). k > 2 (FGINN) uses ``_kernels.topk_block``: the same
-blocks, a scalar insertion pass (row and column lists), about an order of magnitude slower than k = 2 but
-still one pass over one distance matrix.
+Binary descriptors (Hamming) use a numba popcount kernel (64-bit words, ``llvm.ctpop`` -> VPOPCNTQ/POPCNT)
+that writes Hamming blocks the same top-2 kernel consumes (exact integers). Measured on 8000 x 8000 x 256 bits
+(``benchmarks/matching.py --binary --dim 32``): 3.3x faster than the alternative exact path of unpacking the
+bits to 0/1 float32 and running the float search (a 256-wide SGEMM; also exact, ``|a| + |b| - 2 a.b`` is an
+integer < 2^24), and 0.5x the time of that SGEMM alone.
+
+k > 2 (FGINN needs ~10) uses ``_kernels.topk_block``: the same blocks and one pass, with a scalar insertion
+into the row list and the column lists (rare after the first rows, so well predicted): ~1.5 ns per distance
+instead of ~0.4, about 1.6x the k = 2 total at 8000 x 8000.
 
 Threads
 -------
-The SGEMM uses numpy's BLAS threads (all cores); the numba kernels are serial. Measured on the 2-core target
-(8000 x 8000 x 128): a ``parallel=True`` kernel (per-thread column arrays, merged after) run between BLAS calls
-was *slower* overall, because OpenBLAS's workers keep spinning after each GEMM and the numba/OpenMP workers
-keep spinning after each kernel, each stealing the other's cores (the GEMM part slowed 1.5-3x); running the
-kernel in a second Python thread overlapped with the next GEMM oversubscribed the cores the same way. The serial
-kernel costs ~0.35 ns per distance (about a quarter of the SGEMM), so it is what runs. ``benchmarks/matching.py``
-reports the figures.
+The SGEMM uses numpy's BLAS threads (all cores); the numba kernels are serial (``KERNEL_THREADS = 1``), which
+measured faster on the 2-core target than the alternatives: a ``parallel=True`` kernel with per-thread column
+arrays merged after (``KERNEL_THREADS = 2``; kept as an option, tested identical) lost 10-25% overall,
+because OpenBLAS's workers keep spinning after each SGEMM call and numba's OpenMP workers after each kernel,
+each stealing the other's cores; running the kernel in a second Python thread overlapped with the next SGEMM
+oversubscribed the cores the same way. The serial kernel costs ~0.4-0.5 ns of CPU per distance (0.03 s for
+8000 x 8000, against 0.09-0.10 s for the SGEMM on an idle machine). No thread setting is changed here.
 """
 from __future__ import annotations
 
@@ -44,13 +48,16 @@ import numpy as np
 
 from pipeline.errors import ImtuneError
 
-#: bytes of one distance block (rows of image 1 x all of image 2, float32): small enough to stay in the L3 cache
-#: between the SGEMM that writes it and the kernel that reads it (a 32 MB block measured 2-3x slower to scan,
-#: from DRAM), large enough that the BLAS threads synchronise rarely (small blocks suffer most when other
-#: processes load the cores). 16 MB = 512 rows at 8000 descriptors.
-BLOCK_BYTES = 16 << 20
+#: bytes of one distance block (rows of image 1 x all of image 2, float32). The kernel's cost per distance
+#: measured the same from 128 to 2048 rows (at 8000 columns), while each SGEMM call costs a wake-up and a
+#: barrier of the BLAS threads: with other processes loading the cores, 128-row blocks made the whole search
+#: 2x slower than 1024-row ones. 32 MB = 1024 rows at 8000 descriptors (the full matrix would be 256 MB).
+BLOCK_BYTES = 32 << 20
 #: fixed rows per block instead of BLOCK_BYTES (None = derive from BLOCK_BYTES); for tests and experiments.
 BLOCK_ROWS: int | None = None
+#: numba threads of the k = 2 kernel. 1 (default): serial kernel between the multi-threaded SGEMMs (see
+#: "Threads" above for the measurements); > 1: ``top2_block_parallel`` with per-thread column state.
+KERNEL_THREADS = 1
 #: FLANN parameters (the official IMC benchmark's: 4 randomised KD-trees, 128 checks; LSH for binary).
 FLANN_KDTREE = dict(algorithm=1, trees=4)
 FLANN_LSH = dict(algorithm=6, table_number=12, key_size=20, multi_probe_level=2)
@@ -150,8 +157,18 @@ def _search(blocks, na, nb, n1, n2, k):
         c2k = np.full(n2, K.KEY_NONE, np.int32)
         c1i = np.full(n2, -1, np.int32)
         c2i = np.full(n2, -1, np.int32)
-        for row0, H in blocks:
-            K.top2_block(H, na, nb, row0, rk1, rk2, ri1, ri2, c1k, c2k, c1i, c2i)
+        T = max(1, int(KERNEL_THREADS))
+        if T == 1:
+            for row0, H in blocks:
+                K.top2_block(H, na, nb, row0, rk1, rk2, ri1, ri2, c1k, c2k, c1i, c2i)
+        else:
+            C1K = np.full((T, n2), K.KEY_NONE, np.int32)
+            C2K = np.full((T, n2), K.KEY_NONE, np.int32)
+            C1I = np.full((T, n2), -1, np.int32)
+            C2I = np.full((T, n2), -1, np.int32)
+            for row0, H in blocks:
+                K.top2_block_parallel(H, na, nb, row0, rk1, rk2, ri1, ri2, C1K, C2K, C1I, C2I)
+            K.merge_columns(C1K, C2K, C1I, C2I, c1k, c2k, c1i, c2i)
         return (np.stack([rk1, rk2], 1), np.stack([ri1, ri2], 1),
                 np.stack([c1k, c2k], 1), np.stack([c1i, c2i], 1))
     rkey = np.empty((n1, k), np.int32)

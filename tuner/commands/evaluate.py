@@ -9,6 +9,7 @@ from tuner.options import (TASKS, add_multiview_options, add_pipeline_options, b
                            multiview_config, resolve_data)
 
 COLUMNS = ["scene", "pairs", "NF", "NM", "NI", "mAA5", "mAA10", "failed", "match_seconds", "ransac_seconds"]
+IM_COLUMNS = ["scene", "pairs", "repeatability_3px", "matching_score_3px", "epipolar_matching_score"]
 MV_COLUMNS = ["scene", "bag_size", "bags", "SR", "RC", "NL", "TL", "mAA5", "mAA10", "ATE", "failed", "NM", "seconds"]
 
 
@@ -19,6 +20,8 @@ def register(sub) -> None:
     add_multiview_options(ap)
     ap.add_argument("--pairs", action="store_true", help="include every pair record in the JSON")
     ap.add_argument("--bag-records", action="store_true", help="include every multiview bag record in the JSON")
+    ap.add_argument("--intermediate", action="store_true",
+                    help="also repeatability and matching score at 1..10 px (depth maps) / epipolar matching score")
     ap.set_defaults(func=run)
 
 
@@ -59,7 +62,8 @@ def run(args) -> int:
     out = evaluate_config(conf, data, args.scenes, cache_dir=args.cache,
                           min_covisibility=args.covisibility, progress=not (args.quiet or args.json),
                           with_pairs=args.pairs, task=args.task, multiview=mv, workers=args.workers,
-                          gt_dir=args.gt_dir, with_bags=args.bag_records, keep_models=args.keep_models)
+                          gt_dir=args.gt_dir, with_bags=args.bag_records, keep_models=args.keep_models,
+                          intermediate=args.intermediate)
     if args.json:
         print(json.dumps(_jsonable(out), indent=2))
     else:
@@ -72,4 +76,10 @@ def run(args) -> int:
             print(f"multiview: COLMAP from tentative matches (intrinsics: {mv.intrinsics}); "
                   f"SR, RC in %; ATE in ground-truth units")
             print(render(multiview_rows(out["multiview"]), "markdown", MV_COLUMNS))
+        if "intermediate" in out:
+            im = out["intermediate"]
+            rows = [dict(scene=n, **{k: s.get(k) for k in IM_COLUMNS[1:]}) for n, s in im["scenes"].items()]
+            rows.append(dict(scene="mean", **{k: im.get(k) for k in IM_COLUMNS[1:]}))
+            print("intermediate: tentative matches before RANSAC; repeatability / matching score need depth maps")
+            print(render(rows, "markdown", IM_COLUMNS))
     return 0

@@ -1,0 +1,100 @@
+"""Trial overhead: everything but the estimator calls, as a fraction of a trial's time (target <= 5%).
+
+Runs a real study the way `tune` does (SQLite storage, TPE, median pruner, heartbeat, the objective's
+user attributes, features and k-NN tables from the cache), then reads per trial its wall time from the
+storage (datetime_start -> datetime_complete: sampling, ratio test, estimator, pose recovery, metrics,
+every storage write) and the estimator seconds it recorded (``timing.ransac_seconds_total``: the
+library calls alone). Also the whole loop: the worker's wall time from its first trial's start to its
+last trial's end (so between-trial work, callbacks and pruning checks count too).
+
+    python benchmarks/trial_overhead.py                          # sift 8000, degensac, fountain-P11
+    python benchmarks/trial_overhead.py --num-features 2048 --trials 10
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=None)
+    ap.add_argument("--feature", default="sift")
+    ap.add_argument("--num-features", type=int, default=8000)
+    ap.add_argument("--ransac", default="degensac")
+    ap.add_argument("--trials", type=int, default=8)
+    ap.add_argument("--budget", type=float, default=0.5)
+    ap.add_argument("--max-pairs", type=int, default=None)
+    ap.add_argument("--storage", default=None, help="default: a fresh SQLite file in a temp folder")
+    ap.add_argument("--cache", default=None)
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args(argv)
+
+    from optuna.trial import TrialState
+    from pipeline.config import FeatureConfig, GeometryConfig, MatchConfig, PipelineConfig
+    from tuner.options import resolve_data
+    from tuner.study import TuneSettings, optimize, setup_study
+    tmp = Path(tempfile.mkdtemp(prefix="imtune-overhead-"))
+    try:
+        base = PipelineConfig(feature=FeatureConfig(name=args.feature, num_features=args.num_features),
+                              matching=MatchConfig(ratio=1.0), geometry=GeometryConfig(ransac=args.ransac))
+        s = TuneSettings(base=base, data_root=resolve_data(args.data), storage=args.storage, studies_dir=tmp,
+                         n_trials=args.trials, budget=args.budget, max_pairs=args.max_pairs, cache_dir=args.cache,
+                         study_name=f"overhead-{time.time():.0f}", progress=not args.json, test=False, seed=0)
+        ctx = setup_study(s)
+        t0 = time.time()
+        run = optimize(ctx, s)
+        trials = [t for t in ctx.study.get_trials(deepcopy=False) if t.number in set(run["trials_run"])
+                  and t.state in (TrialState.COMPLETE, TrialState.PRUNED) and "timing" in t.user_attrs]
+        if not trials:
+            print("no trial completed", file=sys.stderr)
+            return 1
+        rows = []
+        for t in trials:
+            wall = (t.datetime_complete - t.datetime_start).total_seconds()
+            est = float(t.user_attrs["timing"]["ransac_seconds_total"])
+            rows.append({"trial": t.number, "state": t.state.name, "wall_s": wall, "estimator_s": est,
+                         "overhead": 1 - est / wall if wall > 0 else 0.0, "pairs": t.user_attrs["timing"]["pairs"],
+                         "max_iters": t.params.get("max_iters")})
+        first = min(t.datetime_start for t in trials)
+        last = max(t.datetime_complete for t in trials)
+        loop_wall = (last - first).total_seconds()
+        est_total = sum(r["estimator_s"] for r in rows)
+        wall_total = sum(r["wall_s"] for r in rows)
+        pairs_total = sum(r["pairs"] for r in rows)
+        out = {"feature": args.feature, "num_features": args.num_features, "ransac": args.ransac,
+               "pairs_per_trial": ctx.vs.n_pairs, "trials": rows,
+               "overhead_in_trials": 1 - est_total / wall_total,
+               "overhead_whole_loop": 1 - est_total / loop_wall,
+               "median_trial_overhead": statistics.median(r["overhead"] for r in rows),
+               "non_estimator_ms_per_pair": 1000 * (wall_total - est_total) / max(pairs_total, 1),
+               "estimator_ms_per_pair": 1000 * est_total / max(pairs_total, 1),
+               "loop_seconds": loop_wall, "target": 0.05}
+        if args.json:
+            print(json.dumps(out, indent=2, default=str))
+            return 0
+        print(f"{args.feature} {args.num_features}, {args.ransac}, {ctx.vs.n_pairs} pairs per trial, "
+              f"{len(rows)} trials (SQLite, TPE, median pruner, heartbeat)")
+        for r in rows:
+            print(f"  trial {r['trial']:3d} {r['state']:8s} Gamma={r['max_iters']!s:>7}  wall {r['wall_s']:7.2f} s  "
+                  f"estimator {r['estimator_s']:7.2f} s  overhead {r['overhead']:6.1%}")
+        print(f"overhead inside trials: {out['overhead_in_trials']:.2%} "
+              f"({out['non_estimator_ms_per_pair']:.2f} ms per pair besides {out['estimator_ms_per_pair']:.1f} ms "
+              f"in the estimator); median trial {out['median_trial_overhead']:.2%}")
+        print(f"overhead of the whole loop (first trial start -> last trial end): {out['overhead_whole_loop']:.2%} "
+              f"-> target <= 5%: {'met' if out['overhead_whole_loop'] <= 0.05 else 'NOT met'}")
+        return 0
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
