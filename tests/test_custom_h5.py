@@ -204,3 +204,25 @@ def test_cli_bad_input_one_line(mini, good, tmp_path):
     assert len(lines) == 1 and "keypoints.h5" in lines[0] and "0006" in lines[0], r.stderr
     r = tune("evaluate", "--feature", f"custom:{tmp_path / 'nowhere'}", "--data", str(mini))
     assert r.returncode != 0 and "does not exist" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_match_file_per_task(mini, good, tmp_path, cache_dir):
+    """matches_stereo_0.h5 for stereo and matches_multiview.h5 for multiview win over matches.h5."""
+    from pipeline.tasks.prepare import pair_knn, pair_matches
+    byo, scene_dir = copy_of(good, tmp_path)
+    with h5py.File(scene_dir / "matches.h5") as f:
+        full = f["0004-0003"][()]
+    for name, n in (("matches_stereo_0.h5", 10), ("matches_multiview.h5", 20)):
+        with h5py.File(scene_dir / name, "w") as f:
+            f["0004-0003"] = full[:, :n]
+    sc = load_scene(mini, SCENE)
+    cache = H5Cache(cache_dir)
+    fc = FeatureConfig(name=f"custom:{byo}", num_features=K)
+    fi, fj = image_features(cache, sc.images["0003.jpg"], fc), image_features(cache, sc.images["0004.jpg"], fc)
+    mc = MatchConfig(custom_matches=str(byo))
+    tab, secs = pair_knn(cache, fi, fj, mc)
+    assert secs == 0.0
+    stereo, _ = pair_matches(tab, mc, fi, fj)
+    multi, _ = pair_matches(tab, mc, fi, fj, task="multiview")
+    assert len(stereo) == 10 and len(multi) == 20
+    np.testing.assert_array_equal(stereo, full[:, :10][::-1].T)  # key "0004-0003": rows swapped to (0003, 0004)

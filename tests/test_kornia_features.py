@@ -80,6 +80,25 @@ def test_distinct_descriptors_match_themselves(small_image):
     assert np.mean(moved < 1.5) > 0.6
 
 
+@pytest.mark.parametrize("name", ["dog-tfeat", "dog-affine-sift", "hessian+orinet+mkd"])
+def test_rotation_invariance(name, small_image):
+    """Orientation conventions: on the image rotated by 90 degrees the mutual nearest neighbours are the
+    rotated keypoints, and their orientations differ by 90 degrees (OpenCV's KeyPoint.angle convention)."""
+    _skip_unless_available(name)
+    h = small_image.shape[0]
+    rot = np.ascontiguousarray(cv2.rotate(small_image, cv2.ROTATE_90_CLOCKWISE))
+    a = extract(FeatureConfig(name=name, num_features=200), small_image)
+    b = extract(FeatureConfig(name=name, num_features=200), rot)
+    d = ((a.descriptors[:, None] - b.descriptors[None]) ** 2).sum(-1)
+    nn = d.argmin(1)
+    mutual = d.argmin(0)[nn] == np.arange(len(a))
+    expected = np.stack([h - 1 - a.keypoints[:, 1], a.keypoints[:, 0]], 1)
+    ok = mutual & (np.linalg.norm(b.keypoints[nn] - expected, axis=1) < 2)
+    assert mutual.sum() > 80 and ok.sum() > 0.9 * mutual.sum(), (mutual.sum(), ok.sum())
+    turn = np.mod(b.orientations[nn][ok] - a.orientations[ok] + 180, 360) - 180
+    assert abs(np.median(turn) - 90) < 3
+
+
 def test_upright_and_options(small_image):
     _skip_unless_available("dog+mkd")
     f = extract(FeatureConfig(name="dog+mkd", num_features=100, upright=True), small_image)
@@ -93,6 +112,17 @@ def test_upright_and_options(small_image):
     g = extract(FeatureConfig(name="dog+mkd", num_features=100, upright=True, options=(("batch_size", 7),)),
                 small_image)
     np.testing.assert_allclose(g.descriptors, f.descriptors, atol=1e-5)  # batching does not change results
+
+
+@pytest.mark.parametrize("name", ["dog-tfeat", "keynet+mkd", "aliked"])
+def test_blank_and_tiny_images_give_empty_features(name):
+    _skip_unless_available(name)
+    noise = np.random.default_rng(0).integers(0, 256, size=(3, 1000), dtype=np.uint8)
+    for img in (np.zeros((120, 160), np.uint8), noise, noise[:1, :1], noise[:, :40]):
+        f = extract(FeatureConfig(name=name, num_features=64), img)
+        if img.shape == (120, 160) and name == "aliked":
+            continue  # ALIKED's top-k mode returns the maxima of a flat score map: not an error
+        assert len(f) == 0 and f.descriptors.shape == (0, 128) and f.keypoints.shape == (0, 2)
 
 
 def test_composed_names_resolve():

@@ -26,6 +26,7 @@ def small_strecha(tmp_path_factory):
         shutil.copy(src / "gt_dense_cameras" / f"{n}.camera", dst / "gt_dense_cameras" / f"{n}.camera")
     cache = tmp_path_factory.mktemp("cache")
     old = os.environ.get("IMTUNE_CACHE")
+    old_gt = os.environ.pop("IMTUNE_GT", None)  # ground truth goes to $IMTUNE_CACHE/gt
     os.environ["IMTUNE_CACHE"] = str(cache)
     try:
         from tuner.cli import main
@@ -38,6 +39,8 @@ def small_strecha(tmp_path_factory):
             os.environ.pop("IMTUNE_CACHE", None)
         else:
             os.environ["IMTUNE_CACHE"] = old
+        if old_gt is not None:
+            os.environ["IMTUNE_GT"] = old_gt
 
 
 def run_cli(args, capsys):
@@ -107,6 +110,7 @@ def test_multiview_without_ground_truth_points_is_a_clear_error(tmp_path, capsys
     if not src.exists():
         pytest.skip("real data not found")
     monkeypatch.setenv("IMTUNE_CACHE", str(tmp_path / "empty-cache"))
+    monkeypatch.delenv("IMTUNE_GT", raising=False)
     rc, out, err = run_cli(["evaluate", "--data", str(DATA / "strecha"), "--scenes", "fountain-P11", "--task",
                             "multiview", "--num-features", "512", "--bags", "5:1"], capsys)
     assert rc == 2 and "build-gt" in err and "Traceback" not in err

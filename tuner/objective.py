@@ -177,7 +177,9 @@ class Objective:
             value = float(summary["mAA10"])
             trial.report(value, idx)
             med = float(summary.get("ransac_seconds_median", 0.0))
-            over = self.prune_over_budget and idx + 1 < len(self.vs.chunks) and med > self.prune_over_budget * self.budget
+            if idx + 1 >= len(self.vs.chunks):
+                return  # the last chunk: the trial is complete, never pruned after all the work is done
+            over = bool(self.prune_over_budget) and med > self.prune_over_budget * self.budget
             if over or trial.should_prune():
                 done.append(summary)
                 trial.set_constraint(BUDGET_CONSTRAINT, med - self.budget)

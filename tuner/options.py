@@ -156,7 +156,7 @@ def add_multiview_options(ap: argparse.ArgumentParser) -> None:
                    help="colmap: COLMAP estimates them (official); prior: known K, refined; fixed: known K")
     g.add_argument("--workers", type=int, default=None, help="bags in parallel (default: available CPUs)")
     g.add_argument("--keep-models", default=None, help="keep every bag's COLMAP database and model in this folder")
-    g.add_argument("--gt-dir", default=None, help="built ground truth folder (default $IMTUNE_CACHE/gt or ~/.cache/imtune/gt)")
+    g.add_argument("--gt-dir", default=None, help="built ground truth folder (default $IMTUNE_GT, $IMTUNE_CACHE/gt or ~/.cache/imtune/gt)")
 
 
 def multiview_config(args: argparse.Namespace, **overrides):

@@ -172,7 +172,9 @@ class StudyContext:
 
 def _quiet_optuna():
     import optuna
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    # ERROR: a trial failing (Ctrl-C, a bug) is reported once, as the CLI's one-line error, not as
+    # Optuna's warning with a traceback; `tune --verbose` restores Optuna's per-trial INFO lines
+    optuna.logging.set_verbosity(optuna.logging.ERROR)
     warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
     warnings.filterwarnings("ignore", category=FutureWarning, module="optuna")
 

@@ -10,8 +10,8 @@ ground truth from an image folder, both with pycolmap; stored in a data cache ou
   the scene; unregistered images are dropped (and listed). Cameras default to SIMPLE_PINHOLE so that the
   ground truth is exactly representable by the Scene model (K only, no distortion).
 
-Storage: ``<gt_dir>/<scene name>-<content id>/gt.h5`` where ``gt_dir`` is ``$IMTUNE_CACHE/gt`` or
-``~/.cache/imtune/gt`` and the content id hashes the scene's image names and file sizes (a moved copy
+Storage: ``<gt_dir>/<scene name>-<content id>/gt.h5`` where ``gt_dir`` is ``$IMTUNE_GT``, else
+``$IMTUNE_CACHE/gt``, else ``~/.cache/imtune/gt``, and the content id hashes the scene's image names and file sizes (a moved copy
 of the data finds it; edited images do not). Arrays only, written atomically, checksummed.
 
     gt = build_ground_truth(scene)            # writes the file, returns GroundTruth
@@ -38,7 +38,9 @@ METHODS = ("auto", "poses", "sfm")
 
 
 def default_gt_dir() -> Path:
-    """``$IMTUNE_CACHE/gt`` or ``~/.cache/imtune/gt``."""
+    """``$IMTUNE_GT``, else ``$IMTUNE_CACHE/gt``, else ``~/.cache/imtune/gt``."""
+    if os.environ.get("IMTUNE_GT"):
+        return Path(os.environ["IMTUNE_GT"]).expanduser()
     from pipeline.cache import default_cache_dir
     return default_cache_dir() / "gt"
 

@@ -29,7 +29,7 @@ from pipeline.features import sift, orb, akaze, brisk, boost, surf  # noqa: F401
 # kornia families (torch/kornia are imported only when one of them runs)
 from pipeline.features import kornia_compose, kornia_e2e, custom_h5  # noqa: F401,E402
 
-__all__ = ["EXTRACTORS", "Extractor", "Features", "get_extractor", "extract", "resolve_feature"]
+__all__ = ["EXTRACTORS", "Extractor", "Features", "get_extractor", "extract", "resolve_feature", "load_plugins"]
 
 
 def _resolve_dynamic(name: str):
@@ -58,6 +58,44 @@ class _CustomPlaceholder(Extractor):
         raise NotImplementedError
 
 
+PLUGINS_ENV = "IMTUNE_PLUGINS"
+_LOADED_PLUGINS: set[str] = set()
+
+
+def load_plugins(spec: str | None = None) -> list[str]:
+    """Import the plug-in modules named in ``spec`` (default: ``$IMTUNE_PLUGINS``; comma-separated
+    module names, e.g. ``mylab.features``, or paths to ``.py`` files) so that what they register
+    (extractors, pre-filters, estimators) is known to the CLI too. Done once when ``pipeline.features``
+    is imported; a module that fails to import is a one-line ImtuneError naming it."""
+    import importlib
+    import importlib.util
+    import os
+    from pathlib import Path
+    spec = os.environ.get(PLUGINS_ENV, "") if spec is None else spec
+    done = []
+    for item in filter(None, (x.strip() for x in spec.split(","))):
+        if item in _LOADED_PLUGINS:
+            continue
+        try:
+            if item.endswith(".py"):
+                path = Path(item).expanduser().resolve()
+                if not path.is_file():
+                    raise ImtuneError(f"{PLUGINS_ENV}: plug-in file {path} not found")
+                mod_spec = importlib.util.spec_from_file_location(f"imtune_plugin_{path.stem}", path)
+                module = importlib.util.module_from_spec(mod_spec)
+                mod_spec.loader.exec_module(module)
+            else:
+                importlib.import_module(item)
+        except ImtuneError:
+            raise
+        except Exception as e:
+            msg = str(e).strip().splitlines()[0] if str(e).strip() else ""
+            raise ImtuneError(f"{PLUGINS_ENV}: plug-in {item!r} failed to import: {type(e).__name__}: {msg}") from None
+        _LOADED_PLUGINS.add(item)
+        done.append(item)
+    return done
+
+
 def resolve_feature(name: str) -> type[Extractor]:
     """The extractor class of a feature name: a registered name (``tune list``), a composed
     ``det[+affine][+orientation]+desc`` name, or ``custom:DIR``. One-line ImtuneError if unknown or
@@ -83,3 +121,6 @@ def get_extractor(conf: FeatureConfig | str | dict[str, Any]) -> Extractor:
 def extract(conf: FeatureConfig | str | dict[str, Any], image: np.ndarray) -> Features:
     """Detect and describe ``image`` ((H, W) uint8 grayscale, working resolution) with ``conf``."""
     return get_extractor(conf).extract(image)
+
+
+load_plugins()

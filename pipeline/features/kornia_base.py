@@ -249,6 +249,19 @@ def kornia_to_cv_angle(a: np.ndarray) -> np.ndarray:
     return np.mod(-np.asarray(a, np.float32), np.float32(360.0)).astype(np.float32)
 
 
+#: images with a side shorter than this (px) on which a network or pyramid fails give empty features
+TINY_SIDE = 64
+
+
+def runtime_failure(name: str, image: np.ndarray, e: Exception) -> bool:
+    """True if ``e`` (from torch / kornia) should mean "no features" (a tiny image); otherwise raise a
+    one-line ImtuneError naming the feature and the image size."""
+    if min(image.shape[:2]) < TINY_SIDE:
+        return True
+    msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+    raise ImtuneError(f"feature {name!r} failed on a {image.shape[1]}x{image.shape[0]} image: {msg}") from e
+
+
 def check_finite(name: str, desc: np.ndarray) -> np.ndarray:
     if desc.size and not np.all(np.isfinite(desc)):
         raise ImtuneError(f"feature {name!r}: the descriptor network returned NaN or inf "

@@ -100,17 +100,27 @@ class ComposedExtractor(Extractor):
     def extract(self, image: np.ndarray) -> Features:
         """Detect, shape, orient and describe. ``image``: (H, W) uint8 at the working resolution."""
         from pipeline.features._opencv import as_gray_u8
-        from pipeline.features.kornia_base import (check_finite, clahe_images, describe_patches,
-                                                   kornia_to_cv_angle, make_lafs, to_tensor, torch_setup)
+        from pipeline.features.kornia_base import clahe_images, runtime_failure, torch_setup
         conf = self.conf
         img = as_gray_u8(image, conf.name)
         det_img, desc_img = clahe_images(img, conf.clahe, self.opts)
+        torch = torch_setup(int(self.opts["threads"]))
+        try:
+            return self._extract(det_img, desc_img, torch)
+        except (RuntimeError, ValueError) as e:
+            if runtime_failure(conf.name, img, e):
+                return self._empty()
+            raise
+
+    def _extract(self, det_img: np.ndarray, desc_img: np.ndarray, torch) -> Features:
+        from pipeline.features.kornia_base import (check_finite, describe_patches, kornia_to_cv_angle,
+                                                   make_lafs, to_tensor)
+        conf = self.conf
         reestimated = self.orienter is not None or self.affine is not None
         det = self.detector.detect(det_img, conf.num_features, dedupe=self.upright or reestimated,
                                    refill=bool(conf.upright_plus) or (reestimated and not self.upright))
         if len(det) == 0:
             return self._empty()
-        torch = torch_setup(int(self.opts["threads"]))
         from kornia.feature import get_laf_orientation, scale_laf
         batch = int(self.opts["batch_size"])
         fm = self.detector_cls.frame_mult

@@ -263,10 +263,18 @@ class KeyNet(Detector):
         keep = resp > 0  # unfilled slots carry a zero response and a zero LAF
         lafs = lafs[:, keep]
         resp = resp[keep].numpy().astype(np.float32)
-        xy = get_laf_center(lafs)[0].numpy().astype(np.float32)
-        # Key.Net frames are 22 px x the pyramid-level factor; kornia describes them as they are with
-        # 32 px patches (KeyNetHardNet), i.e. as the 12-sigma frames of the other detectors.
-        sigma = (get_laf_scale(lafs).reshape(-1).numpy() / 12.0).astype(np.float32)
+        xy = get_laf_center(lafs)[0].numpy().astype(np.float64)
+        scale = get_laf_scale(lafs).reshape(-1).numpy().astype(np.float64)
+        # kornia (like the Key.Net reference) reports level pixel u at u * f (f = image / level size),
+        # not at its centre (u + 0.5) f - 0.5: a (f - 1) / 2 px bias that grows with the level and does
+        # not cancel between two images (a mirrored image then repeats 11% of detections within 2 px
+        # instead of 60%). f is recovered from the frame size, s_mult (22) x f.
+        f = scale / float(det.mr_size)
+        xy += ((f - 1.0) / 2.0)[:, None]
+        xy = xy.astype(np.float32)
+        # Key.Net frames are 22 px x the level factor; kornia describes them as they are with 32 px
+        # patches (KeyNetHardNet), i.e. as the 12-sigma frames of the other detectors.
+        sigma = (scale / 12.0).astype(np.float32)
         order = np.lexsort((sigma, xy[:, 1], xy[:, 0], -resp))[:k]
         return Detections(xy[order], sigma[order], None, resp[order])
 

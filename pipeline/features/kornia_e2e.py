@@ -69,13 +69,19 @@ class EndToEnd(Extractor):
 
     def extract(self, image: np.ndarray) -> Features:
         from pipeline.features._opencv import as_gray_u8
-        from pipeline.features.kornia_base import clahe_images, to_tensor, torch_setup
+        from pipeline.features.kornia_base import clahe_images, runtime_failure, to_tensor, torch_setup
         conf = self.conf
         img = as_gray_u8(image, conf.name)
         img, _ = clahe_images(img, conf.clahe, self.opts)
         torch = torch_setup(int(self.opts["threads"]))
-        with torch.inference_mode():
-            kp, desc, sc = self._run(to_tensor(img), int(conf.num_features))
+        try:
+            with torch.inference_mode():
+                kp, desc, sc = self._run(to_tensor(img), int(conf.num_features))
+        except (RuntimeError, ValueError) as e:
+            if runtime_failure(conf.name, img, e):
+                z = np.zeros(0, np.float32)
+                return Features(np.zeros((0, 2), np.float32), np.zeros((0, self.dim), np.float32), scores=z)
+            raise
         kp = kp.to(torch.float32).numpy().reshape(-1, 2)
         desc = desc.to(torch.float32).numpy().reshape(len(kp), -1) if len(kp) else np.zeros((0, self.dim), np.float32)
         sc = sc.to(torch.float32).numpy().reshape(-1)

@@ -22,13 +22,13 @@ the values OpenCV's ``NORM_L2`` would report.
 
 Binary descriptors (Hamming) use a numba popcount kernel (64-bit words, ``llvm.ctpop`` -> VPOPCNTQ/POPCNT)
 that writes Hamming blocks the same top-2 kernel consumes (exact integers). Measured on 8000 x 8000 x 256 bits
-(``benchmarks/matching.py --binary --dim 32``): 3.3x faster than the alternative exact path of unpacking the
+(``benchmarks/matching.py --binary --dim 32``): 3.3-3.7x faster than the alternative exact path of unpacking the
 bits to 0/1 float32 and running the float search (a 256-wide SGEMM; also exact, ``|a| + |b| - 2 a.b`` is an
-integer < 2^24), and 0.5x the time of that SGEMM alone.
+integer < 2^24), and 0.4-0.5x the time of that SGEMM alone.
 
 k > 2 (FGINN needs ~10) uses ``_kernels.topk_block``: the same blocks and one pass, with a scalar insertion
 into the row list and the column lists (rare after the first rows, so well predicted): ~1.5 ns per distance
-instead of ~0.4, about 1.6x the k = 2 total at 8000 x 8000.
+instead of ~0.4; 1.2-1.6x the k = 2 total at 8000 x 8000 (``--with-k10``).
 
 Threads
 -------

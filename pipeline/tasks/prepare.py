@@ -121,24 +121,27 @@ def pair_knn(cache: H5Cache, fi: ImageFeatures, fj: ImageFeatures, conf: MatchCo
 
 # --------------------------------------------------------------------- tentative matches of a pair
 
-def custom_tables(fi: ImageFeatures, fj: ImageFeatures, conf: MatchConfig):
-    """``CustomTables`` of a pair from ``conf.custom_matches`` (imported matches; no search)."""
-    from pipeline.matching.custom_matches import load_pair_matches
-    from pipeline.matching.custom_matches import CustomTables
+def custom_tables(fi: ImageFeatures, fj: ImageFeatures, conf: MatchConfig, task: str = "stereo"):
+    """``CustomTables`` of a pair from ``conf.custom_matches`` (imported matches; no search). ``task``
+    picks the file: stereo (matches_stereo_0.h5, matches.h5) or multiview (matches_multiview.h5, ...)."""
+    from pipeline.matching.custom_matches import CustomTables, load_pair_matches
     if not (fi.name and fj.name):
         raise ImtuneError("custom matches need the image names of the pair (ImageFeatures.name)")
-    m = load_pair_matches(conf.custom_matches, fi.name, fj.name, fi.path, len(fi.keypoints), len(fj.keypoints))
+    m = load_pair_matches(conf.custom_matches, fi.name, fj.name, fi.path, len(fi.keypoints), len(fj.keypoints),
+                          task=task)
     return CustomTables.from_matches(m, len(fi.keypoints), len(fj.keypoints), knn_k(conf))
 
 
-def pair_matches(tables, conf: MatchConfig, fi: ImageFeatures, fj: ImageFeatures):
+def pair_matches(tables, conf: MatchConfig, fi: ImageFeatures, fj: ImageFeatures, task: str = "stereo"):
     """The tentative matches a task hands to the estimator (or COLMAP): the matcher's (ratio test,
-    strategy, distance threshold, FGINN on the k-NN ``tables``) or the imported ones (custom matches),
-    then the pre-filter ``conf.prefilter``. Returns (matches (M, 2) int32 [i, j], distances (M,) float32;
-    0 for custom matches)."""
-    from pipeline.matching.filter import filter_matches
+    strategy, distance threshold, FGINN on the k-NN ``tables``) or the imported ones (custom matches;
+    ``task`` "multiview" reads the multiview match file), then the pre-filter ``conf.prefilter``.
+    Returns (matches (M, 2) int32 [i, j], distances (M,) float32; 0 for custom matches)."""
     from pipeline.matching.custom_matches import CustomTables
-    if isinstance(tables, CustomTables):
+    from pipeline.matching.filter import filter_matches
+    if isinstance(tables, CustomTables) or conf.custom_matches:
+        if task != "stereo" or not isinstance(tables, CustomTables):
+            tables = custom_tables(fi, fj, conf, task)
         m = np.asarray(tables.matches, np.int32).reshape(-1, 2)
         d = np.zeros(len(m), np.float32)
     else:

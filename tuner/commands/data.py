@@ -30,7 +30,7 @@ def register(sub) -> None:
     g.add_argument("--max-image-size", type=int, default=3200, help="COLMAP extracts on images resized to this (px)")
     g.add_argument("--camera-model", default="SIMPLE_PINHOLE", help="COLMAP camera model for sfm (SIMPLE_PINHOLE, "
                    "PINHOLE, SIMPLE_RADIAL, ...; distortion is not kept in the scene)")
-    g.add_argument("--gt-dir", default=None, help="where ground truth is written (default $IMTUNE_CACHE/gt or ~/.cache/imtune/gt)")
+    g.add_argument("--gt-dir", default=None, help="where ground truth is written (default $IMTUNE_GT, $IMTUNE_CACHE/gt or ~/.cache/imtune/gt)")
     g.add_argument("--force", action="store_true", help="rebuild even if a ground truth with these settings exists")
     g.add_argument("--json", action="store_true", help="print one JSON object")
     g.add_argument("--quiet", action="store_true", help="no progress messages")

@@ -1,0 +1,68 @@
+"""The documented Python hook: a new extractor registered in a few lines works from Python and, through
+IMTUNE_PLUGINS, from the CLI (`tune list`, `tune evaluate`)."""
+from __future__ import annotations
+
+import json
+import shutil
+import textwrap
+
+import pytest
+
+from pipeline.errors import ImtuneError
+from tests.conftest import DATA
+from tests.test_cli_evaluate import tune
+
+PLUGIN = textwrap.dedent('''
+    import cv2
+    import numpy as np
+    from pipeline.features import EXTRACTORS, Extractor, Features
+
+    @EXTRACTORS.register("plugin-sift", "SIFT from a plug-in (docs/extending.md example)")
+    class PluginSIFT(Extractor):
+        version = "1"
+
+        def extract(self, image):
+            kps, desc = cv2.SIFT_create(self.conf.num_features).detectAndCompute(image, None)
+            kps, desc = kps[: self.conf.num_features], desc[: self.conf.num_features]
+            score = np.array([k.response for k in kps], np.float32)
+            order = np.argsort(-score, kind="stable")
+            xy = np.array([k.pt for k in kps], np.float32)
+            return Features(keypoints=xy[order], descriptors=desc[order].astype(np.float32), scores=score[order])
+''')
+
+
+def test_plugin_file_registers_and_runs(tmp_path):
+    src = DATA / "strecha" / "fountain-P11"
+    if not src.exists():
+        pytest.skip(f"real data not found at {src}")
+    plugin = tmp_path / "my_plugin.py"
+    plugin.write_text(PLUGIN)
+    env = {"IMTUNE_PLUGINS": str(plugin), "IMTUNE_CACHE": str(tmp_path / "cache")}
+    r = tune("list", "--json", env=env)
+    assert r.returncode == 0, r.stderr
+    assert any(row["name"] == "plugin-sift" and row["available"] == "yes" for row in json.loads(r.stdout))
+    data = tmp_path / "data" / "fountain-P11"
+    for sub, suffix in (("images", ""), ("gt_dense_cameras", ".camera")):
+        (data / sub).mkdir(parents=True)
+        for n in ("0004.jpg", "0005.jpg", "0006.jpg"):
+            shutil.copy(src / sub / (n + suffix), data / sub / (n + suffix))
+    r = tune("evaluate", "--feature", "plugin-sift", "--num-features", "2048", "--ratio", "0.85",
+             "--max-iters", "5000", "--data", str(tmp_path / "data"), "--json", "--quiet", env=env)
+    assert r.returncode == 0, r.stderr
+    st = json.loads(r.stdout)["stereo"]
+    assert st["pairs"] == 3 and st["mAA10"] > 0.6
+
+
+def test_plugin_errors_are_one_line(tmp_path):
+    from pipeline.features import load_plugins
+    with pytest.raises(ImtuneError, match="not found"):
+        load_plugins(str(tmp_path / "missing.py"))
+    bad = tmp_path / "bad.py"
+    bad.write_text("raise RuntimeError('boom')\n")
+    with pytest.raises(ImtuneError, match="boom") as e:
+        load_plugins(str(bad))
+    assert "\n" not in str(e.value)
+    with pytest.raises(ImtuneError, match="no_such_module"):
+        load_plugins("no_such_module_xyz")
+    r = tune("list", env={"IMTUNE_PLUGINS": "no_such_module_xyz"})
+    assert r.returncode != 0 and len(r.stderr.strip().splitlines()) == 1 and "no_such_module_xyz" in r.stderr
