@@ -23,6 +23,7 @@ thread each), so wall time scales with cores.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -254,6 +255,23 @@ def run_bags(jobs: list[BagJob], workers: int = 2, progress: bool = False, desc:
     return results  # type: ignore[return-value]
 
 
+@contextlib.contextmanager
+def _single_thread_env():
+    """Workers start with BLAS / OpenMP limited to one thread (they inherit the environment at spawn; set
+    it here because a worker imports numpy before its initializer runs). Restored afterwards."""
+    keys = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+    saved = {k: os.environ.get(k) for k in keys}
+    os.environ.update({k: "1" for k in keys})
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
 def _init_worker_inline():
     from pipeline.tasks import colmap_db as cdb
     cdb.quiet(3)
@@ -267,7 +285,8 @@ def _pool_pass(jobs, indices, results, workers, bar, fn):
     ctx = mp.get_context("spawn")
     todo = list(indices)
     submitted: list[int] = []
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker) as ex:
+    with _single_thread_env(), \
+            ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker) as ex:
         inflight = {}
         try:
             while todo or inflight:
