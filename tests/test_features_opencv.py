@@ -14,6 +14,7 @@ import pytest
 from pipeline.config import FeatureConfig
 from pipeline.errors import ImtuneError, UnavailableError
 from pipeline.features import EXTRACTORS, extract, get_extractor
+from pipeline.features._opencv import OpenCVExtractor
 from pipeline.features.sift import root_sift
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -25,7 +26,8 @@ EXPECTED = {
     "kaze": (64, False), "brisk": (64, True), "freak": (64, True), "beblid": (64, True),
     "teblid": (32, True), "surf": (64, False),
 }
-AVAILABLE = sorted(n for n, (ok, _) in EXTRACTORS.availability().items() if ok)
+AVAILABLE = sorted(n for n, (ok, _) in EXTRACTORS.availability().items()
+                   if ok and issubclass(EXTRACTORS.get(n), OpenCVExtractor))
 UPRIGHT_CAPABLE = [n for n in AVAILABLE if n != "brisk"]
 
 
