@@ -149,6 +149,7 @@ class TuneSettings:
     test_runs: int = 3
     retest: bool = False
     log: object = None  # callable(str) for status lines; None = stderr unless progress is off
+    verbose: bool = False  # Optuna's own INFO log lines
 
     def say(self, msg: str) -> None:
         if self.log is not None:
@@ -170,8 +171,11 @@ class StudyContext:
     created: bool
 
 
-def _quiet_optuna():
+def _quiet_optuna(verbose: bool = False):
     import optuna
+    if verbose:
+        optuna.logging.set_verbosity(optuna.logging.INFO)
+        return
     # ERROR: a trial failing (Ctrl-C, a bug) is reported once, as the CLI's one-line error, not as
     # Optuna's warning with a traceback; `tune --verbose` restores Optuna's per-trial INFO lines
     optuna.logging.set_verbosity(optuna.logging.ERROR)
@@ -275,7 +279,7 @@ def setup_study(s: TuneSettings) -> StudyContext:
     from tuner.objective import Objective
     from tuner.space import SearchSpace, load_space
     from tuner.storage import default_studies_dir, open_storage
-    _quiet_optuna()
+    _quiet_optuna(s.verbose)
     if s.task not in TASKS:
         raise ImtuneError(f"unknown task {s.task!r} (choose from {', '.join(TASKS)})")
     if s.sampler not in SAMPLERS:

@@ -119,6 +119,7 @@ def run_bag(job: BagJob) -> dict:
     t0, c0 = time.perf_counter(), time.process_time()
     names = list(job.names)
     rec = _empty_record(job)
+    rec["started"] = time.time()
     bag_dir = Path(job.workdir) / f"{_safe(job.scene)}-{job.size}-{job.index:03d}"
     try:
         cdb.quiet(3)

@@ -191,9 +191,7 @@ def settings_from_args(args):
 def run(args) -> int:
     from tuner.study import tune
     s = settings_from_args(args)
-    if args.verbose:
-        import optuna
-        optuna.logging.set_verbosity(optuna.logging.INFO)
+    s.verbose = bool(args.verbose)
     out = tune(s)
     if args.json:
         print(json.dumps(_jsonable(out), indent=2))
