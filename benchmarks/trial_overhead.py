@@ -50,7 +50,6 @@ def main(argv=None) -> int:
                          n_trials=args.trials, budget=args.budget, max_pairs=args.max_pairs, cache_dir=args.cache,
                          study_name=f"overhead-{time.time():.0f}", progress=not args.json, test=False, seed=0)
         ctx = setup_study(s)
-        t0 = time.time()
         run = optimize(ctx, s)
         trials = [t for t in ctx.study.get_trials(deepcopy=False) if t.number in set(run["trials_run"])
                   and t.state in (TrialState.COMPLETE, TrialState.PRUNED) and "timing" in t.user_attrs]

@@ -15,7 +15,6 @@ Prints the grid optimum, per TPE seed the best value, the evaluations TPE needed
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 import time

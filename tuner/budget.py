@@ -22,7 +22,7 @@ import socket
 import tempfile
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -142,6 +142,9 @@ def _write_store(path: Path, data: dict) -> None:
             json.dump(data, fh, indent=1, sort_keys=True)
             fh.flush()
             os.fsync(fh.fileno())
+        _umask = os.umask(0)
+        os.umask(_umask)
+        os.chmod(tmp, 0o666 & ~_umask)  # mkstemp creates 0600; results are for everyone to read
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
@@ -162,7 +165,7 @@ def list_calibrations(studies_dir: Path) -> dict[str, Calibration]:
 def calibration_matches(scenes, conf, cache, max_pairs: int = 8, progress: bool = False):
     """Tentative matches of up to ``max_pairs`` validation pairs (evenly spread over all pairs), at
     the working resolution: list of (pts1, pts2, sizes)."""
-    from pipeline.matching.filter import filter_matches
+    from pipeline.tasks.prepare import pair_matches
     from pipeline.tasks.stereo import prepare_scene
     allp = [(s, p) for s, pairs in scenes for p in pairs]
     if not allp:
@@ -178,7 +181,7 @@ def calibration_matches(scenes, conf, cache, max_pairs: int = 8, progress: bool 
         for p in pairs:
             tab, _ = tables[p.key]
             fi, fj = feats[p.i], feats[p.j]
-            m, _ = filter_matches(tab, conf.matching, fi.keypoints, fj.keypoints)
+            m, _ = pair_matches(tab, conf.matching, fi, fj, task="stereo")  # same matches a trial sees
             if len(m) < 8:
                 continue
             out.append((fi.keypoints[m[:, 0]].astype(np.float64), fj.keypoints[m[:, 1]].astype(np.float64),

@@ -11,9 +11,10 @@ Each trial records, as user attributes: ``mAA5``, ``mAA10``, ``NF`` (features pe
 ``ransac_seconds_p90`` (estimator seconds per pair), ``match_seconds`` (matching seconds per pair),
 ``scenes`` (per-scene mAA5, mAA10, pairs, failed), ``failed`` and ``failed_pairs`` (pairs with
 error infinity), ``feasible``, and ``timing`` (pairs, budget B, ``ransac_seconds_total`` and
-``evaluate_seconds`` of the trial, for the overhead benchmark). Feasibility is an Optuna constraint (``trial.set_constraint("budget", median - B)``):
-a trial whose median estimator time per pair exceeds B is infeasible — TPE treats it so and it is
-never frozen.
+``evaluate_seconds`` of the trial, for the overhead benchmark). Feasibility is an Optuna constraint
+(``trial.set_constraint("budget", median - B)``, Optuna 5's replacement of TPE's deprecated
+``constraints_func``): a trial whose median estimator time per pair exceeds B is infeasible — TPE
+treats it so, and it is never frozen.
 """
 from __future__ import annotations
 
@@ -146,6 +147,17 @@ def config_for(base: PipelineConfig, params: dict, fixed: dict | None = None, se
     return dataclasses.replace(base, matching=dataclasses.replace(m, **mkw), geometry=dataclasses.replace(g, **gkw))
 
 
+def set_budget_constraint(trial, value: float) -> None:
+    """``trial.set_constraint("budget", value)`` (> 0: infeasible). A retried trial (the parameters of
+    a killed worker's trial, re-enqueued) inherits the dead trial's system attributes; its own
+    measurement replaces the inherited value."""
+    key = f"constraints:{BUDGET_CONSTRAINT}"
+    if key in trial.storage.get_trial_system_attrs(trial._trial_id):
+        trial.storage.set_trial_system_attr(trial._trial_id, key, float(value))
+    else:
+        trial.set_constraint(BUDGET_CONSTRAINT, float(value))
+
+
 class Objective:
     """Callable for ``study.optimize``: one trial = one stereo evaluation of the validation set.
 
@@ -182,7 +194,7 @@ class Objective:
             over = bool(self.prune_over_budget) and med > self.prune_over_budget * self.budget
             if over or trial.should_prune():
                 done.append(summary)
-                trial.set_constraint(BUDGET_CONSTRAINT, med - self.budget)
+                set_budget_constraint(trial, med - self.budget)
                 trial.set_user_attr("pruned_at_pairs", int(summary.get("pairs", 0)))
                 trial.set_user_attr("ransac_seconds_median", med)
                 trial.set_user_attr("feasible", bool(med <= self.budget))
@@ -199,7 +211,7 @@ class Objective:
                               on_scene=on_scene)
         s = summarize_records(res.records, self.vs)
         med = float(s["ransac_seconds_median"])
-        trial.set_constraint(BUDGET_CONSTRAINT, med - self.budget)
+        set_budget_constraint(trial, med - self.budget)
         failed = [r["pair"] if len(self.vs.scenes) == 1 else f"{self.vs.chunk_scene.get(r['scene'], r['scene'])}:{r['pair']}"
                   for r in res.records if not math.isfinite(r["err"])]
         attrs = {

@@ -11,7 +11,6 @@ the paper's inlier-threshold figure).
 from __future__ import annotations
 
 import html
-import math
 from pathlib import Path
 
 import numpy as np
@@ -84,7 +83,6 @@ def fig_eta_curves(storage, study):
 
 def write_report(storage, study_name: str, out: Path | str) -> Path:
     """Write the HTML report of one study; returns its path."""
-    import optuna
     import optuna.visualization as ov
     import plotly.io as pio
     from tuner.study import best_feasible, load_study, trial_counts
@@ -100,7 +98,7 @@ def write_report(storage, study_name: str, out: Path | str) -> Path:
         except Exception as e:  # noqa: BLE001 - a section that cannot be drawn says why, the rest is written
             sections.append((title, None, f"not available: {' '.join(str(e).split())[:200]}"))
             return
-        sections.append((title, fig, note) if fig is not None else (title, None, note or "not enough data"))
+        sections.append((title, fig, "") if fig is not None else (title, None, note or "not enough data"))
 
     params = set().union(*(t.params for t in trials))
     add("Optimisation history", lambda: ov.plot_optimization_history(study, target_name="mAA(10)"))

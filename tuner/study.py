@@ -19,7 +19,6 @@ from __future__ import annotations
 import dataclasses
 import datetime as _dt
 import math
-import os
 import sys
 import time
 import warnings

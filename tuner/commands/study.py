@@ -178,7 +178,9 @@ def settings_from_args(args):
     quiet = bool(args.quiet or args.json)
     return TuneSettings(
         base=base, data_root=resolve_data(args.data), task=args.task, study_name=args.study,
-        storage=args.storage, studies_dir=_studies_dir(args), space_path=args.space, fixes=list(args.fix),
+        storage=args.storage, studies_dir=_studies_dir(args), space_path=args.space,
+        # imported (custom) matches skip the matcher: the ratio test and strategy are then not searched
+        fixes=list(args.fix) + (["ratio=1.0", "strategy=both"] if getattr(args, "matches", None) else []),
         n_trials=args.n_trials, timeout=args.timeout, seed=args.seed, sampler=args.sampler, pruner=args.pruner,
         startup_trials=args.startup_trials, budget=args.budget, test_budget=args.test_budget,
         val_scenes=_scenes(args.scenes), test_scenes=_scenes(args.test_scenes), min_covisibility=args.covisibility,
