@@ -198,8 +198,9 @@ def test_build_config_accepts_composed_names():
     from tuner.options import add_pipeline_options, build_config
     ap = argparse.ArgumentParser()
     add_pipeline_options(ap)
-    conf = build_config(ap.parse_args(["--feature", "keynet+affnet+mkd", "--prefilter", "adalam:min_inliers=8"]))
-    assert conf.feature.name == "keynet+affnet+mkd"
+    # a composition that needs no weights (build_config also checks availability)
+    conf = build_config(ap.parse_args(["--feature", "hessian+baumberg+sift", "--prefilter", "adalam:min_inliers=8"]))
+    assert conf.feature.name == "hessian+baumberg+sift"
     assert conf.matching.prefilter == "adalam" and conf.matching.prefilter_options == (("min_inliers", "8"),)
     with pytest.raises(ImtuneError, match="nosuch"):
         build_config(ap.parse_args(["--feature", "dog+nosuch"]))

@@ -120,6 +120,7 @@ def dying_bag(job):
     return run_bag(job)
 
 
+@pytest.mark.timeout(180)
 def test_a_worker_that_dies_is_a_failed_bag_and_the_run_goes_on(tmp_path):
     jobs = [synthetic_bag(n=4, seed=s, workdir=tmp_path, index=s) for s in range(3)]
     res = run_bags(jobs, workers=2, fn=dying_bag)

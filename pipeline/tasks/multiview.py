@@ -301,7 +301,13 @@ def _pool_pass(jobs, indices, results, workers, bar, fn):
                     results[k] = f.result()
                     bar.update(1)
         except BrokenProcessPool:
-            pass
+            # Python 3.11's executor then joins the surviving workers, which may sit idle on the call
+            # queue forever (it is only fixed in 3.12, where broken pools kill their workers): kill them.
+            for proc in list((getattr(ex, "_processes", None) or {}).values()):
+                try:
+                    proc.kill()
+                except Exception:
+                    pass
     return todo, [k for k in submitted if results[k] is None]
 
 
