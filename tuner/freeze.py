@@ -89,10 +89,18 @@ def frozen_from_study(study) -> dict:
     from tuner.study import SEARCHED
     cd = conf.to_dict()
     all_fixed = {k: cd[sec][key] for k, (sec, key) in SEARCHED.items() if k not in searched}
+    if attrs.get("task") == "multiview":  # COLMAP runs its own RANSAC: eta and Gamma play no part
+        from tuner.study import NOT_MULTIVIEW
+        for k in NOT_MULTIVIEW:
+            all_fixed.pop(k, None)
     ua = best.user_attrs
-    validation = {k: ua.get(k) for k in ("mAA5", "mAA10", "NF", "NM", "NI", "ransac_seconds_median",
-                                         "ransac_seconds_p90", "match_seconds", "failed", "scenes")}
-    validation["pairs"] = (ua.get("timing") or {}).get("pairs")
+    if attrs.get("task") == "multiview":
+        from tuner.objective import MULTIVIEW_ATTRS
+        validation = {k: ua.get(k) for k in MULTIVIEW_ATTRS + ("scenes",)}
+    else:
+        validation = {k: ua.get(k) for k in ("mAA5", "mAA10", "NF", "NM", "NI", "ransac_seconds_median",
+                                             "ransac_seconds_p90", "match_seconds", "failed", "scenes")}
+        validation["pairs"] = (ua.get("timing") or {}).get("pairs")
     budget = dict(attrs["budget"])
     budget.pop("calibration", None)
     return _plain({
@@ -108,6 +116,7 @@ def frozen_from_study(study) -> dict:
         "data": {**attrs.get("data", {}), "fingerprint": attrs.get("data_fingerprint")},
         "validation": validation,
         "search_space": attrs.get("search_space_resolved"),
+        **({"multiview": attrs["multiview"]} if attrs.get("multiview") else {}),
         "code_version": attrs.get("code_version"),
         "frozen_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     })
@@ -168,10 +177,14 @@ def _mean_summaries(runs: list[dict]) -> tuple[dict, dict]:
 
 def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None = None, *, scenes=None,
              cache=None, runs: int = 3, max_pairs: int | None = None, test_budget: float | None = None,
-             progress: bool = False, reuse: bool = True) -> dict:
+             progress: bool = False, reuse: bool = True, workers: int | None = None) -> dict:
     """Evaluate the frozen configuration on the test scenes ``runs`` times (different estimator seeds)
     and average. Writes ``<studies_dir>/<study>/test.json`` when ``studies_dir`` is given; with
-    ``reuse``, an existing test.json for the same trial, configuration and data is returned as is."""
+    ``reuse``, an existing test.json for the same trial, configuration and data is returned as is.
+    Multiview studies: :func:`run_test_multiview` (``workers`` bag processes)."""
+    if frozen.get("task") == "multiview":
+        return run_test_multiview(frozen, data_root, studies_dir, scenes=scenes, cache=cache, runs=runs,
+                                  progress=progress, reuse=reuse, workers=workers)
     from pipeline.cache import H5Cache
     from pipeline.tasks.stereo import evaluate_stereo
     from tuner.objective import ValidationSet, summarize_records
@@ -238,6 +251,79 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
     return out
 
 
+def _test_scene_names(frozen: dict, data_root: Path, scenes) -> list[str]:
+    names = list(scenes) if scenes else list(frozen.get("data", {}).get("test_scenes") or [])
+    if not names:
+        from pipeline.data import default_splits
+        names = list(default_splits(data_root).get("test", []))
+    if not names:
+        raise ImtuneError(f"no test scenes for study {frozen.get('study')!r} in {data_root} "
+                          "(give --scenes or add a splits.yaml with 'test')")
+    return names
+
+
+def run_test_multiview(frozen: dict, data_root: Path | str, studies_dir: Path | str | None = None, *, scenes=None,
+                       cache=None, runs: int = 3, progress: bool = False, reuse: bool = True,
+                       workers: int | None = None) -> dict:
+    """The multiview test: the frozen configuration's multiview evaluation of the test scenes, ``runs``
+    times with COLMAP seeds ``seed, seed + 1, ...`` (the bags are the same in every run), averaged."""
+    from pipeline.cache import H5Cache
+    from pipeline.tasks.multiview import MultiviewConfig, evaluate_multiview
+    from tuner.objective import MULTIVIEW_ATTRS, data_fingerprint, multiview_attrs
+    from tuner.options import load_scenes
+    from tuner.study import code_version
+    data_root = Path(data_root)
+    names = _test_scene_names(frozen, data_root, scenes)
+    conf = pipeline_from_dict(frozen["config"])
+    mvd = dict(frozen.get("multiview") or {})
+    mv = MultiviewConfig(**{k: (tuple(tuple(x) for x in v) if k == "bags" else v) for k, v in mvd.items()})
+    scene_objs = load_scenes(data_root, names, split="test")
+    fp = data_fingerprint([(sc, sc.select_pairs(None)) for sc in scene_objs], None)
+    out_path = study_dir(studies_dir, frozen["study"]) / "test.json" if studies_dir is not None else None
+    ident = {"trial": frozen.get("trial"), "config": frozen["config"], "multiview": mvd, "fingerprint": fp,
+             "runs": int(runs)}
+    if reuse and out_path is not None and out_path.is_file():
+        try:
+            old = json.loads(out_path.read_text())
+            if old.get("identity") == _plain(ident):
+                return old
+        except (OSError, ValueError):
+            pass
+    cache = cache if cache is not None else H5Cache()
+    results = []
+    for k in range(int(runs)):
+        m = dataclasses.replace(mv, seed=int(mv.seed) + k)
+        res = evaluate_multiview(scene_objs, conf, m, cache, workers=workers, progress=progress)
+        s = multiview_attrs(res.summary, res.scenes)
+        s["seed"] = int(mv.seed) + k
+        results.append(s)
+    mean, std = {}, {}
+    for key in MULTIVIEW_ATTRS + ("accuracy",):
+        vals = [r[key] for r in results if r.get(key) is not None]
+        if vals:
+            mean[key] = np.mean(np.asarray(vals, float), axis=0).tolist()
+            std[key] = np.std(np.asarray(vals, float), axis=0).tolist()
+    mean["scenes"] = {}
+    for name in results[0]["scenes"]:
+        per = [r["scenes"][name] for r in results]
+        mean["scenes"][name] = {key: np.mean(np.asarray([p[key] for p in per], float), axis=0).tolist()
+                                for key in MULTIVIEW_ATTRS + ("accuracy",) if all(p.get(key) is not None for p in per)}
+    out = _plain({
+        "study": frozen["study"], "trial": frozen.get("trial"), "task": "multiview",
+        "feature": frozen.get("feature"), "num_features": frozen.get("num_features"), "ransac": frozen.get("ransac"),
+        "params": frozen.get("params"), "fixed": frozen.get("fixed"), "multiview": mvd,
+        "data": {"root": str(data_root), "scenes": names, "fingerprint": fp},
+        "runs": results, "mean": mean, "std": {k: std[k] for k in ("mAA5", "mAA10", "SR") if k in std},
+        "validation": frozen.get("validation"),
+        "code_version": code_version(),
+        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "identity": ident,
+    })
+    if out_path is not None:
+        _atomic_write(out_path, json.dumps(out, indent=2))
+    return out
+
+
 def test_summary(result: dict) -> dict:
     """The part of a test result stored in the study (what `tune results` reads)."""
     m = result.get("mean", {})
@@ -251,13 +337,14 @@ def test_summary(result: dict) -> dict:
 
 
 def run_test_for_study(study, frozen: dict, studies_dir, *, data_root=None, scenes=None, cache=None, runs: int = 3,
-                       max_pairs=None, test_budget=None, progress: bool = False, reuse: bool = True) -> dict:
+                       max_pairs=None, test_budget=None, progress: bool = False, reuse: bool = True,
+                       workers: int | None = None) -> dict:
     """:func:`run_test` and store its summary in the study's user attribute ``test``."""
     root = data_root or frozen.get("data", {}).get("root")
     if root is None or not Path(root).is_dir():
         from tuner.options import resolve_data
         root = resolve_data(None)
     result = run_test(frozen, root, studies_dir, scenes=scenes, cache=cache, runs=runs, max_pairs=max_pairs,
-                      test_budget=test_budget, progress=progress, reuse=reuse)
+                      test_budget=test_budget, progress=progress, reuse=reuse, workers=workers)
     study.set_user_attr("test", test_summary(result))
     return result

@@ -1,5 +1,5 @@
 """The objective: trial parameters -> PipelineConfig -> stereo evaluation of the validation scenes ->
-mAA(10 deg), to maximise.
+mAA(10 deg), to maximise (:class:`MultiviewObjective`: the same for the multiview task).
 
 The validation pairs are evaluated in fixed chunks (``chunk_pairs`` pairs, the same order in every
 trial); after each chunk the running mAA(10) is reported as an intermediate value so the pruner can
@@ -9,7 +9,8 @@ stop a hopeless trial early. Features and k-NN tables come from the cache (warme
 Each trial records, as user attributes: ``mAA5``, ``mAA10``, ``NF`` (features per image), ``NM``
 (tentative matches per pair), ``NI`` (inliers per pair), ``ransac_seconds_median`` /
 ``ransac_seconds_p90`` (estimator seconds per pair), ``match_seconds`` (matching seconds per pair),
-``scenes`` (per-scene mAA5, mAA10, pairs, failed), ``failed`` and ``failed_pairs`` (pairs with
+``scenes`` (per-scene mAA5, mAA10, pairs, failed, accuracy, covisibility), ``accuracy`` (at 1..10 deg) and
+``covisibility`` (the breakdown by co-visibility bin; the plots' source), ``failed`` and ``failed_pairs`` (pairs with
 error infinity), ``feasible``, and ``timing`` (pairs, budget B, ``ransac_seconds_total`` and
 ``evaluate_seconds`` of the trial, for the overhead benchmark). Feasibility is an Optuna constraint
 (``trial.set_constraint("budget", median - B)``, Optuna 5's replacement of TPE's deprecated
@@ -218,8 +219,10 @@ class Objective:
             "mAA5": s["mAA5"], "mAA10": s["mAA10"], "NF": s["NF"], "NM": s["NM"], "NI": s["NI"],
             "ransac_seconds_median": med, "ransac_seconds_p90": float(s["ransac_seconds_p90"]),
             "match_seconds": s["match_seconds"],
-            "scenes": {k: {"mAA5": v["mAA5"], "mAA10": v["mAA10"], "pairs": v["pairs"], "failed": v["failed"]}
+            "scenes": {k: {"mAA5": v["mAA5"], "mAA10": v["mAA10"], "pairs": v["pairs"], "failed": v["failed"],
+                           "accuracy": v.get("accuracy"), "covisibility": v.get("covisibility")}
                        for k, v in s["scenes"].items()},
+            "accuracy": s.get("accuracy"), "covisibility": s.get("covisibility"),
             "failed": s["failed"], "failed_pairs": failed[:MAX_FAILED_LISTED],
             "feasible": bool(med <= self.budget),
         }
@@ -229,3 +232,61 @@ class Objective:
         for k, v in attrs.items():
             trial.set_user_attr(k, v)
         return float(s["mAA10"])
+
+
+MULTIVIEW_ATTRS = ("SR", "RC", "NL", "TL", "mAA5", "mAA10", "ATE", "NM", "bags", "failed")
+
+
+def multiview_attrs(summary: dict, scenes: dict) -> dict:
+    """The user attributes of a multiview trial: the overall figures, accuracy at 1..10 deg, the per-bag-size
+    figures and, per scene, the same (``scenes``)."""
+    def part(s):
+        d = {k: s.get(k) for k in MULTIVIEW_ATTRS}
+        d["accuracy"] = s.get("accuracy")
+        d["by_size"] = {size: {k: v.get(k) for k in MULTIVIEW_ATTRS} for size, v in (s.get("by_size") or {}).items()}
+        return d
+    out = part(summary)
+    out["scenes"] = {name: part(s) for name, s in scenes.items()}
+    return out
+
+
+class MultiviewObjective:
+    """Callable for ``study.optimize`` on the multiview task: one trial = the multiview evaluation
+    (bags reconstructed by COLMAP from the trial's tentative matches) of the validation scenes ->
+    mAA(10). After each scene the running mAA(10) is reported for the pruner. Only the matching is
+    searched (COLMAP runs its own RANSAC), so there is no estimator budget: every trial is feasible.
+
+    workers: bag processes (None: the task's default, all available CPUs; trials run one at a time
+    per tuner process)."""
+
+    def __init__(self, base: PipelineConfig, space, scenes: list, cache, mv, workers: int | None = None):
+        self.base = base
+        self.space = space
+        self.scenes = list(scenes)
+        self.cache = cache
+        self.mv = mv
+        self.workers = workers
+        self.trials_run: list[int] = []
+
+    def __call__(self, trial) -> float:
+        import optuna
+        from pipeline.tasks.multiview import evaluate_multiview
+        t0 = time.perf_counter()
+        params = self.space.suggest(trial)
+        conf = config_for(self.base, params, self.space.fixed)
+        self.trials_run.append(trial.number)
+
+        def on_scene(idx, name, summary):
+            trial.report(float(summary["mAA10"]), idx)
+            if idx + 1 < len(self.scenes) and trial.should_prune():
+                trial.set_user_attr("pruned_at_scene", name)
+                raise optuna.TrialPruned()
+
+        res = evaluate_multiview(self.scenes, conf, self.mv, self.cache, workers=self.workers, on_scene=on_scene)
+        attrs = multiview_attrs(res.summary, res.scenes)
+        attrs["feasible"] = True
+        attrs["timing"] = {"bags": int(res.summary.get("bags", 0)), "evaluate_seconds": time.perf_counter() - t0,
+                           **{f"{k}_seconds": float(v) for k, v in res.seconds.items()}}
+        for k, v in attrs.items():
+            trial.set_user_attr(k, v)
+        return float(res.summary["mAA10"])

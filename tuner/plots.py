@@ -6,7 +6,10 @@
 Sections: optimisation history (infeasible trials marked), parameter importances, the (eta, r)
 contour of mAA(10), mAA(10) against the median estimator seconds per pair (with the budget B), and the
 mAA(10)-against-eta curves of every study of the same task in the storage (best mAA(10) per eta bin:
-the paper's inlier-threshold figure).
+the paper's inlier-threshold figure), and the breakdowns of the frozen (best feasible) trial by scene:
+accuracy against the angular threshold (1..10 deg; stereo pairs, or multiview pairs of the bags) and
+mAA(10) by co-visibility bin (stereo) — from the trial's user attributes (validation scenes) and, once
+`tune test` has run, from ``<studies dir>/<study>/test.json`` (test scenes, mean over the runs).
 """
 from __future__ import annotations
 
@@ -81,8 +84,81 @@ def fig_eta_curves(storage, study):
     return fig if n else None
 
 
-def write_report(storage, study_name: str, out: Path | str) -> Path:
-    """Write the HTML report of one study; returns its path."""
+def breakdown_sources(study, best, studies_dir=None) -> list[tuple[str, dict]]:
+    """[(label, {scene: summary with "accuracy" and maybe "covisibility"})]: the best trial's validation
+    scenes, then the test scenes of test.json (per scene, averaged over the runs) when it is there."""
+    import json
+
+    from tuner.freeze import study_dir
+    out = []
+    if best is not None and best.user_attrs.get("scenes"):
+        out.append((f"validation (trial #{best.number})", best.user_attrs["scenes"]))
+    if studies_dir is not None:
+        p = study_dir(studies_dir, study.study_name) / "test.json"
+        try:
+            t = json.loads(p.read_text()) if p.is_file() else None
+        except (OSError, ValueError):
+            t = None
+        if t and t.get("runs"):
+            scenes = {}
+            for name in t["runs"][0].get("scenes") or {}:
+                per = [r["scenes"][name] for r in t["runs"] if name in (r.get("scenes") or {})]
+                d = {}
+                accs = [p_["accuracy"] for p_ in per if p_.get("accuracy")]
+                if accs:
+                    d["accuracy"] = np.mean(np.asarray(accs, float), axis=0).tolist()
+                covs = [p_["covisibility"] for p_ in per if p_.get("covisibility")]
+                if covs:
+                    d["covisibility"] = {b: {"mAA10": float(np.mean([c[b]["mAA10"] for c in covs if b in c])),
+                                             "pairs": covs[0][b].get("pairs")} for b in covs[0]}
+                scenes[name] = d
+            out.append((f"test (trial #{t.get('trial')}, {len(t['runs'])} runs)", scenes))
+    return out
+
+
+def fig_accuracy_threshold(sources, task: str = "stereo"):
+    """Accuracy against the angular threshold (1..10 deg), one line per scene and source."""
+    import plotly.graph_objects as go
+    fig = go.Figure()
+    for label, scenes in sources:
+        dash = "solid" if label.startswith("validation") else "dash"
+        for name, sm in scenes.items():
+            acc = sm.get("accuracy")
+            if not acc:
+                continue
+            fig.add_trace(go.Scatter(x=list(range(1, len(acc) + 1)), y=acc, mode="lines+markers",
+                                     name=f"{name} - {label}", line=dict(dash=dash)))
+    if not fig.data:
+        return None
+    fig.update_layout(title=f"{task} pose accuracy vs angular threshold, by scene (frozen trial)",
+                      xaxis_title="threshold (deg)", yaxis_title="accuracy (fraction of pairs within)",
+                      xaxis=dict(dtick=1), yaxis=dict(range=[0, 1.02]))
+    return fig
+
+
+def fig_covisibility(sources):
+    """mAA(10) by co-visibility bin (pairs with co-visibility >= edge), one bar group per scene and source."""
+    import plotly.graph_objects as go
+    fig = go.Figure()
+    for label, scenes in sources:
+        for name, sm in scenes.items():
+            cov = sm.get("covisibility")
+            if not cov:
+                continue
+            bins = [b for b in cov if b != "unknown"]
+            fig.add_trace(go.Bar(x=bins, y=[cov[b]["mAA10"] for b in bins], name=f"{name} - {label}",
+                                 text=[f"{cov[b].get('pairs')} pairs" for b in bins],
+                                 hovertemplate="co-visibility %{x}<br>mAA10 %{y:.4f}<br>%{text}<extra></extra>"))
+    if not fig.data:
+        return None
+    fig.update_layout(title="stereo mAA(10) by co-visibility bin, by scene (frozen trial)", barmode="group",
+                      xaxis_title="co-visibility bin (pairs with co-visibility >= edge)", yaxis_title="mAA(10)")
+    return fig
+
+
+def write_report(storage, study_name: str, out: Path | str, studies_dir: Path | str | None = None) -> Path:
+    """Write the HTML report of one study; returns its path. ``studies_dir``: where test.json is read
+    for the test-scene breakdowns."""
     import optuna.visualization as ov
     import plotly.io as pio
     from tuner.study import best_feasible, load_study, trial_counts
@@ -110,10 +186,22 @@ def write_report(storage, study_name: str, out: Path | str) -> Path:
             lambda: ov.plot_contour(study, params=["threshold", "ratio"], target_name="mAA(10)"))
     else:
         sections.append(("(eta, r) contour of mAA(10)", None, "eta and r are not both searched in this study"))
-    add("mAA(10) vs estimator seconds per pair", lambda: fig_cost(study))
+    if study.user_attrs.get("task", "stereo") == "multiview":
+        sections.append(("mAA(10) vs estimator seconds per pair", None,
+                         "multiview study: COLMAP runs its own RANSAC, no estimator budget"))
+    else:
+        add("mAA(10) vs estimator seconds per pair", lambda: fig_cost(study))
     add("mAA(10) vs eta across studies", lambda: fig_eta_curves(storage, study),
         "needs studies with at least 2 feasible trials that search eta")
     best = best_feasible(study)
+    task = study.user_attrs.get("task", "stereo")
+    sources = breakdown_sources(study, best, studies_dir)
+    add("Accuracy vs angular threshold (1..10 deg), by scene", lambda: fig_accuracy_threshold(sources, task),
+        "no per-scene accuracy stored for the frozen trial (trials of older imtune versions; rerun `tune test`)")
+    if task == "stereo":
+        add("mAA(10) by co-visibility bin, by scene", lambda: fig_covisibility(sources),
+            "no co-visibility breakdown for the frozen trial (scenes without co-visibility, or trials of older "
+            "imtune versions; rerun `tune test`)")
     counts = trial_counts(study)
     attrs = study.user_attrs
     head = [f"<h1>imtune study {html.escape(study_name)}</h1>",

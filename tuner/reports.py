@@ -8,7 +8,9 @@
 Optimal settings (``tune table``): for each feature and feature count, the frozen inlier threshold
 eta of each estimator's study and the ratio test r. Each estimator study tunes its own r; the ``r``
 column is that of the study with the best validation mAA(10) (named in ``r from``), the paper's
-single r per feature; ``--format json`` gives every study's values.
+single r per feature; ``--format json`` gives every study's values. ``r_multiview`` is the frozen r of the
+multiview studies (``tune --task multiview``) of the same feature and count (the best by validation
+multiview mAA(10) when there are several).
 
 Test results (``tune results``): NF (features per image), then per estimator NI (inliers per pair)
 and mAA(10) on the test scenes (mean of the test runs), and the rank of each feature by its best
@@ -91,11 +93,16 @@ def _param(s: StudyInfo, name: str):
     return (s.attrs.get("pipeline") or {}).get(sec, {}).get(name)
 
 
-def settings_rows(studies: list[StudyInfo], fmt: str = "markdown") -> tuple[list[dict], list[str]]:
-    """(rows, columns) of the optimal-settings table."""
+def settings_rows(studies: list[StudyInfo], fmt: str = "markdown",
+                  multiview: list[StudyInfo] | None = None) -> tuple[list[dict], list[str]]:
+    """(rows, columns) of the optimal-settings table; ``multiview`` studies fill ``r_multiview``."""
     ests = _estimators(studies)
+    mv_groups = _groups(list(multiview or []))
+    keys = sorted(set(_groups(studies)) | set(mv_groups), key=lambda k: (k[1], k[0]))
+    groups = _groups(studies)
     rows = []
-    for (feat, nf), group in _groups(studies).items():
+    for feat, nf in keys:
+        group = groups.get((feat, nf), [])
         row = {"feature": feat, "features": nf}
         by_est = {s.ransac: s for s in group}
         for e in ests:
@@ -111,6 +118,11 @@ def settings_rows(studies: list[StudyInfo], fmt: str = "markdown") -> tuple[list
             row["mAA10 val"] = round(float(top.best.value), 4)
         else:
             row.update({"r": None, "r from": None, "mAA10 val": None})
+        mv_scored = [s for s in mv_groups.get((feat, nf), []) if s.best is not None]
+        mv_top = max(mv_scored, key=lambda s: s.best.value) if mv_scored else None
+        r = _param(mv_top, "ratio") if mv_top else None
+        row["r_multiview"] = round(float(r), 3) if isinstance(r, (int, float)) else r
+        row["mAA10 mv val"] = round(float(mv_top.best.value), 4) if mv_top else None
         if fmt == "json":
             row["studies"] = {s.ransac: {"study": s.name, "trial": s.best.number if s.best else None,
                                          "value": s.best.value if s.best else None,
@@ -119,10 +131,17 @@ def settings_rows(studies: list[StudyInfo], fmt: str = "markdown") -> tuple[list
                                          "budget": (s.attrs.get("budget") or {}).get("seconds_per_pair"),
                                          "complete_trials": s.n_complete}
                               for s in group}
+            row["multiview_studies"] = {s.ransac: {"study": s.name, "trial": s.best.number if s.best else None,
+                                                   "value": s.best.value if s.best else None,
+                                                   "params": dict(s.best.params) if s.best else None,
+                                                   "complete_trials": s.n_complete}
+                                        for s in mv_groups.get((feat, nf), [])}
         rows.append(row)
     cols = ["feature", "features"] + [f"eta {e}" for e in ests] + ["r", "r from", "mAA10 val"]
+    if multiview:
+        cols += ["r_multiview", "mAA10 mv val"]
     if fmt == "json":
-        cols.append("studies")
+        cols += ["studies"] + (["multiview_studies"] if multiview else [])
     return rows, cols
 
 

@@ -3,6 +3,11 @@
     from tuner.study import TuneSettings, tune
     out = tune(TuneSettings(base=build_config(args, ratio=1, threshold=1, max_iters=1), data_root=...))
 
+Tasks: ``stereo`` (eta, r, Gamma against a budget) and ``multiview`` (r, and the strategy if the space
+lists it: ``search_spaces/multiview.yaml`` by default; COLMAP runs its own RANSAC so eta and Gamma are
+never searched; objective = multiview mAA(10) over the validation scenes, see
+:class:`tuner.objective.MultiviewObjective`).
+
 Study names default to ``<feature>-<num_features>-<ransac>-<task>`` (feature variants such as
 upright or CLAHE are part of ``<feature>``). A study's user attributes record what it was created
 with — search space, fixed pipeline settings, budget (B, Gamma_max and the calibration curve), data
@@ -30,7 +35,9 @@ from pipeline.errors import ImtuneError
 
 SAMPLERS = ("tpe", "random", "cmaes", "grid")
 PRUNERS = ("median", "none")
-TASKS = ("stereo",)
+TASKS = ("stereo", "multiview")
+MULTIVIEW_SPACE = "multiview.yaml"  # search_spaces/ file of the multiview task (ratio only)
+NOT_MULTIVIEW = ("threshold", "max_iters")  # COLMAP runs its own RANSAC: never searched for multiview
 SCHEMA = 1
 DEFAULT_TRIALS = 50
 SEARCHED = {"ratio": ("matching", "ratio"), "strategy": ("matching", "strategy"),
@@ -147,6 +154,8 @@ class TuneSettings:
     test: bool = True
     test_runs: int = 3
     retest: bool = False
+    multiview: object = None  # MultiviewConfig of task "multiview" (None: the protocol's bags)
+    workers: int | None = None  # multiview: bag processes per trial (None: the task's default, all CPUs)
     log: object = None  # callable(str) for status lines; None = stderr unless progress is off
     verbose: bool = False  # Optuna's own INFO log lines
 
@@ -238,7 +247,8 @@ def check_compatible(name: str, stored: dict, mine: dict) -> None:
         return json.loads(json.dumps(x, default=str))
     checks = [("search_space", "a different search space"),
               ("pipeline", "a different pipeline configuration"),
-              ("data_fingerprint", "different validation data")]
+              ("data_fingerprint", "different validation data"),
+              ("multiview", "different multiview settings")]
     for key, what in checks:
         if norm(stored.get(key)) != norm(mine.get(key)):
             diff = _first_difference(norm(stored.get(key)), norm(mine.get(key)))
@@ -290,8 +300,16 @@ def setup_study(s: TuneSettings) -> StudyContext:
         raise ImtuneError(f"--n-trials must be >= 1, got {s.n_trials}")
     get_estimator(s.base.geometry.ransac)  # unknown / unavailable estimator: one line, now
     s.studies_dir = Path(s.studies_dir) if s.studies_dir else default_studies_dir()
-    space = load_space(s.space_path, feature=s.base.feature.name, estimator=s.base.geometry.ransac,
+    space_path = s.space_path
+    if s.task == "multiview" and not space_path:
+        from tuner.space import SPACES_DIR
+        space_path = SPACES_DIR / MULTIVIEW_SPACE
+    space = load_space(space_path, feature=s.base.feature.name, estimator=s.base.geometry.ransac,
                        fixes=s.fixes)
+    if s.task == "multiview":  # COLMAP verifies the matches with its own RANSAC: eta and Gamma do not apply
+        for k in NOT_MULTIVIEW:
+            space.params.pop(k, None)
+            space.fixed.pop(k, None)
     if not space.params:
         raise ImtuneError("search space: every parameter is fixed; nothing to tune")
     name = s.study_name or default_study_name(s.base, s.task)
@@ -312,6 +330,10 @@ def setup_study(s: TuneSettings) -> StudyContext:
         "code_version": code_version(),
         "seed": int(s.seed or 0),
     }
+    if s.task == "multiview":
+        from pipeline.tasks.multiview import MultiviewConfig
+        mv = s.multiview or MultiviewConfig()
+        mine["multiview"] = dataclasses.asdict(mv)
     study = None
     try:
         study = optuna.load_study(study_name=name, storage=storage)
@@ -357,7 +379,11 @@ def setup_study(s: TuneSettings) -> StudyContext:
     resolved.calibration = space.calibration
     # every trial of a study uses the estimator seed the study was created with
     base = dataclasses.replace(base, geometry=dataclasses.replace(base.geometry, seed=int(stored.get("seed", 0))))
-    objective = Objective(base, resolved, vs, cache, budget=float(stored["budget"]["seconds_per_pair"]))
+    if s.task == "multiview":
+        from tuner.objective import MultiviewObjective
+        objective = MultiviewObjective(base, resolved, [sc for sc, _ in vs.scenes], cache, mv, workers=s.workers)
+    else:
+        objective = Objective(base, resolved, vs, cache, budget=float(stored["budget"]["seconds_per_pair"]))
     return StudyContext(study=study, storage=storage, name=name, space=resolved, vs=vs, objective=objective,
                         attrs=stored, cache=cache, created=created)
 
@@ -478,5 +504,6 @@ def tune(s: TuneSettings) -> dict:
         return out
     out["test"] = run_test_for_study(ctx.study, frozen, s.studies_dir, data_root=s.data_root,
                                      scenes=s.test_scenes, cache=ctx.cache, runs=s.test_runs,
-                                     max_pairs=s.max_pairs, progress=s.progress, reuse=not s.retest)
+                                     max_pairs=s.max_pairs, progress=s.progress, reuse=not s.retest,
+                                     workers=s.workers)
     return out

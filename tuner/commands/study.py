@@ -97,6 +97,7 @@ def register(sub) -> None:
     t.add_argument("--test-runs", type=_positive_int, default=3)
     t.add_argument("--retest", action="store_true", help="rerun the test even if test.json matches the frozen settings")
     t.add_argument("--verbose", action="store_true", help="Optuna's per-trial log lines")
+    _multiview_opts(ap)
     ap.set_defaults(func=run)
 
     c = sub.add_parser("calibrate", help="measure estimator seconds per pair vs max-iters; store Gamma_max(B)")
@@ -122,6 +123,8 @@ def register(sub) -> None:
     te.add_argument("--test-budget", type=_positive_float, default=None)
     te.add_argument("--cache", default=None)
     te.add_argument("--reuse", action="store_true", help="return test.json as is when it matches the frozen settings")
+    te.add_argument("--workers", type=_positive_int, default=None,
+                    help="multiview studies: bags in parallel (default: available CPUs)")
     te.add_argument("--json", action="store_true")
     te.add_argument("--quiet", action="store_true")
     te.set_defaults(func=run_test_cmd)
@@ -152,6 +155,19 @@ def register(sub) -> None:
     ls.set_defaults(func=run_studies)
 
 
+def _multiview_opts(ap) -> None:
+    """The multiview task's options of `tune run --task multiview` (see ``tuner.options.multiview_config``)."""
+    g = ap.add_argument_group("multiview (--task multiview)")
+    g.add_argument("--bags", default=None,
+                   help="bag sizes[:counts], e.g. 5,10,25 or 5:10 (default: the protocol's 5:100,10:50,25:25)")
+    g.add_argument("--bag-min-points", type=int, default=100, help="each image must see this many of the bag's 3D points")
+    g.add_argument("--bag-seed", type=int, default=0, help="seed of the bag sampling")
+    g.add_argument("--mv-intrinsics", default="colmap", choices=["colmap", "prior", "fixed"],
+                   help="colmap: COLMAP estimates them (official); prior: known K, refined; fixed: known K")
+    g.add_argument("--workers", type=_positive_int, default=None,
+                   help="bags in parallel within a trial (default: available CPUs)")
+
+
 def _studies_dir(args) -> Path:
     from tuner.storage import default_studies_dir
     return Path(args.studies_dir).expanduser().resolve() if args.studies_dir else default_studies_dir()
@@ -176,6 +192,10 @@ def settings_from_args(args):
     base = build_config(args, ratio=1.0, threshold=0.5, max_iters=1000,
                         seed=args.seed if args.seed is not None else 0)
     quiet = bool(args.quiet or args.json)
+    mv = None
+    if args.task == "multiview":
+        from tuner.options import multiview_config
+        mv = multiview_config(args, seed=args.seed if args.seed is not None else 0)
     return TuneSettings(
         base=base, data_root=resolve_data(args.data), task=args.task, study_name=args.study,
         storage=args.storage, studies_dir=_studies_dir(args), space_path=args.space,
@@ -187,7 +207,7 @@ def settings_from_args(args):
         max_pairs=args.max_pairs, chunk_pairs=args.chunk_pairs, cache_dir=args.cache,
         heartbeat=args.heartbeat if args.heartbeat and args.heartbeat > 0 else None,
         calibration_pairs=args.calibration_pairs, recalibrate=args.recalibrate, progress=not quiet,
-        test=not args.no_test, test_runs=args.test_runs, retest=args.retest)
+        test=not args.no_test, test_runs=args.test_runs, retest=args.retest, multiview=mv, workers=args.workers)
 
 
 def run(args) -> int:
@@ -229,10 +249,15 @@ def frozen_table(f: dict) -> str:
         rows.append({"parameter": k, "value": _fmt(v), "": "tuned"})
     for k, v in f.get("fixed", {}).items():
         rows.append({"parameter": k, "value": _fmt(v), "": "fixed"})
+    v = f.get("validation", {})
+    if f.get("task") == "multiview":
+        rows.append({"parameter": "validation mAA10", "value": _fmt(v.get("mAA10")),
+                     "": f"multiview: mAA5 {_fmt(v.get('mAA5'))}, SR {_fmt(v.get('SR'))}, RC {_fmt(v.get('RC'))}, "
+                         f"{_fmt(v.get('bags'))} bags"})
+        return render(rows, "markdown", ["parameter", "value", ""])
     b = f.get("budget", {})
     rows.append({"parameter": "budget", "value": f"{b.get('seconds_per_pair')} s/pair",
                  "": f"Gamma_max {b.get('gamma_max')}"})
-    v = f.get("validation", {})
     rows.append({"parameter": "validation mAA10", "value": _fmt(v.get("mAA10")),
                  "": f"mAA5 {_fmt(v.get('mAA5'))}, NI {_fmt(v.get('NI'))}, "
                      f"{_fmt(v.get('ransac_seconds_median'))} s/pair"})
@@ -240,6 +265,14 @@ def frozen_table(f: dict) -> str:
 
 
 def test_table(t: dict) -> str:
+    if t.get("task") == "multiview":
+        cols = ["scene", "SR", "RC", "NL", "TL", "mAA5", "mAA10", "ATE", "bags", "failed"]
+        m = t["mean"]
+        rows = [dict(scene=name, **{k: s.get(k) for k in cols[1:]}) for name, s in m.get("scenes", {}).items()]
+        rows.append(dict(scene="mean", **{k: m.get(k) for k in cols[1:]}))
+        head = (f"multiview test ({len(t.get('runs', []))} runs, COLMAP seeds varied, mean; "
+                f"mAA10 std {_fmt(t.get('std', {}).get('mAA10', 0.0))})")
+        return head + "\n" + render(rows, "markdown", cols)
     cols = ["scene", "NF", "NM", "NI", "mAA5", "mAA10", "failed", "ransac_seconds_median"]
     m = t["mean"]
     rows = [dict(scene=name, **{k: s.get(k) for k in cols[1:]}) for name, s in m.get("scenes", {}).items()]
@@ -311,7 +344,7 @@ def run_test_cmd(args) -> int:
     quiet = bool(args.quiet or args.json)
     root = resolve_data(args.data) if args.data else None
     kw = dict(scenes=_scenes(args.scenes), cache=H5Cache(args.cache), runs=args.runs, max_pairs=args.max_pairs,
-              test_budget=args.test_budget, progress=not quiet, reuse=args.reuse)
+              test_budget=args.test_budget, progress=not quiet, reuse=args.reuse, workers=args.workers)
     if study is not None:
         frozen, path = freeze(study, sdir)
         result = run_test_for_study(study, frozen, sdir, data_root=root, **kw)
@@ -344,11 +377,18 @@ def _collect(args):
 
 
 def run_table(args) -> int:
+    """Stereo studies give eta and r; multiview studies the r_multiview column (`--task multiview`:
+    that column alone)."""
     from tuner.reports import render_table, settings_rows
+    task = args.task
+    args.task = None
     studies = _collect(args)
-    if not studies:
-        raise ImtuneError(f"no imtune {args.task} studies in the storage")
-    rows, cols = settings_rows(studies, args.format)
+    args.task = task
+    stereo = [s for s in studies if s.task == "stereo"] if task != "multiview" else []
+    mv = [s for s in studies if s.task == "multiview"]
+    if not stereo and not mv:
+        raise ImtuneError(f"no imtune {task} studies in the storage")
+    rows, cols = settings_rows(stereo, args.format, multiview=mv)
     print(render_table(rows, cols, args.format))
     return 0
 
@@ -372,7 +412,7 @@ def run_plot(args) -> int:
     sdir = _studies_dir(args)
     storage = open_storage(args.storage, heartbeat=None, studies_dir=sdir)
     out = Path(args.out) if args.out else study_dir(sdir, args.study) / "report.html"
-    path = write_report(storage, args.study, out)
+    path = write_report(storage, args.study, out, studies_dir=sdir)
     print(str(path))
     return 0
 

@@ -1,0 +1,98 @@
+"""`tune --task multiview` on real data: a tiny multiview study (6 images of Strecha fountain-P11 with
+their built ground truth, 1024 SIFT, 3 bags of 5, 2 trials) through the CLI, real pycolmap; the study's
+attributes, frozen.yaml, `tune test`, `tune table` (r_multiview) and `tune plot`. Skips when
+../shared/data/strecha is absent."""
+import json
+import os
+import shutil
+
+import pytest
+import yaml
+
+from tests.conftest import DATA
+
+IMAGES = ["0002.jpg", "0003.jpg", "0004.jpg", "0005.jpg", "0006.jpg", "0007.jpg"]
+STUDY = "sift-1024-degensac-multiview"
+
+
+@pytest.fixture(scope="module")
+def mv_study(tmp_path_factory):
+    src = DATA / "strecha" / "fountain-P11"
+    if not src.exists():
+        pytest.skip(f"real data not found at {src} (expected ../shared beside the project)")
+    root = tmp_path_factory.mktemp("data")
+    dst = root / "fountain-P11"
+    (dst / "images").mkdir(parents=True)
+    (dst / "gt_dense_cameras").mkdir()
+    for n in IMAGES:
+        shutil.copy(src / "images" / n, dst / "images" / n)
+        shutil.copy(src / "gt_dense_cameras" / f"{n}.camera", dst / "gt_dense_cameras" / f"{n}.camera")
+    cache = tmp_path_factory.mktemp("cache")
+    studies = tmp_path_factory.mktemp("studies")
+    saved = {k: os.environ.pop(k, None) for k in ("IMTUNE_CACHE", "IMTUNE_GT", "IMTUNE_STUDIES")}
+    os.environ["IMTUNE_CACHE"] = str(cache)  # ground truth goes to $IMTUNE_CACHE/gt
+    try:
+        from tuner.cli import main
+        assert main(["data", "build-gt", "--data", str(root), "--num-features", "1024", "--max-image-size", "1024",
+                     "--quiet"]) == 0
+        assert main(["--data", str(root), "--feature", "sift", "--num-features", "1024", "--ransac", "degensac",
+                     "--task", "multiview", "--bags", "5:3", "--workers", "1", "--n-trials", "2",
+                     "--scenes", "fountain-P11", "--test-scenes", "fountain-P11", "--no-test",
+                     "--studies-dir", str(studies), "--quiet"]) == 0
+        yield root, studies
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def run_cli(args, capsys):
+    from tuner.cli import main
+    capsys.readouterr()
+    rc = main(args)
+    return rc, capsys.readouterr().out
+
+
+def test_multiview_study_trials_and_frozen(mv_study):
+    import optuna
+    from optuna.trial import TrialState
+    root, studies = mv_study
+    st = optuna.load_study(study_name=STUDY, storage=f"sqlite:///{studies / 'optuna.db'}")
+    assert st.user_attrs["task"] == "multiview"
+    assert st.user_attrs["multiview"]["bags"] == [[5, 3]]
+    done = st.get_trials(states=(TrialState.COMPLETE,))
+    assert len(done) == 2
+    for t in done:
+        assert set(t.params) == {"ratio"}  # no eta / Gamma: COLMAP runs its own RANSAC
+        ua = t.user_attrs
+        for k in ("mAA5", "mAA10", "SR", "RC", "NL", "TL", "bags", "accuracy", "by_size", "scenes"):
+            assert k in ua, k
+        assert ua["bags"] == 3 and list(ua["by_size"]) == ["5"]
+        assert t.value == pytest.approx(ua["mAA10"]) and 0.0 <= t.value <= 1.0
+        assert len(ua["scenes"]["fountain-P11"]["accuracy"]) == 10
+    frozen = yaml.safe_load((studies / STUDY / "frozen.yaml").read_text())
+    assert frozen["task"] == "multiview" and 0.6 <= frozen["params"]["ratio"] <= 1.0
+    assert "threshold" not in frozen["fixed"] and "max_iters" not in frozen["fixed"]
+    assert frozen["multiview"]["bags"] == [[5, 3]]
+
+
+def test_multiview_test_table_and_plot(mv_study, capsys):
+    root, studies = mv_study
+    # the test bags are the validation bags here: every bag record comes from the cache
+    rc, out = run_cli(["test", "--study", STUDY, "--studies-dir", str(studies), "--data", str(root),
+                       "--scenes", "fountain-P11", "--runs", "1", "--workers", "1", "--json", "--quiet"], capsys)
+    assert rc == 0
+    res = json.loads(out)
+    assert res["task"] == "multiview" and res["mean"]["bags"] == 3 and 0.0 <= res["mean"]["mAA10"] <= 1.0
+    assert (studies / STUDY / "test.json").is_file()
+    rc, out = run_cli(["table", "--studies-dir", str(studies), "--format", "json"], capsys)
+    assert rc == 0
+    rows = json.loads(out)
+    sift = [r for r in rows if r["feature"] == "sift" and r["features"] == 1024]
+    assert len(sift) == 1 and 0.6 <= sift[0]["r_multiview"] <= 1.0
+    rc, out = run_cli(["plot", "--study", STUDY, "--studies-dir", str(studies)], capsys)
+    assert rc == 0
+    html = (studies / STUDY / "report.html").read_text()
+    assert "Accuracy vs angular threshold" in html and "fountain-P11 - test" in html
