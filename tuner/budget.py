@@ -17,9 +17,7 @@ import datetime as _dt
 import fcntl
 import json
 import math
-import os
 import socket
-import tempfile
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -136,19 +134,8 @@ def _read_store(path: Path) -> dict:
 
 
 def _write_store(path: Path, data: dict) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=".budgets.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(data, fh, indent=1, sort_keys=True)
-            fh.flush()
-            os.fsync(fh.fileno())
-        _umask = os.umask(0)
-        os.umask(_umask)
-        os.chmod(tmp, 0o666 & ~_umask)  # mkstemp creates 0600; results are for everyone to read
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    from pipeline.fileio import atomic_write  # one atomic writer (temp name, fsync, rename) for all result files
+    atomic_write(path, json.dumps(data, indent=1, sort_keys=True))
 
 
 def stored_calibration(studies_dir: Path, key: str) -> Calibration | None:

@@ -21,8 +21,6 @@ import dataclasses
 import datetime as _dt
 import json
 import math
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -35,26 +33,12 @@ SUMMARY_KEYS = ("mAA5", "mAA10", "NF", "NM", "NI", "match_seconds", "ransac_seco
                 "ransac_seconds_p90", "failed", "pairs")
 
 
+from pipeline.fileio import atomic_write  # noqa: E402  (re-exported: budget.py and the reports use it)
+
+
 def study_dir(studies_dir: Path | str, name: str) -> Path:
     safe = "".join(c if (c.isalnum() or c in "-_.+") else "_" for c in name)
     return Path(studies_dir) / safe
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        _umask = os.umask(0)
-        os.umask(_umask)
-        os.chmod(tmp, 0o666 & ~_umask)  # mkstemp creates 0600; results are for everyone to read
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
 
 
 def _plain(o):
@@ -128,7 +112,7 @@ def freeze(study, studies_dir: Path | str) -> tuple[dict, Path]:
     path = study_dir(studies_dir, study.study_name) / "frozen.yaml"
     header = (f"# imtune frozen settings of study {study.study_name}: best feasible trial #{frozen['trial']}\n"
               "# params: searched values; fixed: values not searched; config: the complete pipeline\n")
-    _atomic_write(path, header + yaml.safe_dump(frozen, sort_keys=False, default_flow_style=False))
+    atomic_write(path, header + yaml.safe_dump(frozen, sort_keys=False, default_flow_style=False))
     return frozen, path
 
 
@@ -247,7 +231,7 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
         "identity": ident,
     })
     if out_path is not None:
-        _atomic_write(out_path, json.dumps(out, indent=2))
+        atomic_write(out_path, json.dumps(out, indent=2))
     return out
 
 
@@ -320,7 +304,7 @@ def run_test_multiview(frozen: dict, data_root: Path | str, studies_dir: Path | 
         "identity": ident,
     })
     if out_path is not None:
-        _atomic_write(out_path, json.dumps(out, indent=2))
+        atomic_write(out_path, json.dumps(out, indent=2))
     return out
 
 

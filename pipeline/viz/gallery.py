@@ -16,11 +16,10 @@ from __future__ import annotations
 import datetime as _dt
 import html
 import json
-import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from pipeline.errors import ImtuneError
+from pipeline.fileio import atomic_write
 
 MANIFEST = "gallery.json"
 SECTIONS = {
@@ -50,19 +49,6 @@ class GalleryEntry:
 
 def _now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    except OSError as e:
-        raise ImtuneError(f"cannot write {path}: {e.strerror or e}") from None
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 def read_manifest(html_path: str | Path) -> list[GalleryEntry]:
@@ -101,9 +87,9 @@ def write_gallery(html_path: str | Path, entries: list[GalleryEntry], title: str
         if not e.created:
             e.created = now
     allents = kept + list(entries)
-    _atomic_write(root / MANIFEST, json.dumps({"title": title, "updated": now,
+    atomic_write(root / MANIFEST, json.dumps({"title": title, "updated": now,
                                                "entries": [asdict(e) for e in allents]}, indent=1, default=str))
-    _atomic_write(html_path, render_html(allents, title, links or {}, intro))
+    atomic_write(html_path, render_html(allents, title, links or {}, intro))
     return html_path
 
 
@@ -171,5 +157,5 @@ def link_gallery(report_path: str | Path, href: str = "gallery.html",
         text = text[:end + 1] + link + text[end + 1:]
     else:
         text = link + text
-    _atomic_write(p, text)
+    atomic_write(p, text)
     return True
