@@ -96,7 +96,9 @@ def _threshold(name: str) -> float:
 
 
 # FM_RANSAC has no local optimisation: its F is noticeably less accurate in translation direction.
-POSE_TOL_DEG = {"cv-ransac": 5.0}
+# magsac / magsac++ / gcransac expose no seed: their translation error varies run to run around 1-2 deg
+# on this synthetic scene (a transposed or wrong F gives tens of degrees, so 3 deg still discriminates)
+POSE_TOL_DEG = {"cv-ransac": 5.0, "magsac": 3.0, "magsac++": 3.0, "gcransac": 3.0}
 
 
 def _check_result(res: EstimateResult, m: int):
