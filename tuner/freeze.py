@@ -41,6 +41,17 @@ def study_dir(studies_dir: Path | str, name: str) -> Path:
     return Path(studies_dir) / safe
 
 
+def _previous_result(out_path: Path | None, ident: dict) -> dict | None:
+    """The test.json already written for exactly this identity (trial, config, data, runs), if any."""
+    if out_path is None or not out_path.is_file():
+        return None
+    try:
+        old = json.loads(out_path.read_text())
+    except (OSError, ValueError):
+        return None  # unreadable: rerun the test rather than trust it
+    return old if old.get("identity") == _plain(ident) else None
+
+
 def _plain(o):
     """JSON/YAML-safe: tuples -> lists, non-finite floats -> strings, numpy scalars -> Python."""
     if isinstance(o, dict):
@@ -192,13 +203,9 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
     out_path = study_dir(studies_dir, frozen["study"]) / "test.json" if studies_dir is not None else None
     ident = {"trial": frozen.get("trial"), "config": frozen["config"], "fingerprint": vs.fingerprint,
              "runs": int(runs), "test_budget": tb}
-    if reuse and out_path is not None and out_path.is_file():
-        try:
-            old = json.loads(out_path.read_text())
-            if old.get("identity") == _plain(ident):
-                return old
-        except (OSError, ValueError):
-            pass
+    old = _previous_result(out_path, ident) if reuse else None
+    if old is not None:
+        return old
     cache = cache if cache is not None else H5Cache()
     vs.prepare(conf, cache, progress=progress)
     seed0 = int(conf.geometry.seed)
@@ -266,13 +273,9 @@ def run_test_multiview(frozen: dict, data_root: Path | str, studies_dir: Path | 
     out_path = study_dir(studies_dir, frozen["study"]) / "test.json" if studies_dir is not None else None
     ident = {"trial": frozen.get("trial"), "config": frozen["config"], "multiview": mvd, "fingerprint": fp,
              "runs": int(runs)}
-    if reuse and out_path is not None and out_path.is_file():
-        try:
-            old = json.loads(out_path.read_text())
-            if old.get("identity") == _plain(ident):
-                return old
-        except (OSError, ValueError):
-            pass
+    old = _previous_result(out_path, ident) if reuse else None
+    if old is not None:
+        return old
     cache = cache if cache is not None else H5Cache()
     results = []
     for k in range(int(runs)):
