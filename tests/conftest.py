@@ -4,6 +4,9 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import shutil
+
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -39,3 +42,27 @@ def cache_dir(tmp_path, monkeypatch) -> Path:
     d = tmp_path / "cache"
     monkeypatch.setenv("IMTUNE_CACHE", str(d))
     return d
+
+
+def copy_strecha_subset(dst_root: Path, images: list[str], scene: str = "fountain-P11") -> Path:
+    """Copy some images (and their camera files) of a real Strecha scene into ``dst_root/scene``;
+    skips the test when ../shared/data is absent. Returns ``dst_root``."""
+    src = DATA / "strecha" / scene
+    if not src.exists():
+        pytest.skip(f"real data not found at {src} (expected ../shared beside the project)")
+    dst = dst_root / scene
+    (dst / "images").mkdir(parents=True)
+    (dst / "gt_dense_cameras").mkdir()
+    for n in images:
+        shutil.copy(src / "images" / n, dst / "images" / n)
+        shutil.copy(src / "gt_dense_cameras" / f"{n}.camera", dst / "gt_dense_cameras" / f"{n}.camera")
+    return dst_root
+
+
+def look_at(C, target=np.zeros(3)):
+    """World-to-camera (R, t) of a camera at centre C looking at ``target`` (y up)."""
+    z = (target - C) / np.linalg.norm(target - C)
+    x = np.cross([0.0, 1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])
+    return R, -R @ C

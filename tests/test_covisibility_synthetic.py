@@ -11,14 +11,9 @@ from pipeline.data.scene import ImageInfo, Scene, all_pairs
 from pipeline.errors import ImtuneError
 from pipeline.metrics.breakdown import by_covisibility, by_threshold, mean_breakdown
 from pipeline.metrics.covisibility import bbox_area, covisibility, covisibility_matrix, set_pair_covisibility
+from tests.conftest import look_at
 
 
-def look_at(C, target=np.zeros(3)):
-    z = (target - C) / np.linalg.norm(target - C)
-    x = np.cross([0.0, 1.0, 0.0], z)
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(z, x), z])
-    return R, -R @ C
 
 
 def synthetic_scene(n_images=8, n_points=3000, seed=0, arc_deg=60.0, size=(1024, 768), keep=0.8):

@@ -3,27 +3,17 @@ through the CLI as a user runs it: build-gt, then evaluate --task multiview / bo
 bag cache. Skips when ../shared/data is absent."""
 import json
 import os
-import shutil
 
 import pytest
 
-from tests.conftest import DATA
+from tests.conftest import DATA, copy_strecha_subset
 
 IMAGES = ["0002.jpg", "0003.jpg", "0004.jpg", "0005.jpg", "0006.jpg", "0007.jpg"]
 
 
 @pytest.fixture(scope="module")
 def small_strecha(tmp_path_factory):
-    src = DATA / "strecha" / "fountain-P11"
-    if not src.exists():
-        pytest.skip(f"real data not found at {src} (expected ../shared beside the project)")
-    root = tmp_path_factory.mktemp("data")
-    dst = root / "fountain-P11"
-    (dst / "images").mkdir(parents=True)
-    (dst / "gt_dense_cameras").mkdir()
-    for n in IMAGES:
-        shutil.copy(src / "images" / n, dst / "images" / n)
-        shutil.copy(src / "gt_dense_cameras" / f"{n}.camera", dst / "gt_dense_cameras" / f"{n}.camera")
+    root = copy_strecha_subset(tmp_path_factory.mktemp("data"), IMAGES)
     cache = tmp_path_factory.mktemp("cache")
     old = os.environ.get("IMTUNE_CACHE")
     old_gt = os.environ.pop("IMTUNE_GT", None)  # ground truth goes to $IMTUNE_CACHE/gt

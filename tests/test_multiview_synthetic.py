@@ -2,7 +2,6 @@
 keypoints and matches (success, failure, parallel workers, a dying worker), aggregation, bad input."""
 import math
 import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,18 +10,13 @@ from scipy.spatial.transform import Rotation
 from pipeline.errors import ImtuneError
 from pipeline.metrics.ate import absolute_trajectory_error, camera_center, umeyama
 from pipeline.tasks import colmap_db
+from tests.conftest import look_at
 from pipeline.tasks.multiview import BagJob, MultiviewConfig, run_bag, run_bags, summarize_bags, summarize_scene
 
 W, H = 1024, 768
 K = np.array([[800.0, 0, 511.5], [0, 800.0, 383.5], [0, 0, 1]])
 
 
-def look_at(C):
-    z = -C / np.linalg.norm(C)
-    x = np.cross([0.0, 1.0, 0.0], z)
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(z, x), z])
-    return R, -R @ C
 
 
 def synthetic_bag(n=5, n_points=1500, seed=0, noise=0.5, outliers=0.2, workdir="/tmp", index=0,

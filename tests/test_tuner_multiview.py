@@ -4,12 +4,11 @@ attributes, frozen.yaml, `tune test`, `tune table` (r_multiview) and `tune plot`
 ../shared/data/strecha is absent."""
 import json
 import os
-import shutil
 
 import pytest
 import yaml
 
-from tests.conftest import DATA
+from tests.conftest import copy_strecha_subset
 
 IMAGES = ["0002.jpg", "0003.jpg", "0004.jpg", "0005.jpg", "0006.jpg", "0007.jpg"]
 STUDY = "sift-1024-degensac-multiview"
@@ -17,16 +16,7 @@ STUDY = "sift-1024-degensac-multiview"
 
 @pytest.fixture(scope="module")
 def mv_study(tmp_path_factory):
-    src = DATA / "strecha" / "fountain-P11"
-    if not src.exists():
-        pytest.skip(f"real data not found at {src} (expected ../shared beside the project)")
-    root = tmp_path_factory.mktemp("data")
-    dst = root / "fountain-P11"
-    (dst / "images").mkdir(parents=True)
-    (dst / "gt_dense_cameras").mkdir()
-    for n in IMAGES:
-        shutil.copy(src / "images" / n, dst / "images" / n)
-        shutil.copy(src / "gt_dense_cameras" / f"{n}.camera", dst / "gt_dense_cameras" / f"{n}.camera")
+    root = copy_strecha_subset(tmp_path_factory.mktemp("data"), IMAGES)
     cache = tmp_path_factory.mktemp("cache")
     studies = tmp_path_factory.mktemp("studies")
     saved = {k: os.environ.pop(k, None) for k in ("IMTUNE_CACHE", "IMTUNE_GT", "IMTUNE_STUDIES")}

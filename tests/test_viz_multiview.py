@@ -7,18 +7,13 @@ import pytest
 from pipeline.errors import ImtuneError
 from pipeline.tasks.multiview import BagJob, MultiviewConfig
 from pipeline.viz.colors import BLUE, RED
+from tests.conftest import look_at
 from pipeline.viz.multiview import BagReconstruction, draw_bag, draw_keypoints, reconstruct_bag
 
 W, H = 1024, 768
 K = np.array([[800.0, 0, 511.5], [0, 800.0, 383.5], [0, 0, 1]])
 
 
-def _look_at(C):
-    z = -C / np.linalg.norm(C)
-    x = np.cross([0.0, 1.0, 0.0], z)
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(z, x), z])
-    return R, -R @ C
 
 
 def synthetic_job(tmp_path, n=4, n_points=1200, n_noise=150, seed=0, no_matches=False):
@@ -30,7 +25,7 @@ def synthetic_job(tmp_path, n=4, n_points=1200, n_noise=150, seed=0, no_matches=
     poses, kpts, ids = {}, {}, {}
     for i, name in enumerate(names):
         a = np.radians(-20 + 40 * i / max(1, n - 1))
-        R, t = _look_at(np.array([6 * np.sin(a), 0.2 * rng.normal(), -6 * np.cos(a)]))
+        R, t = look_at(np.array([6 * np.sin(a), 0.2 * rng.normal(), -6 * np.cos(a)]))
         poses[name] = (R, t)
         x = (K @ ((R @ X.T).T + t).T).T
         x = x[:, :2] / x[:, 2:]

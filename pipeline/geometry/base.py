@@ -88,6 +88,13 @@ def sampson_distance(F: np.ndarray, pts1: np.ndarray, pts2: np.ndarray) -> np.nd
     return np.where(np.isfinite(d), d, np.inf)
 
 
+def packed_correspondences(pts1: np.ndarray, pts2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Matches as the (M, 4) [x1 y1 x2 y2] array pymagsac / pygcransac take, plus uniform per-match
+    probabilities (M,) (their uniform sampler ignores them, but the argument is required)."""
+    corr = np.ascontiguousarray(np.concatenate([pts1, pts2], axis=1))
+    return corr, np.ones(len(corr), dtype=np.float64)
+
+
 def sizes_from_points(pts1: np.ndarray, pts2: np.ndarray) -> Sizes:
     """Default image sizes when the caller gives none: the smallest image (integer px, at least 1)
     that holds every point, i.e. w = floor(max x) + 1, h = floor(max y) + 1."""

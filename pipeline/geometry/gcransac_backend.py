@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.geometry.base import Estimator, RawSolution, Sizes, require, timed
+from pipeline.geometry.base import Estimator, RawSolution, Sizes, packed_correspondences, require, timed
 from pipeline.geometry.registry import ESTIMATORS
 
 
@@ -41,8 +41,7 @@ class GCRansac(Estimator):
     def _solve(self, pts1: np.ndarray, pts2: np.ndarray, threshold: float, confidence: float,
                max_iters: int, seed: int, sizes: Sizes) -> RawSolution:
         import pygcransac
-        corr = np.ascontiguousarray(np.concatenate([pts1, pts2], axis=1))
-        probs = np.ones(len(corr), dtype=np.float64)
+        corr, probs = packed_correspondences(pts1, pts2)
         (w1, h1), (w2, h2) = sizes
         max_iters = max(int(max_iters), 1)
         with timed() as t:
