@@ -15,6 +15,7 @@ import yaml
 
 from pipeline.config import FeatureConfig, GeometryConfig, MatchConfig, PipelineConfig
 from pipeline.errors import ImtuneError
+from tuner.argtypes import nonnegative_float, positive_float, probability_float, ratio_float, unit_float
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = PROJECT_ROOT.parent / "shared" / "data" / "strecha"
@@ -64,27 +65,27 @@ def add_pipeline_options(ap: argparse.ArgumentParser, tuning: bool = False) -> N
     g.add_argument("--upright", action="store_true", help="orientation fixed, duplicates removed")
     g.add_argument("--upright-plus", action="store_true", help="upright, refilled to the budget (upright++)")
     g.add_argument("--clahe", default="none", choices=["none", "detector", "descriptor", "both"])
-    g.add_argument("--mr-size", type=float, default=None, help="descriptor support scale (SIFT mrSize)")
+    g.add_argument("--mr-size", type=positive_float, default=None, help="descriptor support scale (SIFT mrSize)")
     g.add_argument("--max-side", type=int, default=1024, help="resize so the long side is at most this (px)")
     g.add_argument("--matcher", default="exact", choices=["exact", "flann"])
     g.add_argument("--strategy", default="both", help="both | either | uni")
-    g.add_argument("--distance-threshold", type=float, default=None)
+    g.add_argument("--distance-threshold", type=nonnegative_float, default=None)
     g.add_argument("--fginn", action="store_true", help="FGINN: 2nd neighbour > 10 px from the first")
     g.add_argument("--prefilter", default="none", metavar="NAME[:k=v,...]",
                    help="outlier pre-filter between matching and the estimator: none | gms | adalam (see `tune list`)")
     g.add_argument("--matches", default=None, metavar="custom:DIR",
                    help="imported matches (IMC h5 layout) instead of the matcher; needs --feature custom:DIR")
     g.add_argument("--ransac", default="degensac", help="estimator registry name (see `tune list`)")
-    g.add_argument("--confidence", type=float, default=0.999999)
+    g.add_argument("--confidence", type=probability_float, default=0.999999)
     if not tuning:
-        g.add_argument("--ratio", type=float, default=0.85, help="ratio test r in (0, 1]; 1 = off")
-        g.add_argument("--threshold", type=float, default=0.5, help="inlier threshold eta, px")
+        g.add_argument("--ratio", type=ratio_float, default=0.85, help="ratio test r in (0, 1]; 1 = off")
+        g.add_argument("--threshold", type=positive_float, default=0.5, help="inlier threshold eta, px")
         g.add_argument("--max-iters", type=int, default=50000, help="RANSAC iteration cap Gamma")
     g.add_argument("--seed", type=int, default=0)
     d = ap.add_argument_group("data")
     d.add_argument("--data", default=None, help="data folder (else $IMTUNE_DATA, imtune.yaml, ../shared/data/strecha)")
     d.add_argument("--scenes", default=None, help="comma-separated scene names")
-    d.add_argument("--covisibility", type=float, default=0.1, help="minimum pair co-visibility where known")
+    d.add_argument("--covisibility", type=unit_float, default=0.1, help="minimum pair co-visibility where known")
     d.add_argument("--cache", default=None, help="cache folder (else $IMTUNE_CACHE or ~/.cache/imtune)")
     o = ap.add_argument_group("output")
     o.add_argument("--json", action="store_true", help="print one JSON object")
@@ -200,7 +201,7 @@ def evaluate_config(conf: PipelineConfig, data_root: Path, scenes=None, cache_di
         out["multiview_config"] = dataclasses.asdict(mv)
         out["multiview"] = res.to_dict(with_bags=with_bags)
     if intermediate:
-        from pipeline.metrics.repeatability import evaluate_intermediate
+        from pipeline.tasks.intermediate import evaluate_intermediate
         out["intermediate"] = evaluate_intermediate(scene_objs, conf, cache, min_covisibility=min_covisibility,
                                                     progress=progress)
     return out

@@ -20,6 +20,7 @@ import sys
 from pathlib import Path
 
 from pipeline.errors import ImtuneError
+from tuner.argtypes import positive_float, ratio_float
 from tuner.formatting import render
 from tuner.options import add_pipeline_options, build_config, resolve_data
 
@@ -47,15 +48,7 @@ def _positive_int(s: str) -> int:
     return v
 
 
-def _positive_float(s: str) -> float:
-    import argparse
-    try:
-        v = float(s)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {s!r}") from None
-    if not v > 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {v}")
-    return v
+_positive_float = positive_float  # finite and > 0 (`--budget inf` used to pass)
 
 
 def register(sub) -> None:
@@ -108,8 +101,8 @@ def register(sub) -> None:
     c.add_argument("--pairs", type=_positive_int, default=16, help="validation pairs timed per cap (default 16)")
     c.add_argument("--max-pairs", type=_positive_int, default=None, help="pairs per scene considered")
     c.add_argument("--space", default=None, help="search space whose 'calibration' section gives r and eta")
-    c.add_argument("--calibration-ratio", type=float, default=None, help="ratio test r of the timed matches")
-    c.add_argument("--calibration-threshold", type=float, default=None, help="eta (px) used while timing")
+    c.add_argument("--calibration-ratio", type=ratio_float, default=None, help="ratio test r of the timed matches")
+    c.add_argument("--calibration-threshold", type=positive_float, default=None, help="eta (px) used while timing")
     c.add_argument("--force", action="store_true", help="measure again even if stored")
     c.set_defaults(func=run_calibrate)
 
