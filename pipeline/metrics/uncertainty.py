@@ -1,0 +1,445 @@
+"""How sure an mAA is, and whether a difference between two configurations is real.
+
+Everything here rests on one fact: mAA(tau) is *linear* in per-pair scores. With
+``score_p = mean over k = 1..tau of [err_p <= k]`` (0 for a failure, err = inf), a scene's mAA is the
+mean of its pairs' scores, and the benchmark's overall mAA (the mean over scenes of the per-scene mAA)
+is ``sum_p w_p score_p`` with ``w_p = 1 / (n_scenes * n_pairs_in_scene)``. So
+
+- a confidence interval is a bootstrap of that weighted mean, resampling pairs *within* each scene
+  (stratified by scene: every resample keeps each scene's pair count and the scenes' equal weights);
+- a paired comparison of A and B on the same pairs is the same statistic of ``score_b - score_a``;
+- averaging repeated runs pair by pair gives exactly the mean of the runs' mAAs.
+
+Conventions (all functions):
+
+- ``n_resamples`` bootstrap resamples (default 2000), ``seed`` (default 0: the same inputs always give
+  the same interval), ``level`` (default 0.95). Intervals are percentile intervals from
+  ``scipy.stats.bootstrap`` (``method="BCa"`` is accepted; it falls back to the percentile interval
+  where BCa is undefined, e.g. when every resample gives the same value).
+- Intervals are ``[lo, hi]`` lists of floats; keys are ``mAA5_ci``, ``mAA10_ci`` (one per tau).
+- A scene (or bag group) with a single pair (bag) cannot be resampled into anything but itself: it
+  contributes a constant, and a scene's own interval is then the degenerate ``[v, v]``. An interval is
+  also degenerate when every pair has the same score (all perfect, all failed): the data show no
+  spread, the interval says so rather than inventing one.
+- Errors are in degrees; ``inf`` (or the string ``"inf"`` of a JSON file) and NaN count as failures,
+  exactly as :func:`pipeline.metrics.pose.mean_average_accuracy` treats them.
+
+numpy + scipy only; nothing above ``pipeline.metrics`` is imported.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+
+import numpy as np
+from scipy import stats
+
+from pipeline.metrics.pose import mean_average_accuracy
+
+__all__ = ["pair_scores", "maa_from_errors", "maa_intervals", "bag_intervals", "paired_bootstrap",
+           "rank_with_ties", "rank_by_intervals", "combine_runs_interval", "stratified_interval",
+           "DEFAULT_RESAMPLES", "DEFAULT_LEVEL"]
+
+DEFAULT_RESAMPLES = 2000
+DEFAULT_LEVEL = 0.95
+
+
+# ------------------------------------------------------------------------------------------ scores
+
+def _errors_array(errors) -> np.ndarray:
+    """float array of errors; "inf" strings (JSON files) -> inf, None -> inf (a failure)."""
+    return np.array([math.inf if e is None else float(e) for e in errors], float)
+
+
+def pair_scores(errors, tau: int = 10) -> np.ndarray:
+    """Per-pair contribution to mAA(tau): the fraction of thresholds 1..tau degrees that the pair's
+    error is within (1 = within 1 deg, 0 = above tau deg or failed). mAA(tau) is their mean."""
+    e = _errors_array(errors)
+    ks = np.arange(1, int(tau) + 1, dtype=float)
+    return (e[:, None] <= ks[None, :]).mean(axis=1) if e.size else np.zeros(0)
+
+
+def maa_from_errors(errors, tau: int = 10) -> float:
+    """mAA(tau) of a list of pair errors (degrees; inf = failure). Exactly
+    :func:`pipeline.metrics.pose.mean_average_accuracy` (it is called): 0 for no pairs."""
+    return mean_average_accuracy(_errors_array(errors), int(tau))
+
+
+# ------------------------------------------------------------------------------------------ the core
+
+def stratified_interval(groups: Sequence[np.ndarray], weights: Sequence[float], *,
+                        n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0, level: float = DEFAULT_LEVEL,
+                        method: str = "percentile") -> list[float]:
+    """Bootstrap interval of ``sum_g weights[g] * mean(groups[g])``, resampling within each group.
+
+    ``scipy.stats.bootstrap`` with one sample per group (``paired=False`` resamples each sample
+    independently, which is exactly the stratified bootstrap), vectorised: 2000 resamples of 55 pairs
+    take about a millisecond. Groups of one value are constants (scipy needs two observations per
+    sample); with no group of two or more distinct values the interval is ``[v, v]``."""
+    return _stratified(groups, weights, n_resamples, seed, level, method)[0]
+
+
+def _stratified(groups, weights, n_resamples, seed, level, method="percentile") -> tuple[list[float], float]:
+    """(interval, bootstrap standard error) of :func:`stratified_interval`."""
+    if method not in ("percentile", "BCa", "basic"):
+        raise ValueError(f"unknown bootstrap method {method!r} (percentile, BCa or basic)")
+    groups = [np.asarray(g, float) for g in groups]
+    weights = [float(w) for w in weights]
+    if not groups:
+        return [0.0, 0.0], 0.0
+    point = float(sum(w * (g.mean() if g.size else 0.0) for g, w in zip(groups, weights)))
+    const = float(sum(w * g.mean() for g, w in zip(groups, weights) if g.size == 1))
+    var = [(g, w) for g, w in zip(groups, weights) if g.size >= 2]
+    if not var or all(np.ptp(g) == 0 for g, _ in var):
+        return [point, point], 0.0  # nothing to resample: degenerate interval
+    ws = np.array([w for _, w in var])
+
+    def statistic(*samples, axis=-1):
+        return const + sum(wi * np.mean(s, axis=axis) for wi, s in zip(ws, samples))
+
+    def run(m):
+        res = stats.bootstrap(tuple(g for g, _ in var), statistic, n_resamples=int(n_resamples), vectorized=True,
+                              paired=False, confidence_level=level, method=m, rng=np.random.default_rng(seed))
+        ci = [float(res.confidence_interval.low), float(res.confidence_interval.high)]
+        return ci, float(res.standard_error)
+    if method == "BCa":
+        import warnings
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # DegenerateDataWarning: fall back below
+            ci, se = run("BCa")
+        if all(math.isfinite(v) for v in ci):
+            return ci, se
+        method = "percentile"
+    return run(method)
+
+
+def _by_key(records: Iterable[Mapping], key_fields: Sequence[str]) -> dict:
+    out: dict = {}
+    for r in records:
+        out.setdefault(tuple(r[k] for k in key_fields), []).append(r)
+    return out
+
+
+def _scene_order(records: Iterable[Mapping], scenes: Sequence[str] | None) -> list[str]:
+    names = list(scenes) if scenes is not None else []
+    for r in records:
+        if r["scene"] not in names:
+            names.append(r["scene"])
+    return names
+
+
+# ------------------------------------------------------------------------------------------ stereo
+
+def maa_intervals(records: Sequence[Mapping], taus: Sequence[int] = (5, 10), n_resamples: int = DEFAULT_RESAMPLES,
+                  seed: int = 0, level: float = DEFAULT_LEVEL, *, scenes: Sequence[str] | None = None,
+                  method: str = "percentile") -> dict:
+    """Bootstrap intervals of the stereo mAA(tau), overall and per scene.
+
+    records: stereo pair records (dicts with "scene", "pair" and "err" in degrees, inf = failure) of one
+    run. Overall mAA = mean over scenes of per-scene mAA (as ``pipeline.tasks.stereo.combine``); the
+    bootstrap resamples pairs within each scene and recomputes that mean. ``scenes``: names of scenes to
+    count even if they have no record (their mAA is 0, as the stereo task reports it).
+
+    Returns ``{"mAA5_ci": [lo, hi], "mAA10_ci": [lo, hi], "scenes": {name: {"mAA5_ci": ..., "mAA10_ci": ...}}}``
+    (one ``mAA<tau>_ci`` per tau). A scene with one pair gets ``[v, v]``."""
+    names = _scene_order(records, scenes)
+    per = _by_key(records, ("scene",))
+    out: dict = {"scenes": {n: {} for n in names}}
+    for tau in taus:
+        key = f"mAA{int(tau)}_ci"
+        groups = [pair_scores([r["err"] for r in per.get((n,), [])], tau) for n in names]
+        w = 1.0 / len(names) if names else 0.0
+        out[key] = stratified_interval(groups, [w] * len(groups), n_resamples=n_resamples, seed=seed, level=level,
+                                       method=method)
+        for n, g in zip(names, groups):
+            out["scenes"][n][key] = stratified_interval([g], [1.0], n_resamples=n_resamples, seed=seed, level=level,
+                                                        method=method)
+    return out
+
+
+# ------------------------------------------------------------------------------------------ multiview
+
+def bag_intervals(bag_records: Sequence[Mapping], taus: Sequence[int] = (5, 10),
+                  n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0, level: float = DEFAULT_LEVEL, *,
+                  scenes: Sequence[str] | None = None, method: str = "percentile") -> dict:
+    """Bootstrap intervals of the multiview mAA(tau), overall and per scene, resampling bags.
+
+    bag_records: multiview bag records (dicts with "scene", "bag_size" and "errors", the pair errors of
+    the bag in degrees). The multiview mAA is computed as ``pipeline.tasks.multiview`` does: each bag's
+    mAA over its pairs; the mean over the bags of one size (``summarize_bags``); the mean over the
+    scene's bag sizes (``summarize_scene``); the mean over scenes (``combine``). The bootstrap resamples
+    bags within each (scene, bag size) group, so each resample keeps every group's bag count and weight.
+    ``scenes``: names to count even without bags (mAA 0 there, as the task reports it). Same keys as
+    :func:`maa_intervals`."""
+    names = _scene_order(bag_records, scenes)
+    groups_of = _by_key(bag_records, ("scene", "bag_size"))
+    out: dict = {"scenes": {n: {} for n in names}}
+    for tau in taus:
+        key = f"mAA{int(tau)}_ci"
+        all_g, all_w = [], []
+        for n in names:
+            sizes = sorted({s for (sc, s) in groups_of if sc == n}, key=float)
+            g = [np.array([maa_from_errors(r["errors"], tau) for r in groups_of[(n, s)]]) for s in sizes]
+            w = [1.0 / len(sizes)] * len(sizes)
+            if not g:  # a scene without bags: mAA 0, a constant
+                g, w = [np.zeros(1)], [1.0]
+            out["scenes"][n][key] = stratified_interval(g, w, n_resamples=n_resamples, seed=seed, level=level,
+                                                        method=method)
+            all_g += g
+            all_w += [x / len(names) for x in w]
+        out[key] = stratified_interval(all_g, all_w, n_resamples=n_resamples, seed=seed, level=level, method=method)
+    return out
+
+
+# ------------------------------------------------------------------------------------------ paired test
+
+def _mean_scores(records: Sequence[Mapping], tau: int) -> dict[tuple, float]:
+    """(scene, pair) -> score, averaged over duplicate keys (records of repeated runs)."""
+    acc: dict[tuple, list[float]] = {}
+    for r in records:
+        acc.setdefault((r["scene"], _pair_key(r["pair"])), []).append(r["err"])
+    return {k: float(pair_scores(v, tau).mean()) for k, v in acc.items()}
+
+
+def _pair_key(p):
+    return tuple(p) if isinstance(p, list) else p
+
+
+def _sign_flip_p(d: np.ndarray, w: np.ndarray, n_resamples: int, rng: np.random.Generator) -> float:
+    """Two-sided p-value of a paired sign-flip (randomisation) test of sum_p w_p d_p = 0.
+
+    Under the null that A and B are exchangeable on every pair (e.g. two draws of the same method), each
+    d_p is as likely to be -d_p: the test's size is exact for any score distribution, ties and
+    discreteness included, which a bootstrap test's is only asymptotically. p = (1 + #{|D*| >= |D|}) /
+    (1 + n_resamples) (the +1 counts the observed sign pattern, so p is never 0); identical inputs
+    (every d_p = 0) give exactly 1."""
+    wd = w * d
+    obs = abs(float(wd.sum()))
+    if not np.any(wd):
+        return 1.0
+    tol = 1e-12 * max(1.0, obs)
+    hits, done = 0, 0
+    batch = max(1, min(int(n_resamples), 2_000_000 // max(1, wd.size)))
+    while done < n_resamples:
+        m = min(batch, n_resamples - done)
+        eps = rng.integers(0, 2, size=(m, wd.size), dtype=np.int8) * 2 - 1
+        hits += int(np.count_nonzero(np.abs(eps @ wd) >= obs - tol))
+        done += m
+    return float(min(1.0, (1 + hits) / (1 + n_resamples)))
+
+
+def _paired_stats(groups_a, groups_b, n_resamples, seed, level, method) -> dict:
+    """groups_*: per-scene score arrays on the common pairs (same order in a and b)."""
+    S = len(groups_a)
+    w_groups = [1.0 / S] * S if S else []
+    maa_a = float(sum(w * g.mean() for g, w in zip(groups_a, w_groups) if g.size))
+    maa_b = float(sum(w * g.mean() for g, w in zip(groups_b, w_groups) if g.size))
+    diffs = [b - a for a, b in zip(groups_a, groups_b)]
+    ci = stratified_interval(diffs, w_groups, n_resamples=n_resamples, seed=seed, level=level, method=method)
+    d = np.concatenate(diffs) if diffs else np.zeros(0)
+    w = np.concatenate([np.full(g.size, wg / g.size) for g, wg in zip(diffs, w_groups) if g.size]) if diffs else d
+    p = _sign_flip_p(d, w, int(n_resamples), np.random.default_rng(seed))
+    diff = float(sum(wg * g.mean() for g, wg in zip(diffs, w_groups) if g.size))
+    if not np.any(d):  # identical scores: exactly 0, whatever the rounding of maa_b - maa_a
+        diff, ci = 0.0, [0.0, 0.0]
+    return {"a": maa_a, "b": maa_b, "difference": diff, "ci": ci, "p_value": p,
+            "significant": not (ci[0] <= 0.0 <= ci[1]), "pairs": int(d.size)}
+
+
+def paired_bootstrap(records_a: Sequence[Mapping], records_b: Sequence[Mapping], tau: int = 10,
+                     n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0, level: float = DEFAULT_LEVEL, *,
+                     method: str = "percentile") -> dict:
+    """Paired comparison of configuration B against A (the first) on the pairs both evaluated.
+
+    Records are matched on (scene, pair); pairs present in only one are dropped (counted). Duplicate keys
+    (records of repeated runs) are averaged per pair, which is exactly the mean of the runs' mAAs.
+    ``difference`` = mAA_b - mAA_a ("B vs the first"; > 0: B is better), the overall mAA being the mean
+    over scenes. ``ci``: stratified percentile bootstrap of the difference, resampling the *same* pair
+    indices for A and B (i.e. resampling per-pair score differences) within each scene. ``p_value``:
+    two-sided paired sign-flip randomisation test (see ``_sign_flip_p``: exact size under "A and B are
+    exchangeable on each pair"), with the same resample count and seed. "significant" means the CI
+    excludes 0 (the rule for shared ranks and "no significant difference"); p and the CI come from
+    different resamplings and can disagree at the margin (p close to 1 - level).
+
+    Returns ``{"mAA<tau>_a", "mAA<tau>_b", "difference", "ci": [lo, hi], "p_value", "significant",
+    "pairs" (common), "dropped_a", "dropped_b" (pairs only in A / only in B), "tau", "level",
+    "scenes": {name: {the same keys without "scenes"}}}``. Identical inputs give difference 0,
+    ci [0, 0] and p_value 1.0 exactly."""
+    tau = int(tau)
+    sa, sb = _mean_scores(records_a, tau), _mean_scores(records_b, tau)
+    common = [k for k in sa if k in sb]
+    names = []
+    for k in common:
+        if k[0] not in names:
+            names.append(k[0])
+    ka, kb = f"mAA{tau}_a", f"mAA{tau}_b"
+
+    def pack(st, dropped_a, dropped_b):
+        return {ka: st["a"], kb: st["b"], "difference": st["difference"], "ci": st["ci"], "p_value": st["p_value"],
+                "significant": st["significant"], "pairs": st["pairs"], "dropped_a": dropped_a,
+                "dropped_b": dropped_b, "tau": tau, "level": level}
+    ga = [np.array([sa[k] for k in common if k[0] == n]) for n in names]
+    gb = [np.array([sb[k] for k in common if k[0] == n]) for n in names]
+    out = pack(_paired_stats(ga, gb, n_resamples, seed, level, method),
+               len(sa) - len(common), len(sb) - len(common))
+    out["scenes"] = {}
+    for n, a, b in zip(names, ga, gb):
+        out["scenes"][n] = pack(_paired_stats([a], [b], n_resamples, seed, level, method),
+                                sum(1 for k in sa if k[0] == n and k not in sb),
+                                sum(1 for k in sb if k[0] == n and k not in sa))
+    return out
+
+
+# ------------------------------------------------------------------------------------------ ranking
+
+def _item(it) -> tuple[str, Sequence[Mapping]]:
+    if isinstance(it, Mapping):
+        return str(it["name"]), it["records"]
+    name, recs = it
+    return str(name), recs
+
+
+def rank_with_ties(items, tau: int = 10, n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0,
+                   level: float = DEFAULT_LEVEL) -> list[dict]:
+    """Rank methods by mAA(tau), sharing ranks where a difference is not significant.
+
+    items: ``[(name, records), ...]`` or ``[{"name", "records"}, ...]``, records as for
+    :func:`paired_bootstrap` (several runs' records may be concatenated: they are averaged per pair).
+    The methods are ordered by mAA(tau) (highest first; ties keep the given order); each one is compared
+    with the one directly above it by :func:`paired_bootstrap` (that one as A, this one as B) and shares
+    its rank when the difference's CI contains 0. Ranks are competition ranks (1, 1, 3): a method that
+    differs significantly from the one above gets its position. Sharing is chained: C can share rank 1
+    with B, which shares it with A, even if A and C differ significantly (the note says whom each row
+    ties with).
+
+    Returns, best first: ``[{"name", "rank", "mAA<tau>", "shared": bool (rank shared with the row
+    above), "comparison": paired_bootstrap overall figures against the row above (None for the first),
+    "note": str}, ...]``."""
+    tau = int(tau)
+    named = [_item(it) for it in items]
+    vals = []
+    for name, recs in named:
+        sc = _mean_scores(recs, tau)
+        by_scene: dict = {}
+        for (scene, _), v in sc.items():
+            by_scene.setdefault(scene, []).append(v)
+        vals.append(float(np.mean([np.mean(v) for v in by_scene.values()])) if by_scene else 0.0)
+    order = sorted(range(len(named)), key=lambda i: -vals[i])
+    out: list[dict] = []
+    for pos, i in enumerate(order):
+        name, recs = named[i]
+        row = {"name": name, "rank": pos + 1, f"mAA{tau}": vals[i], "shared": False, "comparison": None, "note": ""}
+        if out:
+            above = out[-1]
+            cmp = paired_bootstrap(named[order[pos - 1]][1], recs, tau=tau, n_resamples=n_resamples, seed=seed,
+                                   level=level)
+            cmp = {k: v for k, v in cmp.items() if k != "scenes"}
+            row["comparison"] = cmp
+            lo, hi = cmp["ci"]
+            if lo <= 0.0 <= hi:
+                row["rank"], row["shared"] = above["rank"], True
+                row["note"] = (f"rank shared with {above['name']}: difference {cmp['difference']:+.4f} "
+                               f"[{lo:+.4f}, {hi:+.4f}] not significant (p={cmp['p_value']:.3g})")
+            else:
+                row["note"] = (f"below {above['name']}: difference {cmp['difference']:+.4f} "
+                               f"[{lo:+.4f}, {hi:+.4f}] (p={cmp['p_value']:.3g})")
+        out.append(row)
+    return out
+
+
+def rank_by_intervals(items: Sequence[Mapping], key: str = "mAA10") -> list[dict]:
+    """Rank with ties when only intervals are known (no pair records to pair): each method shares the
+    rank of the one above when their ``<key>_ci`` intervals overlap. Conservative (overlapping 95%
+    intervals can still hide a significant paired difference: two methods on the same pairs are
+    positively correlated, which only the paired test uses). items: ``{"name", key, key + "_ci"}``;
+    an item without an interval never shares. Same return shape as :func:`rank_with_ties`
+    (``comparison`` is None)."""
+    order = sorted(range(len(items)), key=lambda i: -float(items[i][key]))
+    out: list[dict] = []
+    for pos, i in enumerate(order):
+        it = items[i]
+        row = {"name": str(it["name"]), "rank": pos + 1, key: float(it[key]), "shared": False, "comparison": None,
+               "note": ""}
+        if out:
+            above = items[order[pos - 1]]
+            ci, ci_above = it.get(f"{key}_ci"), above.get(f"{key}_ci")
+            if ci and ci_above and ci[1] >= ci_above[0]:
+                row["rank"], row["shared"] = out[-1]["rank"], True
+                row["note"] = f"rank shared with {above['name']}: 95% intervals overlap (unpaired comparison)"
+        out.append(row)
+    return out
+
+
+# ------------------------------------------------------------------------------------------ repeated runs
+
+def combine_runs_interval(runs: Sequence[Sequence[Mapping]], taus: Sequence[int] = (5, 10),
+                          n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0, level: float = DEFAULT_LEVEL) -> dict:
+    """Interval of the mean mAA of repeated test runs (same pairs, different estimator seeds), accounting
+    for both the sampling of pairs and the run-to-run variation.
+
+    runs: one list of stereo pair records per run. Exactly:
+
+    1. score_{p,r}: pair p's mAA(tau) score in run r; s_p = its mean over the runs that have p. The point
+       estimate M = sum_p w_p s_p (w_p = 1 / (n_scenes * n_pairs_in_scene)) is the mean of the runs' mAAs.
+    2. [lo, hi]: stratified percentile bootstrap of M over pairs (of the run-averaged scores s_p), with
+       bootstrap variance V_b. It already contains the per-pair seed noise (s_p varies with the seeds).
+    3. What it cannot see is a run effect shared by all pairs (machine load under a time budget, a seed
+       that is good everywhere). Moment estimate: s2_run = sample variance (ddof 1) of the R runs' mAAs;
+       its pair-independent part is W = sum_p w_p^2 v_p, v_p = sample variance of score_{p,r} over runs;
+       shared-run variance G = max(0, s2_run - W). Total variance V = V_b + G / R.
+    4. The interval is widened about M by sqrt(V / V_b): lo' = M - (M - lo) k, hi' = M + (hi - M) k,
+       clipped to [0, 1]; where V_b = 0, M -/+ z sqrt(G / R). One run: the bootstrap interval as is.
+
+    Returns ``{"mAA5": M, "mAA5_ci": [lo', hi'], "mAA5_std": std over runs (ddof 0, as the test run's
+    "std"), ..., "runs": R, "scenes": {name: the same per scene}}``."""
+    runs = [list(r) for r in runs]
+    R = len(runs)
+    names = _scene_order([x for run in runs for x in run], None)
+    z = float(stats.norm.ppf(0.5 + level / 2))
+    out: dict = {"runs": R, "scenes": {n: {} for n in names}}
+
+    def one(tau, scene_names) -> dict:
+        per_run = []  # {(scene, pair): score}
+        for run in runs:
+            recs = [x for x in run if x["scene"] in scene_names]
+            keys = [(x["scene"], _pair_key(x["pair"])) for x in recs]
+            per_run.append(dict(zip(keys, pair_scores([x["err"] for x in recs], tau))))
+        keys = list(dict.fromkeys(k for pr in per_run for k in pr))
+        groups, wgroups, wpair, vpair = [], [], [], []
+        S = len(scene_names)
+        for n in scene_names:
+            ks = [k for k in keys if k[0] == n]
+            mat = [[pr[k] for pr in per_run if k in pr] for k in ks]
+            groups.append(np.array([np.mean(v) for v in mat]) if ks else np.zeros(1))
+            wgroups.append(1.0 / S)
+            for v in mat:
+                wpair.append(1.0 / (S * len(ks)))
+                vpair.append(np.var(v, ddof=1) if len(v) > 1 else 0.0)
+        M = float(sum(w * g.mean() for g, w in zip(groups, wgroups)))
+        run_vals = []
+        for pr in per_run:
+            sc = [[v for k, v in pr.items() if k[0] == n] for n in scene_names]
+            run_vals.append(float(np.mean([np.mean(s) if s else 0.0 for s in sc])))
+        (lo, hi), se = _stratified(groups, wgroups, n_resamples, seed, level)
+        if R > 1:
+            W = float(np.sum(np.square(wpair) * np.asarray(vpair)))
+            G = max(0.0, float(np.var(run_vals, ddof=1)) - W)
+            if G > 0:
+                Vb = se * se  # scipy's bootstrap standard error of the same resampling
+                if Vb > 0:
+                    k = math.sqrt((Vb + G / R) / Vb)
+                    lo, hi = M - (M - lo) * k, M + (hi - M) * k
+                else:
+                    h = z * math.sqrt(G / R)
+                    lo, hi = M - h, M + h
+        return {"value": M, "ci": [max(0.0, float(lo)), min(1.0, float(hi))], "std": float(np.std(run_vals))}
+
+    for tau in taus:
+        k = f"mAA{int(tau)}"
+        o = one(int(tau), names)
+        out[k], out[k + "_ci"], out[k + "_std"] = o["value"], o["ci"], o["std"]
+        for n in names:
+            o = one(int(tau), [n])
+            out["scenes"][n][k], out["scenes"][n][k + "_ci"], out["scenes"][n][k + "_std"] = o["value"], o["ci"], o["std"]
+    return out
+
