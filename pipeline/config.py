@@ -4,11 +4,37 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 from dataclasses import dataclass, field
 
 from pipeline.errors import ImtuneError
 
 STRATEGIES = ("both", "either", "uni")
+
+
+def _number(what: str, v, integer: bool = False) -> float:
+    """``v`` as a finite float (ImtuneError naming ``what`` for nan, inf, bools, non-numbers, non-integers)."""
+    try:
+        if isinstance(v, (bool, str, bytes)):
+            raise TypeError
+        f = float(v)
+    except (TypeError, ValueError):
+        raise ImtuneError(f"{what} must be a number, got {v!r}") from None
+    if not math.isfinite(f):
+        raise ImtuneError(f"{what} must be a finite number, got {v!r}")
+    if integer and f != int(f):
+        raise ImtuneError(f"{what} must be an integer, got {v!r}")
+    return f
+
+
+def check_covisibility(v) -> float | None:
+    """A minimum co-visibility: None (all listed pairs) or a finite fraction in [0, 1]."""
+    if v is None:
+        return None
+    f = _number("co-visibility", v)
+    if not 0.0 <= f <= 1.0:
+        raise ImtuneError(f"co-visibility must be in [0, 1], got {v!r}")
+    return f
 
 
 def config_hash(obj, n: int = 16) -> str:
@@ -44,8 +70,11 @@ class FeatureConfig:
     options: tuple = ()
 
     def __post_init__(self):
-        if self.num_features <= 0:
-            raise ImtuneError(f"num_features must be positive, got {self.num_features}")
+        if _number("num_features", self.num_features, integer=True) < 1:
+            raise ImtuneError(f"num_features must be >= 1, got {self.num_features}")
+        if self.mr_size is not None and not _number("mr_size", self.mr_size) > 0:
+            raise ImtuneError(f"mr_size must be > 0, got {self.mr_size}")
+        _number("max_side", self.max_side, integer=True)
         if self.clahe not in ("none", "detector", "descriptor", "both"):
             raise ImtuneError(f"clahe must be none|detector|descriptor|both, got {self.clahe!r}")
 
@@ -75,14 +104,16 @@ class MatchConfig:
     custom_matches: str | None = None
 
     def __post_init__(self):
-        if not (0.0 < float(self.ratio) <= 1.0):
+        if not (0.0 < _number("ratio r", self.ratio) <= 1.0):
             raise ImtuneError(f"ratio r must be in (0, 1], got {self.ratio}")
         if self.strategy not in STRATEGIES:
             raise ImtuneError(f"unknown matching strategy {self.strategy!r} (choose from {', '.join(STRATEGIES)})")
         if self.method not in ("exact", "flann"):
             raise ImtuneError(f"unknown matcher {self.method!r} (choose exact or flann)")
-        if self.distance_threshold is not None and self.distance_threshold < 0:
+        if self.distance_threshold is not None and _number("distance threshold", self.distance_threshold) < 0:
             raise ImtuneError(f"distance threshold must be >= 0, got {self.distance_threshold}")
+        if not _number("fginn_px", self.fginn_px) > 0:
+            raise ImtuneError(f"fginn_px must be > 0 px, got {self.fginn_px}")
         if not isinstance(self.prefilter, str) or not self.prefilter:
             raise ImtuneError(f"prefilter must be a name (see `tune list`), got {self.prefilter!r}")
 
@@ -104,11 +135,11 @@ class GeometryConfig:
     seed: int = 0
 
     def __post_init__(self):
-        if self.threshold < 0:
-            raise ImtuneError(f"inlier threshold must be >= 0 px, got {self.threshold}")
-        if not (0.0 < self.confidence < 1.0):
+        if not _number("inlier threshold", self.threshold) > 0:
+            raise ImtuneError(f"inlier threshold must be > 0 px, got {self.threshold}")
+        if not (0.0 < _number("confidence", self.confidence) < 1.0):
             raise ImtuneError(f"confidence must be in (0, 1), got {self.confidence}")
-        if self.max_iters < 1:
+        if _number("max-iters", self.max_iters, integer=True) < 1:
             raise ImtuneError(f"max-iters must be >= 1, got {self.max_iters}")
 
 

@@ -209,8 +209,8 @@ def _check_value(name: str, value, where: str):
             raise ValueError("must be finite")
         if name == "ratio" and not (0.0 < value <= 1.0):
             raise ValueError("must be in (0, 1]")
-        if name == "threshold" and value < 0:
-            raise ValueError("must be >= 0 px")
+        if name == "threshold" and not value > 0:
+            raise ValueError("must be > 0 px")
         return value
     except (TypeError, ValueError) as e:
         msg = str(e) if str(e).startswith("must") else "is not a valid value"

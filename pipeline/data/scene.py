@@ -92,6 +92,8 @@ class Scene:
 
     def select_pairs(self, min_covisibility: float | None = 0.1) -> list[Pair]:
         """The protocol's pairs: co-visibility >= threshold where known, all listed pairs otherwise."""
+        from pipeline.config import check_covisibility
+        min_covisibility = check_covisibility(min_covisibility)  # nan / inf / outside [0, 1] -> ImtuneError
         if min_covisibility is None:
             return list(self.pairs)
         return [p for p in self.pairs if p.covisibility is None or p.covisibility >= min_covisibility]
