@@ -387,8 +387,10 @@ def combine_runs_interval(runs: Sequence[Sequence[Mapping]], taus: Sequence[int]
        that is good everywhere). Moment estimate: s2_run = sample variance (ddof 1) of the R runs' mAAs;
        its pair-independent part is W = sum_p w_p^2 v_p, v_p = sample variance of score_{p,r} over runs;
        shared-run variance G = max(0, s2_run - W). Total variance V = V_b + G / R.
-    4. The interval is widened about M by sqrt(V / V_b): lo' = M - (M - lo) k, hi' = M + (hi - M) k,
-       clipped to [0, 1]; where V_b = 0, M -/+ z sqrt(G / R). One run: the bootstrap interval as is.
+    4. The interval is widened about M by k = t_df sqrt(V) / (z sqrt(V_b)): lo' = M - (M - lo) k,
+       hi' = M + (hi - M) k, clipped to [0, 1] (z: the normal quantile of ``level``; t_df: Student's t
+       with the Welch-Satterthwaite df = V^2 / ((G / R)^2 / (R - 1)), since G rests on R - 1 degrees of
+       freedom); where V_b = 0, M -/+ t_df sqrt(V). G = 0 or one run: the bootstrap interval as is.
 
     Returns ``{"mAA5": M, "mAA5_ci": [lo', hi'], "mAA5_std": std over runs (ddof 0, as the test run's
     "std"), ..., "runs": R, "scenes": {name: the same per scene}}``."""
@@ -426,11 +428,15 @@ def combine_runs_interval(runs: Sequence[Sequence[Mapping]], taus: Sequence[int]
             G = max(0.0, float(np.var(run_vals, ddof=1)) - W)
             if G > 0:
                 Vb = se * se  # scipy's bootstrap standard error of the same resampling
+                V = Vb + G / R
+                # Welch-Satterthwaite: G rests on R - 1 degrees of freedom, V_b on (practically) infinitely many
+                df = V * V / ((G / R) ** 2 / (R - 1))
+                t = float(stats.t.ppf(0.5 + level / 2, df))
                 if Vb > 0:
-                    k = math.sqrt((Vb + G / R) / Vb)
+                    k = t * math.sqrt(V) / (z * math.sqrt(Vb))
                     lo, hi = M - (M - lo) * k, M + (hi - M) * k
                 else:
-                    h = z * math.sqrt(G / R)
+                    h = t * math.sqrt(V)
                     lo, hi = M - h, M + h
         return {"value": M, "ci": [max(0.0, float(lo)), min(1.0, float(hi))], "std": float(np.std(run_vals))}
 

@@ -1,0 +1,258 @@
+"""pipeline.metrics.uncertainty against synthetic pair errors with a known distribution.
+
+The truth is computed here by a different method than the module's: the analytic CDF of the error
+distribution (coverage), or a brute-force Monte-Carlo count over a million pairs (paired differences).
+Every simulation is seeded, so the figures are reproducible; the bounds are wide enough for 400
+simulated data sets (binomial sd ~1.1 points at 95%) and tight enough to catch an interval that
+ignores the stratification, the scene weights or the pairing.
+"""
+import math
+
+import numpy as np
+import pytest
+
+from pipeline.metrics.pose import mean_average_accuracy
+from pipeline.metrics.uncertainty import (bag_intervals, combine_runs_interval, maa_from_errors, maa_intervals,
+                                          paired_bootstrap, pair_scores, rank_by_intervals, rank_with_ties,
+                                          stratified_interval)
+
+N_SIM = 400
+# (pairs, exponential error scale in degrees, failure probability) of each scene
+SCENES = {"s1": (30, 3.0, 0.10), "s2": (45, 7.0, 0.25), "s3": (60, 1.5, 0.05)}
+
+
+def true_maa(scale: float, fail: float, tau: int) -> float:
+    """Analytic mAA(tau) of errors ~ Exponential(scale), failed (inf) with probability ``fail``."""
+    return float(np.mean([(1 - fail) * (1 - math.exp(-k / scale)) for k in range(1, tau + 1)]))
+
+
+def draw(rng, n, scale, fail):
+    e = rng.exponential(scale, n)
+    e[rng.random(n) < fail] = np.inf
+    return e
+
+
+def records_from(errors_by_scene: dict) -> list[dict]:
+    return [{"scene": s, "pair": f"{i:04d}|{i + 1:04d}", "err": float(x)}
+            for s, errs in errors_by_scene.items() for i, x in enumerate(errs)]
+
+
+# ------------------------------------------------------------------------------------------ mAA
+
+def test_maa_from_errors_agrees_with_the_pose_module():
+    rng = np.random.default_rng(3)
+    cases = [[], [np.inf], [0.0], [1.0, 2.0, 10.0, 10.0000001, 5.0], [np.nan, 0.5, np.inf]]
+    cases += [list(draw(rng, n, 4.0, 0.2)) for n in (1, 7, 55, 300)]
+    cases += [list(rng.integers(0, 12, 40).astype(float))]  # errors exactly on the thresholds
+    for errs in cases:
+        for tau in (1, 5, 10, 20):
+            want = mean_average_accuracy(errs, tau)
+            assert maa_from_errors(errs, tau) == want
+            if errs:
+                assert float(pair_scores(errs, tau).mean()) == pytest.approx(want, abs=1e-12)
+    assert maa_from_errors(["inf", "1.5", None], 10) == mean_average_accuracy([np.inf, 1.5, np.inf], 10)
+
+
+def test_interval_covers_the_true_maa_in_about_95_percent():
+    truth = {tau: float(np.mean([true_maa(sc, f, tau) for _, sc, f in SCENES.values()])) for tau in (5, 10)}
+    truth_s2 = true_maa(7.0, 0.25, 10)
+    rng = np.random.default_rng(20261201)
+    hits = {5: 0, 10: 0, "s2": 0}
+    widths = []
+    for i in range(N_SIM):
+        recs = records_from({s: draw(rng, n, sc, f) for s, (n, sc, f) in SCENES.items()})
+        ci = maa_intervals(recs, seed=i)
+        for tau in (5, 10):
+            lo, hi = ci[f"mAA{tau}_ci"]
+            hits[tau] += lo <= truth[tau] <= hi
+        lo, hi = ci["scenes"]["s2"]["mAA10_ci"]
+        hits["s2"] += lo <= truth_s2 <= hi
+        widths.append(ci["mAA10_ci"][1] - ci["mAA10_ci"][0])
+    cover = {k: v / N_SIM for k, v in hits.items()}
+    assert 0.90 <= cover[10] <= 0.98, cover
+    assert 0.90 <= cover[5] <= 0.98, cover
+    assert 0.88 <= cover["s2"] <= 0.98, cover  # one scene of 45 pairs: percentile intervals run a bit short
+    # the width matches the analytic standard error of the stratified mean (2 x 1.96 sd)
+    var = 0.0
+    for n, sc, f in SCENES.values():
+        e = draw(np.random.default_rng(0), 200_000, sc, f)
+        var += np.var(np.mean([(e <= k) for k in range(1, 11)], axis=0)) / n / len(SCENES) ** 2
+    assert np.mean(widths) == pytest.approx(2 * 1.96 * math.sqrt(var), rel=0.08)
+
+
+def test_single_pair_scene_gives_a_degenerate_interval_and_a_constant():
+    recs = records_from({"big": [0.5, 3.0, 20.0, np.inf, 1.5, 7.0], "one": [2.5]})
+    ci = maa_intervals(recs)
+    v = mean_average_accuracy([2.5], 10)
+    assert ci["scenes"]["one"]["mAA10_ci"] == [v, v]
+    lo, hi = ci["mAA10_ci"]
+    big = ci["scenes"]["big"]["mAA10_ci"]
+    assert lo == pytest.approx((big[0] + v) / 2) and hi == pytest.approx((big[1] + v) / 2)
+    all_perfect = maa_intervals(records_from({"a": [0.1] * 10}))
+    assert all_perfect["mAA10_ci"] == [1.0, 1.0] and all_perfect["mAA5_ci"] == [1.0, 1.0]
+    empty = maa_intervals(recs, scenes=["big", "one", "none"])  # a scene without pairs counts as mAA 0
+    assert empty["scenes"]["none"]["mAA10_ci"] == [0.0, 0.0]
+    assert empty["mAA10_ci"][1] == pytest.approx((big[1] + v + 0.0) / 3)
+
+
+def test_intervals_are_seeded():
+    recs = records_from({"a": draw(np.random.default_rng(1), 40, 4, 0.1)})
+    assert maa_intervals(recs, seed=5) == maa_intervals(recs, seed=5)
+    assert maa_intervals(recs, seed=5) != maa_intervals(recs, seed=6)
+    lo, hi = maa_intervals(recs, level=0.5)["mAA10_ci"]
+    lo95, hi95 = maa_intervals(recs)["mAA10_ci"]
+    assert lo95 < lo < hi < hi95
+
+
+# ------------------------------------------------------------------------------------------ multiview bags
+
+def test_bag_intervals_weight_bags_as_the_multiview_task():
+    from pipeline.tasks.multiview import combine, summarize_scene
+    rng = np.random.default_rng(4)
+    recs = []
+    # identical bags within each (scene, size) group: the interval is the exact point, which must be the task's mAA
+    for scene, sizes in (("A", {5: 7, 10: 3, 25: 1}), ("B", {5: 2, 10: 4})):
+        for size, count in sizes.items():
+            errs = list(draw(rng, size * (size - 1) // 2, 5.0, 0.2))
+            recs += [{"scene": scene, "bag_size": size, "errors": errs, "success": True, "RC": 100.0, "NL": 1.0,
+                      "TL": 2.0, "NM": 1.0, "seconds": 1.0} for _ in range(count)]
+    want = combine({s: summarize_scene([r for r in recs if r["scene"] == s]) for s in ("A", "B")})
+    ci = bag_intervals(recs)
+    for tau in (5, 10):
+        lo, hi = ci[f"mAA{tau}_ci"]
+        assert lo == pytest.approx(want[f"mAA{tau}"], abs=1e-12) and hi == pytest.approx(want[f"mAA{tau}"], abs=1e-12)
+    # different bags: the interval covers the true bag mAA at about the nominal rate
+    truth = true_maa(5.0, 0.2, 10)
+    hits = 0
+    for i in range(200):
+        bags = [{"scene": s, "bag_size": 5, "errors": list(draw(rng, 10, 5.0, 0.2))} for s in ("A", "B") for _ in range(25)]
+        lo, hi = bag_intervals(bags, taus=(10,), seed=i)["mAA10_ci"]
+        hits += lo <= truth <= hi
+    assert 0.88 <= hits / 200 <= 0.99
+
+
+# ------------------------------------------------------------------------------------------ paired test
+
+def paired_draw(rng, shrink_b: float):
+    """Pairs with a difficulty shared by both methods; B's errors scaled by ``shrink_b`` (1 = same method)."""
+    a, b = {}, {}
+    for s, (n, _, _) in SCENES.items():
+        difficulty = rng.lognormal(1.0, 0.8, n)
+        ea = difficulty * rng.lognormal(0.0, 0.5, n)
+        eb = shrink_b * difficulty * rng.lognormal(0.0, 0.5, n)
+        hard = difficulty > 8.0  # both fail on the hardest pairs, each also fails at random
+        ea[hard | (rng.random(n) < 0.05)] = np.inf
+        eb[hard | (rng.random(n) < 0.05)] = np.inf
+        a[s], b[s] = ea, eb
+    return records_from(a), records_from(b)
+
+
+def true_difference(shrink_b: float) -> float:
+    """mAA10_b - mAA10_a by brute-force Monte Carlo (1e6 pairs), counting thresholds directly."""
+    rng = np.random.default_rng(99)
+    n = 1_000_000
+    difficulty = rng.lognormal(1.0, 0.8, n)
+    out = []
+    for shrink in (1.0, shrink_b):
+        e = shrink * difficulty * rng.lognormal(0.0, 0.5, n)
+        ok = (difficulty <= 8.0) & (rng.random(n) >= 0.05)
+        out.append(np.mean([np.count_nonzero(ok & (e <= k)) / n for k in range(1, 11)]))
+    return float(out[1] - out[0])  # every scene has the same distribution: the scene mean is this
+
+
+def test_paired_test_has_power_and_size_and_its_ci_covers_the_true_difference():
+    truth = true_difference(0.65)
+    assert 0.05 < truth < 0.12  # a difference of the size seen between estimators
+    rng = np.random.default_rng(11)
+    power = size_ok = covers = agree = 0
+    for i in range(N_SIM):
+        a, b = paired_draw(rng, 0.65)
+        res = paired_bootstrap(a, b, seed=i)
+        power += res["p_value"] < 0.05
+        covers += res["ci"][0] <= truth <= res["ci"][1]
+        agree += (res["p_value"] < 0.05) == res["significant"]
+        a0, a1 = paired_draw(rng, 1.0)
+        res0 = paired_bootstrap(a0, a1, seed=i)
+        size_ok += res0["p_value"] >= 0.05
+        agree += (res0["p_value"] < 0.05) == res0["significant"]
+    assert power / N_SIM >= 0.80, power / N_SIM
+    assert 0.92 <= size_ok / N_SIM <= 0.98, size_ok / N_SIM
+    assert 0.90 <= covers / N_SIM <= 0.98, covers / N_SIM
+    assert agree / (2 * N_SIM) >= 0.95  # the p-value and the CI rarely disagree
+
+
+def test_paired_bootstrap_identical_inputs_and_matching():
+    a, b = paired_draw(np.random.default_rng(5), 0.75)
+    same = paired_bootstrap(a, [dict(r) for r in reversed(a)])  # order does not matter: matched on (scene, pair)
+    assert same["difference"] == 0.0 and same["ci"] == [0.0, 0.0] and same["p_value"] == 1.0
+    assert all(s["difference"] == 0.0 and s["ci"] == [0.0, 0.0] and s["p_value"] == 1.0
+               for s in same["scenes"].values())
+    res = paired_bootstrap(a, b)
+    back = paired_bootstrap(b, a)
+    assert res["difference"] > 0 and back["difference"] == pytest.approx(-res["difference"])
+    assert res["difference"] == pytest.approx(res["mAA10_b"] - res["mAA10_a"])
+    want_a = np.mean([mean_average_accuracy([r["err"] for r in a if r["scene"] == s]) for s in SCENES])
+    assert res["mAA10_a"] == pytest.approx(want_a)
+    # common pairs only, counted
+    part = paired_bootstrap(a[5:], b[:-3])
+    assert part["pairs"] == len(a) - 8 and part["dropped_a"] == 3 and part["dropped_b"] == 5
+    assert sum(s["pairs"] for s in part["scenes"].values()) == part["pairs"]
+    # per-scene results are the scene's own test
+    s1 = paired_bootstrap([r for r in a if r["scene"] == "s1"], [r for r in b if r["scene"] == "s1"])
+    assert res["scenes"]["s1"]["difference"] == pytest.approx(s1["difference"])
+    assert res["scenes"]["s1"]["ci"] == s1["ci"]
+
+
+def test_rank_with_ties():
+    a, b = paired_draw(np.random.default_rng(6), 0.5)
+    noise = [dict(r, err=r["err"] * 1.001) for r in b]  # practically B
+    ranks = rank_with_ties([("A", a), ("B", b), ("B'", noise)])
+    assert [r["name"] for r in ranks] == ["B", "B'", "A"]
+    assert [r["rank"] for r in ranks] == [1, 1, 3]
+    assert ranks[1]["shared"] and "rank shared with B" in ranks[1]["note"]
+    assert not ranks[2]["shared"] and ranks[2]["comparison"]["significant"]
+    by_ci = rank_by_intervals([{"name": "x", "mAA10": 0.5, "mAA10_ci": [0.4, 0.6]},
+                               {"name": "y", "mAA10": 0.55, "mAA10_ci": [0.45, 0.65]},
+                               {"name": "z", "mAA10": 0.2, "mAA10_ci": [0.1, 0.3]}])
+    assert [(r["name"], r["rank"]) for r in by_ci] == [("y", 1), ("x", 1), ("z", 3)]
+
+
+# ------------------------------------------------------------------------------------------ repeated runs
+
+def test_combine_runs_accounts_for_a_shared_run_effect():
+    """Pairs with per-seed noise plus a run effect shared by every pair (sd 0.15 in log error). The truth,
+    the mAA expected over pairs and seeds, by Monte Carlo. The combined interval must cover it at about
+    the nominal rate; a bootstrap of the pooled runs that ignores the run effect covers it less often."""
+    big = np.random.default_rng(7)
+    n = 400_000
+    e = big.lognormal(1.0, 0.8, n) * big.lognormal(0.0, 0.4, n) * np.exp(big.normal(0, 0.15, n))
+    truth = float(np.mean([(e <= k).mean() for k in range(1, 11)]))
+    rng = np.random.default_rng(8)
+    hits = naive = 0
+    sims = 300
+    for i in range(sims):
+        runs = []
+        difficulty = {s: rng.lognormal(1.0, 0.8, n_) for s, (n_, _, _) in SCENES.items()}
+        for r in range(3):
+            g = math.exp(rng.normal(0, 0.15))
+            runs.append(records_from({s: d * rng.lognormal(0.0, 0.4, d.size) * g for s, d in difficulty.items()}))
+        out = combine_runs_interval(runs, taus=(10,), seed=i)
+        assert out["mAA10"] == pytest.approx(np.mean([np.mean([mean_average_accuracy(
+            [x["err"] for x in run if x["scene"] == s]) for s in SCENES]) for run in runs]))
+        hits += out["mAA10_ci"][0] <= truth <= out["mAA10_ci"][1]
+        pooled = [np.array([np.mean([pair_scores([run[j]["err"]], 10)[0] for run in runs])
+                            for j in range(len(runs[0])) if runs[0][j]["scene"] == s]) for s in SCENES]
+        lo, hi = stratified_interval(pooled, [1 / 3] * 3, seed=i)
+        naive += lo <= truth <= hi
+    assert 0.90 <= hits / sims <= 0.98, (hits / sims, naive / sims)
+    print(f"combined-runs coverage {hits / sims:.3f}, pooled bootstrap {naive / sims:.3f}")
+    assert naive / sims < hits / sims - 0.05  # the run effect matters here
+
+
+def test_combine_runs_without_run_effect_is_the_bootstrap():
+    rng = np.random.default_rng(9)
+    recs = records_from({s: draw(rng, n, sc, f) for s, (n, sc, f) in SCENES.items()})
+    one = combine_runs_interval([recs], seed=3)
+    assert one["mAA10_ci"] == maa_intervals(recs, seed=3)["mAA10_ci"]
+    same = combine_runs_interval([recs, recs, recs], seed=3)
+    assert same["mAA10_ci"] == pytest.approx(one["mAA10_ci"], abs=1e-12) and same["mAA10_std"] == 0.0
