@@ -2,27 +2,45 @@
 
 Every entry is keyed by a hash of (input file identity, stage config, stage code version); input files
 are identified by the SHA-1 of their bytes, so a copied data folder hits the same entries and an edited
-image misses. Entries are written atomically (temp name in the same folder, fsync, rename) and carry a
-SHA-1 of their arrays; an entry that cannot be opened or whose checksum disagrees is deleted and
-recomputed, never trusted. Arrays only: no pickle.
+image misses. Arrays only: no pickle.
+
+An entry is bound to its key: besides its arrays it stores its format, stage name, key (and, when the caller
+gives one, the stage config as JSON) and a SHA-1 over all of them. On read, an entry that cannot be opened
+(truncated, overwritten bytes, zero length, not an h5 file), whose checksum disagrees, or that holds another
+key or stage (e.g. two valid entries swapped on disk) is reported in one warning line naming the file, deleted
+and recomputed, never trusted. Entries of the old format (no key inside) are stale: recomputed, with one
+warning per process. Entries are written with :func:`pipeline.fileio.atomic_write_h5` (temp name in the same
+folder, fsync, rename), so concurrent processes on one cache folder (or machines on a shared file system)
+only ever see complete entries.
+
+A cache folder that cannot be used (a file in its place, read-only, full disk) is a one-line
+:class:`~pipeline.errors.ImtuneError` naming the folder and what to do, never an OSError traceback.
 
 Location: ``$IMTUNE_CACHE`` or ``~/.cache/imtune``.
 """
 from __future__ import annotations
 
+import errno
 import hashlib
+import json
+import logging
 import os
-import tempfile
 import threading
 from collections import OrderedDict
 from pathlib import Path
 from typing import Callable
 
-import h5py
 import numpy as np
 
 from pipeline.config import config_hash
+from pipeline.errors import ImtuneError
+from pipeline.fileio import FileWriteError, arrays_checksum, atomic_write_h5
 
+log = logging.getLogger(__name__)
+
+#: format tag stored in every entry; entries without it (or with another) are stale and recomputed
+FORMAT = "imtune-cache-2"
+_WARNED_STALE: set[str] = set()  # cache roots already warned about old-format entries (once per process)
 _FILE_DIGESTS: dict[tuple, str] = {}
 
 
@@ -48,20 +66,36 @@ def make_key(*parts) -> str:
     return config_hash(list(parts), n=32)
 
 
-def _checksum(arrays: dict[str, np.ndarray]) -> str:
+_checksum = arrays_checksum  # kept for pipeline.data.ground_truth
+
+
+def _entry_checksum(stage: str, key: str, meta: str, arrays: dict[str, np.ndarray]) -> str:
+    """SHA-1 binding the arrays to the entry's format, stage, key and config."""
     h = hashlib.sha1()
-    for name in sorted(arrays):
-        a = np.ascontiguousarray(arrays[name])
-        h.update(name.encode())
-        h.update(str(a.dtype).encode())
-        h.update(str(a.shape).encode())
-        h.update(a.tobytes())
+    for part in (FORMAT, stage, key, meta, arrays_checksum(arrays)):
+        h.update(part.encode())
+        h.update(b"\0")
     return h.hexdigest()
+
+
+def _attr(f, name: str) -> str | None:
+    v = f.attrs.get(name)
+    return v.decode() if isinstance(v, bytes) else (None if v is None else str(v))
+
+
+class _Invalid(Exception):
+    """An entry that must not be trusted; ``str`` is the reason."""
+
+
+class _Stale(_Invalid):
+    """An entry of the old format (no key inside)."""
 
 
 class H5Cache:
     """One h5 file per entry under ``root/<stage>/<key[:2]>/<key>.h5``, with an in-process LRU of the
-    most recent entries (so tuning trials read each k-NN table from memory after the first)."""
+    most recent entries (so tuning trials read each k-NN table from memory after the first).
+
+    ``stats`` counts ``hit``, ``miss`` and ``corrupt`` (entries found invalid or stale and dropped)."""
 
     def __init__(self, root: Path | str | None = None, memory_items: int = 4096):
         self.root = Path(root) if root is not None else default_cache_dir()
@@ -73,56 +107,128 @@ class H5Cache:
     def path(self, stage: str, key: str) -> Path:
         return self.root / stage / key[:2] / f"{key}.h5"
 
+    # -- folder faults -> one line naming the folder and what to do
+
+    def _folder_error(self, err: OSError | FileWriteError, entry: Path) -> ImtuneError:
+        code = err.errno
+        reason = getattr(err, "reason", None) or err.strerror or str(err)
+        fix = "give a usable folder with --cache DIR or the IMTUNE_CACHE environment variable"
+        if code in (errno.ENOSPC, errno.EDQUOT):
+            return ImtuneError(f"cache folder {self.root} is full ({reason}): free some space there, or {fix} "
+                               f"on a disk with room")
+        if code in (errno.EACCES, errno.EPERM, errno.EROFS):
+            return ImtuneError(f"cache folder {self.root} is not writable ({reason}): {fix}")
+        if code in (errno.ENOTDIR, errno.EEXIST) or self.root.is_file():
+            return ImtuneError(f"cache folder {self.root} is not a folder (a file is in the way): {fix}")
+        return ImtuneError(f"cache folder {self.root}: cannot write {entry} ({reason}): {fix}")
+
+    def _check_root(self) -> None:
+        if self.root.exists() and not self.root.is_dir():
+            raise ImtuneError(f"cache folder {self.root} is not a folder (a file is in the way): give a usable "
+                              "folder with --cache DIR or the IMTUNE_CACHE environment variable")
+
+    # -- reading
+
+    def _read(self, p: Path, stage: str, key: str, ident: list) -> dict[str, np.ndarray]:
+        """Arrays of the entry at ``p`` (its (st_dev, st_ino) appended to ``ident``); FileNotFoundError when
+        absent; _Invalid when it must not be trusted; other OSErrors (folder unreadable) propagate."""
+        import io
+
+        import h5py
+        with open(p, "rb") as fh:  # whole file in memory: one snapshot, no HDF5 file locking on shared folders
+            st = os.fstat(fh.fileno())
+            ident.append((st.st_dev, st.st_ino))
+            data = fh.read()
+        if not data:
+            raise _Invalid("zero length")
+        try:
+            with h5py.File(io.BytesIO(data), "r") as f:
+                fmt, got_stage, got_key = _attr(f, "format"), _attr(f, "stage"), _attr(f, "key")
+                meta, expected = _attr(f, "config") or "", _attr(f, "sha1")
+                if fmt is None and got_key is None:
+                    raise _Stale("old format without its key")
+                arrays = {k: f[k][()] for k in f.keys()}
+        except _Invalid:
+            raise
+        except Exception as e:  # h5py/HDF5 raise OSError, KeyError, ValueError... on damaged bytes
+            raise _Invalid(f"unreadable: {' '.join(str(e).split())[:100] or type(e).__name__}") from None
+        if fmt != FORMAT:
+            raise _Stale(f"format {fmt!r}, expected {FORMAT!r}")
+        if got_stage != stage or got_key != key:
+            raise _Invalid(f"holds the entry of {got_stage}/{got_key}, not this key")
+        if expected is None or _entry_checksum(stage, key, meta, arrays) != expected:
+            raise _Invalid("checksum mismatch")
+        return arrays
+
+    def _drop(self, p: Path, ident: tuple[int, int] | None, stage: str, why: _Invalid) -> None:
+        self.stats["corrupt"] += 1
+        if isinstance(why, _Stale):
+            if str(self.root) not in _WARNED_STALE:
+                _WARNED_STALE.add(str(self.root))
+                log.warning("warning: old-format cache entries under %s are stale and recomputed (first: %s)",
+                            self.root, p)
+        else:
+            log.warning("warning: cache entry %s (%s) is not valid (%s): recomputing it", p, stage, why)
+        try:  # only the file we read: a concurrent writer may have renamed a good entry over it since
+            st = os.stat(p)
+            if ident is None or (st.st_dev, st.st_ino) == ident:
+                p.unlink()
+        except OSError:
+            pass
+
     def get(self, stage: str, key: str) -> dict[str, np.ndarray] | None:
+        """The entry's arrays, or None when absent or not valid (then dropped, with a warning)."""
         with self._lock:
             if (stage, key) in self._mem:
                 self._mem.move_to_end((stage, key))
                 self.stats["hit"] += 1
                 return self._mem[(stage, key)]
+        self._check_root()
         p = self.path(stage, key)
-        if not p.exists():
+        ident: list = []
+        try:
+            arrays = self._read(p, stage, key, ident)
+        except FileNotFoundError:
             self.stats["miss"] += 1
             return None
-        try:
-            with h5py.File(p, "r") as f:
-                arrays = {k: f[k][()] for k in f.keys()}
-                expected = f.attrs.get("sha1")
-            if expected is None or _checksum(arrays) != (expected.decode() if isinstance(expected, bytes) else expected):
-                raise OSError("checksum mismatch")
-        except Exception:  # unreadable, truncated or tampered: drop it and recompute
-            self.stats["corrupt"] += 1
-            try:
-                p.unlink()
-            except OSError:
-                pass
+        except _Invalid as why:
+            self._drop(p, ident[0] if ident else None, stage, why)
             return None
+        except IsADirectoryError:
+            self._drop(p, None, stage, _Invalid("a folder, not a file"))
+            return None
+        except OSError as e:
+            if e.errno == errno.ENOTDIR:  # a file where a sub-folder of the cache should be
+                raise self._folder_error(e, p) from None
+            raise ImtuneError(f"cache folder {self.root}: cannot read {p} ({e.strerror or e}): give a readable "
+                              "folder with --cache DIR or the IMTUNE_CACHE environment variable") from None
         self.stats["hit"] += 1
         self._remember(stage, key, arrays)
         return arrays
 
-    def put(self, stage: str, key: str, arrays: dict[str, np.ndarray]) -> None:
-        p = self.path(stage, key)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{key}.", suffix=".tmp", dir=p.parent)
-        os.close(fd)
-        try:
-            with h5py.File(tmp, "w") as f:
-                for k, v in arrays.items():
-                    f.create_dataset(k, data=np.asarray(v))
-                f.attrs["sha1"] = _checksum({k: np.asarray(v) for k, v in arrays.items()})
-            with open(tmp, "rb+") as fh:
-                os.fsync(fh.fileno())
-            os.replace(tmp, p)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-        self._remember(stage, key, {k: np.asarray(v) for k, v in arrays.items()})
+    # -- writing
 
-    def get_or_compute(self, stage: str, key: str, compute: Callable[[], dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    def put(self, stage: str, key: str, arrays: dict[str, np.ndarray], config=None) -> None:
+        """Store ``arrays`` as the entry (stage, key), atomically. ``config`` (any JSON-able value, e.g. the
+        stage config) is stored inside the entry and covered by its checksum, for inspection."""
+        arrays = {k: np.asarray(v) for k, v in arrays.items()}
+        meta = "" if config is None else json.dumps(config, sort_keys=True, default=str)
+        attrs = {"format": FORMAT, "stage": stage, "key": key, "config": meta,
+                 "sha1": _entry_checksum(stage, key, meta, arrays)}
+        self._check_root()
+        p = self.path(stage, key)
+        try:
+            atomic_write_h5(p, arrays, attrs)
+        except FileWriteError as e:
+            raise self._folder_error(e, p) from None
+        self._remember(stage, key, arrays)
+
+    def get_or_compute(self, stage: str, key: str, compute: Callable[[], dict[str, np.ndarray]],
+                       config=None) -> dict[str, np.ndarray]:
         got = self.get(stage, key)
         if got is None:
             got = compute()
-            self.put(stage, key, got)
+            self.put(stage, key, got, config=config)
         return got
 
     def _remember(self, stage, key, arrays):

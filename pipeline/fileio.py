@@ -1,11 +1,31 @@
-"""Atomic text writes for result files (frozen settings, budgets, galleries, reports)."""
+"""Atomic writes: text for result files (frozen settings, budgets, galleries, reports), h5 for array files
+(cache entries, built ground truth)."""
 from __future__ import annotations
 
+import errno as _errno
+import hashlib
+import io
 import os
 import tempfile
 from pathlib import Path
 
 from pipeline.errors import ImtuneError
+
+
+class FileWriteError(ImtuneError):
+    """A file could not be written. ``path`` is the file, ``errno`` the OS error number (``errno.ENOSPC`` for a
+    full disk, ``EACCES`` / ``EROFS`` for a read-only folder, ``ENOTDIR`` / ``EEXIST`` when a file stands where a
+    folder should be; None when unknown), ``reason`` the OS's words."""
+
+    def __init__(self, path: Path | str, err: OSError):
+        self.path = Path(path)
+        self.errno = err.errno
+        self.reason = err.strerror or str(err)
+        super().__init__(f"cannot write {self.path}: {self.reason}")
+
+    @property
+    def disk_full(self) -> bool:
+        return self.errno in (_errno.ENOSPC, _errno.EDQUOT)
 
 
 def atomic_write(path: Path | str, text: str) -> None:
@@ -31,3 +51,57 @@ def atomic_write(path: Path | str, text: str) -> None:
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def arrays_checksum(arrays: dict) -> str:
+    """SHA-1 hex digest of named arrays: name, dtype, shape and bytes of each, in sorted name order."""
+    import numpy as np
+    h = hashlib.sha1()
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        h.update(name.encode())
+        h.update(str(a.dtype).encode())
+        h.update(str(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def atomic_write_h5(path: Path | str, arrays: dict, attrs: dict | None = None) -> Path:
+    """Write named arrays (``"a/b"`` names make groups) and root attributes to an h5 file, atomically.
+
+    The file is built in memory, written to a temp name in the destination folder (``.<name>.<random>.tmp``),
+    fsync'ed and renamed over ``path``: readers see the old file or the complete new one, never a partial one,
+    and concurrent writers of the same path leave one complete file. Raises :class:`FileWriteError` (an
+    ImtuneError carrying ``errno``) when the folder cannot be created or written (read-only, a file in the way,
+    disk full); the temp file is removed in every failure case. Returns ``path``.
+    """
+    import h5py
+    import numpy as np
+    path = Path(path)
+    buf = io.BytesIO()  # built in memory so every disk error comes from os calls below, with its errno
+    with h5py.File(buf, "w") as f:
+        for k, v in arrays.items():
+            f.create_dataset(k, data=np.asarray(v))
+        for k, v in (attrs or {}).items():
+            f.attrs[k] = v
+    data = buf.getbuffer()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as e:
+        raise FileWriteError(path, e) from None
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; a shared cache is for every user to read
+        os.replace(tmp, path)
+    except OSError as e:
+        raise FileWriteError(path, e) from None
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path

@@ -392,11 +392,8 @@ def build_ground_truth(scene, gt_dir: Path | str | None = None, conf: GTConfig =
 
 def save_ground_truth(gt: GroundTruth, path: Path | str) -> Path:
     """Write ``gt`` to an h5 file atomically (temp name, fsync, rename) with a checksum."""
-    import h5py
-
-    from pipeline.cache import _checksum
+    from pipeline.fileio import arrays_checksum, atomic_write_h5
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     arrays = {"K": gt.K, "R": gt.R, "t": gt.t, "sizes": gt.sizes, "points3d": gt.points3d,
               "covisibility": gt.covisibility}
     for k, n in enumerate(gt.names):
@@ -406,24 +403,9 @@ def save_ground_truth(gt: GroundTruth, path: Path | str) -> Path:
     for size, bags in gt.bags.items():
         idx = {n: k for k, n in enumerate(gt.names)}
         arrays[f"bags/{size}"] = np.array([[idx[n] for n in b] for b in bags], np.int64).reshape(-1, size)
-    fd, tmp = tempfile.mkstemp(prefix=".gt.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        with h5py.File(tmp, "w") as f:
-            for k, v in arrays.items():
-                f.create_dataset(k, data=np.asarray(v))
-            f.attrs["names"] = json.dumps(gt.names)
-            f.attrs["scene"] = gt.scene
-            f.attrs["method"] = gt.method
-            f.attrs["meta"] = json.dumps(gt.meta)
-            f.attrs["sha1"] = _checksum({k: np.asarray(v) for k, v in arrays.items()})
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    attrs = {"names": json.dumps(gt.names), "scene": gt.scene, "method": gt.method, "meta": json.dumps(gt.meta),
+             "sha1": arrays_checksum(arrays)}
+    return atomic_write_h5(path, arrays, attrs)
 
 
 def load_ground_truth(path: Path | str) -> GroundTruth:
