@@ -5,6 +5,13 @@ other formats). ``check_image_file`` raises :class:`ImtuneError` naming the file
 truncated JPEG / PNG (OpenCV silently returns None for some corrupt files and decodes truncated JPEGs partially
 with only a libjpeg warning, so the bytes are checked here). EXIF orientation is ignored everywhere: sizes and
 intrinsics refer to the pixel grid as stored.
+
+``check_jpeg_decode`` catches what the byte walk cannot: a JPEG whose entropy-coded data is damaged (e.g. its middle
+overwritten, end marker intact). libjpeg only *warns* about such data ("Corrupt JPEG data: ...", "Premature end of
+JPEG file", "Unsupported marker type ...") and OpenCV prints the warning and returns a damaged image; the warning
+is not visible to the caller. simplejpeg (libjpeg-turbo) decodes with ``strict=True``, turning exactly these
+recoverable errors into a ValueError, so they are caught reliably, without capturing stderr. Policy: such an image
+is bad input, an ImtuneError naming the file (exit 2), as a truncated file is; it is never used silently.
 """
 from __future__ import annotations
 
@@ -120,6 +127,30 @@ def check_image_bytes(path: Path, data: bytes) -> None:
         raise ImtuneError(f"truncated or corrupt JPEG (no end-of-image marker): {path}")
     if data[:8] == _PNG_MAGIC and _PNG_IEND not in data[-64:]:
         raise ImtuneError(f"truncated or corrupt PNG (no IEND chunk): {path}")
+
+
+def check_jpeg_decode(path: Path, data: bytes) -> None:
+    """Raise ImtuneError naming ``path`` if libjpeg reports the JPEG ``data`` as corrupt (a recoverable error it
+    would otherwise only warn about and decode into a damaged image). Non-JPEG data is not checked. A JPEG that
+    simplejpeg cannot decode at all (a variant it does not support) is left to the caller's decoder."""
+    if data[:2] != b"\xff\xd8":
+        return
+    try:
+        import simplejpeg
+    except ImportError:
+        raise ImtuneError("checking JPEG images needs simplejpeg (a dependency of imtune): pip install simplejpeg") \
+            from None
+    try:
+        simplejpeg.decode_jpeg(data, colorspace="GRAY", strict=True)
+        return
+    except ValueError as e:
+        warning = " ".join(str(e).split())
+    try:  # a recoverable error (a libjpeg warning) decodes when not strict; anything else is not corruption
+        simplejpeg.decode_jpeg(data, colorspace="GRAY", strict=False)
+    except ValueError:
+        return
+    raise ImtuneError(f"corrupt JPEG {path}: libjpeg reports \"{warning}\" (the decoded image would be damaged); "
+                      "replace the file or remove it from the scene")
 
 
 def _jpeg_size(f) -> tuple[int, int] | None:

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.data.imagefile import check_image_bytes
+from pipeline.data.imagefile import check_image_bytes, check_jpeg_decode
 from pipeline.errors import ImtuneError
 
 
@@ -49,7 +49,7 @@ def load_image(path: str | Path, max_side: int | None = 1024, gray: bool = True)
 
     Returns (image uint8: (H, W) if gray else (H, W, 3) RGB, sx, sy) with sx = W / W_file, sy = H / H_file.
     EXIF orientation is ignored (intrinsics refer to the stored pixel grid). A missing, empty, unreadable or
-    truncated file raises ImtuneError naming it.
+    truncated file, or a JPEG that libjpeg reports as corrupt (``check_jpeg_decode``), raises ImtuneError naming it.
     """
     import cv2
 
@@ -61,6 +61,7 @@ def load_image(path: str | Path, max_side: int | None = 1024, gray: bool = True)
     except OSError as e:
         raise ImtuneError(f"cannot read image {path}: {e.strerror or e}") from None
     check_image_bytes(path, data)
+    check_jpeg_decode(path, data)
     flags = (cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR) | cv2.IMREAD_IGNORE_ORIENTATION
     img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags)
     if img is None or img.size == 0:
