@@ -8,9 +8,28 @@
 """
 from __future__ import annotations
 
-from typing import Callable
+import difflib
+from typing import Callable, Iterable
 
 from pipeline.errors import ImtuneError, UnavailableError
+
+
+def close_matches(name: str, names: Iterable[str], n: int = 3) -> list[str]:
+    """Up to ``n`` of ``names`` that look like ``name`` (difflib ratio >= 0.6; case-insensitive), best first."""
+    names = [str(x) for x in names]
+    by_lower = {}
+    for x in names:
+        by_lower.setdefault(x.lower(), x)
+    hits = difflib.get_close_matches(str(name).lower(), list(by_lower), n=n, cutoff=0.6)
+    return [by_lower[h] for h in hits]
+
+
+def did_you_mean(name: str, names: Iterable[str]) -> str:
+    """`` (did you mean 'sift'?)`` / `` (did you mean 'sift' or 'rootsift'?)``, or "" when nothing is close."""
+    hits = close_matches(name, names)
+    if not hits:
+        return ""
+    return " (did you mean " + " or ".join(repr(h) for h in hits) + "?)"
 
 
 class Registry:
@@ -47,7 +66,8 @@ class Registry:
                 obj = fn(name)
                 if obj is not None:
                     return obj
-            raise ImtuneError(f"unknown {self.kind} {name!r} (known: {', '.join(sorted(self._items))})")
+            raise ImtuneError(f"unknown {self.kind} {name!r}{did_you_mean(name, self._items)} "
+                              f"(known: {', '.join(sorted(self._items))})")
         return self._items[name]
 
     def description(self, name: str) -> str:

@@ -66,12 +66,13 @@ def _mirror_strecha(root: Path):
 
 
 def _no_leftovers(dest: Path):
-    assert not [p for p in dest.iterdir() if p.name.startswith(".")]
+    assert not dest.exists() or not [p for p in dest.iterdir() if p.name.startswith(".")]
 
 
-def test_strecha_download_layout_and_downsampling(server, tmp_path):
+def test_strecha_download_layout_and_downsampling(server, tmp_path, monkeypatch):
     mirror, base = server
     _mirror_strecha(mirror)
+    monkeypatch.setattr(dl, "STRECHA_LONG_SIDE", 32)  # the toy 64x48 images stand for the published 3072x2048
     dest = tmp_path / "data"
     out = dl.download("strecha", dest, base_url=base, quiet=True)
     assert out == dest / "strecha"
@@ -94,6 +95,29 @@ def test_strecha_download_layout_and_downsampling(server, tmp_path):
     assert dl.download("strecha", dest, base_url=_closed_port_url(), quiet=True) == out
 
 
+def test_strecha_already_in_shared_layout_is_kept(server, tmp_path, monkeypatch):
+    mirror, base = server
+    _mirror_strecha(mirror)
+    monkeypatch.setattr(dl, "STRECHA_LONG_SIDE", 64)  # 64x48 = the target layout: no second halving
+    out = dl.download("strecha", tmp_path / "data", base_url=base, quiet=True)
+    for scene in dl.STRECHA_SCENES:
+        for f in ("images/0001.jpg", "gt_dense_cameras/0001.jpg.camera"):
+            assert (out / scene / f).read_bytes() == (mirror / STRECHA_PREFIX / scene / f).read_bytes()
+
+
+def test_interrupt_leaves_nothing(server, tmp_path):
+    mirror, base = server
+    _mirror_strecha(mirror)
+    dest = tmp_path / "a" / "b"
+
+    def interrupt():
+        raise KeyboardInterrupt  # what Ctrl-C raises in the main thread, after the first file arrived
+
+    with pytest.raises(KeyboardInterrupt):
+        dl.download("strecha", dest, base_url=base, quiet=True, on_connected=interrupt)
+    assert not (tmp_path / "a").exists()
+
+
 def test_env_var_base_and_force(server, tmp_path, monkeypatch):
     mirror, base = server
     _mirror_strecha(mirror)
@@ -112,8 +136,8 @@ def test_network_errors_are_one_line_and_leave_nothing(server, tmp_path):
     with pytest.raises(ImtuneError, match="download failed: .*0000.jpg: HTTP 404") as e:
         dl.download("strecha", dest, base_url=base, quiet=True)
     assert "\n" not in str(e.value)
-    assert not (dest / "strecha").exists()
-    _no_leftovers(dest)
+    assert not dest.exists()  # the destination this call created goes too: nothing half-made
+    (dest / "keep").mkdir(parents=True)  # a destination that exists (with content) is left as it was
     with pytest.raises(ImtuneError, match="download failed: http://127.0.0.1") as e:
         dl.download("sacre_coeur", dest, base_url=_closed_port_url(), quiet=True)
     assert "\n" not in str(e.value) and not (dest / "sacre_coeur").exists()

@@ -35,25 +35,8 @@ def project_config() -> tuple[dict, Path | None]:
     return {}, None
 
 
-def resolve_data(cli_value: str | None = None) -> Path:
-    """The data folder, by the precedence in this module's docstring. Raises if it does not exist."""
-    if cli_value:
-        p, src = Path(cli_value), "--data"
-    elif os.environ.get("IMTUNE_DATA"):
-        p, src = Path(os.environ["IMTUNE_DATA"]), "IMTUNE_DATA"
-    else:
-        conf, where = project_config()
-        if conf.get("data"):
-            p = Path(conf["data"])
-            if not p.is_absolute():
-                p = where.parent / p
-            src = str(where)
-        else:
-            p, src = DEFAULT_DATA, "default"
-    p = p.expanduser().resolve()
-    if not p.is_dir():
-        raise ImtuneError(f"data folder {p} (from {src}) does not exist")
-    return p
+# The data folder rule lives in the pipeline (one rule for every command; the main job may download):
+from pipeline.data.locate import resolve_data  # noqa: E402,F401
 
 
 def add_pipeline_options(ap: argparse.ArgumentParser, tuning: bool = False) -> None:

@@ -1,14 +1,24 @@
 """Fetch the public data sets from their original homes (urllib only), into ``<dest>/<name>/``.
 
     from pipeline.data.download import download
-    download("strecha", "../shared/data")        # -> ../shared/data/strecha/<scene>/...
+    download("strecha")                          # -> <download location>/strecha/<scene>/...
+    download("strecha", "/data/imtune")          # -> /data/imtune/strecha/<scene>/...
 
-Each source is a file or an archive (zip / tar*) with an optional sha256. ``base_url`` (or the environment
-variable IMTUNE_DOWNLOAD_BASE) replaces scheme and host of every URL, keeping its path: a mirror or a local test
-server. Everything is assembled in a temporary folder inside ``dest`` and renamed into place at the end, so an
-interrupted download never leaves a partial data set. Strecha images are downsampled by exactly 2 after download
-(3072x2048 -> 1536x1024, area interpolation, JPEG quality 95; fx, fy, skew halved, c' = c/2 - 0.25, size halved),
-the layout ``../shared/data`` uses.
+``dest`` defaults to the download location (:func:`download_home`: $IMTUNE_DATA_HOME, else the user data folder
+``~/.local/share/imtune/data``), where :mod:`pipeline.data.locate`, and so every command, looks for data. Each
+source is a file or an archive (zip / tar*) with an optional sha256 (None where no digest is published: the
+Strecha files live on a git branch); every downloaded image is decoded and every Strecha camera file's size line
+is checked against its image, so a truncated or mismatched file fails the download. ``base_url`` (or the
+environment variable IMTUNE_DOWNLOAD_BASE) replaces scheme and host of every URL, keeping its path: a mirror or a
+local test server.
+
+Nothing half-made is left behind: everything is assembled in a temporary folder beside the target
+(``<dest>/.<name>-download-*``) and renamed into place at the end; on any failure or Ctrl-C the temporary folder
+is removed, and so is ``dest`` itself (and any parent) if this call created it and it is still empty.
+
+Strecha images published at 3072x2048 are downsampled by exactly 2 after download (-> 1536x1024, area
+interpolation, JPEG quality 95; fx, fy, skew halved, c' = c/2 - 0.25, size halved), the layout ``../shared/data``
+uses; images already at that size (a mirror of ``../shared/data``) are kept as they are.
 """
 from __future__ import annotations
 
@@ -30,6 +40,7 @@ from pipeline.data.imagefile import check_image_file, is_image_file
 from pipeline.errors import ImtuneError
 
 ENV_BASE = "IMTUNE_DOWNLOAD_BASE"
+ENV_DATA_HOME = "IMTUNE_DATA_HOME"
 TIMEOUT_S = 60.0
 _CHUNK = 1 << 20
 
@@ -90,8 +101,14 @@ SOURCES: dict[str, list[Source]] = {
 }
 
 
+#: long side (px) of the Strecha layout in ../shared/data; published images at twice this are halved to it.
+STRECHA_LONG_SIDE = 1536
+
+
 def _strecha_downsample(folder: Path) -> None:
-    """Halve every Strecha image and rescale its camera file (pixel-centre convention), in place."""
+    """Halve every Strecha image whose long side is at least 2 x STRECHA_LONG_SIDE (the published 3072x2048) and
+    rescale its camera file (pixel-centre convention), in place; smaller images (already in the ../shared/data
+    layout) are kept. Every camera file's size line must match its image either way."""
     import cv2
     import numpy as np
 
@@ -107,6 +124,8 @@ def _strecha_downsample(folder: Path) -> None:
         h, w = img.shape[:2]
         if (w, h) != cam["size"]:
             raise ImtuneError(f"{cam_path} states size {cam['size'][0]}x{cam['size'][1]} but {img_path} is {w}x{h}")
+        if max(w, h) < 2 * STRECHA_LONG_SIDE:
+            continue
         w2, h2 = int(round(w / 2)), int(round(h / 2))
         small = cv2.resize(img, (w2, h2), interpolation=cv2.INTER_AREA)
         ok, buf = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, 95])
@@ -118,6 +137,24 @@ def _strecha_downsample(folder: Path) -> None:
 
 #: data set name -> step run on the assembled folder before it is moved into place.
 POSTPROCESS: dict[str, Callable[[Path], None]] = {"strecha": _strecha_downsample}
+
+
+def download_home() -> tuple[Path, str]:
+    """(the download location, what defined it): where :func:`download` writes by default and where
+    :mod:`pipeline.data.locate` looks (rule 4). ``$IMTUNE_DATA_HOME``, else the user data folder + ``imtune/data``
+    (platformdirs when installed, else ``$XDG_DATA_HOME/imtune/data``, default ``~/.local/share/imtune/data``)."""
+    if os.environ.get(ENV_DATA_HOME):
+        return Path(os.environ[ENV_DATA_HOME]).expanduser().resolve(), f"${ENV_DATA_HOME}"
+    try:
+        import platformdirs
+    except ImportError:  # optional: the XDG rule below is what platformdirs does on Linux
+        platformdirs = None
+    if platformdirs is not None:
+        return Path(platformdirs.user_data_dir("imtune", appauthor=False)) / "data", "platformdirs user data folder"
+    xdg = os.environ.get("XDG_DATA_HOME")
+    if xdg and Path(xdg).is_absolute():  # the XDG spec: a relative value is invalid and ignored
+        return Path(xdg) / "imtune" / "data", "$XDG_DATA_HOME/imtune/data"
+    return Path.home() / ".local" / "share" / "imtune" / "data", "~/.local/share/imtune/data"
 
 
 def resolve_url(url: str, base_url: str | None) -> str:
@@ -204,36 +241,82 @@ def _place(src: Path, dst: Path) -> None:
     shutil.move(str(src), str(dst))
 
 
-def download(name: str, dest: str | Path, base_url: str | None = None, *, force: bool = False,
-             quiet: bool = False) -> Path:
+def describe_source(name: str, base_url: str | None = None) -> str:
+    """'58 files from raw.githubusercontent.com' — what ``download(name)`` will fetch, for a progress line."""
+    if name not in SOURCES:
+        raise ImtuneError(f"unknown data set {name!r}{_suggest(name)} (available: {', '.join(SOURCES)})")
+    base = base_url if base_url is not None else os.environ.get(ENV_BASE) or None
+    hosts = sorted({urllib.parse.urlsplit(resolve_url(s.url, base)).netloc for s in SOURCES[name]})
+    n = len(SOURCES[name])
+    return f"{n} file{'s' if n != 1 else ''} from {', '.join(hosts)}"
+
+
+def _suggest(name: str) -> str:
+    from pipeline.registry import did_you_mean
+    return did_you_mean(name, SOURCES)
+
+
+def _missing_parents(p: Path) -> list[Path]:
+    """``p`` and its ancestors that do not exist yet, deepest first (what a mkdir(parents=True) creates)."""
+    out = []
+    while not p.exists() and p != p.parent:
+        out.append(p)
+        p = p.parent
+    return out
+
+
+def _remove_if_empty(dirs: list[Path]) -> None:
+    for d in dirs:  # deepest first; stops at the first that is not empty (or not ours any more)
+        try:
+            d.rmdir()
+        except OSError:
+            break
+
+
+def download(name: str, dest: str | Path | None = None, base_url: str | None = None, *, force: bool = False,
+             quiet: bool = False, on_connected: Callable[[], None] | None = None) -> Path:
     """Download data set ``name`` (a key of SOURCES) into ``<dest>/<name>`` and return that folder.
 
-    An existing ``<dest>/<name>`` is kept as is unless ``force``. ``base_url`` (default: $IMTUNE_DOWNLOAD_BASE)
-    redirects every URL to another host, keeping the path. Errors are ImtuneError with a one-line message.
+    ``dest`` defaults to the download location (:func:`download_home`), where the commands look. An existing ``<dest>/<name>`` is kept as is unless ``force``. ``base_url`` (default:
+    $IMTUNE_DOWNLOAD_BASE) redirects every URL to another host, keeping the path. Errors are ImtuneError with a
+    one-line message; after an error or an interrupt nothing of this call is left on disk. ``on_connected`` is
+    called once the first file has arrived (the progress bar starts then too), so that a caller announces a
+    download only when one is really under way: offline, the error is the only output.
     """
     if name not in SOURCES:
-        raise ImtuneError(f"unknown data set {name!r} (available: {', '.join(SOURCES)})")
-    dest = Path(dest)
+        raise ImtuneError(f"unknown data set {name!r}{_suggest(name)} (available: {', '.join(SOURCES)})")
+    if dest is None:
+        dest = download_home()[0]
+    dest = Path(dest).expanduser()
     final = dest / name
     if final.exists() and not force:
         return final
     base = base_url if base_url is not None else os.environ.get(ENV_BASE) or None
+    created = _missing_parents(dest)
     try:
         dest.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{name}-download-", dir=dest))
     except OSError as e:
+        _remove_if_empty(created)
         raise ImtuneError(f"cannot write to {dest}: {e.strerror or e}") from None
     from tqdm import tqdm
 
+    done = False
     try:
         stage, fetched = tmp / name, tmp / "_fetched"
         stage.mkdir()
         fetched.mkdir()
         sources = SOURCES[name]
-        for k, src in enumerate(tqdm(sources, desc=f"download {name}", unit="file", disable=quiet)):
+        bar = None
+        for k, src in enumerate(sources):
             url = resolve_url(src.url, base)
             file = fetched / f"{k:05d}-{Path(urllib.parse.urlsplit(url).path).name or 'download'}"
             _fetch(url, file, src.sha256, quiet)
+            if bar is None:
+                if on_connected is not None:
+                    on_connected()
+                bar = tqdm(total=len(sources), desc=f"download {name}", unit="file", disable=quiet)
+            bar.update(1)
             if src.kind == "file":
                 _place(file, stage / src.target if src.target else stage / file.name)
                 continue
@@ -245,6 +328,8 @@ def download(name: str, dest: str | Path, base_url: str | None = None, *, force:
                 raise ImtuneError(f"archive from {url} has no {src.member!r}")
             _place(member, stage / src.target if src.target else stage / (member.name if member.is_file() else ""))
             shutil.rmtree(xdir, ignore_errors=True)
+        if bar is not None:
+            bar.close()
         for f in stage.rglob("*"):  # a truncated image fails here, not hours later
             if is_image_file(f):
                 check_image_file(f)
@@ -253,8 +338,11 @@ def download(name: str, dest: str | Path, base_url: str | None = None, *, force:
         if final.exists():
             os.replace(final, tmp / "_old")
         os.replace(stage, final)
+        done = True
     except OSError as e:
         raise ImtuneError(f"cannot write data set {name} to {dest}: {e.strerror or e}") from None
-    finally:
+    finally:  # also on KeyboardInterrupt: the temporary folder goes, and so does a dest this call made
         shutil.rmtree(tmp, ignore_errors=True)
+        if not done:
+            _remove_if_empty(created)
     return final

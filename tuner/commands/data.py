@@ -1,28 +1,38 @@
-"""`tune data ...`: download the public data sets; list scenes of a data folder; build ground truth."""
+"""`tune data ...`: download the public data sets; list scenes of a data folder and where it was found; build
+ground truth. Where data is looked for: :mod:`pipeline.data.locate`."""
 from __future__ import annotations
 
-from pathlib import Path
+from pipeline.data.locate import resolve_data
 
-from tuner.options import resolve_data
+DATA_HELP = "data folder (default: $IMTUNE_DATA, imtune.yaml, else strecha in the download location or ../shared/data)"
 
 
 def register(sub) -> None:
     ap = sub.add_parser("data", help="data sets: download, scenes")
     dsub = ap.add_subparsers(dest="data_command", parser_class=type(ap))
-    d = dsub.add_parser("download", help="fetch a public data set from its original home")
-    d.add_argument("name", help="strecha | sacre_coeur | scannet_sample | phototourism")
-    d.add_argument("--dest", default=None, help="destination folder (default: $IMTUNE_DATA_HOME or ~/.cache/imtune/data)")
-    d.add_argument("--base-url", default=None, help="mirror to download from instead of the original home")
+    from pipeline.data.download import ENV_BASE, SOURCES
+    d = dsub.add_parser("download", help="fetch a public data set from its original home into the download location",
+                        description="Downloads into <dest>/<name> atomically (a temporary folder beside it, renamed at "
+                                    "the end; nothing is left behind on failure). The default dest is the download "
+                                    "location, where every command looks for data.")
+    d.add_argument("name", choices=list(SOURCES), help="data set")
+    d.add_argument("--dest", default=None, help="destination folder (default: the download location, "
+                   "$IMTUNE_DATA_HOME or ~/.local/share/imtune/data)")
+    d.add_argument("--base-url", default=None, help=f"mirror to download from instead of the original home "
+                   f"(default: ${ENV_BASE}, else the original home)")
+    d.add_argument("--force", action="store_true", help="download again even if the data set is there")
+    d.add_argument("--quiet", action="store_true", help="no progress bars")
     d.set_defaults(func=run_download)
-    s = dsub.add_parser("scenes", help="list the scenes of a data folder and their default split")
-    s.add_argument("--data", default=None)
+    s = dsub.add_parser("scenes", help="where the data folder was found (and by which rule), its scenes and splits")
+    s.add_argument("--data", default=None, help=DATA_HELP)
+    s.add_argument("--json", action="store_true", help="print one JSON object")
     s.set_defaults(func=run_scenes)
     g = dsub.add_parser("build-gt", help="build ground truth (3D points, co-visibility, bags) with pycolmap",
                         description="From known poses: triangulate SIFT matches with the poses held fixed. From an "
                                     "image folder: SfM with exhaustive matching (pseudo ground truth). Written to "
                                     "$IMTUNE_CACHE/gt (or --gt-dir), never into the data folder; `tune evaluate` "
                                     "picks it up.")
-    g.add_argument("--data", default=None, help="data folder (else $IMTUNE_DATA, imtune.yaml, ../shared/data/strecha)")
+    g.add_argument("--data", default=None, help=DATA_HELP)
     g.add_argument("--scenes", default=None, help="comma-separated scene names (default: all)")
     g.add_argument("--method", default="auto", choices=["auto", "poses", "sfm"],
                    help="auto: poses when every image has K, R, t, else sfm")
@@ -39,22 +49,63 @@ def register(sub) -> None:
 
 
 def run_download(args) -> int:
-    import os
+    import sys
+    from pathlib import Path
 
-    from pipeline.data.download import download
-    dest = Path(args.dest or os.environ.get("IMTUNE_DATA_HOME") or Path.home() / ".cache" / "imtune" / "data")
-    out = download(args.name, dest, base_url=args.base_url)
+    from pipeline.data.download import describe_source, download
+    from pipeline.data.locate import DEFAULT_SET, download_home, locate
+    dest = Path(args.dest).expanduser().resolve() if args.dest else download_home()[0]
+    target = dest / args.name
+    if target.exists() and not args.force:
+        print(f"{args.name}: already in {target} (--force downloads it again)", file=sys.stderr)
+    elif not args.quiet:
+        print(f"{args.name}: {describe_source(args.name, args.base_url)} -> {target}", file=sys.stderr, flush=True)
+    out = download(args.name, dest, base_url=args.base_url, force=args.force, quiet=args.quiet)
     print(f"{args.name}: ready in {out}")
+    try:
+        found = locate().path if args.name == DEFAULT_SET else None
+    except Exception:  # noqa: BLE001 - only a hint
+        found = None
+    if found == out.resolve():
+        print("every command finds it with no --data (see `tune data scenes`)", file=sys.stderr)
+    else:
+        print(f"use it with --data {out}", file=sys.stderr)
     return 0
 
 
+def _other_sets(used) -> list[dict]:
+    """Every data set in the download location and ../shared/data, with the rule that would find it."""
+    from pipeline.data.locate import fallback_roots
+    out = []
+    for r in fallback_roots():
+        if not r.path.is_dir():
+            continue
+        for p in sorted(r.path.iterdir()):
+            if p.is_dir() and not p.name.startswith(".") and p.resolve() != used:
+                out.append({"name": p.name, "path": str(p), "rule": r.rule, "detail": r.detail})
+    return out
+
+
 def run_scenes(args) -> int:
+    import json
+
     from pipeline.data import default_splits, list_scenes
-    root = resolve_data(args.data)
+    from pipeline.data.locate import locate
+    loc = locate(args.data)
+    root = loc.path
     splits = default_splits(root)
-    for n in list_scenes(root):
-        role = "val" if n in splits.get("val", []) else "test" if n in splits.get("test", []) else "-"
-        print(f"{n}\t{role}")
+    scenes = [{"scene": n, "split": "val" if n in splits.get("val", []) else
+               "test" if n in splits.get("test", []) else "-"} for n in list_scenes(root)]
+    others = _other_sets(root)
+    if args.json:
+        print(json.dumps({"data": str(root), "rule": loc.rule, "detail": loc.detail, "scenes": scenes,
+                          "other_data_sets": others}, indent=2))
+        return 0
+    print(f"data: {root}  (found by {loc.describe()})")
+    for s in scenes:
+        print(f"{s['scene']}\t{s['split']}")
+    for o in others:
+        print(f"also: {o['name']} at {o['path']}  ({o['rule']}; use with --data {o['path']})")
     return 0
 
 

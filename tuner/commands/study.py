@@ -60,7 +60,7 @@ def register(sub) -> None:
     _storage_opts(ap)
     t = ap.add_argument_group("study")
     t.add_argument("--study", default=None, help="study name (default <feature>-<num_features>-<ransac>-<task>)")
-    t.add_argument("--task", default="stereo", help=f"{' | '.join(TASKS)}")
+    t.add_argument("--task", default="stereo", choices=list(TASKS), help=f"{' | '.join(TASKS)}")
     t.add_argument("--space", default=None, help="search-space YAML replacing the default of the estimator family")
     t.add_argument("--fix", action="append", default=[], metavar="NAME=VALUE",
                    help="pin a parameter (ratio, threshold, max_iters, strategy); repeatable")
@@ -68,8 +68,8 @@ def register(sub) -> None:
                    help="finished trials (complete + pruned) the study should hold; a rerun runs the missing ones "
                         "(default 50; the whole grid with --sampler grid)")
     t.add_argument("--timeout", type=_positive_float, default=None, help="stop this worker after this many seconds")
-    t.add_argument("--sampler", default="tpe", help=f"{' | '.join(SAMPLERS)} (default tpe)")
-    t.add_argument("--pruner", default="median", help=f"{' | '.join(PRUNERS)} (default median)")
+    t.add_argument("--sampler", default="tpe", choices=list(SAMPLERS), help=f"{' | '.join(SAMPLERS)} (default tpe)")
+    t.add_argument("--pruner", default="median", choices=list(PRUNERS), help=f"{' | '.join(PRUNERS)} (default median)")
     t.add_argument("--startup-trials", type=_positive_int, default=None,
                    help="random trials before TPE models (default: n_trials / 5, between 3 and 10)")
     t.add_argument("--budget", type=_positive_float, default=0.5,
@@ -190,7 +190,7 @@ def settings_from_args(args):
         from tuner.options import multiview_config
         mv = multiview_config(args, seed=args.seed if args.seed is not None else 0)
     return TuneSettings(
-        base=base, data_root=resolve_data(args.data), task=args.task, study_name=args.study,
+        base=base, data_root=resolve_data(args.data, download=True, quiet=quiet), task=args.task, study_name=args.study,
         storage=args.storage, studies_dir=_studies_dir(args), space_path=args.space,
         # imported (custom) matches skip the matcher: the ratio test and strategy are then not searched
         fixes=list(args.fix) + (["ratio=1.0", "strategy=both"] if getattr(args, "matches", None) else []),
