@@ -124,6 +124,7 @@ def freeze(study, studies_dir: Path | str) -> tuple[dict, Path]:
     header = (f"# imtune frozen settings of study {study.study_name}: best feasible trial #{frozen['trial']}\n"
               "# params: searched values; fixed: values not searched; config: the complete pipeline\n")
     atomic_write(path, header + yaml.safe_dump(frozen, sort_keys=False, default_flow_style=False))
+    from tuner.annotate import annotate_study; annotate_study(study, frozen)  # noqa: E702 - dashboard notes
     return frozen, path
 
 
