@@ -21,16 +21,102 @@ OPTIONAL_MODULES = ["tuner.commands.study"]  # the Optuna commands (run, calibra
 DEFAULT_SUBCOMMAND = "run"
 
 
+MAIN_JOB = "tune --feature sift --ransac degensac"
+EXAMPLES = f"""\
+The main job (tune r, eta and Gamma on the validation scenes under a time budget, freeze the optimum, run the
+test scenes; downloads the default data set if none is found):
+  {MAIN_JOB}
+
+More:
+  tune evaluate --feature sift --ratio 0.85 --threshold 0.5   one fixed configuration
+  tune data scenes                                            which data is used, and why
+  tune data download strecha                                  fetch the default data set
+  tune table | tune results | tune dashboard                  read the studies
+  tune list                                                   every feature and estimator
+
+`tune COMMAND -h` shows a command's options with their defaults; `tune --version`.
+"""
+
+
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Every option's help ends with its default, also for options declared without a help text; help that
+    already states its default ("(default ...", "default: ...", "(else ...") is left as written."""
+
+    STATED = ("%(default)", "(default", "default:", "(else ")
+
+    def _format_action(self, action):
+        if not action.help and action.option_strings and action.default is not argparse.SUPPRESS:
+            import copy
+            action = copy.copy(action)
+            action.help = self._default_text(action) or ""
+        return super()._format_action(action)
+
+    def _default_text(self, action) -> str:
+        if action.default is argparse.SUPPRESS or action.nargs == 0 and action.const is None:
+            return ""
+        d = action.default
+        if isinstance(d, bool) and action.nargs == 0:
+            return "(default: off)" if not d else "(default: on)"
+        if d is None or d == []:
+            return "(default: none)"
+        return "(default: %(default)s)"
+
+    def _get_help_string(self, action):
+        h = action.help or ""
+        if any(m in h.lower() for m in self.STATED) or not (action.option_strings or
+                                                               action.nargs in (argparse.OPTIONAL,
+                                                                                argparse.ZERO_OR_MORE)):
+            return h
+        extra = self._default_text(action)
+        return f"{h} {extra}" if extra and h else (extra or h)
+
+
+class _TopFormatter(argparse.RawDescriptionHelpFormatter, _HelpFormatter):
+    """The top-level help keeps the examples' layout."""
+
+
 class _Parser(argparse.ArgumentParser):
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", _HelpFormatter)
+        super().__init__(*args, **kwargs)
+
     def error(self, message):  # one line, exit 2 (argparse's own usage dump is noise here)
         sys.stderr.write(f"tune: error: {message}\n")
         raise SystemExit(2)
 
+    def _check_value(self, action, value):
+        # argparse's own check, plus "did you mean ...?" for a misspelt command or choice
+        if action.choices is None or value in action.choices:
+            return
+        from pipeline.registry import did_you_mean
+        names = [str(c) for c in action.choices]
+        hint = did_you_mean(str(value), names)
+        if isinstance(action, argparse._SubParsersAction):
+            cmd = " ".join(self.prog.split()[1:] + [""])  # "data " for `tune data downlod`
+            self.error(f"unknown command '{cmd}{value}'{hint} (commands: {', '.join(names)})")
+        name = "/".join(action.option_strings) or action.metavar or action.dest
+        self.error(f"{name}: invalid choice {value!r}{hint} (choose from {', '.join(names)})")
+
+
+class _VersionAction(argparse.Action):
+    """`tune --version`: the installed package version plus the git commit of a checkout (tuner.study)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from tuner.study import code_version
+        print(f"imtune {code_version()}")
+        parser.exit(0)
+
 
 def build_parser() -> argparse.ArgumentParser:
     import importlib
-    ap = _Parser(prog="tune", description="Tune and evaluate wide-baseline image matching (IMC protocol).")
-    sub = ap.add_subparsers(dest="command", parser_class=_Parser)
+    ap = _Parser(prog="tune", description="Tune and evaluate wide-baseline image matching (the IMC protocol of "
+                                          "Jin et al., IJCV 2021).\n\n" + EXAMPLES,
+                 formatter_class=_TopFormatter, usage="tune [COMMAND] [OPTIONS]  (no COMMAND: run)")
+    ap.add_argument("--version", action=_VersionAction, help="print the version (and git commit) and exit")
+    sub = ap.add_subparsers(dest="command", parser_class=_Parser, metavar="COMMAND", prog="tune")
     for m in SUBCOMMAND_MODULES:
         importlib.import_module(m).register(sub)
     for m in OPTIONAL_MODULES:
@@ -44,16 +130,31 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def short_help(ap: argparse.ArgumentParser) -> str:
+    """What bare `tune` prints: usage, the main job first, the commands."""
+    cmds = ap._subparsers._group_actions[0].choices if ap._subparsers else {}
+    return (f"usage: {ap.usage}\n\n{EXAMPLES}\nCommands: {', '.join(cmds)}\n")
+
+
+def route(argv: list[str], ap: argparse.ArgumentParser) -> list[str] | None:
+    """argv with the default command made explicit: argv starting with an option (other than -h / --help /
+    --version) means `run`; a first word that is no command is left for the parser to reject with a "did you
+    mean". None for bare `tune` (print the short help)."""
+    if not argv:
+        return None
+    known = set(ap._subparsers._group_actions[0].choices) if ap._subparsers else set()
+    if argv[0].startswith("-") and argv[0] not in ("-h", "--help", "--version") and DEFAULT_SUBCOMMAND in known:
+        return [DEFAULT_SUBCOMMAND] + argv
+    return argv
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     ap = build_parser()
-    known = set(ap._subparsers._group_actions[0].choices) if ap._subparsers else set()
-    if not argv or (argv[0] not in known and argv[0] not in ("-h", "--help")):
-        if DEFAULT_SUBCOMMAND in known:
-            argv = [DEFAULT_SUBCOMMAND] + argv
-        elif not argv:
-            ap.print_help()
-            return 2
+    argv = route(argv, ap)
+    if argv is None:  # bare `tune`: a short help, nothing started
+        sys.stdout.write(short_help(ap))
+        return 0
     args = ap.parse_args(argv)
     if not getattr(args, "func", None):
         ap.print_help()

@@ -121,7 +121,8 @@ def locate(cli_value: str | os.PathLike | None = None, name: str = DEFAULT_SET) 
     for r in roots:
         if _usable(r.path / name):
             return Located(r.path / name, r.rule, r.detail)
-    raise DataNotFound(f"no data: {not_found_text(name, roots)}")
+    raise DataNotFound(f"no data: {not_found_text(name, roots)}, and no --data, ${ENV_DATA} or {CONFIG_FILE} "
+                       f"names a folder; {fix_hint(name)}")
 
 
 def not_found_text(name: str = DEFAULT_SET, roots: list[Located] | None = None) -> str:
@@ -143,10 +144,9 @@ def resolve_data(cli_value: str | os.PathLike | None = None, *, download: bool =
     the command to run, and nothing is left behind."""
     try:
         return locate(cli_value, name).path
-    except DataNotFound as e:
+    except DataNotFound:
         if not download:
-            raise DataNotFound(f"{e}, and no --data, ${ENV_DATA} or {CONFIG_FILE} names a folder; "
-                               f"{fix_hint(name)}") from None
+            raise
     from pipeline.data.download import describe_source, download as fetch
     home, _ = download_home()
 
