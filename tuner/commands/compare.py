@@ -1,0 +1,90 @@
+"""`tune compare A B [C ...]`: paired comparison of configurations on the same stereo pairs.
+
+    tune compare sift-2048-degensac-stereo opencv-defaults.yaml --scenes entry-P10
+    tune compare a.yaml b.yaml c.json --json
+
+Each of A, B, ... is a study name (its frozen settings), a frozen.yaml, a configuration file or an IMC
+benchmark method JSON. Python: :func:`tuner.compare.compare`.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+
+from pipeline.errors import ImtuneError
+
+
+def _positive_int(s: str) -> int:
+    try:
+        v = int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {s!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {s!r}")
+    return v
+
+
+def register(sub) -> None:
+    from tuner.argtypes import unit_float
+    ap = sub.add_parser("compare", help="paired comparison of configurations on the same pairs (CI, p-value)",
+                        description="Evaluate each configuration (study name, frozen.yaml, config YAML/JSON, IMC method "
+                                    "JSON) on the same stereo pairs and compare each with the first: the mAA(10) "
+                                    "difference B - A, its bootstrap CI (pairs resampled within each scene, the same "
+                                    "pairs for both) and a two-sided paired sign-flip p-value, overall and per scene.")
+    ap.add_argument("sources", nargs="+", metavar="SOURCE",
+                    help="A B [C ...]: study names or configuration files; each after the first is compared with A")
+    d = ap.add_argument_group("data")
+    d.add_argument("--data", default=None, help="data folder (else $IMTUNE_DATA, imtune.yaml, ../shared/data/strecha)")
+    d.add_argument("--scenes", default=None, help="comma-separated scene names (default: every scene of the data)")
+    d.add_argument("--covisibility", type=unit_float, default=0.1, help="minimum pair co-visibility where known")
+    d.add_argument("--cache", default=None, help="cache folder (else $IMTUNE_CACHE or ~/.cache/imtune)")
+    d.add_argument("--studies-dir", default=None, help="where studies live (default $IMTUNE_STUDIES, else studies/)")
+    s = ap.add_argument_group("statistics")
+    s.add_argument("--ci-resamples", type=_positive_int, default=2000, help="bootstrap / sign-flip resamples")
+    s.add_argument("--seed", type=int, default=0, help="seed of the resampling (estimator seeds come from each config)")
+    o = ap.add_argument_group("output")
+    o.add_argument("--json", action="store_true",
+                   help='one JSON object {"overall", "scenes"} (a list of them for more than two configurations)')
+    o.add_argument("--quiet", action="store_true", help="no progress bars")
+    ap.set_defaults(func=run)
+
+
+def _jsonable(o):
+    if isinstance(o, float) and not math.isfinite(o):
+        return None if math.isnan(o) else ("inf" if o > 0 else "-inf")
+    if isinstance(o, dict):
+        return {k: _jsonable(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_jsonable(v) for v in o]
+    return o
+
+
+def run(args) -> int:
+    from tuner.compare import compare, comparison_rows, load_sources
+    from tuner.formatting import render
+    from tuner.options import resolve_data
+    from tuner.storage import default_studies_dir
+    from pathlib import Path
+    if len(args.sources) < 2:
+        raise ImtuneError(f"tune compare needs at least two configurations (got one: {args.sources[0]}); "
+                          "give A B [C ...], each a study name or a config file")
+    sdir = Path(args.studies_dir).expanduser().resolve() if args.studies_dir else default_studies_dir()
+    sources = load_sources(args.sources, sdir)
+    data = resolve_data(args.data)
+    res = compare(sources, data, args.scenes, cache_dir=args.cache, min_covisibility=args.covisibility,
+                  progress=not (args.quiet or args.json), n_resamples=args.ci_resamples, seed=args.seed)
+    if args.json:
+        objs = [{"a": c["a"], "b": c["b"], "overall": c["overall"], "scenes": c["scenes"]} for c in res["comparisons"]]
+        print(json.dumps(_jsonable(objs[0] if len(objs) == 1 else objs), indent=2))
+        return 0
+    print(f"data {res['data']} | scenes {', '.join(res['scenes'])} | {args.ci_resamples} resamples, seed {args.seed}")
+    for i, s in enumerate(res["sources"]):
+        tag = "A" if i == 0 else ("B" if len(res["sources"]) == 2 else f"B{i}")
+        print(f"{tag}: {s['label']}  mAA10 {s['mAA10']:.4f} [{s['mAA10_ci'][0]:.4f}, {s['mAA10_ci'][1]:.4f}] "
+              f"({s['pairs']} pairs)")
+    for i, c in enumerate(res["comparisons"], 1):
+        tag = "B" if len(res["comparisons"]) == 1 else f"B{i}"
+        print(f"\n{tag} vs A: mAA(10) difference B - A (> 0: B better), 95% bootstrap CI, paired sign-flip p")
+        print(render(comparison_rows(c), "markdown"))
+    return 0

@@ -1,0 +1,123 @@
+"""Compare configurations on the same stereo pairs: is B better than A, and how sure is that?
+
+    from tuner.compare import compare, load_sources
+    sources = load_sources(["sift-2048-degensac-stereo", "opencv.yaml"], studies_dir)
+    result = compare(sources, data_root, scenes=["entry-P10"])
+    result["comparisons"][0]["overall"]   # {"mAA10_a", "mAA10_b", "difference", "ci", "p_value", ...}
+
+Each source is a study name (its frozen settings), a frozen.yaml, a configuration file (YAML or JSON with
+a ``config:`` mapping, or feature / matching / geometry sections; missing fields take the defaults) or an
+official IMC benchmark method JSON (``tuner.sources.resolve_source``). Every source is evaluated on the same
+scenes and pairs (identical configurations once: their records are shared, so a configuration compared
+with itself gives difference 0 and p = 1 exactly, whether or not its estimator is seeded). Then each
+source after the first is compared with the first by
+:func:`pipeline.metrics.uncertainty.paired_bootstrap`: ``difference`` = mAA10(B) - mAA10(A) over the pairs
+both evaluated, its stratified bootstrap CI, a two-sided sign-flip p-value, overall and per scene. "No
+significant difference" means the CI contains 0.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from pipeline.errors import ImtuneError
+from pipeline.metrics.uncertainty import DEFAULT_LEVEL, DEFAULT_RESAMPLES, maa_intervals, paired_bootstrap
+
+COMPARISON_KEYS = ("mAA10_a", "mAA10_b", "difference", "ci", "p_value", "significant", "pairs", "dropped_a",
+                   "dropped_b")
+
+
+def _resolve_source():
+    try:  # the loaders' new home (pipeline/config_files.py + tuner/sources.py)
+        from tuner.sources import resolve_source
+    except ImportError:
+        from tuner.commands.viz import resolve_source
+    return resolve_source
+
+
+def _evaluate_config():
+    try:
+        from tuner.evaluate import evaluate_config
+    except ImportError:
+        from tuner.options import evaluate_config
+    return evaluate_config
+
+
+def load_sources(specs: list[str], studies_dir: Path | str) -> list:
+    """Each spec (study name, frozen.yaml, config file, IMC method JSON) as a source with ``conf`` and
+    ``label``; one-line ImtuneError for an unknown study or a missing / invalid file, or fewer than two."""
+    if len(specs) < 2:
+        raise ImtuneError(f"tune compare needs at least two configurations (got {len(specs)}: "
+                          f"{', '.join(specs) or 'none'}); give A B [C ...], each a study name or a config file")
+    resolve = _resolve_source()
+    return [resolve(s, Path(studies_dir)) for s in specs]
+
+
+def _records(section: dict) -> list[dict]:
+    recs = section.get("pair_records")
+    if recs is None:
+        recs = section.get("records")
+    if recs is None:
+        raise ImtuneError("the stereo evaluation returned no pair records (internal: with_pairs ignored)")
+    return recs
+
+
+def compare(sources: list, data_root: Path | str, scenes=None, *, cache_dir=None, min_covisibility: float | None = 0.1,
+            progress: bool = False, n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0,
+            level: float = DEFAULT_LEVEL) -> dict:
+    """Evaluate every source on the same stereo pairs and compare each with the first.
+
+    sources: objects with ``conf`` (PipelineConfig) and ``label`` (see :func:`load_sources`).
+    Returns ``{"data", "scenes", "sources": [{"label", "config", "mAA10", "mAA5", "mAA10_ci", "mAA5_ci",
+    "pairs", "scenes": {name: {"mAA10", "mAA10_ci", ...}}}, ...], "comparisons": [{"a": label of the first,
+    "b": label, "overall": {COMPARISON_KEYS}, "scenes": {name: {COMPARISON_KEYS}}}, ...]}``."""
+    if len(sources) < 2:
+        raise ImtuneError("tune compare needs at least two configurations")
+    evaluate_config = _evaluate_config()
+    done: list[tuple] = []  # (conf, result): identical configurations are evaluated once
+    evaluated = []
+    for src in sources:
+        hit = next((res for conf, res in done if conf == src.conf), None)
+        if hit is None:
+            hit = evaluate_config(src.conf, Path(data_root), scenes, cache_dir=cache_dir,
+                                  min_covisibility=min_covisibility, progress=progress, with_pairs=True)
+            done.append((src.conf, hit))
+        evaluated.append(hit)
+    out_sources = []
+    for src, res in zip(sources, evaluated):
+        st = res["stereo"]
+        ci = maa_intervals(_records(st), n_resamples=n_resamples, seed=seed, level=level, scenes=list(st["scenes"]))
+        out_sources.append({
+            "label": src.label, "config": res["config"], "mAA10": st["mAA10"], "mAA5": st["mAA5"],
+            "mAA10_ci": ci["mAA10_ci"], "mAA5_ci": ci["mAA5_ci"], "pairs": st["pairs"],
+            "scenes": {n: {"mAA10": s["mAA10"], "mAA5": s["mAA5"], "pairs": s["pairs"], **ci["scenes"].get(n, {})}
+                       for n, s in st["scenes"].items()}})
+    comparisons = []
+    recs_a = _records(evaluated[0]["stereo"])
+    for src, res in zip(sources[1:], evaluated[1:]):
+        pb = paired_bootstrap(recs_a, _records(res["stereo"]), tau=10, n_resamples=n_resamples, seed=seed,
+                              level=level)
+        comparisons.append({"a": sources[0].label, "b": src.label,
+                            "overall": {k: pb[k] for k in COMPARISON_KEYS},
+                            "scenes": {n: {k: s[k] for k in COMPARISON_KEYS} for n, s in pb["scenes"].items()}})
+    return {"data": str(data_root), "scenes": evaluated[0]["scenes"], "level": level, "n_resamples": n_resamples,
+            "seed": seed, "sources": out_sources, "comparisons": comparisons}
+
+
+def verdict(c: dict, level: float = DEFAULT_LEVEL) -> str:
+    """'B better' / 'A better' / 'no significant difference' from a comparison's CI."""
+    lo, hi = c["ci"]
+    if lo <= 0.0 <= hi:
+        return "no significant difference"
+    return "B better" if c["difference"] > 0 else "A better"
+
+
+def comparison_rows(comp: dict, level: float = DEFAULT_LEVEL) -> list[dict]:
+    """Table rows of one comparison: one per scene, then "overall"."""
+    pct = f"{100 * level:g}%"
+    rows = []
+    for name, c in list(comp["scenes"].items()) + [("overall", comp["overall"])]:
+        rows.append({"scene": name, "pairs": c["pairs"], "mAA10 A": f"{c['mAA10_a']:.4f}",
+                     "mAA10 B": f"{c['mAA10_b']:.4f}", "B - A": f"{c['difference']:+.4f}",
+                     f"{pct} CI": f"[{c['ci'][0]:+.4f}, {c['ci'][1]:+.4f}]", "p": f"{c['p_value']:.3g}",
+                     "verdict": verdict(c, level)})
+    return rows
