@@ -173,7 +173,8 @@ def test_settings_table_formats(two_studies, tuner_cache):
     assert recs[0]["feature"] == "sift" and 0.1 <= float(recs[0]["eta degensac"]) <= 2.0
     assert 0.5 <= float(recs[0]["eta magsac++"]) <= 10.0 and 0.6 <= float(recs[0]["r"]) <= 1.0
     tex = tune("table", "--studies-dir", str(d), "--format", "latex", cache=tuner_cache, check=True).stdout
-    assert tex.startswith(r"\begin{tabular}") and r"\end{tabular}" in tex
+    assert tex.startswith(r"\begin{table}") and r"\caption{" in tex and r"\begin{tabular}" in tex
+    assert r"\toprule" in tex and r"\bottomrule" in tex and r"$\Gamma$ degensac" in tex
     js = json.loads(tune("table", "--studies-dir", str(d), "--format", "json", cache=tuner_cache, check=True).stdout)
     assert set(js[0]["studies"]) == {"degensac", "magsac++"}
     bad = tune("table", "--studies-dir", str(d), "--format", "xml", cache=tuner_cache)

@@ -5,12 +5,14 @@
     render(*settings_rows(studies))           # optimal settings: one row per feature (+ count)
     render(*results_rows(studies))            # test results: NF, NI and mAA(10) per estimator, rank
 
-Optimal settings (``tune table``): for each feature and feature count, the frozen inlier threshold
-eta of each estimator's study and the ratio test r. Each estimator study tunes its own r; the ``r``
-column is that of the study with the best validation mAA(10) (named in ``r from``), the paper's
-single r per feature; ``--format json`` gives every study's values. ``r_multiview`` is the frozen r of the
-multiview studies (``tune --task multiview``) of the same feature and count (the best by validation
-multiview mAA(10) when there are several).
+Optimal settings (``tune table``), as the paper's "optimal hyper-parameters" tables: for each feature and
+feature count, the ratio test r for stereo (``r``) and multiview (``r_multiview``, the frozen r of the
+``tune --task multiview`` studies, the best by validation multiview mAA(10) when there are several), then
+for each estimator the frozen inlier threshold eta (px) and iteration cap Gamma, and the time budget B
+they were tuned under (seconds per pair, median estimator time). Each estimator study tunes its own r;
+``r`` is that of the study with the best validation mAA(10) (named in ``r from``), the paper's single r
+per feature. ``--format latex`` is a booktabs table with a caption; ``--format json`` gives every
+study's values.
 
 Test results (``tune results``): NF (features per image), then per estimator NI (inliers per pair)
 and mAA(10) on the test scenes (mean of the test runs), and the rank of each feature by its best
@@ -93,42 +95,92 @@ def _param(s: StudyInfo, name: str):
     return (s.attrs.get("pipeline") or {}).get(sec, {}).get(name)
 
 
+def _uses_iterations(estimator: str) -> bool:
+    """Whether the estimator has an iteration cap Gamma (False for the 8-point fit); unknown here
+    (an estimator not installed on this machine): True, the study's value is shown."""
+    try:
+        from pipeline.geometry import get_estimator
+        return bool(getattr(get_estimator(estimator), "uses_iterations", True))
+    except Exception:  # noqa: BLE001 - a table of another machine's studies still prints
+        return True
+
+
+def _num(v, digits: int):
+    return round(float(v), digits) if isinstance(v, (int, float)) and not isinstance(v, bool) else v
+
+
+def _budget(s: StudyInfo):
+    return (s.attrs.get("budget") or {}).get("seconds_per_pair")
+
+
+def _settings_caption(studies: list[StudyInfo], multiview: list[StudyInfo], per_est_budget: bool) -> tuple[str, str]:
+    """(plain caption, LaTeX caption) of the optimal-settings table: where the values come from."""
+    from tuner.formatting import latex_escape
+    scenes = sorted({", ".join((s.attrs.get("data") or {}).get("val_scenes") or []) for s in studies + multiview} - {""})
+    where = f"validation scenes {scenes[0]}" if len(scenes) == 1 else "the validation scenes of each study"
+    budgets = sorted({_budget(s) for s in studies if _budget(s) is not None})
+    if budgets and not per_est_budget:
+        b_txt = f"B = {budgets[0]:g} s per pair"
+    else:
+        b_txt = "B (column B, s per pair)"
+    plain = (f"Optimal settings on the {where}: ratio test r (stereo: from the estimator study with the best "
+             f"validation mAA(10°); multiview: COLMAP), inlier threshold eta (px) and maximum iterations Gamma "
+             f"of each estimator under the time budget {b_txt} (median estimator time).")
+    tex = (f"Optimal settings on the {latex_escape(where)}: ratio test $r$ (stereo: from the estimator study with "
+           f"the best validation mAA($10^\\circ$); multiview: COLMAP), inlier threshold $\\eta$ (px) and maximum "
+           f"iterations $\\Gamma$ of each estimator under the time budget "
+           + (f"$B = {budgets[0]:g}$\\,s per pair" if budgets and not per_est_budget else "$B$ (s per pair)")
+           + " (median estimator time).")
+    return plain, tex
+
+
 def settings_rows(studies: list[StudyInfo], fmt: str = "markdown",
                   multiview: list[StudyInfo] | None = None) -> tuple[list[dict], list[str]]:
-    """(rows, columns) of the optimal-settings table; ``multiview`` studies fill ``r_multiview``."""
+    """(rows, columns) of the optimal-settings table (the paper's "optimal hyper-parameters" tables):
+    per feature and feature count (``features``) the ratio test ``r`` (stereo; from the estimator study
+    with the best validation mAA(10), named in ``r from``) and ``r_multiview``, then per estimator the
+    inlier threshold ``eta <est>`` (px) and iteration cap ``Gamma <est>``, and the budget ``B`` (s per
+    pair; one ``B <est>`` column per estimator when the studies differ). ``columns`` is a
+    :class:`tuner.formatting.Columns` with the caption of the LaTeX form; ``multiview`` studies fill
+    ``r_multiview``."""
+    from tuner.formatting import Columns
+    multiview = list(multiview or [])
     ests = _estimators(studies)
-    mv_groups = _groups(list(multiview or []))
-    keys = sorted(set(_groups(studies)) | set(mv_groups), key=lambda k: (k[1], k[0]))
+    mv_groups = _groups(multiview)
     groups = _groups(studies)
+    keys = sorted(set(groups) | set(mv_groups), key=lambda k: (k[1], k[0]))
+    per_est_budget = len({_budget(s) for s in studies}) > 1
+    iters = {e: _uses_iterations(e) for e in ests}
     rows = []
     for feat, nf in keys:
         group = groups.get((feat, nf), [])
         row = {"feature": feat, "features": nf}
         by_est = {s.ransac: s for s in group}
-        for e in ests:
-            s = by_est.get(e)
-            v = _param(s, "threshold") if s else None
-            row[f"eta {e}"] = round(float(v), 3) if isinstance(v, (int, float)) else v
         scored = [s for s in group if s.best is not None]
-        if scored:
-            top = max(scored, key=lambda s: s.best.value)
-            r = _param(top, "ratio")
-            row["r"] = round(float(r), 3) if isinstance(r, (int, float)) else r
-            row["r from"] = top.ransac
-            row["mAA10 val"] = round(float(top.best.value), 4)
-        else:
-            row.update({"r": None, "r from": None, "mAA10 val": None})
+        top = max(scored, key=lambda s: s.best.value) if scored else None
+        row["r"] = _num(_param(top, "ratio"), 3) if top else None
         mv_scored = [s for s in mv_groups.get((feat, nf), []) if s.best is not None]
         mv_top = max(mv_scored, key=lambda s: s.best.value) if mv_scored else None
-        r = _param(mv_top, "ratio") if mv_top else None
-        row["r_multiview"] = round(float(r), 3) if isinstance(r, (int, float)) else r
-        row["mAA10 mv val"] = round(float(mv_top.best.value), 4) if mv_top else None
+        row["r_multiview"] = _num(_param(mv_top, "ratio"), 3) if mv_top else None
+        for e in ests:
+            s = by_est.get(e)
+            row[f"eta {e}"] = _num(_param(s, "threshold"), 4) if s else None
+            g = _param(s, "max_iters") if s and iters[e] else None
+            row[f"Gamma {e}"] = int(g) if isinstance(g, (int, float)) and not isinstance(g, bool) else g
+            if per_est_budget:
+                row[f"B {e}"] = _budget(s) if s else None
+        if not per_est_budget:
+            bs = {_budget(s) for s in group} - {None}
+            row["B"] = bs.pop() if len(bs) == 1 else None
+        row["r from"] = top.ransac if top else None
+        row["mAA10 val"] = _num(top.best.value, 4) if top else None
+        row["mAA10 mv val"] = _num(mv_top.best.value, 4) if mv_top else None
         if fmt == "json":
             row["studies"] = {s.ransac: {"study": s.name, "trial": s.best.number if s.best else None,
                                          "value": s.best.value if s.best else None,
                                          "params": dict(s.best.params) if s.best else None,
                                          "gamma_max": (s.attrs.get("budget") or {}).get("gamma_max"),
-                                         "budget": (s.attrs.get("budget") or {}).get("seconds_per_pair"),
+                                         "budget": _budget(s),
                                          "complete_trials": s.n_complete}
                               for s in group}
             row["multiview_studies"] = {s.ransac: {"study": s.name, "trial": s.best.number if s.best else None,
@@ -137,12 +189,30 @@ def settings_rows(studies: list[StudyInfo], fmt: str = "markdown",
                                                    "complete_trials": s.n_complete}
                                         for s in mv_groups.get((feat, nf), [])}
         rows.append(row)
-    cols = ["feature", "features"] + [f"eta {e}" for e in ests] + ["r", "r from", "mAA10 val"]
+    names = ["feature", "features", "r", "r_multiview"]
+    for e in ests:
+        names += [f"eta {e}", f"Gamma {e}"] + ([f"B {e}"] if per_est_budget else [])
+    if studies and not per_est_budget:
+        names.append("B")
+    if studies:
+        names += ["r from", "mAA10 val"]
     if multiview:
-        cols += ["r_multiview", "mAA10 mv val"]
+        names.append("mAA10 mv val")
     if fmt == "json":
-        cols += ["studies"] + (["multiview_studies"] if multiview else [])
-    return rows, cols
+        names += ["studies"] + (["multiview_studies"] if multiview else [])
+    plain, tex = _settings_caption(studies, multiview, per_est_budget)
+    labels = {"r": "$r$ stereo", "r from": "$r$ from", "r_multiview": "$r$ multiview", "B": "$B$ (s)",
+              "mAA10 val": "val.\\ mAA($10^\\circ$)", "mAA10 mv val": "val.\\ multiview mAA($10^\\circ$)"}
+    for e in ests:
+        labels[f"eta {e}"] = "$\\eta$ " + _tex(e)
+        labels[f"Gamma {e}"] = "$\\Gamma$ " + _tex(e)
+        labels[f"B {e}"] = "$B$ " + _tex(e) + " (s)"
+    return rows, Columns(names, caption=plain, labels=labels, latex_caption=tex)
+
+
+def _tex(s) -> str:
+    from tuner.formatting import latex_escape
+    return latex_escape(s)
 
 
 def results_rows(studies: list[StudyInfo], fmt: str = "markdown") -> tuple[list[dict], list[str]]:

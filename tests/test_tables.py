@@ -1,0 +1,142 @@
+"""Tables as in the paper (tuner.formatting, the `tune table` part of tuner.reports): precision by column,
+the mean row, and the exact LaTeX structure (booktabs, right-aligned numbers, $r$ / $\\eta$ / $\\Gamma$
+headers, caption, escaping) on known inputs."""
+import csv
+import io
+import json
+
+import pytest
+from optuna.distributions import FloatDistribution, IntDistribution
+from optuna.trial import create_trial
+
+from tuner.formatting import Columns, column_kind, format_value, latex_escape, latex_header, render, with_mean_row
+from tuner.reports import StudyInfo, render_table, settings_rows
+
+DIST = {"ratio": FloatDistribution(0.6, 1.0), "threshold": FloatDistribution(0.1, 10.0, log=True),
+        "max_iters": IntDistribution(100, 100000, log=True)}
+
+
+def info(feature, nf, est, value, ratio, eta=None, gamma=None, task="stereo", budget=0.5, scenes=("fountain-P11",)):
+    params = {"ratio": ratio}
+    if eta is not None:
+        params.update(threshold=eta, max_iters=gamma)
+    best = create_trial(value=value, params=params, distributions={k: DIST[k] for k in params})
+    attrs = {"imtune": 1, "task": task, "budget": {"seconds_per_pair": budget} if task == "stereo" else {},
+             "data": {"val_scenes": list(scenes)}}
+    return StudyInfo(name=f"{feature}-{nf}-{est}-{task}", task=task, feature=feature, num_features=nf, ransac=est,
+                     attrs=attrs, best=best, n_complete=5, test=None)
+
+
+STEREO = [info("sift", 8000, "degensac", 0.61, 0.8512, 0.5123, 48213),
+          info("sift", 8000, "magsac++", 0.64, 0.875, 1.25, 20000),
+          info("root_sift", 2048, "degensac", 0.5, 0.9, 0.75, 10000)]
+MULTIVIEW = [info("sift", 8000, "degensac", 0.7, 0.95, task="multiview")]
+
+
+def test_precision_by_column():
+    assert [column_kind(c) for c in ("NM", "NI degensac", "NF", "features", "Gamma magsac++", "mAA10 degensac",
+                                     "mAA(10°)", "r", "r_multiview", "eta degensac", "B", "SR", "TL", "scene")] == \
+        ["int", "int", "int", "int", "int", "maa", "maa", "ratio", "ratio", "sig3", "sig3", "pct", "tl", ""]
+    assert format_value("NI", 123.6) == "124" and format_value("NM", 2047.0) == "2047"
+    assert format_value("mAA10", 0.51249) == "0.512" and format_value("mAA5", 1.0) == "1.000"
+    assert format_value("r", 0.8512) == "0.85" and format_value("eta degensac", 0.51234) == "0.512"
+    assert format_value("eta magsac++", 12.345) == "12.3" and format_value("Gamma degensac", 48213) == "48213"
+    assert format_value("ransac_seconds_median", 0.123456) == "0.123"
+    assert format_value("mAA10", None) == "-" and format_value("ATE", float("inf")) == "inf"
+    assert format_value("scene", "fountain-P11") == "fountain-P11"
+
+
+def test_mean_row_only_for_several_scenes():
+    cols = ["scene", "NI", "mAA10", "pairs"]
+    one = [{"scene": "fountain-P11", "NI": 100.0, "mAA10": 0.5, "pairs": 10}]
+    assert with_mean_row(one, cols) == one  # a mean of one scene says nothing
+    two = one + [{"scene": "Herz-Jesus-P8", "NI": 51.0, "mAA10": 0.25, "pairs": 6}]
+    out = with_mean_row(two, cols, skip=("pairs",))
+    assert len(out) == 3 and out[-1]["scene"] == "mean over 2 scenes"
+    assert out[-1]["NI"] == pytest.approx(75.5) and out[-1]["mAA10"] == pytest.approx(0.375)
+    assert "pairs" not in out[-1]
+    # a column some scenes lack is left empty rather than averaged over fewer scenes than the label says
+    gap = two + [{"scene": "entry-P10", "NI": 10.0, "pairs": 3}]
+    m = with_mean_row(gap, cols)[-1]
+    assert m["scene"] == "mean over 3 scenes" and "mAA10" not in m and m["NI"] == pytest.approx(161 / 3)
+    md = render(out, "markdown", cols)
+    assert md.splitlines()[-1] == "| mean over 2 scenes |  76 | 0.375 |     - |"
+
+
+def test_latex_exact_structure():
+    rows = with_mean_row([{"scene": "fountain_P11", "NI": 120.4, "mAA10": 0.51234},
+                          {"scene": "Herz-Jesus-P8", "NI": 99.6, "mAA10": 0.4}], ["scene", "NI", "mAA10"])
+    cols = Columns(["scene", "NI", "mAA10"], caption="Stereo test results (3 runs) & 50% of pairs")
+    assert render(rows, "latex", cols).splitlines() == [
+        r"\begin{table}[t]",
+        r"\centering",
+        r"\caption{Stereo test results (3 runs) \& 50\% of pairs}",
+        r"\begin{tabular}{lrr}",
+        r"\toprule",
+        r"scene & NI & mAA($10^\circ$) \\",
+        r"\midrule",
+        r"fountain\_P11 & 120 & 0.512 \\",
+        r"Herz-Jesus-P8 & 100 & 0.400 \\",
+        r"\midrule",
+        r"mean over 2 scenes & 110 & 0.456 \\",
+        r"\bottomrule",
+        r"\end{tabular}",
+        r"\end{table}",
+    ]
+    assert latex_header("eta degensac") == r"$\eta$ degensac"
+    assert latex_header("Gamma cv_ransac") == r"$\Gamma$ cv\_ransac"
+    assert latex_header("r") == "$r$" and latex_header("mAA(5°)") == r"mAA($5^\circ$)"
+    assert latex_escape("a_b{c}#1~^$\\") == r"a\_b\{c\}\#1\textasciitilde{}\textasciicircum{}\$\textbackslash{}"
+
+
+def test_settings_table_latex_exact():
+    rows, cols = settings_rows(STEREO, "latex", multiview=MULTIVIEW)
+    tex = render_table(rows, cols, "latex").splitlines()
+    assert tex[0] == r"\begin{table}[t]" and tex[1] == r"\centering"
+    assert tex[2] == (r"\caption{Optimal settings on the validation scenes fountain-P11: ratio test $r$ (stereo: from "
+                      r"the estimator study with the best validation mAA($10^\circ$); multiview: COLMAP), inlier "
+                      r"threshold $\eta$ (px) and maximum iterations $\Gamma$ of each estimator under the time budget "
+                      r"$B = 0.5$\,s per pair (median estimator time).}")
+    assert tex[3:] == [
+        r"\begin{tabular}{lrrrrrrrrlrr}",
+        r"\toprule",
+        r"feature & features & $r$ stereo & $r$ multiview & $\eta$ degensac & $\Gamma$ degensac & $\eta$ magsac++ & "
+        r"$\Gamma$ magsac++ & $B$ (s) & $r$ from & val.\ mAA($10^\circ$) & val.\ multiview mAA($10^\circ$) \\",
+        r"\midrule",
+        r"root\_sift & 2048 & 0.90 & -- & 0.75 & 10000 & -- & -- & 0.5 & degensac & 0.500 & -- \\",
+        r"sift & 8000 & 0.88 & 0.95 & 0.512 & 48213 & 1.25 & 20000 & 0.5 & magsac++ & 0.640 & 0.700 \\",
+        r"\bottomrule",
+        r"\end{tabular}",
+        r"\end{table}",
+    ]
+
+
+def test_settings_table_values_and_formats():
+    rows, cols = settings_rows(STEREO, "markdown", multiview=MULTIVIEW)
+    sift = next(r for r in rows if r["feature"] == "sift")
+    # r comes from the study with the best validation mAA(10): magsac++ (0.64 > 0.61)
+    assert sift["r"] == 0.875 and sift["r from"] == "magsac++" and sift["r_multiview"] == 0.95
+    assert sift["eta degensac"] == 0.5123 and sift["Gamma degensac"] == 48213 and sift["B"] == 0.5
+    md = render_table(rows, cols, "markdown").splitlines()
+    assert md[0].startswith("| feature ") and "| Gamma degensac |" in md[0] and "| r_multiview |" in md[0]
+    assert md[1].startswith("|---") and "--:|" in md[1]  # numeric columns right-aligned
+    assert md[-1].startswith("Table: Optimal settings on the validation scenes fountain-P11")
+    recs = list(csv.DictReader(io.StringIO(render_table(rows, cols, "csv"))))
+    assert recs[1]["Gamma magsac++"] == "20000" and recs[1]["eta degensac"] == "0.512" and recs[1]["r"] == "0.88"
+    js = json.loads(render_table(*settings_rows(STEREO, "json", multiview=MULTIVIEW), "json"))
+    assert js[1]["studies"]["degensac"]["params"]["max_iters"] == 48213  # json keeps every study's values
+
+
+def test_settings_table_budget_per_estimator_when_studies_differ():
+    studies = [info("sift", 8000, "degensac", 0.61, 0.85, 0.5, 48213, budget=0.5),
+               info("sift", 8000, "magsac++", 0.64, 0.88, 1.25, 20000, budget=1.0)]
+    rows, cols = settings_rows(studies, "markdown")
+    assert "B" not in cols and rows[0]["B degensac"] == 0.5 and rows[0]["B magsac++"] == 1.0
+    tex = render_table(rows, cols, "latex")
+    assert r"$B$ degensac (s)" in tex and r"$B$ (s per pair)" in tex
+
+
+def test_settings_table_without_multiview_still_names_the_column():
+    rows, cols = settings_rows(STEREO[:1], "markdown")
+    assert rows[0]["r_multiview"] is None and "r_multiview" in cols
+    assert render_table(rows, cols, "markdown").splitlines()[2].split("|")[4].strip() == "-"
