@@ -1,24 +1,55 @@
 #!/usr/bin/env bash
-# Installs everything imtune and its tests need on a fresh Debian machine with Python 3.11:
-# system packages (Chromium + driver for the dashboard test, PostgreSQL for multi-worker tests),
-# a virtualenv in .venv with the CPU build of torch and the project in editable mode.
+# Installs imtune on a fresh Debian machine with Python 3.11.
+#
+#   bash .ci/install.sh          the Python side only: a virtualenv in .venv with the CPU build of torch and the
+#                                project in editable mode. No sudo, no system packages, no browser, no database
+#                                server: all that tuning needs.
+#   bash .ci/install.sh --test   also what the tests need: Debian's chromium + chromium-driver (the dashboard's
+#                                browser test) and postgresql (the multi-worker tests start their own server on
+#                                loopback), through apt-get (with sudo when not root), and the test extras
+#                                (pytest, selenium, psycopg2).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
-need=()
-for pkg in chromium chromium-driver postgresql; do
-  dpkg -s "$pkg" >/dev/null 2>&1 || need+=("$pkg")
+TEST=0
+for arg in "$@"; do
+  case "$arg" in
+    --test) TEST=1 ;;
+    -h|--help) sed -n '2,10p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    *) echo "install.sh: unknown option '$arg' (use --test, or nothing for the Python side only)" >&2; exit 2 ;;
+  esac
 done
-if [ ${#need[@]} -gt 0 ]; then
-  export DEBIAN_FRONTEND=noninteractive
-  $SUDO apt-get update -qq
-  $SUDO apt-get install -y -qq --no-install-recommends "${need[@]}" >/dev/null
+
+if [ "$TEST" -eq 1 ]; then
+  SUDO=""
+  if [ "$(id -u)" -ne 0 ]; then
+    command -v sudo >/dev/null || { echo "install.sh: --test installs Debian packages: run as root or install sudo" >&2; exit 2; }
+    SUDO="sudo"
+  fi
+  need=()
+  for pkg in chromium chromium-driver postgresql; do
+    dpkg -s "$pkg" >/dev/null 2>&1 || need+=("$pkg")
+  done
+  if [ ${#need[@]} -gt 0 ]; then
+    export DEBIAN_FRONTEND=noninteractive
+    $SUDO apt-get update -qq
+    $SUDO apt-get install -y -qq --no-install-recommends "${need[@]}" >/dev/null
+  fi
 fi
+
 PY=${PYTHON:-python3}
-[ -x .venv/bin/python ] || "$PY" -m venv .venv
+if [ ! -x .venv/bin/python ]; then
+  "$PY" -m venv .venv || { echo "install.sh: '$PY -m venv' failed: Debian needs the python3-venv package" >&2; exit 2; }
+fi
 .venv/bin/python -m pip install -q --upgrade pip
-# torch first, pinned: the CPU build of 2.13.0 is what this machine kind provides (any other spec
-# pulls a multi-GB CUDA build); the project's own `torch>=2.2` is then already satisfied.
-.venv/bin/python -m pip install -q torch==2.13.0
-.venv/bin/python -m pip install -q -e '.[test]'
-echo "imtune installed in $(pwd)/.venv"
+# torch first, pinned: torch==2.13.0 is the CPU build (2.13.0+cpu) that lies on this machine kind's disk, where pip
+# finds it without downloading; any other spec, including the project's own `torch>=2.2` alone, makes pip download
+# a multi-GB CUDA build instead. Installed first, it already satisfies `torch>=2.2`. (TORCH_SPEC overrides it, e.g.
+# on a machine with a GPU.)
+.venv/bin/python -m pip install -q "${TORCH_SPEC:-torch==2.13.0}"
+if [ "$TEST" -eq 1 ]; then
+  .venv/bin/python -m pip install -q -e '.[test]'
+  echo "imtune and its test tools installed in $(pwd)/.venv"
+else
+  .venv/bin/python -m pip install -q -e .
+  echo "imtune installed in $(pwd)/.venv"
+fi

@@ -225,3 +225,32 @@ def test_main_job_downloads_and_goes_on(user, tmp_path, server):  # noqa: F811
     out = json.loads(r.stdout)
     assert out["counts"]["complete"] + out["counts"]["pruned"] == 1
     assert (tmp_path / "studies" / "optuna.db").is_file()
+
+
+# -- item 9: two set-up commands, and CI runs the README's ------------------------------------------------------
+
+def _setup_commands() -> list[str]:
+    text = (ROOT / "README.md").read_text()
+    section = text.split("## Set-up", 1)[1].split("\n## ", 1)[0]
+    return [ln.strip() for ln in section.splitlines() if ln.startswith("    ") and ln.strip()]
+
+
+def test_readme_has_two_setup_commands_and_ci_runs_the_test_one():
+    main, test = _setup_commands()  # exactly two
+    assert main == "bash .ci/install.sh && .venv/bin/tune --feature sift --ransac degensac"
+    assert test.startswith("bash .ci/install.sh --test && ") and "pytest" in test
+    run = (ROOT / ".ci" / "run").read_text().splitlines()
+    assert test in [ln.strip() for ln in run]
+    script = (ROOT / ".ci" / "install.sh").read_text()
+    # the Python-only install touches no system package: apt-get and sudo appear only in the --test branch
+    test_branch = script.split('if [ "$TEST" -eq 1 ]; then', 1)[1].split("\nfi\n", 1)[0]
+    outside = "\n".join(ln for ln in script.replace(test_branch, "").splitlines() if not ln.lstrip().startswith("#"))
+    assert "apt-get install" in test_branch and "apt-get" not in outside and "$SUDO" not in outside
+    assert "torch==2.13.0" in script and "CUDA" in script  # the pin says why it is there
+
+
+def test_install_script_options():
+    r = subprocess.run(["bash", str(ROOT / ".ci" / "install.sh"), "--help"], capture_output=True, text=True)
+    assert r.returncode == 0 and "--test" in r.stdout
+    r = subprocess.run(["bash", str(ROOT / ".ci" / "install.sh"), "--bogus"], capture_output=True, text=True)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "--bogus" in r.stderr

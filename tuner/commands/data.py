@@ -104,6 +104,9 @@ def run_scenes(args) -> int:
     print(f"data: {root}  (found by {loc.describe()})")
     for s in scenes:
         print(f"{s['scene']}\t{s['split']}")
+    if not splits.get("test"):
+        print(f"note: no test split in {root}: the main job needs --test-scenes NAME[,...] (or --no-test), or a "
+              f"splits.yaml there")
     for o in others:
         print(f"also: {o['name']} at {o['path']}  ({o['rule']}; use with --data {o['path']})")
     return 0
@@ -115,7 +118,7 @@ def run_build_gt(args) -> int:
     import time
 
     from pipeline.data.ground_truth import GTConfig, build_ground_truth
-    from tuner.options import load_scenes
+    from tuner.evaluate import load_scenes
     root = resolve_data(args.data)
     conf = GTConfig(method=args.method, num_features=args.num_features, max_image_size=args.max_image_size,
                     camera_model=args.camera_model)
