@@ -159,19 +159,29 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         ap.print_help()
         return 2
+    # every message is scrubbed of credentials: exceptions from SQLAlchemy / psycopg2 may embed the URL or DSN
+    from tuner.storage import scrub, storage_fault
+    url = getattr(args, "storage", None)
     try:
         return int(args.func(args) or 0)
     except ImtuneError as e:
-        print(f"tune: error: {e}", file=sys.stderr)
+        print(f"tune: error: {scrub(e, url)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("tune: interrupted", file=sys.stderr)
+        kept = "; completed trials are kept, rerun the same command to resume" if hasattr(args, "storage") else ""
+        print(f"tune: interrupted{kept}", file=sys.stderr)
         return 130
     except Exception as e:  # never a traceback for users; IMTUNE_DEBUG=1 shows it
         if os.environ.get("IMTUNE_DEBUG"):
             raise
+        # a storage that failed mid-run (full disk, server gone): the cause and what to do, exit 2
+        fault = storage_fault(e, url, getattr(args, "studies_dir", None)) if hasattr(args, "storage") else None
+        if fault:
+            print(f"tune: error: {fault}", file=sys.stderr)
+            return 2
         msg = str(e).strip().splitlines()[0] if str(e).strip() else ""
-        print(f"tune: internal error: {type(e).__name__}: {msg} (set IMTUNE_DEBUG=1 for details)", file=sys.stderr)
+        print(f"tune: internal error: {type(e).__name__}: {scrub(msg, url)} (set IMTUNE_DEBUG=1 for details)",
+              file=sys.stderr)
         return 1
 
 

@@ -4,7 +4,8 @@
     serve("sqlite:///studies/optuna.db", port=8080)   # blocks until Ctrl-C
 
 The storage is opened like the workers open it (SQLite busy timeout + WAL), so the dashboard reads
-while workers write without "database is locked" (optuna-dashboard issue 545).
+while workers write without "database is locked" (optuna-dashboard issue 545); it is never created
+(a path with no storage is a one-line error) and its URL is shown masked (``tuner.storage.mask_url``).
 """
 from __future__ import annotations
 
@@ -35,8 +36,9 @@ def serve(storage_url: str | None = None, host: str = "127.0.0.1", port: int = 8
     from tuner.storage import open_storage, storage_label
     if not (0 < int(port) < 65536):
         raise ImtuneError(f"invalid port {port}")
-    storage = open_storage(storage_url, heartbeat=None, studies_dir=studies_dir)
     check_port(host, port)
+    # a dashboard only reads: a missing SQLite / journal file is an error, never a new empty storage
+    storage = open_storage(storage_url, heartbeat=None, studies_dir=studies_dir, must_exist=True)
     if not quiet:
         shown = f"[{host}]" if ":" in host else host
         print(f"optuna-dashboard: http://{shown}:{port}/  (storage {storage_label(storage_url, studies_dir)}; "

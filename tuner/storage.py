@@ -60,33 +60,126 @@ def default_storage_url(studies_dir: Path | str | None = None) -> str:
     return f"sqlite:///{(d / 'optuna.db').resolve()}"
 
 
-_PW_RE = re.compile(r"(?P<pre>[a-zA-Z][a-zA-Z0-9+.\-]*://[^:/@\s]*:)(?P<pw>[^@\s]*)(?P<post>@)")
+# -- credentials ----------------------------------------------------------------------------------
+#
+# A URL is masked by SQLAlchemy's own rendering (``make_url(url).render_as_string(hide_password=True)``)
+# plus the query parameters that carry secrets (libpq reads ``?password=``, ``?sslpassword=``, ``?passfile=``,
+# ``?sslkey=``; MySQL drivers ``?passwd=``, ``?ssl_key=``). A regex is used only where SQLAlchemy cannot
+# parse the string (it raises ArgumentError / ValueError, e.g. ``u:a@b:c@host:5432`` where it reads
+# ``c@host:5432`` as the port) and for free text such as an exception message that may embed a URL or
+# a libpq DSN (``host=... password=...``): there is no structure to parse, so every ``scheme://user:...@``
+# userinfo (up to the last ``@`` of the token) and every ``secret-ish-key=value`` is masked.
+
+MASK = "***"
+#: query / DSN keys whose value is a secret (a password, a key, a file of passwords, a token)
+SECRET_KEY_RE = re.compile(r"pass|pwd|secret|token|key|auth|cred", re.I)
+_URL_PW_RE = re.compile(r"(?P<pre>\b[A-Za-z][A-Za-z0-9+.\-]*://[^\s:/@]*:)(?P<pw>\S*)@(?P<post>[^\s@]*)")
+#: in free text only the key names drivers actually use, so that e.g. "--fix monkey=3" stays readable
+_KV_RE = re.compile(r"(?<![A-Za-z0-9_.\-])(?P<k>password|passwd|pwd|pass|sslpassword|passfile|sslkey|ssl_key|secret|"
+                    r"token|access_token|api_key|apikey|auth_token|PGPASSWORD)(?P<eq>\s*=\s*)"
+                    r"(?P<v>'(?:[^'\\]|\\.)*'|\"[^\"]*\"|[^\s&'\",;)\]]+)", re.I)
+_SCHEME_ONLY_RE = re.compile(r"^(?P<scheme>[A-Za-z][A-Za-z0-9+.\-]*):(?!//)")
+
+
+def _regex_mask(text: str) -> str:
+    """Fallback for text SQLAlchemy cannot parse: URL userinfo passwords and secret key=value pairs."""
+    text = _URL_PW_RE.sub(lambda m: m.group(0) if m.group("pw") in ("PASS", "PASSWORD", MASK)  # placeholders
+                          else m.group("pre") + MASK + "@" + m.group("post"), text)
+    return _KV_RE.sub(lambda m: m.group(0) if m.group("v").startswith(MASK) else m.group("k") + m.group("eq") + MASK,
+                      text)
+
+
+def _repair_at(url: str) -> str:
+    """``scheme://user:pa@ss@host/db`` -> ``scheme://user:pa%40ss@host/db``.
+
+    SQLAlchemy (like libpq) ends the password at the first ``@``, so an unencoded ``@`` in a password
+    makes ``ss@host`` the host name and ``ss`` leaks in every message naming the host. A host name cannot
+    contain ``@``, so the userinfo is taken to run to the last ``@`` of the URL (as ``urllib.parse`` does)
+    and the password is percent-encoded; URLs with at most one ``@`` are returned unchanged."""
+    from urllib.parse import quote, unquote
+    scheme, sep, rest = url.partition("://")
+    if not sep or rest.startswith("/") or rest.count("@") < 2:
+        return url
+    at = rest.rfind("@")
+    userinfo, after = rest[:at], rest[at + 1:]
+    user, colon, pw = userinfo.partition(":")
+    if not colon:
+        user, pw = userinfo, None
+    enc = lambda v: quote(unquote(v), safe="")  # noqa: E731 - idempotent on already-encoded parts
+    cred = enc(user) + (":" + enc(pw) if pw is not None else "")
+    return f"{scheme}://{cred}@{after}"
+
+
+def _parse(url: str):
+    """SQLAlchemy's URL object for ``url`` (after :func:`_repair_at`), or None if it cannot parse it."""
+    from sqlalchemy.engine import make_url
+    try:
+        return make_url(_repair_at(url))
+    except Exception:  # noqa: BLE001 - ArgumentError, ValueError (bad port), ...: not parseable
+        return None
+
+
+def _mask_query(rendered: str) -> str:
+    base, q, query = rendered.partition("?")
+    if not q:
+        return rendered
+    from urllib.parse import unquote_plus
+    parts = []
+    for item in query.split("&"):
+        k, eq, _v = item.partition("=")
+        parts.append(f"{k}={MASK}" if eq and SECRET_KEY_RE.search(unquote_plus(k)) else item)
+    return base + "?" + "&".join(parts)
 
 
 def mask_url(url: str | None) -> str:
-    """The URL with its password replaced by ``***`` (also for malformed URLs)."""
+    """The storage URL as shown to users: password and secret query parameters replaced by ``***``.
+
+    Journal files and bare paths (no ``://``) are returned unchanged. Malformed URLs are masked too."""
     if url is None:
         return ""
-    return _PW_RE.sub(lambda m: m.group("pre") + "***" + m.group("post"), str(url))
+    s = str(url).strip()
+    if "://" not in s:
+        return s
+    u = _parse(s)
+    if u is None:
+        return _regex_mask(s)
+    return _mask_query(u.render_as_string(hide_password=True))
 
 
-def _password(url: str) -> str | None:
-    m = _PW_RE.search(url or "")
-    return m.group("pw") if m and m.group("pw") else None
+def _secrets(url: str | None) -> list[str]:
+    """Every secret value the URL carries, raw and in its percent-encoded forms (longest first)."""
+    if not url or "://" not in str(url):
+        return []
+    from urllib.parse import quote, quote_plus
+    u = _parse(str(url))
+    vals = []
+    if u is not None:
+        if u.password:
+            vals.append(str(u.password))
+        for k, v in u.query.items():
+            if SECRET_KEY_RE.search(k):
+                vals.extend([v] if isinstance(v, str) else list(v))
+    else:  # unparseable: what the regex would mask
+        m = _URL_PW_RE.search(str(url))
+        if m and m.group("pw"):
+            vals.append(m.group("pw"))
+    out = set()
+    for v in vals:
+        if v:
+            out.update({v, quote(v, safe=""), quote_plus(v), quote(v)})
+    return sorted(out, key=len, reverse=True)
 
 
-def scrub(text: str, url: str | None) -> str:
-    """``text`` with the URL's password (and any URL-embedded password) masked; one line."""
+def scrub(text, url: str | None = None) -> str:
+    """``text`` (e.g. an exception message from SQLAlchemy or psycopg2) as one line, with the secrets of
+    ``url`` and any URL password or ``password=...`` pair it embeds replaced by ``***``."""
     text = " ".join(str(text).split())
-    pw = _password(url or "")
-    if pw:
-        text = text.replace(pw, "***")
-        try:
-            from urllib.parse import unquote
-            text = text.replace(unquote(pw), "***")
-        except Exception:  # noqa: BLE001
-            pass
-    return mask_url(text)
+    for sec in _secrets(url):
+        if len(sec) >= 4:
+            text = text.replace(sec, MASK)
+        else:  # a very short secret: only where it stands alone, not inside every word
+            text = re.sub(rf"(?<![A-Za-z0-9]){re.escape(sec)}(?![A-Za-z0-9])", MASK, text)
+    return _regex_mask(text)
 
 
 _DRIVERS = {"postgresql": (("psycopg2", "psycopg2"), ("psycopg", "psycopg"), ("pg8000", "pg8000")),
@@ -115,6 +208,16 @@ def classify(url: str) -> tuple[str, str]:
             raise ImtuneError(f"malformed storage URL {url!r}: journal needs a file path ({EXPECTED})")
         return "journal", str(Path(path).expanduser())
     if "://" not in url:
+        m = _SCHEME_ONLY_RE.match(url)
+        if m and len(m.group("scheme")) > 1:  # a URL scheme without "//" (a typo), not a path
+            scheme, rest = m.group("scheme"), url[m.end():]
+            hint = ""
+            if scheme.lower() == "sqlite" and rest:
+                r = rest.lstrip("/")
+                hint = (f"; did you mean sqlite:///{r} (relative to the current folder) or sqlite:////{r} "
+                        "(absolute)?" if rest.startswith("/") else f"; did you mean sqlite:///{r}?")
+            raise ImtuneError(f"malformed storage URL {mask_url(url)!r}: a URL needs '://' after "
+                              f"{scheme + ':'!r}, nothing was created{hint or ' (' + EXPECTED + ')'}")
         p = Path(url).expanduser()
         if p.suffix in JOURNAL_SUFFIXES:
             return "journal", str(p)
@@ -124,17 +227,21 @@ def classify(url: str) -> tuple[str, str]:
     from sqlalchemy.engine import make_url
     from sqlalchemy.exc import ArgumentError
     try:
-        u = make_url(url)
+        u = make_url(_repair_at(url))  # an unencoded '@' in the password is percent-encoded
     except (ArgumentError, ValueError) as e:
         raise ImtuneError(f"malformed storage URL {mask_url(url)!r}: {scrub(str(e), url)} ({EXPECTED})") from None
     backend = u.get_backend_name()
     if backend == "sqlite":
         if not u.database or u.database == ":memory:":
-            raise ImtuneError(f"storage {mask_url(url)!r}: an SQLite storage needs a file path "
-                              "(sqlite:///studies/optuna.db); an in-memory database is not shared between workers")
+            raise ImtuneError(f"storage {mask_url(url)!r}: an SQLite storage needs a file path, after three "
+                              "slashes (sqlite:///studies/optuna.db, sqlite:////abs/optuna.db); an in-memory "
+                              "database is not shared between workers")
         return "sqlite", url
+    if backend == "postgres":
+        raise ImtuneError(f"unsupported storage {mask_url(url)!r}: SQLAlchemy spells the scheme postgresql:// "
+                          "(not postgres://)")
     if backend in ("postgresql", "mysql", "mariadb", "oracle", "mssql"):
-        if not u.host and backend != "sqlite":
+        if not u.host and "host" not in u.query and "unix_socket" not in u.query:
             raise ImtuneError(f"malformed storage URL {mask_url(url)!r}: no host ({EXPECTED})")
         if not u.database:
             raise ImtuneError(f"malformed storage URL {mask_url(url)!r}: no database name ({EXPECTED})")
@@ -142,8 +249,8 @@ def classify(url: str) -> tuple[str, str]:
             for mod, driver in _DRIVERS.get(backend, ()):
                 if _importable(mod):
                     u = u.set(drivername=f"{backend}+{driver}")
-                    return "rdb", u.render_as_string(hide_password=False)
-        return "rdb", url
+                    break
+        return "rdb", u.render_as_string(hide_password=False)
     raise ImtuneError(f"unsupported storage {mask_url(url)!r} (scheme {u.drivername!r}; {EXPECTED})")
 
 
@@ -152,9 +259,21 @@ def _sqlite_path(url: str) -> Path:
     return Path(make_url(url).database).expanduser()
 
 
-def _prepare_sqlite(path: Path) -> None:
-    """Create the folder; switch the file to WAL (persistent per file) so readers never block the writer."""
-    path.parent.mkdir(parents=True, exist_ok=True)
+def _prepare_sqlite(path: Path, must_exist: bool = False) -> None:
+    """Create the folder; switch the file to WAL (persistent per file) so readers never block the writer.
+
+    must_exist: the file must already be there (read-only commands); nothing is created, and the WAL
+    switch is best effort (a reader of a read-only file still reads)."""
+    if must_exist:
+        if not path.is_file():
+            what = "a folder, not a file" if path.is_dir() else "no such file"
+            raise ImtuneError(f"no SQLite storage at {path.resolve()} ({what}); pass the --storage (or --studies-dir) the "
+                              "studies were run with, or run `tune` first")
+    else:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise ImtuneError(f"cannot create the folder of the SQLite storage {path}: {e.strerror or e}") from None
     for attempt in range(20):
         try:
             con = sqlite3.connect(str(path), timeout=SQLITE_TIMEOUT_S)
@@ -165,11 +284,25 @@ def _prepare_sqlite(path: Path) -> None:
             finally:
                 con.close()
             return
-        except sqlite3.OperationalError as e:
+        except sqlite3.DatabaseError as e:
             if "locked" not in str(e) and "busy" not in str(e):
-                raise ImtuneError(f"cannot open SQLite storage {path}: {e}") from None
+                if must_exist and "readonly" in str(e):
+                    return
+                hint = _sqlite_hint(str(e))
+                raise ImtuneError(f"cannot open SQLite storage {path}: {e}{hint}") from None
             time.sleep(0.1 * (attempt + 1))
     # WAL is an optimisation: the busy timeout alone still prevents lock errors
+
+
+def _sqlite_hint(msg: str) -> str:
+    m = msg.lower()
+    if "full" in m or "disk i/o" in m:
+        return "; free disk space (or point --storage elsewhere) and rerun"
+    if "not a database" in m:
+        return "; the file is not an SQLite database: pass another --storage"
+    if "readonly" in m or "unable to open" in m:
+        return "; check the file's and its folder's permissions"
+    return ""
 
 
 def _sqlite_pragmas(engine) -> None:
@@ -209,17 +342,39 @@ def _retrying(fn, what: str, url: str, attempts: int = 8):
             break
     orig = getattr(last, "orig", None) or last
     first = str(orig).strip().splitlines()[0] if str(orig).strip() else type(orig).__name__
-    raise ImtuneError(f"cannot {what} storage {mask_url(url)}: {scrub(first, url)}") from None
+    low = str(orig).lower()
+    hint = ""
+    if any(k in low for k in _UNREACHABLE):
+        hint = "; is the database server running and reachable there? start it or fix --storage"
+    elif "password authentication failed" in low or "access denied" in low:
+        hint = "; check the user name and password in --storage"
+    elif "does not exist" in low and "database" in low:
+        hint = "; create the database first (e.g. `createdb`) or fix --storage"
+    else:
+        hint = _sqlite_hint(low)
+    raise ImtuneError(f"cannot {what} storage {mask_url(url)}: {scrub(first, url)}{hint}") from None
+
+
+#: libpq / MySQL driver messages of a server that cannot be reached or went away
+_UNREACHABLE = ("connection refused", "could not connect", "could not translate host name", "no route to host",
+                "timeout expired", "timed out", "name or service not known", "can't connect", "network is unreachable")
+_LOST = _UNREACHABLE + ("server closed the connection", "terminating connection", "connection already closed",
+                        "connection to server", "ssl syscall", "the database system is", "connection reset",
+                        "broken pipe", "lost connection", "has gone away", "could not receive data",
+                        "could not send data", "connection was closed", "connection is closed")
+_FULL = ("database or disk is full", "disk i/o error", "no space left", "file too large", "disk quota")
 
 
 def open_storage(url: str | None = None, *, heartbeat: int | None = DEFAULT_HEARTBEAT_S,
                  grace_period: int | None = None, retry_stale: bool = True,
-                 studies_dir: Path | str | None = None):
+                 studies_dir: Path | str | None = None, must_exist: bool = False):
     """An Optuna storage object for ``url`` (default: the SQLite file in the studies folder).
 
     heartbeat: seconds between a running trial's heartbeats on RDB storages (None or 0: off);
     grace_period: seconds without a heartbeat after which a RUNNING trial counts as dead (default
-    3 x heartbeat); retry_stale: re-enqueue a dead trial's parameters once.
+    3 x heartbeat); retry_stale: re-enqueue a dead trial's parameters once; must_exist: for commands
+    that only read (``tune studies``, ``table``, ``results``, ``plot``, ``dashboard``): never create a
+    storage — a missing SQLite or journal file, or a database without Optuna's tables, is an error.
     Raises ImtuneError (one line, password masked) for a malformed URL, a missing driver or an
     unreachable server."""
     import optuna
@@ -229,11 +384,17 @@ def open_storage(url: str | None = None, *, heartbeat: int | None = DEFAULT_HEAR
         from optuna.storages import JournalStorage
         from optuna.storages.journal import JournalFileBackend
         p = Path(norm)
-        p.parent.mkdir(parents=True, exist_ok=True)
+        if must_exist and not p.is_file():
+            raise ImtuneError(f"no journal storage at {p} (no such file); pass the --storage the studies were run "
+                              "with, or run `tune` first")
         try:
+            if not must_exist:
+                p.parent.mkdir(parents=True, exist_ok=True)
             return JournalStorage(JournalFileBackend(str(p)))
         except OSError as e:
             raise ImtuneError(f"cannot open journal storage {p}: {e.strerror or e}") from None
+    if heartbeat is not None and int(heartbeat) < 0:
+        raise ImtuneError(f"heartbeat must be >= 0 seconds (0 = off), got {heartbeat}")
     hb = int(heartbeat) if heartbeat else None
     kwargs = {}
     if hb:
@@ -243,7 +404,7 @@ def open_storage(url: str | None = None, *, heartbeat: int | None = DEFAULT_HEAR
                 warnings.simplefilter("ignore")  # "experimental" since Optuna 2.8
                 kwargs["heartbeat_stale_trial_callback"] = optuna.storages.RetryHeartbeatStaleTrialCallback(max_retry=1)
     if kind == "sqlite":
-        _prepare_sqlite(_sqlite_path(norm))
+        _prepare_sqlite(_sqlite_path(norm), must_exist=must_exist)
         engine_kwargs = {"connect_args": {"timeout": SQLITE_TIMEOUT_S}}
     else:
         engine_kwargs = {"pool_pre_ping": True}
@@ -253,9 +414,13 @@ def open_storage(url: str | None = None, *, heartbeat: int | None = DEFAULT_HEAR
             engine_kwargs["connect_args"] = {"connect_timeout": 10}
         elif backend in ("mysql", "mariadb"):
             engine_kwargs["connect_args"] = {"connect_timeout": 10}
+    if must_exist:
+        kwargs["skip_table_creation"] = True
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # heartbeat_interval is "experimental"
         try:
+            if must_exist:
+                _retrying(lambda: _require_tables(norm, engine_kwargs, url), "open", url)
             storage = _retrying(lambda: optuna.storages.RDBStorage(norm, engine_kwargs=engine_kwargs, **kwargs),
                                 "open", url)
             if kind == "sqlite":
@@ -268,7 +433,93 @@ def open_storage(url: str | None = None, *, heartbeat: int | None = DEFAULT_HEAR
         except ImtuneError:
             raise
         except Exception as e:  # noqa: BLE001 - a storage that cannot be opened is a one-line error
-            raise ImtuneError(f"cannot open storage {mask_url(url)}: {scrub(str(e), url)}") from None
+            raise ImtuneError(f"cannot open storage {mask_url(url)}: {scrub(_root_text(e), url)}") from None
+
+
+def _root_text(exc: BaseException) -> str:
+    """The first line of the innermost database error behind ``exc`` (Optuna's StorageInternalError
+    only says "invalid data in the commit"; the driver's message says what happened)."""
+    chain = _chain(exc)
+    dbapi = [e for e in chain if _is_db(e) and getattr(e, "orig", None) is None
+             and type(e).__name__ != "StorageInternalError"]
+    root = dbapi[0] if dbapi else exc
+    text = str(root).strip()
+    return text.splitlines()[0] if text else type(root).__name__
+
+
+def _require_tables(norm: str, engine_kwargs: dict, url: str) -> None:
+    """ImtuneError unless the database holds Optuna's tables (nothing is created)."""
+    import sqlalchemy
+    engine = sqlalchemy.create_engine(norm, **engine_kwargs)
+    try:
+        tables = set(sqlalchemy.inspect(engine).get_table_names())
+    finally:
+        engine.dispose()
+    if "studies" not in tables:
+        raise ImtuneError(f"storage {mask_url(url)} holds no Optuna studies (no 'studies' table); pass the "
+                          "--storage the studies were run with, or run `tune` first")
+
+
+def _chain(exc: BaseException | None) -> list[BaseException]:
+    """The exception, its causes / contexts, and the DBAPI errors SQLAlchemy wraps (``.orig``)."""
+    out, seen = [], set()
+    todo = [exc]
+    while todo:
+        e = todo.pop(0)
+        if e is None or id(e) in seen:
+            continue
+        seen.add(id(e))
+        out.append(e)
+        todo.extend([getattr(e, "orig", None), e.__cause__, e.__context__])
+    return out
+
+
+def storage_fault(exc: BaseException, url: str | None = None, studies_dir: Path | str | None = None) -> str | None:
+    """A one-line message for an exception caused by the storage failing mid-run, or None if it is not one.
+
+    Recognised (anywhere in the exception chain, Optuna's own wrappers included): a full disk under
+    SQLite ("database or disk is full", Optuna's "invalid data in the commit" wrapper, EFBIG / ENOSPC),
+    a lost or refused database connection (psycopg2 / MySQL messages; and Optuna's
+    ``UnboundLocalError: ... 'updated_state'``, which is what surfaces when the server went away while a
+    trial was being recorded), a locked or read-only SQLite file. Every message names the masked storage,
+    says that completed trials are kept and what to do; the text of the underlying error is scrubbed of
+    credentials."""
+    import errno
+    label = storage_label(url, studies_dir)
+    try:
+        kind = classify(url or default_storage_url(studies_dir))[0]
+    except ImtuneError:
+        kind = "unknown"
+    chain = _chain(exc)
+    keep = "completed trials are kept; rerun the same command to resume"
+    texts = [" ".join(str(e).split()).lower() for e in chain]
+    for e, t in zip(chain, texts):
+        if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG) and not _is_db(e):
+            where = f" writing {e.filename}" if getattr(e, "filename", None) else ""
+            return f"out of disk space{where} ({e.strerror}); free space and {keep}"
+    if any(k in t for t in texts for k in _FULL):
+        return (f"the storage {label} is out of disk space (database or disk is full); {keep} "
+                "once space is freed (or give --storage a disk with room)")
+    if any("database is locked" in t for t in texts):
+        return (f"the storage {label} stayed locked by another process for {SQLITE_TIMEOUT_S:g} s; {keep} "
+                "(many machines: use PostgreSQL or journal:PATH)")
+    if any("readonly database" in t or "read-only" in t for t in texts):
+        return f"the storage {label} is read-only; fix its permissions (or pass another --storage); {keep}"
+    if any(k in t for t in texts for k in _LOST):
+        return f"lost the connection to the storage {label}; {keep}"
+    optuna_storage = any(type(e).__name__ == "StorageInternalError" for e in chain)
+    updated_state = any(isinstance(e, UnboundLocalError) and "updated_state" in str(e) for e in chain)
+    if updated_state and kind == "rdb":
+        return f"lost the connection to the storage {label}; {keep}"
+    if optuna_storage or updated_state or any(_is_db(e) for e in chain):
+        return f"the storage {label} failed ({scrub(_root_text(exc), url)}); {keep}"
+    return None
+
+
+def _is_db(e: BaseException) -> bool:
+    mod = type(e).__module__ or ""
+    return mod.startswith(("sqlalchemy", "sqlite3", "psycopg", "pymysql", "MySQLdb", "pg8000")) \
+        or type(e).__name__ == "StorageInternalError"
 
 
 def fail_stale_trials(study) -> list[int]:
