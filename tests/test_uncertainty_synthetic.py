@@ -256,3 +256,12 @@ def test_combine_runs_without_run_effect_is_the_bootstrap():
     assert one["mAA10_ci"] == maa_intervals(recs, seed=3)["mAA10_ci"]
     same = combine_runs_interval([recs, recs, recs], seed=3)
     assert same["mAA10_ci"] == pytest.approx(one["mAA10_ci"], abs=1e-12) and same["mAA10_std"] == 0.0
+
+
+def test_no_common_pairs_is_an_error_not_a_tie():
+    a = records_from({"x": [1.0, 2.0, 3.0]})
+    b = records_from({"y": [1.0, 2.0, 3.0]})
+    with pytest.raises(ValueError, match="no common"):
+        paired_bootstrap(a, b)
+    ranks = rank_with_ties([("A", a), ("B", b)])
+    assert [r["rank"] for r in ranks] == [1, 2] and "no common pairs" in ranks[1]["note"]

@@ -215,8 +215,51 @@ def _tex(s) -> str:
     return latex_escape(s)
 
 
-def results_rows(studies: list[StudyInfo], fmt: str = "markdown") -> tuple[list[dict], list[str]]:
-    """(rows, columns) of the test-results table, ranked by each feature's best mAA(10)."""
+def _test_pair_runs(s: StudyInfo, studies_dir) -> list[list[dict]] | None:
+    """Per-run stereo pair records of a study's test runs, from ``<studies_dir>/<study>/test.json``: each run's
+    ``pair_errors`` ([scene, pair, err] triples) or ``pair_records`` (dicts). None where not stored."""
+    if studies_dir is None:
+        return None
+    from tuner.freeze import study_dir
+    p = study_dir(studies_dir, s.name) / "test.json"
+    try:
+        runs = json.loads(p.read_text()).get("runs") or []
+    except (OSError, ValueError, AttributeError):
+        return None
+    out = []
+    for r in runs:
+        if r.get("pair_errors") is not None:
+            out.append([{"scene": sc, "pair": pr, "err": float(e if e is not None else "inf")}
+                        for sc, pr, e in r["pair_errors"]])
+        elif r.get("pair_records") is not None:
+            out.append([{"scene": x["scene"], "pair": x["pair"], "err": float(x["err"] if x["err"] is not None else "inf")}
+                        for x in r["pair_records"]])
+        else:
+            return None
+    return out or None
+
+
+def _with_ci(m, ci) -> str | None:
+    if m is None:
+        return None
+    # 3 decimals, as tuner.formatting shows every mAA
+    return f"{float(m):.3f} [{ci[0]:.3f}, {ci[1]:.3f}]" if ci else f"{float(m):.3f}"
+
+
+def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: Path | str | None = None,
+                 n_resamples: int = 2000, seed: int = 0) -> tuple[list[dict], list[str]]:
+    """(rows, columns) of the test-results table, ranked by each feature's best mAA(10), with ties.
+
+    Each mAA(10) is shown as ``value [lo, hi]`` (95% interval) where one is known: from the test runs' pair
+    errors in ``<studies_dir>/<study>/test.json`` (:func:`pipeline.metrics.uncertainty.combine_runs_interval`:
+    pairs resampled within scenes, widened by the run-to-run variation), else the test summary's
+    ``mAA10_ci``. Ranks: each feature (by its best estimator's study) is compared with the one above it; it
+    shares that rank when the difference is not significant — by the paired bootstrap on the common test
+    pairs (:func:`~pipeline.metrics.uncertainty.rank_with_ties`) where both have pair errors, else when their
+    intervals overlap (:func:`~pipeline.metrics.uncertainty.rank_by_intervals`, unpaired and conservative).
+    The ``ties`` column says which rule shared a rank, or that no interval was available. ``--format json``
+    adds ``mAA10_ci <est>`` lists and ``studies``."""
+    from pipeline.metrics.uncertainty import combine_runs_interval, rank_by_intervals, rank_with_ties
     tested = [s for s in studies if s.test]
     ests = _estimators(tested)
     rows = []
@@ -230,25 +273,57 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown") -> tuple[list[
             s = by_est.get(e)
             ni = s.test.get("NI") if s else None
             m = s.test.get("mAA10") if s else None
+            runs = _test_pair_runs(s, studies_dir) if s and m is not None else None
+            ci = s.test.get("mAA10_ci") if s else None
+            if runs:
+                ci = combine_runs_interval(runs, taus=(10,), n_resamples=n_resamples, seed=seed)["mAA10_ci"]
             row[f"NI {e}"] = round(float(ni), 1) if ni is not None else None
-            row[f"mAA10 {e}"] = round(float(m), 4) if m is not None else None
+            if fmt == "json":
+                row[f"mAA10 {e}"] = round(float(m), 4) if m is not None else None
+                row[f"mAA10_ci {e}"] = [round(float(v), 4) for v in ci] if ci else None
+            else:
+                row[f"mAA10 {e}"] = _with_ci(m, ci)
             if m is not None and (best is None or m > best[0]):
-                best = (m, e)
+                best = (m, e, runs, ci)
         row["best"] = best[1] if best else None
-        row["_score"] = best[0] if best else -1.0
+        row["_best"] = best
         if fmt == "json":
             row["studies"] = {s.ransac: {"study": s.name, **s.test} for s in group}
         rows.append(row)
-    order = sorted(range(len(rows)), key=lambda i: -rows[i]["_score"])
-    for rank, i in enumerate(order, 1):
-        rows[i]["rank"] = rank
+    scored = [i for i, r in enumerate(rows) if r["_best"] is not None]
+    name = {i: f"{rows[i]['feature']} ({rows[i]['features']})" for i in range(len(rows))}
+    if scored and all(rows[i]["_best"][2] for i in scored):  # pair errors everywhere: paired tests
+        ranked = rank_with_ties([(str(i), [x for run in rows[i]["_best"][2] for x in run]) for i in scored],
+                                n_resamples=n_resamples, seed=seed)
+        rule = "paired bootstrap on the test pairs"
+    else:
+        ranked = rank_by_intervals([{"name": str(i), "mAA10": rows[i]["_best"][0], "mAA10_ci": rows[i]["_best"][3]}
+                                    for i in scored])
+        rule = "95% intervals overlap (no pair errors in test.json: unpaired)"
+    order = []
+    for r in ranked:
+        i = int(r["name"])
+        rows[i]["rank"] = r["rank"]
+        if r["shared"]:
+            above = name[int(order[-1])]
+            rows[i]["ties"] = f"rank shared with {above}: not significantly different ({rule})"
+        elif "no common pairs" in r.get("note", ""):
+            rows[i]["ties"] = f"not compared with {name[int(order[-1])]}: no common test pairs"
+        elif rows[i]["_best"][3] is None and rule.startswith("95%"):
+            rows[i]["ties"] = "no interval: ranked by value alone"
+        else:
+            rows[i]["ties"] = ""
+        order.append(i)
+    for rank, i in enumerate([i for i in range(len(rows)) if i not in order], len(order) + 1):
+        rows[i]["rank"], rows[i]["ties"] = rank, "no test mAA"
+        order.append(i)
     rows = [rows[i] for i in order]
     for r in rows:
-        r.pop("_score")
+        r.pop("_best")
     cols = ["rank", "feature", "features", "NF"]
     for e in ests:
-        cols += [f"NI {e}", f"mAA10 {e}"]
-    cols.append("best")
+        cols += [f"NI {e}", f"mAA10 {e}"] + ([f"mAA10_ci {e}"] if fmt == "json" else [])
+    cols += ["best", "ties"]
     if fmt == "json":
         cols.append("studies")
     return rows, cols

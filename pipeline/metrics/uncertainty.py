@@ -264,10 +264,13 @@ def paired_bootstrap(records_a: Sequence[Mapping], records_b: Sequence[Mapping],
     Returns ``{"mAA<tau>_a", "mAA<tau>_b", "difference", "ci": [lo, hi], "p_value", "significant",
     "pairs" (common), "dropped_a", "dropped_b" (pairs only in A / only in B), "tau", "level",
     "scenes": {name: {the same keys without "scenes"}}}``. Identical inputs give difference 0,
-    ci [0, 0] and p_value 1.0 exactly."""
+    ci [0, 0] and p_value 1.0 exactly. Raises ValueError when no pair is common to both."""
     tau = int(tau)
     sa, sb = _mean_scores(records_a, tau), _mean_scores(records_b, tau)
     common = [k for k in sa if k in sb]
+    if not common:
+        raise ValueError(f"no common (scene, pair) between the two sets of records ({len(sa)} and {len(sb)} "
+                         "pairs): they were not evaluated on the same pairs")
     names = []
     for k in common:
         if k[0] not in names:
@@ -310,7 +313,7 @@ def rank_with_ties(items, tau: int = 10, n_resamples: int = DEFAULT_RESAMPLES, s
     its rank when the difference's CI contains 0. Ranks are competition ranks (1, 1, 3): a method that
     differs significantly from the one above gets its position. Sharing is chained: C can share rank 1
     with B, which shares it with A, even if A and C differ significantly (the note says whom each row
-    ties with).
+    ties with). Two methods without a common pair are not compared (no shared rank; the note says so).
 
     Returns, best first: ``[{"name", "rank", "mAA<tau>", "shared": bool (rank shared with the row
     above), "comparison": paired_bootstrap overall figures against the row above (None for the first),
@@ -331,8 +334,13 @@ def rank_with_ties(items, tau: int = 10, n_resamples: int = DEFAULT_RESAMPLES, s
         row = {"name": name, "rank": pos + 1, f"mAA{tau}": vals[i], "shared": False, "comparison": None, "note": ""}
         if out:
             above = out[-1]
-            cmp = paired_bootstrap(named[order[pos - 1]][1], recs, tau=tau, n_resamples=n_resamples, seed=seed,
-                                   level=level)
+            try:
+                cmp = paired_bootstrap(named[order[pos - 1]][1], recs, tau=tau, n_resamples=n_resamples, seed=seed,
+                                       level=level)
+            except ValueError:  # evaluated on different pairs: nothing to pair, never a shared rank
+                row["note"] = f"not compared with {above['name']}: no common pairs"
+                out.append(row)
+                continue
             cmp = {k: v for k, v in cmp.items() if k != "scenes"}
             row["comparison"] = cmp
             lo, hi = cmp["ci"]

@@ -389,7 +389,7 @@ def run_table(args) -> int:
 def run_results(args) -> int:
     from tuner.reports import render_table, results_rows
     studies = _collect(args)
-    rows, cols = results_rows(studies, args.format)
+    rows, cols = results_rows(studies, args.format, studies_dir=_studies_dir(args))
     if not rows:
         raise ImtuneError(f"no tested {args.task} study in the storage (run `tune test --study NAME`)")
     print(render_table(rows, cols, args.format))

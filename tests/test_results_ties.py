@@ -1,0 +1,83 @@
+"""`tune results` ranks with ties: features whose test mAA(10) difference to the one above is not significant
+share its rank, and every mAA is shown with its 95% interval. Synthetic test runs with known per-pair errors
+(test.json as the test run writes it, plus each run's pair errors)."""
+import json
+import math
+
+import numpy as np
+
+from tuner.freeze import study_dir
+from tuner.reports import StudyInfo, results_rows
+
+
+def pair_errors(rng, scale, n=40, scenes=("Herz-Jesus-P8", "entry-P10")):
+    out = []
+    for sc in scenes:
+        e = rng.exponential(scale, n)
+        e[rng.random(n) < 0.1] = math.inf
+        out += [[sc, f"{i:04d}.jpg|{i + 1:04d}.jpg", "inf" if not math.isfinite(x) else float(x)] for i, x in enumerate(e)]
+    return out
+
+
+def maa10(errs):
+    e = np.array([float(x[2]) for x in errs])
+    return float(np.mean([np.mean([(e[[x[0] == sc for x in errs]] <= k).mean() for k in range(1, 11)])
+                          for sc in sorted({x[0] for x in errs})]))
+
+
+def make_study(tmp_path, name, feature, runs, with_pairs=True, ci=None):
+    """A tested study: test.json with ``runs`` (lists of [scene, pair, err]) and the study's test summary."""
+    values = [maa10(r) for r in runs]
+    d = study_dir(tmp_path, name)
+    d.mkdir(parents=True, exist_ok=True)
+    test = {"runs": [{"seed": k, "mAA10": v, **({"pair_errors": r} if with_pairs else {})}
+                     for k, (v, r) in enumerate(zip(values, runs))]}
+    (d / "test.json").write_text(json.dumps(test))
+    summary = {"mAA10": float(np.mean(values)), "NF": 2048.0, "NI": 100.0, "runs": len(runs)}
+    if ci:
+        summary["mAA10_ci"] = ci
+    return StudyInfo(name=name, task="stereo", feature=feature, num_features=2048, ransac="degensac", attrs={},
+                     best=None, n_complete=1, test=summary)
+
+
+def test_paired_ties_from_the_test_runs_pair_errors(tmp_path):
+    rng = np.random.default_rng(0)
+    good = [pair_errors(np.random.default_rng(1), 1.5)] * 3
+    base = pair_errors(rng, 6.0)
+    # "twin": the same pairs, the errors perturbed by seed noise (5%) in each run: no real difference
+    twin = [[[sc, p, (e if e == "inf" else e * float(np.exp(rng.normal(0, 0.05))))] for sc, p, e in base]
+            for _ in range(3)]
+    studies = [make_study(tmp_path, "a", "sift", [base] * 3), make_study(tmp_path, "b", "orb", twin),
+               make_study(tmp_path, "c", "superpoint", good)]
+    rows, cols = results_rows(studies, studies_dir=tmp_path)
+    assert [r["rank"] for r in rows] == [1, 2, 2] and rows[0]["feature"] == "superpoint"
+    assert {rows[1]["feature"], rows[2]["feature"]} == {"sift", "orb"}
+    assert "ties" in cols and rows[2]["ties"].startswith(f"rank shared with {rows[1]['feature']} (2048)")
+    assert "paired bootstrap" in rows[2]["ties"] and rows[1]["ties"] == "" and rows[0]["ties"] == ""
+    v = rows[0]["mAA10 degensac"]  # "value [lo, hi]"
+    val, rest = v.split(" [")
+    lo, hi = (float(x) for x in rest.rstrip("]").split(", "))
+    assert abs(float(val) - maa10(good[0])) <= 1e-3 and lo < float(val) < hi
+    js, jcols = results_rows(studies, "json", studies_dir=tmp_path)
+    assert abs(js[0]["mAA10 degensac"] - maa10(good[0])) <= 1e-4 and len(js[0]["mAA10_ci degensac"]) == 2
+    assert js[2]["rank"] == 2 and "mAA10_ci degensac" in jcols
+
+
+def test_without_pair_errors_ranks_by_overlapping_intervals_and_says_so(tmp_path):
+    rng = np.random.default_rng(3)
+    runs = [pair_errors(rng, 3.0)]
+    studies = [make_study(tmp_path, "a", "sift", runs, with_pairs=False, ci=[0.50, 0.60]),
+               make_study(tmp_path, "b", "orb", runs, with_pairs=False, ci=[0.58, 0.70]),
+               make_study(tmp_path, "c", "akaze", runs, with_pairs=False, ci=[0.20, 0.30])]
+    studies[1].test["mAA10"], studies[0].test["mAA10"], studies[2].test["mAA10"] = 0.64, 0.55, 0.25
+    rows, _ = results_rows(studies, studies_dir=tmp_path)
+    assert [(r["feature"], r["rank"]) for r in rows] == [("orb", 1), ("sift", 1), ("akaze", 3)]
+    assert "intervals overlap" in rows[1]["ties"] and rows[2]["ties"] == ""
+    assert rows[0]["mAA10 degensac"] == "0.640 [0.580, 0.700]"
+    # no interval at all (old test.json, no studies dir): plain ranks, and the table says why
+    for s in studies:
+        s.test.pop("mAA10_ci")
+    rows, _ = results_rows(studies)
+    assert [r["rank"] for r in rows] == [1, 2, 3]
+    assert all(r["ties"] == "no interval: ranked by value alone" for r in rows[1:])
+    assert rows[0]["mAA10 degensac"] == "0.640"
