@@ -200,8 +200,8 @@ def test_plot_html_report(two_studies, tuner_cache):
     assert path == d / two_studies["name"] / "report.html"
     html = path.read_text()
     assert two_studies["name"] in html and "plotly" in html.lower()
-    for section in ("Optimisation history", "Parameter importances", "(eta, r) contour",
-                    "estimator seconds per pair", "eta across studies"):
+    for section in ("Optimization history", "Parameter importances", "over inlier threshold eta and ratio test r",
+                    "vs estimator time per pair", "vs RANSAC iteration cap Gamma", "vs inlier threshold eta"):
         assert section in html, section
     assert html.count('class="plotly-graph-div"') >= 4
     assert "magsac++" in html  # the across-studies curves include the other study

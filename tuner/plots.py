@@ -1,24 +1,51 @@
 """One self-contained HTML report per study (plotly; works offline — plotly.js is embedded once).
 
-    from tuner.plots import write_report
+    from tuner.plots import write_report, report_sections
     path = write_report(storage, "sift-8000-degensac-stereo", "studies/sift-8000-degensac-stereo/report.html")
+    for s in report_sections(storage, "sift-8000-degensac-stereo"):   # the figures, for a notebook
+        s.fig.show() if s.fig else print(s.title, "-", s.note)
 
-Sections: optimisation history (infeasible trials marked), parameter importances, the (eta, r)
-contour of mAA(10), mAA(10) against the median estimator seconds per pair (with the budget B), and the
-mAA(10)-against-eta curves of every study of the same task in the storage (best mAA(10) per eta bin:
-the paper's inlier-threshold figure), and the breakdowns of the frozen (best feasible) trial by scene:
-accuracy against the angular threshold (1..10 deg; stereo pairs, or multiview pairs of the bags) and
-mAA(10) by co-visibility bin (stereo) — from the trial's user attributes (validation scenes) and, once
-`tune test` has run, from ``<studies dir>/<study>/test.json`` (test scenes, mean over the runs).
+Sections: optimization history (over-budget trials marked), parameter importances, mAA(10°) over the
+inlier threshold eta and the ratio test r (contour), mAA(10°) against the median estimator time per pair
+(with the budget B), mAA(10°) against the iteration cap Gamma, the mAA(10°)-against-eta curves of every
+study of the same task in the storage (best mAA(10°) per eta bin: the paper's inlier-threshold figure),
+and the breakdowns of the frozen (best feasible) trial by scene: accuracy against the angular threshold
+(1..10°; stereo pairs, or multiview pairs of the bags) and mAA(10°) by co-visibility bin (stereo) — from
+the trial's user attributes (validation scenes) and, once `tune test` has run, from
+``<studies dir>/<study>/test.json`` (test scenes, mean over the runs).
+
+Every figure has one title (its own; the page adds no second heading above it), axis titles with units
+(r; eta in px; Gamma in iterations, on a log axis with 1-2-5 ticks; seconds), US spelling throughout. A
+section that cannot be drawn says why and names the command that fills the gap.
 """
 from __future__ import annotations
 
 import html
+import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.errors import ImtuneError
+from tuner.annotate import METRIC_NAME, is_feasible
+
+METRIC = METRIC_NAME  # "mAA(10°)"
+FEASIBLE = "within budget"
+INFEASIBLE = "over budget (never frozen)"
+# axis titles of the searched parameters (units in parentheses)
+PARAM_LABELS = {"ratio": "ratio test r", "threshold": "inlier threshold eta (px)",
+                "max_iters": "iteration cap Gamma (iterations)", "strategy": "matching strategy"}
+PARAM_SHORT = {"ratio": "r", "threshold": "eta (px)", "max_iters": "Gamma (iterations)", "strategy": "strategy"}
+
+
+@dataclass
+class Section:
+    """One part of the report: ``fig`` (a plotly Figure whose layout title is the section's title) or,
+    when it cannot be drawn, None and ``note`` (why, and the command that fills the gap)."""
+    title: str
+    fig: object = None
+    note: str = ""
 
 
 def _complete(study):
@@ -26,45 +53,152 @@ def _complete(study):
     return study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
 
 
-def _feasible(t) -> bool:
-    return all(v <= 0 for v in t.constraints.values())
+def _fmt_tick(v: float, unit: str = "") -> str:
+    """1-2-5 tick text: 0.1, 0.2, 0.5, 1, 2, ... ; thousands as 1k, 20k, 1M."""
+    if v >= 1e6:
+        s = f"{v / 1e6:g}M"
+    elif v >= 1e3:
+        s = f"{v / 1e3:g}k"
+    else:
+        s = f"{v:g}"
+    return s + unit
+
+
+def log_ticks(lo: float, hi: float, unit: str = "") -> dict:
+    """``tickvals`` / ``ticktext`` of a readable log axis (1, 2, 5 per decade; 1, 1.5, 2, 3, 5, 7 when the
+    range is under a decade) covering [lo, hi]: plotly's
+    own log ticks print 2-digit mantissas or exponents ("10^4") that read badly for eta and Gamma."""
+    lo, hi = float(lo), float(hi)
+    if not (lo > 0 and hi > 0):
+        return {}
+    if hi < lo:
+        lo, hi = hi, lo
+    def within(mantissas):
+        return [m * 10.0 ** e for e in range(math.floor(math.log10(lo)) - 1, math.ceil(math.log10(hi)) + 1)
+                for m in mantissas if lo / 1.0001 <= m * 10.0 ** e <= hi * 1.0001]
+
+    vals = within((1, 2, 5))
+    if len(vals) < 3:  # less than a decade: finer steps
+        vals = within((1, 1.5, 2, 3, 5, 7))
+    if len(vals) < 2:  # a narrow range: the two decade-neighbours around it
+        vals = sorted({10.0 ** math.floor(math.log10(lo)), 10.0 ** math.ceil(math.log10(hi))} | set(vals))
+    vals = [float(f"{v:.6g}") for v in vals]
+    return {"tickmode": "array", "tickvals": vals, "ticktext": [_fmt_tick(v, unit) for v in vals]}
+
+
+def _log_axis(values, unit: str = "") -> dict:
+    vals = [float(v) for v in values if isinstance(v, (int, float)) and v > 0]
+    if not vals:
+        return {"type": "log"}
+    return {"type": "log", **log_ticks(min(vals), max(vals), unit)}
+
+
+def _hover_params(t) -> str:
+    return f"trial {t.number}: " + ", ".join(
+        f"{PARAM_SHORT.get(k, k).split(' (')[0]} = {v:.4g}" if isinstance(v, float) else
+        f"{PARAM_SHORT.get(k, k).split(' (')[0]} = {v}" for k, v in t.params.items())
+
+
+def fig_history(study):
+    """Optuna's optimization history (infeasible trials in their own trace), titled and labeled."""
+    import optuna.visualization as ov
+    fig = ov.plot_optimization_history(study, target_name=METRIC)
+    names = {METRIC: f"{METRIC} of a trial", "Best Value": "best within budget so far",
+             "Infeasible Trial": INFEASIBLE}
+    for tr in fig.data:
+        tr.name = names.get(tr.name, tr.name)
+    fig.update_layout(title=f"Optimization history: validation {METRIC} per trial",
+                      xaxis_title="trial number", yaxis_title=f"{METRIC} (validation)")
+    return fig
+
+
+def fig_importances(study):
+    """Optuna's fANOVA parameter importances for mAA(10°), parameters named as in the paper."""
+    import optuna.visualization as ov
+    fig = ov.plot_param_importances(study, target_name=METRIC)
+    for tr in fig.data:
+        if getattr(tr, "y", None) is not None:
+            tr.y = [PARAM_SHORT.get(str(n), str(n)) for n in tr.y]
+    fig.update_layout(title=f"Parameter importances for {METRIC} (fANOVA)",
+                      xaxis_title=f"importance for {METRIC} (fraction of variance)", yaxis_title="parameter")
+    return fig
+
+
+def fig_contour(study):
+    """mAA(10°) over eta (log axis) and r: Optuna's contour, axes labeled with units."""
+    import optuna.visualization as ov
+    fig = ov.plot_contour(study, params=["threshold", "ratio"], target_name=METRIC)
+    etas = [t.params["threshold"] for t in _complete(study) if "threshold" in t.params]
+    for ax in ("xaxis", "yaxis"):
+        axis = fig.layout[ax]
+        name = axis.title.text if axis.title and axis.title.text else ""
+        if name == "threshold":
+            fig.update_layout({ax: dict(title=PARAM_LABELS["threshold"], **_log_axis(etas))})
+        elif name in PARAM_LABELS:
+            fig.update_layout({ax: dict(title=PARAM_LABELS[name])})
+    fig.update_layout(title=f"Validation {METRIC} over inlier threshold eta and ratio test r")
+    return fig
 
 
 def fig_cost(study):
-    """mAA(10) against the median estimator seconds per pair; B as a vertical line."""
+    """mAA(10°) against the median estimator time per pair; B as a vertical line."""
     import plotly.graph_objects as go
     trials = [t for t in _complete(study) if "ransac_seconds_median" in t.user_attrs]
     fig = go.Figure()
-    for feas, name, color in ((True, "feasible", "#1f77b4"), (False, "infeasible (over budget)", "#bbbbbb")):
-        ts = [t for t in trials if _feasible(t) == feas]
+    for feas, name, color in ((True, FEASIBLE, "#1f77b4"), (False, INFEASIBLE, "#bbbbbb")):
+        ts = [t for t in trials if is_feasible(t) == feas]
         if not ts:
             continue
         fig.add_trace(go.Scatter(
             x=[t.user_attrs["ransac_seconds_median"] for t in ts], y=[t.value for t in ts], mode="markers", name=name,
-            marker=dict(color=color, size=8),
-            text=[f"#{t.number} " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
-                                               for k, v in t.params.items()) for t in ts],
-            hovertemplate="%{text}<br>median %{x:.3f} s/pair<br>mAA10 %{y:.4f}<extra></extra>"))
+            marker=dict(color=color, size=8), text=[_hover_params(t) for t in ts],
+            hovertemplate="%{text}<br>median %{x:.3f} s per pair<br>mAA(10°) %{y:.3f}<extra></extra>"))
     b = (study.user_attrs.get("budget") or {}).get("seconds_per_pair")
     if b:
-        fig.add_vline(x=float(b), line_dash="dash", line_color="red", annotation_text=f"B = {b:g} s")
-    fig.update_layout(title="mAA(10) vs estimator seconds per pair (median over validation pairs)",
-                      xaxis_title="estimator seconds per pair (median)", yaxis_title="mAA(10)")
+        fig.add_vline(x=float(b), line_dash="dash", line_color="red", annotation_text=f"budget B = {b:g} s")
+    fig.update_layout(title=f"Validation {METRIC} vs estimator time per pair",
+                      xaxis_title="median estimator time per pair (s)", yaxis_title=f"{METRIC} (validation)")
+    return fig
+
+
+def fig_gamma(study):
+    """mAA(10°) against the iteration cap Gamma (log axis, 1-2-5 ticks); Gamma_max of the budget marked.
+    None when the study does not search Gamma."""
+    import plotly.graph_objects as go
+    trials = [t for t in _complete(study) if "max_iters" in t.params]
+    if not trials:
+        return None
+    fig = go.Figure()
+    for feas, name, color in ((True, FEASIBLE, "#1f77b4"), (False, INFEASIBLE, "#bbbbbb")):
+        ts = [t for t in trials if is_feasible(t) == feas]
+        if ts:
+            fig.add_trace(go.Scatter(x=[t.params["max_iters"] for t in ts], y=[t.value for t in ts], mode="markers",
+                                     name=name, marker=dict(color=color, size=8), text=[_hover_params(t) for t in ts],
+                                     hovertemplate="%{text}<br>mAA(10°) %{y:.3f}<extra></extra>"))
+    gammas = [t.params["max_iters"] for t in trials]
+    gmax = (study.user_attrs.get("budget") or {}).get("gamma_max")
+    if gmax:
+        gammas.append(gmax)
+        fig.add_vline(x=float(gmax), line_dash="dash", line_color="red",
+                      annotation_text=f"Gamma_max = {_fmt_tick(float(gmax))} (budget)")
+    fig.update_layout(title=f"Validation {METRIC} vs RANSAC iteration cap Gamma",
+                      xaxis=dict(title="iteration cap Gamma (iterations, log scale)", **_log_axis(gammas)),
+                      yaxis_title=f"{METRIC} (validation)")
     return fig
 
 
 def fig_eta_curves(storage, study):
-    """Best mAA(10) per log-eta bin for every study of the same task in the storage."""
+    """Best mAA(10°) per log-eta bin for every study of the same task in the storage."""
     import optuna
     import plotly.graph_objects as go
     task = study.user_attrs.get("task", "stereo")
     fig = go.Figure()
-    n = 0
+    n, all_x = 0, []
     for summ in optuna.get_all_study_summaries(storage, include_best_trial=False):
         if not summ.user_attrs.get("imtune") or summ.user_attrs.get("task", "stereo") != task:
             continue
         st = optuna.load_study(study_name=summ.study_name, storage=storage)
-        pts = [(t.params["threshold"], t.value) for t in _complete(st) if "threshold" in t.params and _feasible(t)]
+        pts = [(t.params["threshold"], t.value) for t in _complete(st) if "threshold" in t.params and is_feasible(t)]
         if len(pts) < 2:
             continue
         eta = np.array([p[0] for p in pts], float)
@@ -78,9 +212,11 @@ def fig_eta_curves(storage, study):
                 ys.append(float(val[m].max()))
         width = 3 if summ.study_name == study.study_name else 1.5
         fig.add_trace(go.Scatter(x=xs, y=ys, mode="lines+markers", name=summ.study_name, line=dict(width=width)))
+        all_x += xs
         n += 1
-    fig.update_layout(title=f"mAA(10) vs inlier threshold eta across {task} studies (best per eta bin, feasible trials)",
-                      xaxis_title="eta (px)", yaxis_title="mAA(10)", xaxis_type="log")
+    fig.update_layout(title=f"Best {METRIC} vs inlier threshold eta, {task} studies (trials within budget)",
+                      xaxis=dict(title="inlier threshold eta (px, log scale)", **_log_axis(all_x)),
+                      yaxis_title=f"best {METRIC} per eta bin (validation)")
     return fig if n else None
 
 
@@ -92,7 +228,7 @@ def breakdown_sources(study, best, studies_dir=None) -> list[tuple[str, dict]]:
     from tuner.freeze import study_dir
     out = []
     if best is not None and best.user_attrs.get("scenes"):
-        out.append((f"validation (trial #{best.number})", best.user_attrs["scenes"]))
+        out.append((f"validation (trial {best.number})", best.user_attrs["scenes"]))
     if studies_dir is not None:
         p = study_dir(studies_dir, study.study_name) / "test.json"
         try:
@@ -112,12 +248,12 @@ def breakdown_sources(study, best, studies_dir=None) -> list[tuple[str, dict]]:
                     d["covisibility"] = {b: {"mAA10": float(np.mean([c[b]["mAA10"] for c in covs if b in c])),
                                              "pairs": covs[0][b].get("pairs")} for b in covs[0]}
                 scenes[name] = d
-            out.append((f"test (trial #{t.get('trial')}, {len(t['runs'])} runs)", scenes))
+            out.append((f"test (trial {t.get('trial')}, {len(t['runs'])} runs)", scenes))
     return out
 
 
 def fig_accuracy_threshold(sources, task: str = "stereo"):
-    """Accuracy against the angular threshold (1..10 deg), one line per scene and source."""
+    """Accuracy against the angular threshold (1..10°), one line per scene and source."""
     import plotly.graph_objects as go
     fig = go.Figure()
     for label, scenes in sources:
@@ -130,103 +266,140 @@ def fig_accuracy_threshold(sources, task: str = "stereo"):
                                      name=f"{name} - {label}", line=dict(dash=dash)))
     if not fig.data:
         return None
-    fig.update_layout(title=f"{task} pose accuracy vs angular threshold, by scene (frozen trial)",
-                      xaxis_title="threshold (deg)", yaxis_title="accuracy (fraction of pairs within)",
+    fig.update_layout(title=f"Accuracy vs angular threshold, {task} pose, by scene (frozen trial)",
+                      xaxis_title="angular threshold (°)",
+                      yaxis_title="accuracy (fraction of pairs within the threshold)",
                       xaxis=dict(dtick=1), yaxis=dict(range=[0, 1.02]))
     return fig
 
 
+def _has_covisibility(cov: dict | None) -> bool:
+    """A breakdown with at least one pair of known co-visibility (scenes without ground-truth 3D points
+    put every pair under "unknown")."""
+    return bool(cov) and any((v or {}).get("pairs") for b, v in cov.items() if b != "unknown")
+
+
 def fig_covisibility(sources):
-    """mAA(10) by co-visibility bin (pairs with co-visibility >= edge), one bar group per scene and source."""
+    """mAA(10°) by co-visibility bin (pairs with co-visibility >= edge), one bar group per scene and source."""
     import plotly.graph_objects as go
     fig = go.Figure()
     for label, scenes in sources:
         for name, sm in scenes.items():
             cov = sm.get("covisibility")
-            if not cov:
+            if not _has_covisibility(cov):
                 continue
             bins = [b for b in cov if b != "unknown"]
             fig.add_trace(go.Bar(x=bins, y=[cov[b]["mAA10"] for b in bins], name=f"{name} - {label}",
                                  text=[f"{cov[b].get('pairs')} pairs" for b in bins],
-                                 hovertemplate="co-visibility %{x}<br>mAA10 %{y:.4f}<br>%{text}<extra></extra>"))
+                                 hovertemplate="co-visibility %{x}<br>mAA(10°) %{y:.3f}<br>%{text}<extra></extra>"))
     if not fig.data:
         return None
-    fig.update_layout(title="stereo mAA(10) by co-visibility bin, by scene (frozen trial)", barmode="group",
-                      xaxis_title="co-visibility bin (pairs with co-visibility >= edge)", yaxis_title="mAA(10)")
+    fig.update_layout(title=f"Stereo {METRIC} by co-visibility, by scene (frozen trial)", barmode="group",
+                      xaxis_title="co-visibility bin (pairs with co-visibility >= the bin's edge)",
+                      yaxis_title=METRIC)
     return fig
 
 
-def write_report(storage, study_name: str, out: Path | str, studies_dir: Path | str | None = None) -> Path:
-    """Write the HTML report of one study; returns its path. ``studies_dir``: where test.json is read
-    for the test-scene breakdowns."""
-    import optuna.visualization as ov
-    import plotly.io as pio
-    from tuner.study import best_feasible, load_study, trial_counts
+def _covisibility_hint(study, sources) -> str:
+    """Why there is no co-visibility figure, and the command that fixes it."""
+    root = (study.user_attrs.get("data") or {}).get("root") or "DIR"
+    name = study.study_name
+    if not sources:
+        return (f"no per-scene breakdown stored for the frozen trial (trials of older imtune versions): run "
+                f"`tune test --study {name}`")
+    lacking = sorted({sc for _, scenes in sources for sc, sm in scenes.items()
+                      if not _has_covisibility(sm.get("covisibility"))})
+    if lacking and any("covisibility" in sm for _, scenes in sources for sm in scenes.values()):
+        return (f"no co-visibility for {', '.join(lacking)}: run `tune data build-gt --data {root}` "
+                f"(3D points, hence co-visibility), then tune again or run `tune test --study {name}`")
+    return (f"no co-visibility breakdown stored for the frozen trial (trials of older imtune versions): run "
+            f"`tune test --study {name}`")
+
+
+def report_sections(storage, study_name: str, studies_dir: Path | str | None = None) -> list[Section]:
+    """The report's sections, each a titled figure or a note saying why it is missing and how to fill it."""
+    from tuner.study import best_feasible, load_study
     study = load_study(storage, study_name)
     trials = _complete(study)
     if not trials:
         raise ImtuneError(f"study {study_name!r} has no completed trial to plot")
-    sections: list[tuple[str, object, str]] = []
+    task = study.user_attrs.get("task", "stereo")
+    more = f"run more trials (the same `tune` command with --study {study_name} and a larger --n-trials)"
+    sections: list[Section] = []
 
     def add(title, make, note=""):
         try:
             fig = make()
         except Exception as e:  # noqa: BLE001 - a section that cannot be drawn says why, the rest is written
-            sections.append((title, None, f"not available: {' '.join(str(e).split())[:200]}"))
+            sections.append(Section(title, None, f"not available: {' '.join(str(e).split())[:200]}"))
             return
-        sections.append((title, fig, "") if fig is not None else (title, None, note or "not enough data"))
+        sections.append(Section(fig.layout.title.text or title, fig) if fig is not None
+                        else Section(title, None, note or "not enough data"))
 
     params = set().union(*(t.params for t in trials))
-    add("Optimisation history", lambda: ov.plot_optimization_history(study, target_name="mAA(10)"))
-    add("Parameter importances",
-        lambda: ov.plot_param_importances(study, target_name="mAA(10)") if len(trials) >= 2 else None,
-        "" if len(trials) >= 2 else "needs at least 2 completed trials")
+    add("Optimization history", lambda: fig_history(study))
+    add("Parameter importances", lambda: fig_importances(study) if len(trials) >= 2 else None,
+        f"needs at least 2 completed trials: {more}")
     if {"threshold", "ratio"} <= params:
-        add("(eta, r) contour of mAA(10)",
-            lambda: ov.plot_contour(study, params=["threshold", "ratio"], target_name="mAA(10)"))
+        add(f"{METRIC} over eta and r", lambda: fig_contour(study))
     else:
-        sections.append(("(eta, r) contour of mAA(10)", None, "eta and r are not both searched in this study"))
-    if study.user_attrs.get("task", "stereo") == "multiview":
-        sections.append(("mAA(10) vs estimator seconds per pair", None,
-                         "multiview study: COLMAP runs its own RANSAC, no estimator budget"))
+        sections.append(Section(f"{METRIC} over eta and r", None, "eta and r are not both searched in this study"))
+    if task == "multiview":
+        sections.append(Section(f"{METRIC} vs estimator time per pair", None,
+                                "multiview study: COLMAP runs its own RANSAC, no estimator budget"))
     else:
-        add("mAA(10) vs estimator seconds per pair", lambda: fig_cost(study))
-    add("mAA(10) vs eta across studies", lambda: fig_eta_curves(storage, study),
-        "needs studies with at least 2 feasible trials that search eta")
+        add(f"{METRIC} vs estimator time per pair", lambda: fig_cost(study))
+        add(f"{METRIC} vs iteration cap Gamma", lambda: fig_gamma(study),
+            "Gamma is not searched in this study (pinned with --fix, or the estimator has no iteration cap)")
+    add(f"{METRIC} vs eta across studies", lambda: fig_eta_curves(storage, study),
+        f"needs studies with at least 2 trials within budget that search eta: {more}")
     best = best_feasible(study)
-    task = study.user_attrs.get("task", "stereo")
     sources = breakdown_sources(study, best, studies_dir)
-    add("Accuracy vs angular threshold (1..10 deg), by scene", lambda: fig_accuracy_threshold(sources, task),
-        "no per-scene accuracy stored for the frozen trial (trials of older imtune versions; rerun `tune test`)")
+    add("Accuracy vs angular threshold, by scene", lambda: fig_accuracy_threshold(sources, task),
+        f"no per-scene accuracy stored for the frozen trial (trials of older imtune versions): run "
+        f"`tune test --study {study_name}`")
     if task == "stereo":
-        add("mAA(10) by co-visibility bin, by scene", lambda: fig_covisibility(sources),
-            "no co-visibility breakdown for the frozen trial (scenes without co-visibility, or trials of older "
-            "imtune versions; rerun `tune test`)")
+        add(f"{METRIC} by co-visibility, by scene", lambda: fig_covisibility(sources),
+            _covisibility_hint(study, sources))
+    return sections
+
+
+def write_report(storage, study_name: str, out: Path | str, studies_dir: Path | str | None = None) -> Path:
+    """Write the HTML report of one study; returns its path. ``studies_dir``: where test.json is read
+    for the test-scene breakdowns."""
+    import plotly.io as pio
+    from tuner.study import best_feasible, load_study, trial_counts
+    sections = report_sections(storage, study_name, studies_dir)
+    study = load_study(storage, study_name)
+    best = best_feasible(study)
     counts = trial_counts(study)
     attrs = study.user_attrs
+    b = attrs.get("budget") or {}
     head = [f"<h1>imtune study {html.escape(study_name)}</h1>",
-            "<p>" + html.escape(f"trials: {counts['complete']} complete ({counts['infeasible']} infeasible), "
+            "<p>" + html.escape(f"trials: {counts['complete']} complete ({counts['infeasible']} over budget), "
                                 f"{counts['pruned']} pruned, {counts['fail']} failed; "
-                                f"budget {attrs.get('budget', {}).get('seconds_per_pair')} s per pair, "
-                                f"Gamma_max {attrs.get('budget', {}).get('gamma_max')}; "
+                                f"budget B = {b.get('seconds_per_pair')} s per pair (median estimator time), "
+                                f"Gamma_max = {b.get('gamma_max')} iterations; "
                                 f"data {attrs.get('data_fingerprint')}; code {attrs.get('code_version')}") + "</p>"]
     if best is not None:
-        ps = ", ".join(f"{k} = {v:.4g}" if isinstance(v, float) else f"{k} = {v}" for k, v in best.params.items())
-        head.append(f"<p><b>best feasible trial #{best.number}</b>: mAA(10) = {best.value:.4f}; {html.escape(ps)}</p>")
+        ps = ", ".join(f"{PARAM_SHORT.get(k, k)} = {v:.4g}" if isinstance(v, float) else f"{PARAM_SHORT.get(k, k)} = {v}"
+                       for k, v in best.params.items())
+        head.append(f"<p><b>frozen (best within budget): trial {best.number}</b>, {METRIC} = {best.value:.3f}; "
+                    f"{html.escape(ps)}</p>")
     body, first = [], True
-    for title, fig, note in sections:
-        body.append(f"<h2>{html.escape(title)}</h2>")
-        if fig is not None:
-            body.append(pio.to_html(fig, full_html=False, include_plotlyjs=True if first else False))
+    for s in sections:
+        if s.fig is not None:  # the figure carries its own title: no second heading above it
+            body.append(pio.to_html(s.fig, full_html=False, include_plotlyjs=True if first else False))
             first = False
-        if note:
-            body.append(f"<p><i>{html.escape(note)}</i></p>")
+        else:
+            body.append(f"<h2>{html.escape(s.title)}</h2>")
+        if s.note:
+            body.append(f"<p><i>{html.escape(s.note)}</i></p>")
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     doc = ("<!DOCTYPE html><html><head><meta charset='utf-8'><title>imtune " + html.escape(study_name) +
            "</title><style>body{font-family:sans-serif;max-width:1100px;margin:auto}</style></head><body>" +
            "\n".join(head + body) + "</body></html>")
-    tmp = out.with_suffix(out.suffix + ".tmp")
-    tmp.write_text(doc)
-    tmp.replace(out)
+    from pipeline.fileio import atomic_write
+    atomic_write(out, doc)
     return out

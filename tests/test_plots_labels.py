@@ -1,0 +1,141 @@
+"""Plots say what they show (tuner.plots): the plotly figure objects of a report, read back — one title per
+figure, axis titles with units (r, eta in px, Gamma in iterations on a log axis with readable ticks,
+seconds), US spelling, and hints that name the command filling a gap. The studies are made with Optuna
+directly (the attributes imtune's objective writes), stored in a real SQLite storage."""
+import re
+
+import pytest
+
+B = 0.5
+
+
+def _study(storage, name, covisibility=True, root="/data/strecha", n=8, seed=0):
+    import numpy as np
+    import optuna
+    from optuna.distributions import FloatDistribution, IntDistribution
+    from optuna.trial import create_trial
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    rng = np.random.default_rng(seed)
+    st = optuna.create_study(study_name=name, storage=storage, direction="maximize")
+    for k, v in {"task": "stereo", "feature": "sift", "num_features": 2048, "ransac": "degensac",
+                 "budget": {"seconds_per_pair": B, "gamma_max": 20000},
+                 "data": {"root": root, "val_scenes": ["fountain-P11"]}, "imtune": 1}.items():
+        st.set_user_attr(k, v)
+    dist = {"ratio": FloatDistribution(0.6, 1.0), "threshold": FloatDistribution(0.1, 2.0, log=True),
+            "max_iters": IntDistribution(100, 20000, log=True)}
+    cov = ({"0+": {"mAA10": 0.5, "pairs": 10}, "0.1+": {"mAA10": 0.55, "pairs": 8}} if covisibility
+           else {"0+": {"mAA10": 0.0, "pairs": 0}, "unknown": {"mAA10": 0.5, "pairs": 10}})
+    for i in range(n):
+        med = float(rng.uniform(0.1, 0.9))
+        st.add_trial(create_trial(
+            value=float(rng.uniform(0.2, 0.7)), distributions=dist,
+            params={"ratio": float(rng.uniform(0.6, 1.0)), "threshold": float(np.exp(rng.uniform(np.log(0.1), np.log(2)))),
+                    "max_iters": int(np.exp(rng.uniform(np.log(100), np.log(20000))))},
+            constraints={"budget": med - B},
+            user_attrs={"ransac_seconds_median": med, "feasible": med <= B,
+                        "scenes": {"fountain-P11": {"mAA10": 0.5, "accuracy": [0.1 * k for k in range(1, 11)],
+                                                    "covisibility": cov}}}))
+    return st
+
+
+@pytest.fixture
+def sections(tmp_path):
+    from tuner.plots import report_sections
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    _study(storage, "plots-a")
+    _study(storage, "plots-b", seed=1)  # a second study of the same task: the eta curves compare them
+    return report_sections(storage, "plots-a", tmp_path), storage
+
+
+def _title(fig):
+    return fig.layout.title.text
+
+
+def test_every_figure_has_one_title_and_axis_titles_with_units(sections):
+    secs, _ = sections
+    figs = {s.title: s.fig for s in secs if s.fig is not None}
+    assert len(figs) == 8, [s.title for s in secs]
+    for title, fig in figs.items():
+        assert _title(fig) == title and title
+        assert fig.layout.xaxis.title.text and fig.layout.yaxis.title.text, title
+        # no annotation repeats the title (one title per figure)
+        assert all(title not in (a.text or "") for a in fig.layout.annotations), title
+    by = {re.sub(r"\W+", " ", t).strip(): f for t, f in figs.items()}
+
+    def get(prefix):
+        return next(f for t, f in by.items() if t.startswith(prefix))
+
+    h = get("Optimization history")
+    assert h.layout.xaxis.title.text == "trial number" and h.layout.yaxis.title.text == "mAA(10°) (validation)"
+    assert "over budget (never frozen)" in [tr.name for tr in h.data]
+    imp = get("Parameter importances")
+    assert set(imp.data[0].y) == {"r", "eta (px)", "Gamma (iterations)"}
+    con = get("Validation mAA 10 over inlier threshold eta and ratio test r")
+    axes = {con.layout.xaxis.title.text, con.layout.yaxis.title.text}
+    assert axes == {"inlier threshold eta (px)", "ratio test r"}
+    eta_axis = con.layout.xaxis if con.layout.xaxis.title.text.startswith("inlier") else con.layout.yaxis
+    assert eta_axis.type == "log" and "1" in eta_axis.ticktext and len(eta_axis.ticktext) >= 3
+    cost = get("Validation mAA 10 vs estimator time per pair")
+    assert cost.layout.xaxis.title.text == "median estimator time per pair (s)"
+    assert any("budget B = 0.5 s" in (a.text or "") for a in cost.layout.annotations)
+    g = get("Validation mAA 10 vs RANSAC iteration cap Gamma")
+    assert g.layout.xaxis.title.text == "iteration cap Gamma (iterations, log scale)" and g.layout.xaxis.type == "log"
+    # readable log ticks: 1-2-5 per decade, thousands as "k", no exponents
+    assert list(g.layout.xaxis.ticktext)[-4:] == ["2k", "5k", "10k", "20k"]
+    assert all(re.fullmatch(r"\d+(\.\d+)?k?", t) for t in g.layout.xaxis.ticktext)
+    curves = get("Best mAA 10 vs inlier threshold eta")
+    assert curves.layout.xaxis.title.text == "inlier threshold eta (px, log scale)"
+    assert {tr.name for tr in curves.data} == {"plots-a", "plots-b"}
+    acc = get("Accuracy vs angular threshold")
+    assert acc.layout.xaxis.title.text == "angular threshold (°)"
+    assert acc.layout.yaxis.title.text == "accuracy (fraction of pairs within the threshold)"
+    cov = get("Stereo mAA 10 by co visibility")
+    assert cov.layout.yaxis.title.text == "mAA(10°)"
+
+
+def test_us_spelling_throughout(sections):
+    secs, _ = sections
+    texts = []
+    for s in secs:
+        texts += [s.title, s.note]
+        if s.fig is not None:
+            lay = s.fig.layout
+            texts += [lay.xaxis.title.text or "", lay.yaxis.title.text or ""]
+            texts += [a.text or "" for a in lay.annotations] + [tr.name or "" for tr in s.fig.data]
+    joined = " ".join(texts).lower()
+    for british in ("optimis", "colour", "visualis", "labell", "analys", "normalis", "behaviour"):
+        assert british not in joined, british
+
+
+def test_log_ticks():
+    from tuner.plots import log_ticks
+    t = log_ticks(0.13, 1.7, "")
+    assert t["tickvals"] == [0.2, 0.5, 1.0] and t["ticktext"] == ["0.2", "0.5", "1"]
+    assert log_ticks(0.4, 1.6)["ticktext"] == ["0.5", "0.7", "1", "1.5"]  # under a decade: finer steps
+    t = log_ticks(100, 50000)
+    assert t["ticktext"] == ["100", "200", "500", "1k", "2k", "5k", "10k", "20k", "50k"]
+    assert len(log_ticks(1.1, 1.3)["tickvals"]) >= 2  # a narrow range still gets two ticks
+
+
+def test_hint_names_build_gt_without_covisibility(tmp_path):
+    from tuner.plots import report_sections, write_report
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    _study(storage, "no-cov", covisibility=False, root="/data/my scenes")
+    secs = report_sections(storage, "no-cov", tmp_path)
+    cov = [s for s in secs if "co-visibility" in s.title]
+    assert len(cov) == 1 and cov[0].fig is None
+    assert "no co-visibility for fountain-P11: run `tune data build-gt --data /data/my scenes`" in cov[0].note
+    # the HTML: a heading only where there is no figure (a figure carries its own title)
+    html = write_report(storage, "no-cov", tmp_path / "report.html", studies_dir=tmp_path).read_text()
+    assert html.count("<h2>") == sum(s.fig is None for s in secs) == 1
+    assert html.count('class="plotly-graph-div"') == sum(s.fig is not None for s in secs)
+    assert "tune data build-gt --data /data/my scenes" in html and "Optimization history" in html
+
+
+def test_single_trial_hint_names_the_command(tmp_path):
+    from tuner.plots import report_sections
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    _study(storage, "one", n=1)
+    secs = {s.title: s for s in report_sections(storage, "one", tmp_path)}
+    imp = secs["Parameter importances"]
+    assert imp.fig is None and "--study one and a larger --n-trials" in imp.note
