@@ -265,3 +265,16 @@ def test_no_common_pairs_is_an_error_not_a_tie():
         paired_bootstrap(a, b)
     ranks = rank_with_ties([("A", a), ("B", b)])
     assert [r["rank"] for r in ranks] == [1, 2] and "no common pairs" in ranks[1]["note"]
+
+
+def test_bca_option_is_close_to_the_percentile_interval_and_survives_degenerate_data():
+    rng = np.random.default_rng(12)
+    recs = records_from({s: draw(rng, n, sc, f) for s, (n, sc, f) in SCENES.items()})
+    pct = maa_intervals(recs)["mAA10_ci"]
+    bca = maa_intervals(recs, method="BCa")["mAA10_ci"]
+    assert all(math.isfinite(v) for v in bca) and bca != pct
+    assert bca == pytest.approx(pct, abs=0.03)
+    flat = records_from({"a": [0.2] * 5 + [np.inf] * 5, "b": [0.3] * 8})
+    assert all(math.isfinite(v) for v in maa_intervals(flat, method="BCa")["mAA10_ci"])
+    with pytest.raises(ValueError, match="unknown bootstrap method"):
+        maa_intervals(recs, method="studentized")
