@@ -103,10 +103,10 @@ def test_version(user):
 @pytest.mark.parametrize("args,needles", [
     (["evalute"], ["unknown command 'evalute' (did you mean 'evaluate'?)"]),
     (["data", "downlod"], ["unknown command 'data downlod' (did you mean 'download'?)"]),
-    (["data", "download", "strecah"], ["'strecah' (did you mean 'strecha'?)"]),
-    (["--task", "mutliview"], ["--task", "did you mean 'multiview'?"]),
-    (["--sampler", "rnadom"], ["--sampler", "did you mean 'random'?"]),
-    (["evaluate", "--task", "sterep"], ["did you mean 'stereo'?"]),
+    (["data", "download", "strecah"], ["unknown data set 'strecah' (did you mean 'strecha'?)"]),
+    (["--task", "mutliview"], ["--task: unknown task 'mutliview' (did you mean 'multiview'?)"]),
+    (["--sampler", "rnadom"], ["--sampler: unknown sampler 'rnadom' (did you mean 'random'?)"]),
+    (["evaluate", "--task", "sterep"], ["unknown task 'sterep' (did you mean 'stereo'?)"]),
     (["evaluate", "--feature", "sfit"], ["unknown feature 'sfit'", "did you mean 'sift'"]),
     (["evaluate", "--ransac", "degensak"], ["unknown estimator 'degensak'", "did you mean 'degensac'?"]),
 ])

@@ -94,8 +94,9 @@ class _Parser(argparse.ArgumentParser):
         if isinstance(action, argparse._SubParsersAction):
             cmd = " ".join(self.prog.split()[1:] + [""])  # "data " for `tune data downlod`
             self.error(f"unknown command '{cmd}{value}'{hint} (commands: {', '.join(names)})")
-        name = "/".join(action.option_strings) or action.metavar or action.dest
-        self.error(f"{name}: invalid choice {value!r}{hint} (choose from {', '.join(names)})")
+        noun = str(action.metavar or action.dest).lower().replace("_", " ").replace("-", " ")
+        where = f"{'/'.join(action.option_strings)}: " if action.option_strings else ""
+        self.error(f"{where}unknown {noun} {value!r}{hint} (choose from {', '.join(names)})")
 
 
 class _VersionAction(argparse.Action):

@@ -15,7 +15,7 @@ def register(sub) -> None:
                         description="Downloads into <dest>/<name> atomically (a temporary folder beside it, renamed at "
                                     "the end; nothing is left behind on failure). The default dest is the download "
                                     "location, where every command looks for data.")
-    d.add_argument("name", choices=list(SOURCES), help="data set")
+    d.add_argument("name", choices=list(SOURCES), metavar="DATA_SET", help=" | ".join(SOURCES))
     d.add_argument("--dest", default=None, help="destination folder (default: the download location, "
                    "$IMTUNE_DATA_HOME or ~/.local/share/imtune/data)")
     d.add_argument("--base-url", default=None, help=f"mirror to download from instead of the original home "
