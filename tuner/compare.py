@@ -29,7 +29,9 @@ COMPARISON_KEYS = ("mAA10_a", "mAA10_b", "difference", "ci", "p_value", "signifi
 def _resolve_source():
     try:  # the loaders' new home (pipeline/config_files.py + tuner/sources.py)
         from tuner.sources import resolve_source
-    except ImportError:
+    except ModuleNotFoundError as e:  # only its absence: an error inside it must surface
+        if e.name != "tuner.sources":
+            raise
         from tuner.commands.viz import resolve_source
     return resolve_source
 
@@ -37,7 +39,9 @@ def _resolve_source():
 def _evaluate_config():
     try:
         from tuner.evaluate import evaluate_config
-    except ImportError:
+    except ModuleNotFoundError as e:
+        if e.name != "tuner.evaluate":
+            raise
         from tuner.options import evaluate_config
     return evaluate_config
 
