@@ -4,8 +4,9 @@ Every entry is keyed by a hash of (input file identity, stage config, stage code
 are identified by the SHA-1 of their bytes, so a copied data folder hits the same entries and an edited
 image misses. Arrays only: no pickle.
 
-An entry is bound to its key: besides its arrays it stores its format, stage name, key (and, when the caller
-gives one, the stage config as JSON) and a SHA-1 over all of them. On read, an entry that cannot be opened
+An entry is bound to its key: besides its arrays it stores its format, stage name, key, the JSON the key was
+hashed from (``make_key``'s parts: input digests, stage config, code version; verified to hash to the key) and a
+SHA-1 over all of them. On read, an entry that cannot be opened
 (truncated, overwritten bytes, zero length, not an h5 file), whose checksum disagrees, or that holds another
 key or stage (e.g. two valid entries swapped on disk) is reported in one warning line naming the file, deleted
 and recomputed, never trusted. Entries of the old format (no key inside) are stale: recomputed, with one
@@ -41,6 +42,9 @@ log = logging.getLogger(__name__)
 #: format tag stored in every entry; entries without it (or with another) are stale and recomputed
 FORMAT = "imtune-cache-2"
 _WARNED_STALE: set[str] = set()  # cache roots already warned about old-format entries (once per process)
+_KEY_SOURCES: OrderedDict[str, str] = OrderedDict()  # key -> the JSON make_key hashed (recent keys of this process)
+_KEY_SOURCES_MAX = 1 << 16
+_KEY_LOCK = threading.Lock()
 _FILE_DIGESTS: dict[tuple, str] = {}
 
 
@@ -62,17 +66,29 @@ def file_digest(path: Path) -> str:
 
 
 def make_key(*parts) -> str:
-    """Cache key from any JSON-able parts (configs, digests, versions)."""
-    return config_hash(list(parts), n=32)
+    """Cache key from any JSON-able parts (configs, digests, versions). The parts are remembered (recent keys of
+    this process), so :meth:`H5Cache.put` stores them inside the entry and a reader can check they hash to it."""
+    key = config_hash(list(parts), n=32)
+    source = json.dumps(list(parts), sort_keys=True, default=str)  # exactly what config_hash hashed
+    with _KEY_LOCK:
+        _KEY_SOURCES[key] = source
+        _KEY_SOURCES.move_to_end(key)
+        while len(_KEY_SOURCES) > _KEY_SOURCES_MAX:
+            _KEY_SOURCES.popitem(last=False)
+    return key
+
+
+def _source_hash(source: str) -> str:
+    return hashlib.sha1(source.encode()).hexdigest()[:32]
 
 
 _checksum = arrays_checksum  # kept for pipeline.data.ground_truth
 
 
-def _entry_checksum(stage: str, key: str, meta: str, arrays: dict[str, np.ndarray]) -> str:
-    """SHA-1 binding the arrays to the entry's format, stage, key and config."""
+def _entry_checksum(stage: str, key: str, meta: str, arrays: dict[str, np.ndarray], source: str = "") -> str:
+    """SHA-1 binding the arrays to the entry's format, stage, key, key source and config."""
     h = hashlib.sha1()
-    for part in (FORMAT, stage, key, meta, arrays_checksum(arrays)):
+    for part in (FORMAT, stage, key, source, meta, arrays_checksum(arrays)):
         h.update(part.encode())
         h.update(b"\0")
     return h.hexdigest()
@@ -145,6 +161,7 @@ class H5Cache:
             with h5py.File(io.BytesIO(data), "r") as f:
                 fmt, got_stage, got_key = _attr(f, "format"), _attr(f, "stage"), _attr(f, "key")
                 meta, expected = _attr(f, "config") or "", _attr(f, "sha1")
+                source = _attr(f, "key_source") or ""
                 if fmt is None and got_key is None:
                     raise _Stale("old format without its key")
                 arrays = {k: f[k][()] for k in f.keys()}
@@ -156,8 +173,10 @@ class H5Cache:
             raise _Stale(f"format {fmt!r}, expected {FORMAT!r}")
         if got_stage != stage or got_key != key:
             raise _Invalid(f"holds the entry of {got_stage}/{got_key}, not this key")
-        if expected is None or _entry_checksum(stage, key, meta, arrays) != expected:
+        if expected is None or _entry_checksum(stage, key, meta, arrays, source) != expected:
             raise _Invalid("checksum mismatch")
+        if source and _source_hash(source) != key:
+            raise _Invalid("its recorded key source does not hash to its key")
         return arrays
 
     def _drop(self, p: Path, ident: tuple[int, int] | None, stage: str, why: _Invalid) -> None:
@@ -209,12 +228,15 @@ class H5Cache:
     # -- writing
 
     def put(self, stage: str, key: str, arrays: dict[str, np.ndarray], config=None) -> None:
-        """Store ``arrays`` as the entry (stage, key), atomically. ``config`` (any JSON-able value, e.g. the
-        stage config) is stored inside the entry and covered by its checksum, for inspection."""
+        """Store ``arrays`` as the entry (stage, key), atomically. The parts ``key`` was made from (when made by
+        :func:`make_key` in this process) and ``config`` (any JSON-able value, for inspection) are stored inside
+        the entry, covered by its checksum."""
         arrays = {k: np.asarray(v) for k, v in arrays.items()}
         meta = "" if config is None else json.dumps(config, sort_keys=True, default=str)
-        attrs = {"format": FORMAT, "stage": stage, "key": key, "config": meta,
-                 "sha1": _entry_checksum(stage, key, meta, arrays)}
+        with _KEY_LOCK:
+            source = _KEY_SOURCES.get(key, "")
+        attrs = {"format": FORMAT, "stage": stage, "key": key, "key_source": source, "config": meta,
+                 "sha1": _entry_checksum(stage, key, meta, arrays, source)}
         self._check_root()
         p = self.path(stage, key)
         try:
