@@ -227,6 +227,48 @@ def test_main_job_downloads_and_goes_on(user, tmp_path, server):  # noqa: F811
     assert (tmp_path / "studies" / "optuna.db").is_file()
 
 
+def test_ctrl_c_during_download_leaves_nothing(user, tmp_path):
+    """A real SIGINT to `tune data download` while a file is in flight: exit 130, one line, nothing on disk."""
+    import functools
+    import http.server
+    import signal
+    import threading
+
+    mirror = tmp_path / "mirror"
+    mirror_strecha(mirror)
+    reached, release = threading.Event(), threading.Event()
+
+    class Stalling(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+        def do_GET(self):
+            if self.path.endswith("fountain-P11/images/0002.jpg"):  # the third file: two are already in
+                reached.set()
+                release.wait(60)
+            return super().do_GET()
+
+    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Stalling, directory=str(mirror)))
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    try:
+        user["IMTUNE_DOWNLOAD_BASE"] = f"http://127.0.0.1:{httpd.server_address[1]}"
+        home = download_home(user)
+        env = {k: v for k, v in user.items() if k != "_CWD"}
+        p = subprocess.Popen([sys.executable, "-m", "tuner", "data", "download", "strecha", "--quiet"],
+                             cwd=user["_CWD"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        assert reached.wait(120), "the download never reached the stalled file"
+        assert [q.name for q in home.iterdir()][0].startswith(".strecha-download-")  # work in progress exists
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=120)
+    finally:
+        release.set()
+        httpd.shutdown()
+        httpd.server_close()
+    assert p.returncode == 130, (p.returncode, err)
+    assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("tune: interrupted")
+    assert not (Path(user["HOME"]) / ".local").exists()  # temporary folder and the folders it needed: gone
+
+
 # -- item 9: two set-up commands, and CI runs the README's ------------------------------------------------------
 
 def _setup_commands() -> list[str]:
