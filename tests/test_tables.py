@@ -133,10 +133,20 @@ def test_settings_table_budget_per_estimator_when_studies_differ():
     rows, cols = settings_rows(studies, "markdown")
     assert "B" not in cols and rows[0]["B degensac"] == 0.5 and rows[0]["B magsac++"] == 1.0
     tex = render_table(rows, cols, "latex")
-    assert r"$B$ degensac (s)" in tex and r"$B$ (s per pair)" in tex
+    assert r"$B$ degensac (s)" in tex and r"$B$ of each study (columns $B$, s per pair)" in tex
 
 
 def test_settings_table_without_multiview_still_names_the_column():
     rows, cols = settings_rows(STEREO[:1], "markdown")
     assert rows[0]["r_multiview"] is None and "r_multiview" in cols
     assert render_table(rows, cols, "markdown").splitlines()[2].split("|")[4].strip() == "-"
+
+
+def test_settings_table_multiview_only():
+    rows, cols = settings_rows([], "latex", multiview=[info("sift", 1024, "degensac", 0.4, 0.93, task="multiview",
+                                                            scenes=("fountain_P11",))])
+    assert list(cols) == ["feature", "features", "r_multiview", "mAA10 mv val"]
+    tex = render_table(rows, cols, "latex").splitlines()
+    assert tex[2] == (r"\caption{Optimal ratio test $r$ for multiview reconstruction (COLMAP, which runs its own "
+                      r"RANSAC) on the validation scenes fountain\_P11.}")
+    assert tex[3] == r"\begin{tabular}{lrrr}" and tex[7] == r"sift & 1024 & 0.93 & 0.400 \\"

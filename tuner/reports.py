@@ -119,17 +119,22 @@ def _settings_caption(studies: list[StudyInfo], multiview: list[StudyInfo], per_
     scenes = sorted({", ".join((s.attrs.get("data") or {}).get("val_scenes") or []) for s in studies + multiview} - {""})
     where = f"validation scenes {scenes[0]}" if len(scenes) == 1 else "the validation scenes of each study"
     budgets = sorted({_budget(s) for s in studies if _budget(s) is not None})
+    if not studies:
+        text = (f"Optimal ratio test r for multiview reconstruction (COLMAP, which runs its own RANSAC) on the "
+                f"{where}.")
+        return text, latex_escape(text).replace("ratio test r", "ratio test $r$")
     if budgets and not per_est_budget:
         b_txt = f"B = {budgets[0]:g} s per pair"
     else:
-        b_txt = "B (column B, s per pair)"
+        b_txt = "B of each study (columns B, s per pair)"
     plain = (f"Optimal settings on the {where}: ratio test r (stereo: from the estimator study with the best "
              f"validation mAA(10°); multiview: COLMAP), inlier threshold eta (px) and maximum iterations Gamma "
              f"of each estimator under the time budget {b_txt} (median estimator time).")
     tex = (f"Optimal settings on the {latex_escape(where)}: ratio test $r$ (stereo: from the estimator study with "
            f"the best validation mAA($10^\\circ$); multiview: COLMAP), inlier threshold $\\eta$ (px) and maximum "
            f"iterations $\\Gamma$ of each estimator under the time budget "
-           + (f"$B = {budgets[0]:g}$\\,s per pair" if budgets and not per_est_budget else "$B$ (s per pair)")
+           + (f"$B = {budgets[0]:g}$\\,s per pair" if budgets and not per_est_budget
+              else "$B$ of each study (columns $B$, s per pair)")
            + " (median estimator time).")
     return plain, tex
 
@@ -189,7 +194,7 @@ def settings_rows(studies: list[StudyInfo], fmt: str = "markdown",
                                                    "complete_trials": s.n_complete}
                                         for s in mv_groups.get((feat, nf), [])}
         rows.append(row)
-    names = ["feature", "features", "r", "r_multiview"]
+    names = ["feature", "features"] + (["r"] if studies else []) + ["r_multiview"]
     for e in ests:
         names += [f"eta {e}", f"Gamma {e}"] + ([f"B {e}"] if per_est_budget else [])
     if studies and not per_est_budget:
