@@ -44,3 +44,14 @@ ratio_float.__name__ = "ratio_float"
 #: a probability in (0, 1) (RANSAC confidence)
 probability_float = _ranged(lambda v: 0.0 < v < 1.0, "in (0, 1)")
 probability_float.__name__ = "probability_float"
+
+
+def positive_int(s: str) -> int:
+    """An integer >= 1 (a count of processes, pairs, runs)."""
+    try:
+        v = int(s)
+    except (TypeError, ValueError):
+        raise argparse.ArgumentTypeError(f"expected an integer, got {s!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {s!r}")
+    return v

@@ -33,9 +33,10 @@ def serve(storage_url: str | None = None, host: str = "127.0.0.1", port: int = 8
         from optuna_dashboard import run_server
     except ImportError:
         raise ImtuneError("optuna-dashboard is not installed: pip install optuna-dashboard") from None
-    from tuner.storage import open_storage, storage_label
+    from tuner.storage import classify, default_storage_url, open_storage, storage_label
     if not (0 < int(port) < 65536):
         raise ImtuneError(f"invalid port {port}")
+    classify(storage_url or default_storage_url(studies_dir))  # a malformed URL first: nothing else to try
     check_port(host, port)
     # a dashboard only reads: a missing SQLite / journal file is an error, never a new empty storage
     storage = open_storage(storage_url, heartbeat=None, studies_dir=studies_dir, must_exist=True)

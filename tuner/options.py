@@ -15,7 +15,7 @@ import yaml
 
 from pipeline.config import FeatureConfig, GeometryConfig, MatchConfig, PipelineConfig
 from pipeline.errors import ImtuneError
-from tuner.argtypes import nonnegative_float, positive_float, probability_float, ratio_float, unit_float
+from tuner.argtypes import nonnegative_float, positive_float, positive_int, probability_float, ratio_float, unit_float
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = PROJECT_ROOT.parent / "shared" / "data" / "strecha"
@@ -138,7 +138,7 @@ def add_multiview_options(ap: argparse.ArgumentParser) -> None:
     g.add_argument("--bag-seed", type=int, default=0, help="seed of the bag sampling")
     g.add_argument("--mv-intrinsics", default="colmap", choices=["colmap", "prior", "fixed"],
                    help="colmap: COLMAP estimates them (official); prior: known K, refined; fixed: known K")
-    g.add_argument("--workers", type=int, default=None, help="bags in parallel (default: available CPUs)")
+    g.add_argument("--workers", type=positive_int, default=None, help="bags in parallel (default: available CPUs)")
     g.add_argument("--keep-models", default=None, help="keep every bag's COLMAP database and model in this folder")
     g.add_argument("--gt-dir", default=None, help="built ground truth folder (default $IMTUNE_GT, $IMTUNE_CACHE/gt or ~/.cache/imtune/gt)")
 

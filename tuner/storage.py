@@ -363,6 +363,7 @@ _LOST = _UNREACHABLE + ("server closed the connection", "terminating connection"
                         "broken pipe", "lost connection", "has gone away", "could not receive data",
                         "could not send data", "connection was closed", "connection is closed")
 _FULL = ("database or disk is full", "disk i/o error", "no space left", "file too large", "disk quota")
+_FULL_RE = re.compile("|".join(map(re.escape, _FULL)), re.I)
 
 
 def open_storage(url: str | None = None, *, heartbeat: int | None = DEFAULT_HEARTBEAT_S,
@@ -497,9 +498,11 @@ def storage_fault(exc: BaseException, url: str | None = None, studies_dir: Path 
         if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG) and not _is_db(e):
             where = f" writing {e.filename}" if getattr(e, "filename", None) else ""
             return f"out of disk space{where} ({e.strerror}); free space and {keep}"
-    if any(k in t for t in texts for k in _FULL):
-        return (f"the storage {label} is out of disk space (database or disk is full); {keep} "
-                "once space is freed (or give --storage a disk with room)")
+    full = next((m.group(0) for e in chain for m in [_FULL_RE.search(str(e))] if m), None)
+    if full:
+        return (f"the storage {label} cannot be written ({full}: the disk is full or a file-size limit is "
+                f"reached); free space (or give --storage a disk with room), then rerun the same command: "
+                "completed trials are kept")
     if any("database is locked" in t for t in texts):
         return (f"the storage {label} stayed locked by another process for {SQLITE_TIMEOUT_S:g} s; {keep} "
                 "(many machines: use PostgreSQL or journal:PATH)")
@@ -514,6 +517,38 @@ def storage_fault(exc: BaseException, url: str | None = None, studies_dir: Path 
     if optuna_storage or updated_state or any(_is_db(e) for e in chain):
         return f"the storage {label} failed ({scrub(_root_text(exc), url)}); {keep}"
     return None
+
+
+#: storage faults raised in background threads (Optuna's heartbeat thread), kept quiet by the hook below
+THREAD_FAULTS: list[str] = []
+
+
+def quiet_thread_storage_faults(url: str | None = None, studies_dir: Path | str | None = None) -> None:
+    """Keep storage faults of background threads off stderr (the CLI calls this once).
+
+    Optuna records a running trial's heartbeat in a thread; when the database goes away that thread dies
+    and ``threading.excepthook`` prints its traceback, while the main thread meets the same fault at its
+    next storage call and the CLI reports it as one line. Storage faults of other threads are recorded in
+    :data:`THREAD_FAULTS` (masked) instead of printed; every other thread exception goes to the previous hook."""
+    import threading
+    prev = threading.excepthook
+    if getattr(prev, "_imtune", False):
+        return
+
+    def hook(args):
+        exc = args.exc_value
+        if exc is not None and not isinstance(exc, (SystemExit, KeyboardInterrupt)):
+            try:
+                msg = storage_fault(exc, url, studies_dir)
+            except Exception:  # noqa: BLE001 - never let the hook itself fail
+                msg = None
+            if msg:
+                THREAD_FAULTS.append(msg)
+                return
+        prev(args)
+
+    hook._imtune = True
+    threading.excepthook = hook
 
 
 def _is_db(e: BaseException) -> bool:

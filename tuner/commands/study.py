@@ -48,6 +48,17 @@ def _positive_int(s: str) -> int:
     return v
 
 
+def _nonnegative_int(s: str) -> int:
+    import argparse
+    try:
+        v = int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {s!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0 (0 = off), got {v}")
+    return v
+
+
 _positive_float = positive_float  # finite and > 0 (`--budget inf` used to pass)
 
 
@@ -81,7 +92,7 @@ def register(sub) -> None:
                    help="use at most N pairs per scene (evenly spread; quick runs)")
     t.add_argument("--chunk-pairs", type=_positive_int, default=12,
                    help="pairs per pruning step (an intermediate value after each chunk)")
-    t.add_argument("--heartbeat", type=int, default=10,
+    t.add_argument("--heartbeat", type=_nonnegative_int, default=10,
                    help="seconds between heartbeats of a running trial (RDB storages; 0 = off); a trial silent "
                         "for 3 heartbeats is failed and retried once")
     t.add_argument("--calibration-pairs", type=_positive_int, default=8, help="pairs timed by the automatic calibration")
@@ -365,7 +376,7 @@ def _collect(args):
     if args.format not in FORMATS:
         raise ImtuneError(f"unknown format {args.format!r} (choose {', '.join(FORMATS)})")
     sdir = _studies_dir(args)
-    storage = open_storage(args.storage, heartbeat=None, studies_dir=sdir)
+    storage = open_storage(args.storage, heartbeat=None, studies_dir=sdir, must_exist=True)
     return collect_studies(storage, task=args.task, studies_dir=sdir)
 
 
@@ -403,7 +414,7 @@ def run_plot(args) -> int:
     from tuner.study import _quiet_optuna
     _quiet_optuna()
     sdir = _studies_dir(args)
-    storage = open_storage(args.storage, heartbeat=None, studies_dir=sdir)
+    storage = open_storage(args.storage, heartbeat=None, studies_dir=sdir, must_exist=True)
     out = Path(args.out) if args.out else study_dir(sdir, args.study) / "report.html"
     path = write_report(storage, args.study, out, studies_dir=sdir)
     print(str(path))
@@ -421,7 +432,7 @@ def run_studies(args) -> int:
     from tuner.storage import open_storage
     from tuner.study import _quiet_optuna, best_feasible, trial_counts
     _quiet_optuna()
-    storage = open_storage(args.storage, heartbeat=None, studies_dir=_studies_dir(args))
+    storage = open_storage(args.storage, heartbeat=None, studies_dir=_studies_dir(args), must_exist=True)
     rows = []
     for summ in optuna.get_all_study_summaries(storage, include_best_trial=False):
         st = optuna.load_study(study_name=summ.study_name, storage=storage)
