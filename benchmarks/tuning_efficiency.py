@@ -44,7 +44,8 @@ def main(argv=None) -> int:
     from pipeline.cache import H5Cache
     from pipeline.config import FeatureConfig, GeometryConfig, MatchConfig, PipelineConfig
     from tuner.objective import Objective, ValidationSet
-    from tuner.options import load_scenes, resolve_data
+    from tuner.evaluate import load_scenes
+    from tuner.options import resolve_data
     from tuner.space import load_space
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     warnings.filterwarnings("ignore")

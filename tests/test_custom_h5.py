@@ -208,7 +208,7 @@ def test_cli_bad_input_one_line(mini, good, tmp_path):
 
 def test_match_file_per_task(mini, good, tmp_path, cache_dir):
     """matches_stereo_0.h5 for stereo and matches_multiview.h5 for multiview win over matches.h5."""
-    from pipeline.tasks.prepare import pair_knn, pair_matches
+    from pipeline.tasks.prepare import pair_knn, tentative_matches
     byo, scene_dir = copy_of(good, tmp_path)
     with h5py.File(scene_dir / "matches.h5") as f:
         full = f["0004-0003"][()]
@@ -222,7 +222,7 @@ def test_match_file_per_task(mini, good, tmp_path, cache_dir):
     mc = MatchConfig(custom_matches=str(byo))
     tab, secs = pair_knn(cache, fi, fj, mc)
     assert secs == 0.0
-    stereo, _ = pair_matches(tab, mc, fi, fj)
-    multi, _ = pair_matches(tab, mc, fi, fj, task="multiview")
+    stereo, _ = tentative_matches(tab, mc, fi, fj)
+    multi, _ = tentative_matches(tab, mc, fi, fj, task="multiview")
     assert len(stereo) == 10 and len(multi) == 20
     np.testing.assert_array_equal(stereo, full[:, :10][::-1].T)  # key "0004-0003": rows swapped to (0003, 0004)

@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.errors import ImtuneError
 from pipeline.metrics.ate import absolute_trajectory_error, camera_center, umeyama
-from pipeline.tasks import colmap_db
+from pipeline import colmap_db
 from tests.conftest import look_at
 from pipeline.tasks.multiview import BagJob, MultiviewConfig, run_bag, run_bags, summarize_bags, summarize_scene
 

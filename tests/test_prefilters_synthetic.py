@@ -101,10 +101,10 @@ def test_parse_spec():
         parse_prefilter_spec("gms:threshold=high")
 
 
-def test_pair_matches_applies_the_prefilter():
+def test_tentative_matches_applies_the_prefilter():
     """The stage the tasks call: matcher (here: the true NN tables) then MatchConfig.prefilter."""
     from pipeline.matching.knn import KnnTables
-    from pipeline.tasks.prepare import ImageFeatures, pair_matches
+    from pipeline.tasks.prepare import ImageFeatures, tentative_matches
     matches, is_true, ctx = synthetic()
     n1, n2 = len(ctx.kpts1), len(ctx.kpts2)
     idx12 = np.stack([matches[:, 1], (matches[:, 1] + 1) % n2], 1).astype(np.int32)
@@ -118,9 +118,9 @@ def test_pair_matches_applies_the_prefilter():
     def feats(k):
         return ImageFeatures("k", k, np.zeros((len(k), 8), np.float32), False, 1.0, 1.0, W, H, 0.0)
     fi, fj = feats(ctx.kpts1), feats(ctx.kpts2)
-    plain, _ = pair_matches(tab, MatchConfig(ratio=1.0), fi, fj)
+    plain, _ = tentative_matches(tab, MatchConfig(ratio=1.0), fi, fj)
     assert len(plain) == len(matches)
-    gms, _ = pair_matches(tab, MatchConfig(ratio=1.0, prefilter="gms"), fi, fj)
+    gms, _ = tentative_matches(tab, MatchConfig(ratio=1.0, prefilter="gms"), fi, fj)
     truth = {tuple(m) for m in matches[is_true]}
     kept_true = sum(tuple(m) in truth for m in gms)
     assert kept_true > 0.75 * is_true.sum() and len(gms) - kept_true < 0.15 * (~is_true).sum()

@@ -75,7 +75,11 @@ def test_evaluate_pair_end_to_end_on_synthetic_matches(ransac, eta):
     tables = knn_tables(d, d, binary=False, k=2)  # identical descriptors: match i <-> i
     conf = PipelineConfig(matching=MatchConfig(ratio=1.0, strategy="both"),
                           geometry=GeometryConfig(ransac=ransac, threshold=eta, max_iters=5000))
-    rec = evaluate_pair(scene, scene.pairs[0], fa, fb, tables, 0.0, conf, get_estimator(ransac))
+    pr = evaluate_pair(scene, scene.pairs[0], fa, fb, tables, 0.0, conf, get_estimator(ransac))
+    rec = pr.record
+    # the PairResult carries what the record summarises: the inliers it counted, the pose it scored
+    assert pr.F is not None and int(pr.inliers.sum()) == rec["NI"] and len(pr.matches) == rec["NM"]
+    assert pr.R is not None and pr.t is not None
     assert rec["failure"] is None
     assert rec["NM"] == len(x1)
     assert 0.6 * len(x1) <= rec["NI"] <= 0.8 * len(x1)  # 70% are inliers
@@ -89,5 +93,5 @@ def test_too_few_matches_is_a_recorded_failure():
     scene, fa, fb, d = _scene_and_features(K1, K2, R, t, x1, x2)
     conf = PipelineConfig(matching=MatchConfig(ratio=1.0))
     rec = evaluate_pair(scene, scene.pairs[0], fa, fb, knn_tables(d, d, binary=False, k=2), 0.0, conf,
-                        get_estimator("degensac"))
+                        get_estimator("degensac")).record
     assert math.isinf(rec["err"]) and "fewer than 8" in rec["failure"]

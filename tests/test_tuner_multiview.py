@@ -51,7 +51,7 @@ def test_multiview_study_trials_and_frozen(mv_study):
     root, studies = mv_study
     st = optuna.load_study(study_name=STUDY, storage=f"sqlite:///{studies / 'optuna.db'}")
     assert st.user_attrs["task"] == "multiview"
-    assert st.user_attrs["multiview"]["bags"] == [[5, 3]]
+    assert st.user_attrs["task_options"]["bags"] == [[5, 3]]
     done = st.get_trials(states=(TrialState.COMPLETE,))
     assert len(done) == 2
     for t in done:
@@ -65,7 +65,7 @@ def test_multiview_study_trials_and_frozen(mv_study):
     frozen = yaml.safe_load((studies / STUDY / "frozen.yaml").read_text())
     assert frozen["task"] == "multiview" and 0.6 <= frozen["params"]["ratio"] <= 1.0
     assert "threshold" not in frozen["fixed"] and "max_iters" not in frozen["fixed"]
-    assert frozen["multiview"]["bags"] == [[5, 3]]
+    assert frozen["task_options"]["bags"] == [[5, 3]]
 
 
 def test_multiview_test_table_and_plot(mv_study, capsys):

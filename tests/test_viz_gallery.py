@@ -84,7 +84,7 @@ def test_select_worst_best_random_without_repeats():
 
 
 def test_config_files(tmp_path):
-    from tuner.commands.viz import load_config_file
+    from pipeline.config_files import load_config_file
     flat = tmp_path / "flat.yaml"
     flat.write_text("feature: sift\nnum_features: 1024\nratio: 0.8\nransac: cv-ransac\nthreshold: 2\n")
     c = load_config_file(flat).conf

@@ -184,7 +184,7 @@ def test_real_render_fountain_sift_1024(strecha, cache_dir, tmp_path):
     fi = image_features(cache, scene.images[pair.i], conf.feature)
     fj = image_features(cache, scene.images[pair.j], conf.feature)
     tab, s = pair_knn(cache, fi, fj, conf.matching)
-    rec = evaluate_pair(scene, pair, fi, fj, tab, s, conf, get_estimator("degensac"))
+    rec = evaluate_pair(scene, pair, fi, fj, tab, s, conf, get_estimator("degensac")).record
     assert rec["NI"] == out["NI"] and math.isclose(rec["err"], out["err"])
     img = cv2.imread(out["png"])
     assert img.shape[1] == 1200 and img.shape[0] > 1200 * 683 / 2048

@@ -3,7 +3,8 @@
     from tuner import TuneSettings, tune, evaluate_config, resolve_data, build_config
     from tuner import freeze, run_test, load_space
 """
-from tuner.options import build_config, evaluate_config, resolve_data  # noqa: F401
+from tuner.evaluate import evaluate_config, load_scenes  # noqa: F401
+from tuner.options import build_config, resolve_data  # noqa: F401
 
 _LAZY = {"tune": "tuner.study", "TuneSettings": "tuner.study", "freeze": "tuner.freeze",
          "run_test": "tuner.freeze", "load_space": "tuner.space"}

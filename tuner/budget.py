@@ -152,7 +152,7 @@ def list_calibrations(studies_dir: Path) -> dict[str, Calibration]:
 def calibration_matches(scenes, conf, cache, max_pairs: int = 8, progress: bool = False):
     """Tentative matches of up to ``max_pairs`` validation pairs (evenly spread over all pairs), at
     the working resolution: list of (pts1, pts2, sizes)."""
-    from pipeline.tasks.prepare import pair_matches
+    from pipeline.tasks.prepare import tentative_matches
     from pipeline.tasks.stereo import prepare_scene
     allp = [(s, p) for s, pairs in scenes for p in pairs]
     if not allp:
@@ -168,7 +168,7 @@ def calibration_matches(scenes, conf, cache, max_pairs: int = 8, progress: bool 
         for p in pairs:
             tab, _ = tables[p.key]
             fi, fj = feats[p.i], feats[p.j]
-            m, _ = pair_matches(tab, conf.matching, fi, fj, task="stereo")  # same matches a trial sees
+            m, _ = tentative_matches(tab, conf.matching, fi, fj, task="stereo")  # same matches a trial sees
             if len(m) < 8:
                 continue
             out.append((fi.keypoints[m[:, 0]].astype(np.float64), fj.keypoints[m[:, 1]].astype(np.float64),

@@ -1,5 +1,6 @@
-"""Shared CLI options -> PipelineConfig, data folder resolution, and the evaluate call behind
-``tune evaluate``.
+"""The command line's shared option groups (pipeline, data, output, multiview) and their translation into
+the library's objects (``PipelineConfig``, task options). Library calls live in ``tuner.evaluate``,
+``tuner.study`` and ``tuner.freeze``; the commands in ``tuner.commands``.
 
 Data folder precedence (first wins): ``--data``, the ``IMTUNE_DATA`` environment variable, the
 ``data:`` key of ``imtune.yaml`` (current directory, then the project root), then the built-in
@@ -106,29 +107,6 @@ def build_config(args: argparse.Namespace, **overrides) -> PipelineConfig:
     return PipelineConfig(feature=fc, matching=mc, geometry=gc)
 
 
-def load_scenes(data_root: Path, names: list[str] | str | None, split: str = "val", gt_dir=None,
-                ground_truth: bool = True):
-    """Scenes by name (a list or a comma-separated string), or the data set's default split.
-
-    With ``ground_truth`` (default), a ground truth built by `tune data build-gt` (in ``gt_dir``, default
-    $IMTUNE_CACHE/gt) is attached to each scene: 3D points, co-visibility of its pairs (so the stereo
-    pairs are selected at co-visibility >= 0.1), poses for SfM-built scenes."""
-    from pipeline.data import default_splits, list_scenes, load_scene
-    from pipeline.data.ground_truth import prepare_scene_ground_truth
-    if isinstance(names, str):
-        names = [n.strip() for n in names.split(",") if n.strip()]
-    if not names:
-        names = list_scenes(data_root) if split == "all" else default_splits(data_root)[split]
-    scenes = [load_scene(data_root, n) for n in names]
-    if ground_truth:
-        for sc in scenes:
-            prepare_scene_ground_truth(sc, gt_dir)
-    return scenes
-
-
-TASKS = ("stereo", "multiview", "both")
-
-
 def add_multiview_options(ap: argparse.ArgumentParser) -> None:
     """Options of the multiview task (`tune evaluate --task multiview`)."""
     g = ap.add_argument_group("multiview")
@@ -154,37 +132,17 @@ def multiview_config(args: argparse.Namespace, **overrides):
                            seed=int(v.get("seed", 0) or 0))
 
 
-def evaluate_config(conf: PipelineConfig, data_root: Path, scenes=None, cache_dir=None,
-                    min_covisibility: float | None = 0.1, progress: bool = False,
-                    with_pairs: bool = False, task: str = "stereo", multiview=None, workers: int | None = None,
-                    gt_dir=None, with_bags: bool = False, keep_models=None, intermediate: bool = False) -> dict:
-    """Evaluate one configuration; returns the JSON-able result of `tune evaluate`.
+def task_choices() -> list[str]:
+    """`--task` values: every registered task, and ``both`` (all of them)."""
+    from pipeline.tasks import TASKS
+    return TASKS.names() + ["both"]
 
-    task: "stereo", "multiview" or "both" — the result has a "stereo" and/or a "multiview" section.
-    multiview: a ``pipeline.tasks.multiview.MultiviewConfig`` (default: the protocol's bags and settings);
-    workers: parallel bag processes; gt_dir: where built ground truth lives; with_bags: every bag record;
-    intermediate: add an "intermediate" section (repeatability, matching scores; pipeline.metrics.repeatability)."""
-    from pipeline.cache import H5Cache
-    if task not in TASKS:
-        raise ImtuneError(f"unknown task {task!r} (choose from {', '.join(TASKS)})")
-    scene_objs = load_scenes(data_root, scenes, split="all", gt_dir=gt_dir)
-    cache = H5Cache(cache_dir)
-    out = {"config": conf.to_dict(), "data": str(data_root), "scenes": [s.name for s in scene_objs]}
-    if task in ("stereo", "both"):
-        from pipeline.tasks.stereo import evaluate_stereo
-        res = evaluate_stereo(scene_objs, conf, cache, min_covisibility=min_covisibility, progress=progress)
-        out["stereo"] = res.to_dict(with_pairs=with_pairs)
-    if task in ("multiview", "both"):
-        import dataclasses
 
-        from pipeline.tasks.multiview import MultiviewConfig, evaluate_multiview
-        mv = multiview or MultiviewConfig()
-        res = evaluate_multiview(scene_objs, conf, mv, cache, workers=workers, progress=progress,
-                                 keep_models=keep_models)
-        out["multiview_config"] = dataclasses.asdict(mv)
-        out["multiview"] = res.to_dict(with_bags=with_bags)
-    if intermediate:
-        from pipeline.tasks.intermediate import evaluate_intermediate
-        out["intermediate"] = evaluate_intermediate(scene_objs, conf, cache, min_covisibility=min_covisibility,
-                                                    progress=progress)
-    return out
+def task_options(args: argparse.Namespace, **overrides) -> dict:
+    """Every task option the parsed command line gives (``pipeline.tasks.make_task`` hands each task the ones
+    it takes): min_covisibility, max_pairs, mv (the multiview settings), workers, keep_models."""
+    v = dict(vars(args))
+    v.update(overrides)
+    return {"min_covisibility": v.get("covisibility"), "max_pairs": v.get("max_pairs"),
+            "mv": multiview_config(args, **overrides) if "bags" in v else None,
+            "workers": v.get("workers"), "keep_models": v.get("keep_models")}

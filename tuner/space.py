@@ -33,14 +33,12 @@ from pathlib import Path
 
 import yaml
 
-from pipeline.config import STRATEGIES
 from pipeline.errors import ImtuneError
+from tuner.protocol import PARAMS, TYPES, leaf
 
 SPACES_DIR = Path(__file__).resolve().parents[1] / "search_spaces"
-PARAMS = ("ratio", "threshold", "max_iters", "strategy")
 TOP_KEYS = ("description", "estimators", "default", "params", "features", "calibration")
 PARAM_KEYS = ("type", "low", "high", "log", "step", "choices", "grid")
-TYPES = {"ratio": "float", "threshold": "float", "max_iters": "int", "strategy": "categorical"}
 FAMILIES = ("binary", "float", "learned")
 CALIBRATED = "calibrated"
 DEFAULT_GRID_POINTS = 5
@@ -189,32 +187,11 @@ def _num(where: str, key: str, v, allow_calibrated: bool = False):
 
 
 def _check_value(name: str, value, where: str):
-    """Validate a pinned value for parameter ``name`` (strings from --fix are converted)."""
-    try:
-        if name == "strategy":
-            value = str(value)
-            if value not in STRATEGIES:
-                raise ValueError(f"must be one of {', '.join(STRATEGIES)}")
-            return value
-        if name == "max_iters":
-            if value == CALIBRATED:
-                return value
-            if isinstance(value, str):
-                value = float(value)
-            if isinstance(value, bool) or float(value) != int(float(value)) or int(float(value)) < 1:
-                raise ValueError("must be an integer >= 1")
-            return int(float(value))
-        value = float(value)
-        if not math.isfinite(value):
-            raise ValueError("must be finite")
-        if name == "ratio" and not (0.0 < value <= 1.0):
-            raise ValueError("must be in (0, 1]")
-        if name == "threshold" and not value > 0:
-            raise ValueError("must be > 0 px")
+    """Validate a pinned value for parameter ``name`` against the protocol table (strings from --fix are
+    converted); ``max_iters`` may also be ``calibrated`` (Gamma_max of the study's budget)."""
+    if name == "max_iters" and value == CALIBRATED:
         return value
-    except (TypeError, ValueError) as e:
-        msg = str(e) if str(e).startswith("must") else "is not a valid value"
-        raise ImtuneError(f"{where}: {value!r} {msg}") from None
+    return leaf(name, where).check(value, where)
 
 
 def _check_param(name: str, d, where: str):

@@ -3,10 +3,10 @@
     from tuner.study import TuneSettings, tune
     out = tune(TuneSettings(base=build_config(args, ratio=1, threshold=1, max_iters=1), data_root=...))
 
-Tasks: ``stereo`` (eta, r, Gamma against a budget) and ``multiview`` (r, and the strategy if the space
-lists it: ``search_spaces/multiview.yaml`` by default; COLMAP runs its own RANSAC so eta and Gamma are
-never searched; objective = multiview mAA(10) over the validation scenes, see
-:class:`tuner.objective.MultiviewObjective`).
+Tasks: any registered ``pipeline.tasks`` task (``stereo``: eta, r, Gamma against a budget; ``multiview``: r,
+and the strategy if the space lists it). A study searches only what its task uses (``Task.uses``; the rest of
+the space is dropped), starts from the task's own search-space file when it names one (``Task.space_file``),
+and is calibrated against the budget only when it searches Gamma up to ``calibrated``.
 
 Study names default to ``<feature>-<num_features>-<ransac>-<task>`` (feature variants such as
 upright or CLAHE are part of ``<feature>``). A study's user attributes record what it was created
@@ -32,47 +32,13 @@ from pathlib import Path
 
 from pipeline.config import PipelineConfig
 from pipeline.errors import ImtuneError
+from tuner.protocol import best_feasible  # noqa: F401  (re-exported: the study's pick)
+from tuner.version import code_version  # noqa: F401  (re-exported)
 
 SAMPLERS = ("tpe", "random", "cmaes", "grid")
 PRUNERS = ("median", "none")
-TASKS = ("stereo", "multiview")
-MULTIVIEW_SPACE = "multiview.yaml"  # search_spaces/ file of the multiview task (ratio only)
-NOT_MULTIVIEW = ("threshold", "max_iters")  # COLMAP runs its own RANSAC: never searched for multiview
 SCHEMA = 1
 DEFAULT_TRIALS = 50
-SEARCHED = {"ratio": ("matching", "ratio"), "strategy": ("matching", "strategy"),
-            "threshold": ("geometry", "threshold"), "max_iters": ("geometry", "max_iters")}
-
-
-def code_version() -> str:
-    """``imtune <version>`` plus the git commit of the checkout when there is one (read from .git)."""
-    try:
-        from importlib.metadata import version
-        v = version("imtune")
-    except Exception:  # noqa: BLE001
-        v = "0+unknown"
-    root = Path(__file__).resolve().parents[1] / ".git"
-    try:
-        head = (root / "HEAD").read_text().strip()
-        if head.startswith("ref:"):
-            ref = head.split(None, 1)[1]
-            p = root / ref
-            if p.is_file():
-                sha = p.read_text().strip()
-            else:
-                sha = ""
-                packed = root / "packed-refs"
-                if packed.is_file():
-                    for line in packed.read_text().splitlines():
-                        if line.endswith(" " + ref):
-                            sha = line.split()[0]
-        else:
-            sha = head
-        if sha:
-            v += f"+g{sha[:10]}"
-    except OSError:
-        pass
-    return v
 
 
 def feature_label(conf: PipelineConfig) -> str:
@@ -110,17 +76,6 @@ def default_study_name(conf: PipelineConfig, task: str = "stereo") -> str:
     return f"{feature_label(conf)}-{conf.feature.num_features}-{conf.geometry.ransac}-{task}"
 
 
-def fixed_pipeline(conf: PipelineConfig, searched) -> dict:
-    """The configuration with the searched parameters and the seed blanked (what must match on resume;
-    the estimator seed of a study is its user attribute ``seed``)."""
-    d = conf.to_dict()
-    for name in searched:
-        sec, key = SEARCHED[name]
-        d[sec][key] = None
-    d["geometry"]["seed"] = None
-    return d
-
-
 @dataclass
 class TuneSettings:
     """Everything one `tune` run needs. ``base`` is the fixed pipeline configuration (the searched
@@ -156,8 +111,15 @@ class TuneSettings:
     retest: bool = False
     multiview: object = None  # MultiviewConfig of task "multiview" (None: the protocol's bags)
     workers: int | None = None  # multiview: bag processes per trial (None: the task's default, all CPUs)
+    gt_dir: str | None = None  # built ground truth (default $IMTUNE_GT, $IMTUNE_CACHE/gt, ~/.cache/imtune/gt)
     log: object = None  # callable(str) for status lines; None = stderr unless progress is off
     verbose: bool = False  # Optuna's own INFO log lines
+
+    def make_task(self, **extra):
+        """The study's task with these settings' options (each task takes those it knows)."""
+        from pipeline.tasks import make_task
+        return make_task(self.task, min_covisibility=self.min_covisibility, max_pairs=self.max_pairs,
+                         step_pairs=self.chunk_pairs, mv=self.multiview, workers=self.workers, **extra)
 
     def say(self, msg: str) -> None:
         if self.log is not None:
@@ -248,7 +210,7 @@ def check_compatible(name: str, stored: dict, mine: dict) -> None:
     checks = [("search_space", "a different search space"),
               ("pipeline", "a different pipeline configuration"),
               ("data_fingerprint", "different validation data"),
-              ("multiview", "different multiview settings")]
+              ("task_options", "different task settings")]
     for key, what in checks:
         if norm(stored.get(key)) != norm(mine.get(key)):
             diff = _first_difference(norm(stored.get(key)), norm(mine.get(key)))
@@ -258,17 +220,17 @@ def check_compatible(name: str, stored: dict, mine: dict) -> None:
     b_new = mine["budget"]["seconds_per_pair"]
     if b_old is not None and not math.isclose(float(b_old), float(b_new)):
         raise ImtuneError(f"study {name!r} exists with budget {b_old} s per pair, not {b_new}; "
-                          "rerun with --budget {b_old} or name a new study with --study")
+                          f"rerun with --budget {b_old} or name a new study with --study")
 
 
-def open_validation(s: TuneSettings):
-    """(scenes names, ValidationSet) for the settings' data and validation scenes."""
+def open_validation(s: TuneSettings, task):
+    """The ValidationSet of the settings' data and validation scenes for ``task``."""
+    from tuner.evaluate import load_scenes
     from tuner.objective import ValidationSet
-    from tuner.options import load_scenes
-    scenes = load_scenes(s.data_root, s.val_scenes, split="val")
+    scenes = load_scenes(s.data_root, s.val_scenes, split="val", gt_dir=s.gt_dir)
     if not scenes:
         raise ImtuneError(f"no validation scenes in {s.data_root}")
-    return ValidationSet.from_scenes(scenes, s.min_covisibility, s.max_pairs, s.chunk_pairs)
+    return ValidationSet.from_scenes(scenes, task)
 
 
 def test_scene_names(s: TuneSettings) -> list[str]:
@@ -276,6 +238,22 @@ def test_scene_names(s: TuneSettings) -> list[str]:
         return list(s.test_scenes)
     from pipeline.data import default_splits
     return list(default_splits(s.data_root).get("test", []))
+
+
+def load_study_space(s: TuneSettings, task):
+    """The study's search space: ``--space``, else the task's own file (``Task.space_file``), else the estimator
+    family's; then ``--fix`` pins; then every parameter the task does not use dropped (never searched, never
+    recorded)."""
+    from tuner.protocol import unused_by
+    from tuner.space import SPACES_DIR, load_space
+    path = s.space_path or (SPACES_DIR / task.space_file if task.space_file else None)
+    space = load_space(path, feature=s.base.feature.name, estimator=s.base.geometry.ransac, fixes=s.fixes)
+    for k in unused_by(task):
+        space.params.pop(k, None)
+        space.fixed.pop(k, None)
+    if not space.params:
+        raise ImtuneError("search space: every parameter is fixed; nothing to tune")
+    return space
 
 
 def setup_study(s: TuneSettings) -> StudyContext:
@@ -286,11 +264,10 @@ def setup_study(s: TuneSettings) -> StudyContext:
     from pipeline.geometry import get_estimator
     from tuner.budget import calibrate
     from tuner.objective import Objective
-    from tuner.space import SearchSpace, load_space
+    from tuner.protocol import blank_searched
+    from tuner.space import SearchSpace
     from tuner.storage import default_studies_dir, open_storage
     _quiet_optuna(s.verbose)
-    if s.task not in TASKS:
-        raise ImtuneError(f"unknown task {s.task!r} (choose from {', '.join(TASKS)})")
     if s.sampler not in SAMPLERS:
         raise ImtuneError(f"unknown sampler {s.sampler!r} (choose from {', '.join(SAMPLERS)})")
     make_pruner(s.pruner)
@@ -298,29 +275,20 @@ def setup_study(s: TuneSettings) -> StudyContext:
         raise ImtuneError("budgets must be > 0 seconds per pair")
     if s.n_trials is not None and s.n_trials < 1:
         raise ImtuneError(f"--n-trials must be >= 1, got {s.n_trials}")
+    task = s.make_task()  # unknown task -> one line listing the tasks
     get_estimator(s.base.geometry.ransac)  # unknown / unavailable estimator: one line, now
     s.studies_dir = Path(s.studies_dir) if s.studies_dir else default_studies_dir()
-    space_path = s.space_path
-    if s.task == "multiview" and not space_path:
-        from tuner.space import SPACES_DIR
-        space_path = SPACES_DIR / MULTIVIEW_SPACE
-    space = load_space(space_path, feature=s.base.feature.name, estimator=s.base.geometry.ransac,
-                       fixes=s.fixes)
-    if s.task == "multiview":  # COLMAP verifies the matches with its own RANSAC: eta and Gamma do not apply
-        for k in NOT_MULTIVIEW:
-            space.params.pop(k, None)
-            space.fixed.pop(k, None)
-    if not space.params:
-        raise ImtuneError("search space: every parameter is fixed; nothing to tune")
-    name = s.study_name or default_study_name(s.base, s.task)
+    space = load_study_space(s, task)
+    name = s.study_name or default_study_name(s.base, task.name)
     storage = open_storage(s.storage, heartbeat=s.heartbeat, studies_dir=s.studies_dir)
     cache = H5Cache(s.cache_dir)
-    vs = open_validation(s)
+    vs = open_validation(s, task)
     base = dataclasses.replace(s.base, geometry=dataclasses.replace(s.base.geometry, seed=int(s.seed or 0)))
     mine = {
-        "imtune": SCHEMA, "task": s.task, "feature": feature_label(base), "feature_name": base.feature.name,
+        "imtune": SCHEMA, "task": task.name, "task_options": task.options(),
+        "feature": feature_label(base), "feature_name": base.feature.name,
         "num_features": base.feature.num_features, "ransac": base.geometry.ransac,
-        "pipeline": fixed_pipeline(base, list(space.params) + list(space.fixed)),
+        "pipeline": blank_searched(base, list(space.params) + list(space.fixed)),
         "search_space": space.spec(), "search_space_source": space.source,
         "data_fingerprint": vs.fingerprint,
         "data": {"root": str(s.data_root), "val_scenes": vs.scene_names, "test_scenes": test_scene_names(s),
@@ -330,10 +298,6 @@ def setup_study(s: TuneSettings) -> StudyContext:
         "code_version": code_version(),
         "seed": int(s.seed or 0),
     }
-    if s.task == "multiview":
-        from pipeline.tasks.multiview import MultiviewConfig
-        mv = s.multiview or MultiviewConfig()
-        mine["multiview"] = dataclasses.asdict(mv)
     study = None
     try:
         study = optuna.load_study(study_name=name, storage=storage)
@@ -379,38 +343,23 @@ def setup_study(s: TuneSettings) -> StudyContext:
     resolved.calibration = space.calibration
     # every trial of a study uses the estimator seed the study was created with
     base = dataclasses.replace(base, geometry=dataclasses.replace(base.geometry, seed=int(stored.get("seed", 0))))
-    if s.task == "multiview":
-        from tuner.objective import MultiviewObjective
-        objective = MultiviewObjective(base, resolved, [sc for sc, _ in vs.scenes], cache, mv, workers=s.workers)
-    else:
-        objective = Objective(base, resolved, vs, cache, budget=float(stored["budget"]["seconds_per_pair"]))
+    objective = Objective(task, base, resolved, vs, cache, budget=float(stored["budget"]["seconds_per_pair"]))
     return StudyContext(study=study, storage=storage, name=name, space=resolved, vs=vs, objective=objective,
                         attrs=stored, cache=cache, created=created)
 
 
 def trial_counts(study) -> dict:
     from optuna.trial import TrialState
+
+    from tuner.protocol import trial_within_budget
     counts = {st.name.lower(): 0 for st in TrialState}
     infeasible = 0
     for t in study.get_trials(deepcopy=False):
         counts[t.state.name.lower()] += 1
-        if t.state == TrialState.COMPLETE and any(v > 0 for v in t.constraints.values()):
+        if t.state == TrialState.COMPLETE and not trial_within_budget(t):
             infeasible += 1
     counts["infeasible"] = infeasible
     return counts
-
-
-def best_feasible(study):
-    """The COMPLETE trial with the highest value among those within budget (None if none)."""
-    from optuna.trial import TrialState
-    best = None
-    for t in study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
-        if t.value is None or any(v > 0 for v in t.constraints.values()) or t.user_attrs.get("feasible") is False:
-            continue
-        key = (t.value, -float(t.user_attrs.get("ransac_seconds_median", 0.0)), -t.number)
-        if best is None or key > best[0]:
-            best = (key, t)
-    return best[1] if best else None
 
 
 def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
@@ -423,8 +372,11 @@ def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
     n_target = s.n_trials or (ctx.space.grid_size() if s.sampler == "grid" else DEFAULT_TRIALS)
     if s.sampler == "grid":
         n_target = min(n_target, ctx.space.grid_size())
-    sampler = make_sampler(s.sampler, s.seed, ctx.space,
-                           s.startup_trials or max(3, min(10, (n_target or 50) // 5)))
+    from tuner.seeding import worker_seeded
+    startup = s.startup_trials or max(3, min(10, (n_target or 50) // 5))
+    # each worker's sampler seed derives from --seed and its first trial number: the same --seed in two
+    # workers or a resume never replays the same parameters (issue 14 item 9; see tuner.seeding)
+    sampler = worker_seeded(lambda seed: make_sampler(s.sampler, seed, ctx.space, startup), s.seed)
     study = optuna.load_study(study_name=ctx.name, storage=ctx.storage, sampler=sampler, pruner=make_pruner(s.pruner))
     ctx.study = study
 

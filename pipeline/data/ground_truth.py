@@ -135,7 +135,7 @@ def _image_root(scene) -> tuple[Path, dict[str, str]]:
 def _extract_and_match(scene, conf: GTConfig, work: Path, known_K: bool, progress) -> tuple[Path, dict[str, int], Path, dict]:
     import pycolmap
 
-    from pipeline.tasks.colmap_db import PIXEL_OFFSET
+    from pipeline.colmap_db import PIXEL_OFFSET
     img_root, rel = _image_root(scene)
     db = work / "database.db"
     eo = pycolmap.FeatureExtractionOptions()
@@ -187,7 +187,7 @@ def _extract_and_match(scene, conf: GTConfig, work: Path, known_K: bool, progres
 
 def _points_from_model(rec, id_to_name: dict[int, str]):
     """points3d (P, 3), observations name -> (ids, xy px pixel-centre), from a pycolmap Reconstruction."""
-    from pipeline.tasks.colmap_db import PIXEL_OFFSET
+    from pipeline.colmap_db import PIXEL_OFFSET
     pids = sorted(rec.point3D_ids())
     index = {p: k for k, p in enumerate(pids)}
     pts = np.array([rec.point3D(p).xyz for p in pids], float).reshape(-1, 3)
@@ -230,7 +230,7 @@ def build_from_poses(scene, conf: GTConfig = GTConfig(), work: Path | None = Non
     """Triangulate 3D points of a scene with known K, R, t (held fixed); see the module docstring."""
     import pycolmap
 
-    from pipeline.tasks.colmap_db import quiet
+    from pipeline.colmap_db import quiet
     progress = progress or (lambda msg: None)
     bad = [n for n, i in scene.images.items() if i.K is None or i.R is None or i.t is None]
     if bad:
@@ -286,7 +286,7 @@ def build_from_images(scene, conf: GTConfig = GTConfig(), work: Path | None = No
     """Pseudo ground truth by SfM on the scene's images (exhaustive matching); see the module docstring."""
     import pycolmap
 
-    from pipeline.tasks.colmap_db import K_from_camera, largest_model, quiet
+    from pipeline.colmap_db import K_from_camera, largest_model, quiet
     progress = progress or (lambda msg: None)
     if len(scene.images) < 2:
         raise ImtuneError(f"scene {scene.name}: needs at least 2 usable images for SfM, has {len(scene.images)}")

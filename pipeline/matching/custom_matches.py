@@ -37,7 +37,7 @@ _MEMO: dict[tuple, object] = {}  # file identity + pair / image -> parsed conten
 @dataclass
 class CustomTables(KnnTables):
     """Stand-in for a pair's k-NN tables when the matches are imported: ``matches`` (M, 2) holds them
-    exactly (``pipeline.tasks.prepare.pair_matches`` reads it). The tables themselves encode each match
+    exactly (``pipeline.tasks.prepare.tentative_matches`` reads it). The tables themselves encode each match
     as a nearest neighbour at distance 0 with no second neighbour, so ``filter_matches`` on them (any r)
     returns the same matches for the strategies "both" and "uni" when they are one-to-one (callers that
     use ``filter_matches`` directly see a subset otherwise)."""

@@ -1,0 +1,40 @@
+"""Tasks: what a configuration is evaluated by (the seam the tuner drives; see ``base``).
+
+    from pipeline.tasks import TASKS, get_task
+    task = get_task("stereo", min_covisibility=0.1)     # or "multiview"
+    result = task.evaluate(scenes, conf, cache)
+
+Registered here: ``stereo`` (two-view pose from F, the paper's stereo task) and ``multiview`` (COLMAP
+reconstructions of bags of images). ``TASKS.names()`` lists them; docs/extending.md shows how to add one.
+"""
+from __future__ import annotations
+
+from pipeline.tasks.base import TASKS, Task, TaskResult
+from pipeline.tasks import stereo, multiview  # noqa: F401,E402  (importing registers the tasks; order = listing order)
+
+__all__ = ["TASKS", "Task", "TaskResult", "get_task", "make_task", "task_list", "task_names"]
+
+
+def get_task(name: str, **options) -> Task:
+    """The task registered as ``name``, built with its options (one-line ImtuneError for an unknown name)."""
+    return TASKS.get(name)(**options)
+
+
+def task_names() -> list[str]:
+    return TASKS.names()
+
+
+def make_task(name: str, **options) -> Task:
+    """The task ``name`` built from a pool of options: each task takes the ones its constructor accepts (so a
+    caller such as `tune evaluate` can offer every task's options without knowing which task uses which)."""
+    return TASKS.get(name).from_options(None, **options)
+
+
+def task_list(spec: str) -> list[str]:
+    """Task names from a spec: one name, a comma-separated list, or ``both`` / ``all`` (every task)."""
+    if spec in ("both", "all"):
+        return TASKS.names()
+    names = [s.strip() for s in str(spec).split(",") if s.strip()]
+    for n in names:
+        TASKS.get(n)  # unknown -> one-line error listing the tasks
+    return names

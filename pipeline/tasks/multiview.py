@@ -42,6 +42,7 @@ from pipeline.data.bags import DEFAULT_BAGS, MIN_POINTS, scene_bags
 from pipeline.data.scene import Scene
 from pipeline.errors import ImtuneError
 from pipeline.metrics.pose import accuracy_curve, mean_average_accuracy, pose_error_deg
+from pipeline.tasks.base import TASKS, Task, TaskResult
 
 BAG_STAGE_VERSION = "1"
 MULTIVIEW_KEYS = ("SR", "RC", "NL", "TL", "mAA5", "mAA10", "ATE", "NM", "bags", "failed", "seconds")
@@ -55,7 +56,7 @@ class MultiviewConfig:
     min_points: each image of a bag must see at least this many of the bag's 3D points.
     bag_seed: seed of the bag sampling.
     intrinsics: "colmap" (official: COLMAP estimates them, EXIF or 1.2 x long side), "prior" (known K as a
-        refined prior) or "fixed" (known K, not refined). See ``pipeline.tasks.colmap_db``.
+        refined prior) or "fixed" (known K, not refined). See ``pipeline.colmap_db``.
     pair_min_points: write matches only for bag pairs sharing at least this many ground-truth 3D points
         (the official benchmark's vis_th = 100); 0 = every pair of the bag. Ignored without 3D points.
     min_model_size: COLMAP's minimum model size (official: 3; a lone smaller model is still kept by COLMAP).
@@ -76,7 +77,7 @@ class MultiviewConfig:
     max_seconds_per_bag: float | None = None
 
     def __post_init__(self):
-        from pipeline.tasks.colmap_db import INTRINSICS_MODES
+        from pipeline.colmap_db import INTRINSICS_MODES
         if self.intrinsics not in INTRINSICS_MODES:
             raise ImtuneError(f"unknown intrinsics mode {self.intrinsics!r} (choose {', '.join(INTRINSICS_MODES)})")
         if self.min_model_size < 2:
@@ -115,7 +116,7 @@ class BagJob:
 
 def run_bag(job: BagJob) -> dict:
     """Reconstruct one bag and score it. Never raises: any failure is a record with ``failure`` set."""
-    from pipeline.tasks import colmap_db as cdb
+    from pipeline import colmap_db as cdb
     t0, c0 = time.perf_counter(), time.process_time()
     names = list(job.names)
     rec = _empty_record(job)
@@ -170,7 +171,7 @@ def _empty_record(job: BagJob) -> dict:
 
 def _score(rec: dict, model, job: BagJob) -> None:
     from pipeline.metrics.ate import absolute_trajectory_error, camera_center
-    from pipeline.tasks import colmap_db as cdb
+    from pipeline import colmap_db as cdb
     names = list(job.names)
     poses = cdb.model_poses(model)
     st = cdb.model_stats(model)
@@ -209,7 +210,7 @@ def available_cpus() -> int:
 
 
 def _init_worker():
-    from pipeline.tasks import colmap_db as cdb
+    from pipeline import colmap_db as cdb
     cdb.limit_threads(1)
     try:
         import cv2
@@ -274,7 +275,7 @@ def _single_thread_env():
 
 
 def _init_worker_inline():
-    from pipeline.tasks import colmap_db as cdb
+    from pipeline import colmap_db as cdb
     cdb.quiet(3)
 
 
@@ -368,23 +369,6 @@ def combine(scene_summaries: dict[str, dict]) -> dict:
     return out
 
 
-@dataclass
-class MultiviewResult:
-    """Overall figures, per-scene figures and every bag record."""
-    summary: dict
-    scenes: dict[str, dict]
-    records: list[dict] = field(default_factory=list)
-    seconds: dict = field(default_factory=dict)  # wall time: "prepare" (features, k-NN), "bags"
-
-    def to_dict(self, with_bags: bool = False) -> dict:
-        d = dict(self.summary)
-        d["scenes"] = self.scenes
-        d["wall_seconds"] = self.seconds
-        if with_bags:
-            d["bag_records"] = self.records
-        return d
-
-
 # ------------------------------------------------------------------------------------------ main
 
 def scene_jobs(scene: Scene, conf: PipelineConfig, mv: MultiviewConfig, cache: H5Cache, workdir: str,
@@ -393,9 +377,8 @@ def scene_jobs(scene: Scene, conf: PipelineConfig, mv: MultiviewConfig, cache: H
     from tqdm.auto import tqdm
 
     from pipeline.data.resize import scaled_K
-    from pipeline.matching.filter import filter_matches
     from pipeline.metrics.covisibility import common_points
-    from pipeline.tasks.prepare import image_features, pair_knn
+    from pipeline.tasks.prepare import image_features, pair_knn, tentative_matches
     bags = scene_bags(scene, mv.bag_spec, min_points=mv.min_points, seed=mv.bag_seed)
     if not bags:
         raise ImtuneError(f"scene {scene.name}: no valid bag (each image must see >= {mv.min_points} of the bag's "
@@ -421,7 +404,8 @@ def scene_jobs(scene: Scene, conf: PipelineConfig, mv: MultiviewConfig, cache: H
                                         scene.observations.get(c, ([], None))) < mv.pair_min_points:
             continue
         tab, _ = pair_knn(cache, feats[a], feats[c], conf.matching)
-        m, _ = filter_matches(tab, conf.matching, feats[a].keypoints, feats[c].keypoints)
+        # the one tentative-matches function of every task: matcher (or the imported multiview matches), pre-filter
+        m, _ = tentative_matches(tab, conf.matching, feats[a], feats[c], task="multiview")
         matches[(a, c)] = np.asarray(m, np.int64).reshape(-1, 2)
     jobs = []
     for size in sorted(bags):
@@ -456,51 +440,113 @@ def _bag_key(job: BagJob) -> str:
     return make_key("bag", h.hexdigest(), dataclasses.asdict(job.conf), BAG_STAGE_VERSION)
 
 
+@TASKS.register("multiview", "COLMAP reconstructions of bags of images from our tentative matches; pose mAA, SR, RC, ATE")
+class MultiviewTask(Task):
+    """The paper's multiview task: bags of each scene reconstructed by COLMAP (its own RANSAC and mapper) from
+    the configuration's tentative matches; figures per bag size, then the mean over sizes, then over scenes.
+
+    ``mv``: a :class:`MultiviewConfig` (default: the protocol's bags); ``workers``: parallel bag processes (None:
+    the CPUs this process may use; <= 1 runs bags in this process); ``use_cache``: reuse bag records whose inputs
+    are unchanged; ``keep_models``: keep every bag's COLMAP database and model under this folder;
+    ``progress``: tqdm bars. ``on_step`` is called after each scene."""
+
+    name = "multiview"
+    uses = ("ratio", "strategy")  # COLMAP verifies the matches with its own RANSAC: eta and Gamma play no part
+    summary_keys = MULTIVIEW_KEYS[:-1] + ("accuracy",)
+    std_keys = ("mAA5", "mAA10", "SR")
+    columns = ("bags", "SR", "RC", "NL", "TL", "mAA5", "mAA10", "ATE", "failed", "NM", "seconds")
+    space_file = "multiview.yaml"
+    records_key = "bag_records"
+    note = "COLMAP from our tentative matches; SR, RC in %; ATE in ground-truth units"
+
+    def __init__(self, mv: MultiviewConfig | dict | None = None, workers: int | None = None, use_cache: bool = True,
+                 keep_models: str | Path | None = None, progress: bool = False):
+        if isinstance(mv, dict):
+            mv = MultiviewConfig(**{k: (tuple(tuple(x) for x in v) if k == "bags" else v) for k, v in mv.items()})
+        self.mv = mv or MultiviewConfig()
+        self.workers = workers
+        self.use_cache = use_cache
+        self.keep_models = keep_models
+        self.progress = progress
+
+    def options(self) -> dict:
+        return dataclasses.asdict(self.mv)
+
+    @classmethod
+    def from_options(cls, options: dict | None, **extra) -> "MultiviewTask":
+        """The options are the MultiviewConfig's fields."""
+        return super().from_options({"mv": dict(options)} if options else None, **extra)
+
+    def evaluation_units(self, scene: Scene) -> list:
+        return scene.select_pairs(None)
+
+    def for_run(self, conf: PipelineConfig, k: int):
+        """COLMAP's seed varies across repeated runs (the bags stay the same)."""
+        t = MultiviewTask(dataclasses.replace(self.mv, seed=int(self.mv.seed) + int(k)), workers=self.workers,
+                          use_cache=self.use_cache, keep_models=self.keep_models, progress=self.progress)
+        return t, conf
+
+    def figures(self, result: TaskResult) -> dict:
+        """The overall figures, accuracy at 1..10 deg, per bag size, and per scene the same."""
+        keys = MULTIVIEW_KEYS[:-1]
+
+        def part(s):
+            d = {k: s.get(k) for k in keys}
+            d["accuracy"] = s.get("accuracy")
+            d["by_size"] = {size: {k: v.get(k) for k in keys} for size, v in (s.get("by_size") or {}).items()}
+            return d
+        out = part(result.summary)
+        out["scenes"] = {name: part(s) for name, s in result.scenes.items()}
+        return out
+
+    def evaluate(self, scenes: list[Scene], conf: PipelineConfig, cache: H5Cache | None = None,
+                 on_step=None) -> TaskResult:
+        mv, keep_models, use_cache = self.mv, self.keep_models, self.use_cache
+        progress = self.progress
+        cache = cache if cache is not None else H5Cache()
+        workers = self.workers if self.workers is not None else available_cpus()
+        tmp = tempfile.mkdtemp(prefix="imtune-mv-") if keep_models is None else str(keep_models)
+        summaries: dict[str, dict] = {}
+        all_records: list[dict] = []
+        secs = {"prepare": 0.0, "bags": 0.0}
+        try:
+            for idx, scene in enumerate(scenes):
+                t0 = time.perf_counter()
+                jobs = scene_jobs(scene, conf, mv, cache, tmp, progress=progress, keep=keep_models is not None)
+                secs["prepare"] += time.perf_counter() - t0
+                t0 = time.perf_counter()
+                keys = [_bag_key(j) for j in jobs] if use_cache else [None] * len(jobs)
+                recs: list[dict | None] = [None] * len(jobs)
+                if use_cache:
+                    for k, key in enumerate(keys):
+                        got = cache.get("bags", key)
+                        if got is not None:
+                            recs[k] = _decode(got)
+                todo = [k for k in range(len(jobs)) if recs[k] is None]
+                fresh = run_bags([jobs[k] for k in todo], workers=workers, progress=progress,
+                                 desc=f"{scene.name}: bags")
+                for k, r in zip(todo, fresh):
+                    recs[k] = r
+                    if use_cache and not _transient(r):
+                        cache.put("bags", keys[k], _encode(r))
+                secs["bags"] += time.perf_counter() - t0
+                summaries[scene.name] = summarize_scene(recs)  # type: ignore[arg-type]
+                all_records.extend(recs)  # type: ignore[arg-type]
+                if on_step is not None:
+                    on_step(idx, len(scenes), combine(summaries))
+        finally:
+            if keep_models is None:
+                shutil.rmtree(tmp, ignore_errors=True)
+        return TaskResult(summary=combine(summaries), scenes=summaries, records=all_records, seconds=secs,
+                          records_key=self.records_key)
+
+
 def evaluate_multiview(scenes: list[Scene], conf: PipelineConfig, mv: MultiviewConfig | None = None,
                        cache: H5Cache | None = None, workers: int | None = None, progress: bool = False,
-                       on_scene=None, use_cache: bool = True, keep_models: str | Path | None = None) -> MultiviewResult:
-    """Evaluate one configuration on the multiview task over several scenes.
-
-    workers: parallel bag processes (default: the CPUs this process may use); <= 1 runs bags in this process.
-    use_cache: reuse bag records from the h5 cache when the bag's inputs (keypoints, matches, poses,
-        settings) are unchanged; False recomputes every bag (benchmarks).
-    keep_models: keep every bag's COLMAP database and models under this folder (default: deleted).
-    on_scene(index, scene_name, summary_so_far) is called after each scene (for pruners)."""
-    mv = mv or MultiviewConfig()
-    cache = cache if cache is not None else H5Cache()
-    workers = workers if workers is not None else available_cpus()
-    tmp = tempfile.mkdtemp(prefix="imtune-mv-") if keep_models is None else str(keep_models)
-    summaries: dict[str, dict] = {}
-    all_records: list[dict] = []
-    secs = {"prepare": 0.0, "bags": 0.0}
-    try:
-        for idx, scene in enumerate(scenes):
-            t0 = time.perf_counter()
-            jobs = scene_jobs(scene, conf, mv, cache, tmp, progress=progress, keep=keep_models is not None)
-            secs["prepare"] += time.perf_counter() - t0
-            t0 = time.perf_counter()
-            keys = [_bag_key(j) for j in jobs] if use_cache else [None] * len(jobs)
-            recs: list[dict | None] = [None] * len(jobs)
-            if use_cache:
-                for k, key in enumerate(keys):
-                    got = cache.get("bags", key)
-                    if got is not None:
-                        recs[k] = _decode(got)
-            todo = [k for k in range(len(jobs)) if recs[k] is None]
-            fresh = run_bags([jobs[k] for k in todo], workers=workers, progress=progress, desc=f"{scene.name}: bags")
-            for k, r in zip(todo, fresh):
-                recs[k] = r
-                if use_cache and not _transient(r):
-                    cache.put("bags", keys[k], _encode(r))
-            secs["bags"] += time.perf_counter() - t0
-            summaries[scene.name] = summarize_scene(recs)  # type: ignore[arg-type]
-            all_records.extend(recs)  # type: ignore[arg-type]
-            if on_scene is not None:
-                on_scene(idx, scene.name, combine(summaries))
-    finally:
-        if keep_models is None:
-            shutil.rmtree(tmp, ignore_errors=True)
-    return MultiviewResult(summary=combine(summaries), scenes=summaries, records=all_records, seconds=secs)
+                       use_cache: bool = True, keep_models: str | Path | None = None) -> TaskResult:
+    """``MultiviewTask(mv, workers, ...).evaluate(scenes, conf, cache)``: one configuration, every scene."""
+    return MultiviewTask(mv, workers=workers, use_cache=use_cache, keep_models=keep_models,
+                         progress=progress).evaluate(scenes, conf, cache)
 
 
 def _transient(rec: dict) -> bool:

@@ -16,6 +16,7 @@ from pipeline.cache import H5Cache, file_digest, make_key
 from pipeline.config import FeatureConfig, MatchConfig
 from pipeline.data.scene import ImageInfo
 from pipeline.errors import ImtuneError
+from pipeline.matching import neighbours_needed
 
 COUNTERS: Counter = Counter()  # "extract", "knn": number of real (uncached) computations in this process
 FEATURE_STAGE_VERSION = "1"
@@ -84,16 +85,11 @@ def image_features(cache: H5Cache, info: ImageInfo, conf: FeatureConfig) -> Imag
                          name=info.name, path=str(info.path))
 
 
-def knn_k(conf: MatchConfig) -> int:
-    """Neighbours kept per direction: 2 for the ratio test, more for FGINN's spatial search."""
-    return 10 if conf.fginn else 2
-
-
 def pair_knn(cache: H5Cache, fi: ImageFeatures, fj: ImageFeatures, conf: MatchConfig):
     """Both-direction k-NN tables of a pair (cached), and the seconds the search took when computed.
 
     With ``conf.custom_matches`` no search runs: the tables returned (``CustomTables``) carry the imported
-    matches (read ``pair_matches`` for them; ``filter_matches`` on them gives the same matches when they are
+    matches (read ``tentative_matches`` for them; ``filter_matches`` on them gives the same matches when they are
     one-to-one)."""
     from pipeline.matching.knn import KnnTables, knn_tables
     if conf.custom_matches:
@@ -102,7 +98,7 @@ def pair_knn(cache: H5Cache, fi: ImageFeatures, fj: ImageFeatures, conf: MatchCo
         if f.descriptors.ndim != 2 or f.descriptors.shape[1] == 0:
             raise ImtuneError(f"image {f.name or f.key}: the features have no descriptors (custom features without "
                               "descriptors.h5 need custom matches: --matches custom:DIR)")
-    k = knn_k(conf)
+    k = neighbours_needed(conf)
     key = make_key("knn", fi.key, fj.key, k, conf.method, KNN_STAGE_VERSION)
 
     def compute():
@@ -129,11 +125,12 @@ def custom_tables(fi: ImageFeatures, fj: ImageFeatures, conf: MatchConfig, task:
         raise ImtuneError("custom matches need the image names of the pair (ImageFeatures.name)")
     m = load_pair_matches(conf.custom_matches, fi.name, fj.name, fi.path, len(fi.keypoints), len(fj.keypoints),
                           task=task)
-    return CustomTables.from_matches(m, len(fi.keypoints), len(fj.keypoints), knn_k(conf))
+    return CustomTables.from_matches(m, len(fi.keypoints), len(fj.keypoints), neighbours_needed(conf))
 
 
-def pair_matches(tables, conf: MatchConfig, fi: ImageFeatures, fj: ImageFeatures, task: str = "stereo"):
-    """The tentative matches a task hands to the estimator (or COLMAP): the matcher's (ratio test,
+def tentative_matches(tables, conf: MatchConfig, fi: ImageFeatures, fj: ImageFeatures, task: str = "stereo"):
+    """THE tentative-matches function: every task, the intermediate metrics, the budget calibration and the
+    figures call it, so they all see the same matches. The tentative matches a task hands to the estimator (or COLMAP): the matcher's (ratio test,
     strategy, distance threshold, FGINN on the k-NN ``tables``) or the imported ones (custom matches;
     ``task`` "multiview" reads the multiview match file), then the pre-filter ``conf.prefilter``.
     Returns (matches (M, 2) int32 [i, j], distances (M,) float32; 0 for custom matches)."""

@@ -19,7 +19,8 @@ from pipeline.errors import ImtuneError
 from pipeline.data.resize import scaled_K
 from pipeline.data.scene import Pair, Scene
 from pipeline.metrics.pose import accuracy_curve, mean_average_accuracy, pose_error_deg
-from pipeline.tasks.prepare import ImageFeatures, image_features, pair_knn
+from pipeline.tasks.base import TASKS, Task, TaskResult
+from pipeline.tasks.prepare import ImageFeatures, image_features, pair_knn, tentative_matches
 
 MIN_MATCHES = 8
 
@@ -43,44 +44,89 @@ def pose_from_F(F: np.ndarray, K1: np.ndarray, K2: np.ndarray, pts1: np.ndarray,
     return R, t.reshape(3)
 
 
+@dataclass
+class PairResult:
+    """One stereo pair through the task's stages: what figures draw and what the record summarises.
+
+    matches: (M, 2) int32 tentative matches [index in image i, index in image j]; pts1, pts2: (M, 2) float64 px
+    at the working resolution; inliers: (M,) bool (all False when the estimator failed); F: the estimated
+    fundamental matrix or None; R, t: the recovered relative pose (None on failure); K1, K2: intrinsics at the
+    working resolution (None when unknown); sizes: ((w1, h1), (w2, h2)) working px; record: the JSON-able
+    record (NM, NI, err, err_R, err_t in degrees, seconds, failure)."""
+    record: dict
+    matches: np.ndarray
+    pts1: np.ndarray
+    pts2: np.ndarray
+    inliers: np.ndarray
+    F: np.ndarray | None = None
+    R: np.ndarray | None = None
+    t: np.ndarray | None = None
+    K1: np.ndarray | None = None
+    K2: np.ndarray | None = None
+    sizes: tuple = ()
+
+
+def has_ground_truth(scene: Scene, pair: Pair) -> bool:
+    """True when the pair has intrinsics (3x3) for both images and a ground-truth relative pose."""
+    try:
+        Ki, Kj = scene.intrinsics(pair)
+        if np.shape(Ki) != (3, 3) or np.shape(Kj) != (3, 3) or not (np.isfinite(Ki).all() and np.isfinite(Kj).all()):
+            return False
+        R, t = scene.relative_pose(pair)
+        return bool(np.isfinite(R).all() and np.isfinite(t).all())
+    except (ValueError, KeyError, TypeError, AttributeError):
+        return False
+
+
 def evaluate_pair(scene: Scene, pair: Pair, fi: ImageFeatures, fj: ImageFeatures, tables, knn_seconds: float,
-                  conf: PipelineConfig, estimator) -> dict:
-    """One stereo record: NM, NI, errors (deg), seconds for matching and for the estimator, failure reason."""
-    from pipeline.tasks.prepare import pair_matches
+                  conf: PipelineConfig, estimator) -> PairResult:
+    """One stereo pair: tentative matches (:func:`pipeline.tasks.prepare.tentative_matches`) -> estimator
+    -> pose -> errors (deg) against the ground truth. A pair without ground truth (no K or pose) still runs the
+    estimator; its errors are NaN and ``record["no_ground_truth"]`` is True (figures draw such pairs)."""
     g = conf.geometry
     t0 = time.perf_counter()
-    matches, _ = pair_matches(tables, conf.matching, fi, fj)  # matcher (or custom matches), then pre-filter
+    matches, _ = tentative_matches(tables, conf.matching, fi, fj)  # matcher (or custom matches), then pre-filter
     filter_seconds = time.perf_counter() - t0
+    matches = np.asarray(matches, np.int32).reshape(-1, 2)
     rec = {"pair": pair.key, "scene": scene.name, "NM": int(len(matches)), "NI": 0,
            "err": math.inf, "err_R": math.inf, "err_t": math.inf,
            "match_seconds": knn_seconds + filter_seconds, "filter_seconds": filter_seconds,
            "ransac_seconds": 0.0, "covisibility": pair.covisibility, "failure": None}
+    pts1 = fi.keypoints[matches[:, 0]].astype(np.float64).reshape(-1, 2)
+    pts2 = fj.keypoints[matches[:, 1]].astype(np.float64).reshape(-1, 2)
+    sizes = ((fi.width, fi.height), (fj.width, fj.height))
+    out = PairResult(record=rec, matches=matches, pts1=pts1, pts2=pts2, inliers=np.zeros(len(matches), bool),
+                     sizes=sizes)
+    gt = has_ground_truth(scene, pair)
+    if gt:
+        Ki, Kj = scene.intrinsics(pair)
+        out.K1, out.K2 = scaled_K(Ki, fi.sx, fi.sy), scaled_K(Kj, fj.sx, fj.sy)
+    else:
+        rec.update(err=math.nan, err_R=math.nan, err_t=math.nan, no_ground_truth=True)
     if len(fi.keypoints) == 0 or len(fj.keypoints) == 0:
         rec["failure"] = "no keypoints in " + (pair.i if len(fi.keypoints) == 0 else pair.j)
-        return rec
+        return out
     if len(matches) < MIN_MATCHES:
         rec["failure"] = f"fewer than {MIN_MATCHES} matches ({len(matches)})"
-        return rec
-    pts1 = fi.keypoints[matches[:, 0]].astype(np.float64)
-    pts2 = fj.keypoints[matches[:, 1]].astype(np.float64)
-    res = estimator.estimate(pts1, pts2, g.threshold, g.confidence, g.max_iters, seed=g.seed,
-                             sizes=((fi.width, fi.height), (fj.width, fj.height)))
+        return out
+    res = estimator.estimate(pts1, pts2, g.threshold, g.confidence, g.max_iters, seed=g.seed, sizes=sizes)
     rec["ransac_seconds"] = float(res.seconds)
-    inl = np.asarray(res.inliers, bool).reshape(-1)
-    rec["NI"] = int(inl.sum()) if res.F is not None else 0
     if res.F is None:
         rec["failure"] = "estimator found no model"
-        return rec
-    Ki, Kj = scene.intrinsics(pair)
-    Ki = scaled_K(Ki, fi.sx, fi.sy)
-    Kj = scaled_K(Kj, fj.sx, fj.sy)
-    R, t = pose_from_F(res.F, Ki, Kj, pts1[inl], pts2[inl])
+        return out
+    inl = np.asarray(res.inliers, bool).reshape(-1)
+    out.F, out.inliers = res.F, inl
+    rec["NI"] = int(inl.sum())
+    if not gt:
+        return out
+    R, t = pose_from_F(res.F, out.K1, out.K2, pts1[inl], pts2[inl])
     if R is None:
         rec["failure"] = f"pose recovery failed ({rec['NI']} inliers)"
-        return rec
+        return out
+    out.R, out.t = R, t
     R_gt, t_gt = scene.relative_pose(pair)
     rec["err"], rec["err_R"], rec["err_t"] = pose_error_deg(R_gt, t_gt, R, t)
-    return rec
+    return out
 
 
 def summarize(records: list[dict], nf: float) -> dict:
@@ -104,21 +150,6 @@ def summarize(records: list[dict], nf: float) -> dict:
         from pipeline.metrics.breakdown import by_covisibility
         out["covisibility"] = by_covisibility(records)
     return out
-
-
-@dataclass
-class StereoResult:
-    """Overall metrics (scene means), per-scene summaries and every pair record."""
-    summary: dict
-    scenes: dict[str, dict]
-    records: list[dict] = field(default_factory=list)
-
-    def to_dict(self, with_pairs: bool = False) -> dict:
-        d = dict(self.summary)
-        d["scenes"] = self.scenes
-        if with_pairs:
-            d["pair_records"] = self.records
-        return d
 
 
 def combine(scene_summaries: dict[str, dict], records: list[dict]) -> dict:
@@ -155,33 +186,146 @@ def prepare_scene(scene: Scene, conf: PipelineConfig, cache: H5Cache, pairs: lis
     return feats, tables
 
 
+def subsample_pairs(pairs: list, max_pairs: int | None) -> list:
+    """At most ``max_pairs`` pairs, evenly spread (deterministic); None / 0 = all."""
+    if not max_pairs or len(pairs) <= max_pairs:
+        return list(pairs)
+    idx = np.unique(np.linspace(0, len(pairs) - 1, max_pairs).round().astype(int))
+    return [pairs[i] for i in idx]
+
+
+def stratified_steps(counts: list[int], step_pairs: int | None) -> list[list[tuple[int, int]]]:
+    """Split the pairs of several scenes (``counts[s]`` pairs in scene s) into evaluation steps of about
+    ``step_pairs`` pairs, each step holding the same share of every scene, and within a scene pairs spread
+    over its whole list (a golden-ratio stride, deterministic), so that an early step is representative of
+    the whole set (what a pruner needs). Returns steps of (scene index, pair index); None / 0 = one step."""
+    total = sum(counts)
+    if total == 0:
+        return []
+    n = 1 if not step_pairs else max(1, -(-total // int(step_pairs)))
+    steps: list[list[tuple[int, int]]] = [[] for _ in range(n)]
+    for si, c in enumerate(counts):
+        order = sorted(range(c), key=lambda i: ((i * 0.6180339887498949) % 1.0, i))
+        for k in range(n):
+            lo, hi = (k * c) // n, ((k + 1) * c) // n
+            steps[k].extend((si, i) for i in order[lo:hi])
+    return [sorted(st) for st in steps if st]
+
+
+@TASKS.register("stereo", "two-view pose from F (E = K2^T F K1, recoverPose); mAA over pose errors")
+class StereoTask(Task):
+    """The paper's stereo task over each scene's pairs with co-visibility >= ``min_covisibility`` (all listed
+    pairs where it is unknown), at most ``max_pairs`` per scene (evenly spread; None = all).
+
+    ``step_pairs``: pairs per ``on_step`` call (stratified over scenes, see :func:`stratified_steps`; None = one
+    step). ``keep_pairs``: keep every :class:`PairResult` in ``TaskResult.pairs`` (figures). ``progress``: tqdm bars.
+    Overall figures are the mean over scenes of the per-scene figures (the benchmark averages scenes)."""
+
+    name = "stereo"
+    uses = ("ratio", "strategy", "threshold", "max_iters")
+    summary_keys = ("mAA5", "mAA10", "NF", "NM", "NI", "match_seconds", "ransac_seconds", "ransac_seconds_median",
+                    "ransac_seconds_p90", "failed", "pairs")
+    std_keys = ("mAA5", "mAA10", "NI")
+    columns = ("pairs", "NF", "NM", "NI", "mAA5", "mAA10", "failed", "match_seconds", "ransac_seconds")
+    records_key = "pair_records"
+    note = "pose from F; mAA over 1..5 / 1..10 deg; seconds per pair"
+
+    def __init__(self, min_covisibility: float | None = 0.1, max_pairs: int | None = None,
+                 step_pairs: int | None = None, keep_pairs: bool = False, progress: bool = False):
+        self.min_covisibility = min_covisibility
+        self.max_pairs = max_pairs
+        self.step_pairs = step_pairs
+        self.keep_pairs = keep_pairs
+        self.progress = progress
+
+    def options(self) -> dict:
+        return {"min_covisibility": self.min_covisibility, "max_pairs": self.max_pairs}
+
+    def evaluation_units(self, scene: Scene) -> list[Pair]:
+        return subsample_pairs(scene.select_pairs(self.min_covisibility), self.max_pairs)
+
+    def budget_seconds(self, summary: dict) -> float | None:
+        return float(summary.get("ransac_seconds_median", 0.0))
+
+    def figures(self, result: TaskResult) -> dict:
+        s = result.summary
+        keys = ("mAA5", "mAA10", "NF", "NM", "NI", "ransac_seconds_median", "ransac_seconds_p90", "match_seconds",
+                "ransac_seconds", "failed", "pairs", "accuracy", "covisibility")
+        out = {k: s.get(k) for k in keys}
+        out["scenes"] = {k: {kk: v.get(kk) for kk in ("mAA5", "mAA10", "NF", "NM", "NI", "pairs", "failed",
+                                                     "ransac_seconds_median", "accuracy", "covisibility")}
+                         for k, v in result.scenes.items()}
+        return out
+
+    def _checked_pairs(self, scenes: list[Scene]) -> list[list[Pair]]:
+        out = []
+        for scene in scenes:
+            pairs = self.evaluation_units(scene)
+            why = scene.missing_ground_truth(pairs)
+            if why:
+                raise ImtuneError(f"scene {scene.name} has no ground truth to evaluate against ({why}); "
+                                  f"build it first: tune data build-gt --data {scene.root}")
+            out.append(pairs)
+        return out
+
+    def prepare(self, scenes: list[Scene], conf: PipelineConfig, cache, progress: bool = False) -> dict[str, float]:
+        nf = {}
+        for scene, pairs in zip(scenes, self._checked_pairs(scenes)):
+            feats, _ = prepare_scene(scene, conf, cache, pairs, progress=progress)
+            nf[scene.name] = float(np.mean([len(f.keypoints) for f in feats.values()])) if feats else 0.0
+        return nf
+
+    def evaluate(self, scenes: list[Scene], conf: PipelineConfig, cache: H5Cache | None = None,
+                 on_step=None) -> TaskResult:
+        """Every selected pair of every scene -> one record (a failure has error +inf and still counts);
+        ``on_step(step, n_steps, summary_so_far)`` after each step of ``step_pairs`` pairs."""
+        from tqdm.auto import tqdm
+
+        from pipeline.geometry import get_estimator
+        cache = cache if cache is not None else H5Cache()
+        estimator = get_estimator(conf.geometry.ransac)
+        t0 = time.perf_counter()
+        all_pairs = self._checked_pairs(scenes)
+        prepared = [prepare_scene(sc, conf, cache, pairs, progress=self.progress)
+                    for sc, pairs in zip(scenes, all_pairs)]
+        nf = {sc.name: float(np.mean([len(f.keypoints) for f in feats.values()])) if feats else 0.0
+              for sc, (feats, _) in zip(scenes, prepared)}
+        t1 = time.perf_counter()
+        steps = stratified_steps([len(p) for p in all_pairs], self.step_pairs)
+        done: dict[tuple[int, int], dict] = {}
+        kept = {}
+        bar = tqdm(total=sum(len(p) for p in all_pairs), desc="stereo", disable=not self.progress, leave=False)
+        for k, step in enumerate(steps):
+            for si, pi in step:
+                scene, pair = scenes[si], all_pairs[si][pi]
+                feats, tables = prepared[si]
+                tab, knn_s = tables[pair.key]
+                pr = evaluate_pair(scene, pair, feats[pair.i], feats[pair.j], tab, knn_s, conf, estimator)
+                done[(si, pi)] = pr.record
+                if self.keep_pairs:
+                    kept[(scene.name, pair.key)] = pr
+                bar.update(1)
+            if on_step is not None:
+                on_step(k, len(steps), self._summaries(scenes, done, nf)[0])
+        bar.close()
+        summary, per_scene, records = self._summaries(scenes, done, nf)
+        return TaskResult(summary=summary, scenes=per_scene, records=records, pairs=kept,
+                          seconds={"prepare": t1 - t0, "pairs": time.perf_counter() - t1},
+                          records_key=self.records_key)
+
+    @staticmethod
+    def _summaries(scenes, done: dict, nf: dict):
+        """(overall, per scene, records in scene / pair order) of the records evaluated so far."""
+        records = [done[k] for k in sorted(done)]
+        by_scene: dict[str, list] = {}
+        for (si, _), rec in sorted(done.items()):
+            by_scene.setdefault(scenes[si].name, []).append(rec)
+        per_scene = {name: summarize(recs, nf.get(name, 0.0)) for name, recs in by_scene.items()}
+        return combine(per_scene, records), per_scene, records
+
+
 def evaluate_stereo(scenes: list[Scene], conf: PipelineConfig, cache: H5Cache | None = None,
-                    min_covisibility: float | None = 0.1, progress: bool = False,
-                    on_scene=None) -> StereoResult:
-    """Evaluate one fixed configuration on the stereo task over several scenes.
-
-    on_scene(index, scene_name, summary_so_far) is called after each scene (the tuner reports
-    intermediate values to a pruner through it; it may raise to stop early)."""
-    from tqdm.auto import tqdm
-
-    from pipeline.geometry import get_estimator
-    cache = cache if cache is not None else H5Cache()
-    estimator = get_estimator(conf.geometry.ransac)
-    summaries, all_records = {}, []
-    for idx, scene in enumerate(scenes):
-        pairs = scene.select_pairs(min_covisibility)
-        why = scene.missing_ground_truth(pairs)
-        if why:
-            raise ImtuneError(f"scene {scene.name} has no ground truth to evaluate against ({why}); "
-                              f"build it first: tune data build-gt --data {scene.root}")
-        feats, tables = prepare_scene(scene, conf, cache, pairs, progress=progress)
-        recs = []
-        for p in tqdm(pairs, desc=f"{scene.name}: stereo", disable=not progress, leave=False):
-            tab, knn_s = tables[p.key]
-            recs.append(evaluate_pair(scene, p, feats[p.i], feats[p.j], tab, knn_s, conf, estimator))
-        nf = float(np.mean([len(f.keypoints) for f in feats.values()])) if feats else 0.0
-        summaries[scene.name] = summarize(recs, nf)
-        all_records.extend(recs)
-        if on_scene is not None:
-            on_scene(idx, scene.name, combine(summaries, all_records))
-    return StereoResult(summary=combine(summaries, all_records), scenes=summaries, records=all_records)
+                    min_covisibility: float | None = 0.1, progress: bool = False, keep_pairs: bool = False) -> TaskResult:
+    """``StereoTask(min_covisibility, ...).evaluate(scenes, conf, cache)``: one configuration, every scene."""
+    return StereoTask(min_covisibility=min_covisibility, keep_pairs=keep_pairs, progress=progress).evaluate(
+        scenes, conf, cache)

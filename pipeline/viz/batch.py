@@ -96,7 +96,8 @@ def render_pairs(scenes: list[Scene], conf: PipelineConfig, out_dir: str | Path,
     error_kind, stats, label, config (hash)."""
     from pipeline.cache import H5Cache
     from pipeline.viz.select import find_pair, select_records
-    from pipeline.viz.stereo import config_label, render_pair
+    from pipeline.config_files import config_label
+    from pipeline.viz.stereo import render_pair
     cache = cache if cache is not None else H5Cache()
     out_dir = Path(out_dir)
     label = label or config_label(conf)
@@ -106,7 +107,8 @@ def render_pairs(scenes: list[Scene], conf: PipelineConfig, out_dir: str | Path,
     else:
         from pipeline.tasks.stereo import evaluate_stereo
         _require_ground_truth(scenes)
-        res = evaluate_stereo(scenes, conf, cache, min_covisibility=min_covisibility, progress=progress)
+        res = evaluate_stereo(scenes, conf, cache, min_covisibility=min_covisibility, progress=progress,
+                              keep_pairs=True)  # the figures draw these results: no second estimator run
         if not res.records:
             raise ImtuneError(f"no evaluation pairs in {', '.join(s.name for s in scenes)} "
                               f"(co-visibility >= {min_covisibility})")
@@ -115,12 +117,12 @@ def render_pairs(scenes: list[Scene], conf: PipelineConfig, out_dir: str | Path,
         for rec, reason in select_records(res.records, worst, best, random, sample_seed):
             sc = by[rec["scene"]]
             pair = next(p for p in sc.pairs if p.key == rec["pair"])
-            todo.append((sc, pair, reason))
+            todo.append((sc, pair, reason, res.pairs.get((sc.name, pair.key))))
     results = []
-    for sc, pair, reason in _progress(todo, "figures", progress):
+    for sc, pair, reason, *pm in _progress(todo, "figures", progress):
         png = out_dir / f"{_slug(sc.name)}_{_stem(pair.i)}_{_stem(pair.j)}_{h}.png"
         r = render_pair(sc, pair, conf, cache, png, width=opts.width, max_lines=opts.max_lines, layout=opts.layout,
-                        label=label, use_depth=opts.use_depth, seed=opts.seed)
+                        label=label, use_depth=opts.use_depth, seed=opts.seed, pm=pm[0] if pm else None)
         r = _clean(r)
         r.update(section=reason, label=label, config=h)
         results.append(r)
@@ -147,8 +149,9 @@ def render_compare(scenes: list[Scene], confs: list[tuple[PipelineConfig, str]],
     else:
         from pipeline.tasks.stereo import evaluate_stereo
         _require_ground_truth(scenes)
-        recs = [evaluate_stereo(scenes, c, cache, min_covisibility=min_covisibility, progress=progress).records
-                for c, _ in confs[:2]]
+        evals = [evaluate_stereo(scenes, c, cache, min_covisibility=min_covisibility, progress=progress,
+                                 keep_pairs=True) for c, _ in confs]
+        recs = [e.records for e in evals[:2]]
         by = {s.name: s for s in scenes}
         todo = []
         for scene_name, key in disagreements(recs[0], recs[1], n):
@@ -161,9 +164,10 @@ def render_compare(scenes: list[Scene], confs: list[tuple[PipelineConfig, str]],
     results = []
     for sc, pair in _progress(todo, "comparisons", progress):
         panels, figs = [], []
-        for (c, lab), hsh in zip(confs, hashes):
+        for k, ((c, lab), hsh) in enumerate(zip(confs, hashes)):
+            pm = evals[k].pairs.get((sc.name, pair.key)) if not pairs else None
             r = render_pair(sc, pair, c, cache, None, width=panel_w, max_lines=opts.max_lines, layout="vertical",
-                            label=lab, use_depth=opts.use_depth, seed=opts.seed)
+                            label=lab, use_depth=opts.use_depth, seed=opts.seed, pm=pm)
             figs.append(r["figure"].image)
             panels.append(dict(_clean(r), label=lab, config=hsh))
         img = side_by_side(figs, gap=16)
@@ -206,7 +210,8 @@ def render_bags(scenes: list[Scene], conf: PipelineConfig, mv, out_dir: str | Pa
     from pipeline.metrics.pose import mean_average_accuracy
     from pipeline.tasks.multiview import scene_jobs
     from pipeline.viz.multiview import bag_stats, draw_bag, reconstruct_bag
-    from pipeline.viz.stereo import config_label, save_png
+    from pipeline.config_files import config_label
+    from pipeline.viz.stereo import save_png
     cache = cache if cache is not None else H5Cache()
     out_dir = Path(out_dir)
     label = label or config_label(conf)
@@ -272,3 +277,33 @@ def gallery_entries(results: list[dict], gallery_dir: str | Path) -> list:
             out.append(GalleryEntry(png=rel, section=sec, title=f"{r['scene']}: {r['pair']}", lines=lines,
                                     scope=r.get("config", ""), data=r))
     return out
+
+
+# ---------------------------------------------------------------------------------------------- per task
+
+def _stereo_figures(scenes, conf, out_dir, *, cache=None, pairs=None, worst=2, best=2, random=2, sample_seed=0,
+                    min_covisibility=0.1, label=None, opts=VizOptions(), progress=False, **_) -> tuple[list, set]:
+    res = render_pairs(scenes, conf, out_dir, cache=cache, pairs=pairs, worst=worst, best=best, random=random,
+                       sample_seed=sample_seed, min_covisibility=min_covisibility, label=label, opts=opts,
+                       progress=progress)
+    return res, (set() if pairs else {"worst", "best", "random"})
+
+
+def _multiview_figures(scenes, conf, out_dir, *, cache=None, mv=None, bags=None, label=None, opts=VizOptions(),
+                       progress=False, **_) -> tuple[list, set]:
+    from pipeline.tasks.multiview import MultiviewConfig
+    return render_bags(scenes, conf, mv or MultiviewConfig(), out_dir, cache=cache, bags=bags, label=label,
+                       opts=opts, progress=progress), set()
+
+
+#: the figures of each task (a task without an entry has none): name -> fn(scenes, conf, out_dir, **options)
+#: returning (figure dicts, gallery sections they replace)
+TASK_FIGURES = {"stereo": _stereo_figures, "multiview": _multiview_figures}
+
+
+def render_task(task: str, scenes, conf, out_dir, **options) -> tuple[list[dict], set]:
+    """The figures of ``task`` (see :data:`TASK_FIGURES`; options: cache, pairs, worst, best, random, sample_seed,
+    min_covisibility, label, opts, progress for stereo; mv, bags for multiview)."""
+    if task not in TASK_FIGURES:
+        raise ImtuneError(f"no figures for task {task!r} (figures exist for {', '.join(TASK_FIGURES)})")
+    return TASK_FIGURES[task](scenes, conf, out_dir, **options)

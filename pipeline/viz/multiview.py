@@ -68,7 +68,7 @@ def model_keypoint_masks(model, keypoints: dict) -> dict:
 
 
 def _largest_in(folder: Path):
-    from pipeline.tasks.colmap_db import largest_model, read_model
+    from pipeline.colmap_db import largest_model, read_model
     models = {}
     for k, d in enumerate(sorted(p for p in folder.glob("*/sparse/*") if p.is_dir())):
         try:

@@ -21,8 +21,10 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.config import PipelineConfig
+from pipeline.config_files import config_label  # noqa: F401  (re-exported)
 from pipeline.data.scene import Pair, Scene
 from pipeline.errors import ImtuneError
+from pipeline.tasks.stereo import PairResult, has_ground_truth  # noqa: F401  (re-exported)
 from pipeline.viz.colors import BLUE, ERROR_MAX_PX, RED, bgr, error_colors
 from pipeline.viz.gt import ERROR_KINDS, match_errors
 from pipeline.viz.text import fit_text, put_text, text_width
@@ -36,41 +38,17 @@ BACKGROUND = (255, 255, 255)
 
 # ---------------------------------------------------------------------------------------------- matches
 
-@dataclass
-class PairMatches:
-    """One pair run through the stereo task's stages with a configuration.
-
-    pts1, pts2: (M, 2) tentative matches, px at the working resolution; inliers: (M,) bool (all False when the
-    estimator failed); F: the estimated fundamental matrix or None; K1, K2: intrinsics at the working
-    resolution (None when unknown); sizes: ((w1, h1), (w2, h2)) working px; record: the stereo record
-    (``pipeline.tasks.stereo.evaluate_pair``: NM, NI, err, err_R, err_t in degrees, failure, ...)."""
-    scene: Scene
-    pair: Pair
-    pts1: np.ndarray
-    pts2: np.ndarray
-    inliers: np.ndarray
-    F: np.ndarray | None
-    K1: np.ndarray | None
-    K2: np.ndarray | None
-    sizes: tuple
-    record: dict
-    conf: PipelineConfig
+PairMatches = PairResult  # the stereo task's own result of a pair (matches, inliers, F, R, t, record)
 
 
-def pair_matches(scene: Scene, pair: Pair, conf: PipelineConfig, cache=None, estimator=None) -> PairMatches:
-    """Tentative matches, inliers and the stereo record of one pair, from the same cached stages as
-    ``evaluate_stereo`` (features, k-NN tables, tentative matches and pre-filter, the estimator with the
-    configured seed).
-
-    The record is ``evaluate_pair``'s own; the inliers come from a second, identical estimator call. For an
-    estimator that is not seedable the two runs may differ: then the record is recomputed from the drawn run
-    (and ``record["rerun"]`` is True) so that the numbers in the title match the lines."""
+def pair_matches(scene: Scene, pair: Pair, conf: PipelineConfig, cache=None, estimator=None) -> PairResult:
+    """One pair through the stereo task's own stages (``pipeline.tasks.stereo.evaluate_pair``: cached features
+    and k-NN tables, the tentative matches every task uses, the estimator with the configured seed): its
+    matches, inliers, F and record, exactly once. A pair without ground truth is drawn without pose errors."""
     from pipeline.cache import H5Cache
-    from pipeline.data.resize import scaled_K
     from pipeline.geometry import get_estimator
-    from pipeline.metrics.pose import pose_error_deg
     from pipeline.tasks.prepare import image_features, pair_knn
-    from pipeline.tasks.stereo import MIN_MATCHES, evaluate_pair, pose_from_F
+    from pipeline.tasks.stereo import evaluate_pair
     for n in (pair.i, pair.j):
         if n not in scene.images:
             raise ImtuneError(f"image {n} is not in scene {scene.name}")
@@ -79,70 +57,7 @@ def pair_matches(scene: Scene, pair: Pair, conf: PipelineConfig, cache=None, est
     fi = image_features(cache, scene.images[pair.i], conf.feature)
     fj = image_features(cache, scene.images[pair.j], conf.feature)
     tab, knn_s = pair_knn(cache, fi, fj, conf.matching)
-    gt = has_ground_truth(scene, pair)
-    if gt:
-        rec = evaluate_pair(scene, pair, fi, fj, tab, knn_s, conf, est)
-    else:  # the stereo task needs K and the pose: draw the matches anyway, without pose errors
-        rec = {"pair": pair.key, "scene": scene.name, "NM": 0, "NI": 0, "err": math.nan, "err_R": math.nan,
-               "err_t": math.nan, "covisibility": pair.covisibility, "failure": None, "no_ground_truth": True}
-    matches, _ = _tentative(tab, conf, fi, fj)
-    pts1 = fi.keypoints[matches[:, 0]].astype(np.float64).reshape(-1, 2)
-    pts2 = fj.keypoints[matches[:, 1]].astype(np.float64).reshape(-1, 2)
-    sizes = ((fi.width, fi.height), (fj.width, fj.height))
-    rec["NM"] = int(len(matches))
-    K1 = K2 = None
-    if gt:
-        Ki, Kj = scene.intrinsics(pair)
-        K1, K2 = scaled_K(Ki, fi.sx, fi.sy), scaled_K(Kj, fj.sx, fj.sy)
-    inl = np.zeros(len(pts1), bool)
-    F = None
-    if len(fi.keypoints) and len(fj.keypoints) and len(matches) >= MIN_MATCHES:
-        g = conf.geometry
-        res = est.estimate(pts1, pts2, g.threshold, g.confidence, g.max_iters, seed=g.seed, sizes=sizes)
-        if res.F is not None:
-            F = res.F
-            inl = np.asarray(res.inliers, bool).reshape(-1)
-        ni = int(inl.sum()) if F is not None else 0
-        if not gt:
-            rec["NI"] = ni
-            if F is None:
-                rec["failure"] = "estimator found no model"
-        elif ni != rec["NI"]:  # a non-seedable estimator drew another sample: report the drawn run
-            rec = dict(rec, NI=ni, rerun=True, failure=None, err=math.inf, err_R=math.inf, err_t=math.inf)
-            if F is None:
-                rec["failure"] = "estimator found no model"
-            elif K1 is not None:
-                R, t = pose_from_F(F, K1, K2, pts1[inl], pts2[inl])
-                if R is None:
-                    rec["failure"] = f"pose recovery failed ({ni} inliers)"
-                else:
-                    R_gt, t_gt = scene.relative_pose(pair)
-                    rec["err"], rec["err_R"], rec["err_t"] = pose_error_deg(R_gt, t_gt, R, t)
-    return PairMatches(scene=scene, pair=pair, pts1=pts1, pts2=pts2, inliers=inl, F=F, K1=K1, K2=K2, sizes=sizes,
-                       record=rec, conf=conf)
-
-
-def _tentative(tables, conf: PipelineConfig, fi, fj):
-    """The tentative matches the stereo task hands to the estimator: ``pipeline.tasks.prepare.pair_matches``
-    (matcher or imported matches, then the pre-filter) where it exists, else ``filter_matches``."""
-    try:
-        from pipeline.tasks.prepare import pair_matches as task_matches
-    except ImportError:
-        from pipeline.matching.filter import filter_matches
-        return filter_matches(tables, conf.matching, fi.keypoints, fj.keypoints)
-    return task_matches(tables, conf.matching, fi, fj)
-
-
-def has_ground_truth(scene: Scene, pair: Pair) -> bool:
-    """True when the pair has intrinsics (3x3) for both images and a ground-truth relative pose."""
-    try:
-        Ki, Kj = scene.intrinsics(pair)
-        if np.shape(Ki) != (3, 3) or np.shape(Kj) != (3, 3) or not (np.isfinite(Ki).all() and np.isfinite(Kj).all()):
-            return False
-        R, t = scene.relative_pose(pair)
-        return bool(np.isfinite(R).all() and np.isfinite(t).all())
-    except (ValueError, KeyError, TypeError, AttributeError):
-        return False
+    return evaluate_pair(scene, pair, fi, fj, tab, knn_s, conf, est)
 
 
 # ---------------------------------------------------------------------------------------------- drawing
@@ -435,16 +350,6 @@ def draw_matches(image1: np.ndarray, image2: np.ndarray, pts1: np.ndarray, pts2:
 
 # ---------------------------------------------------------------------------------------------- one pair
 
-def config_label(conf: PipelineConfig) -> str:
-    """One line naming a configuration: feature (count), matching (r, strategy), estimator (eta, Gamma)."""
-    f, mt, g = conf.feature, conf.matching, conf.geometry
-    feat = f"{f.name} {f.num_features}" + (" upright" if f.upright else "")
-    match = f"r {mt.ratio:g} {mt.strategy}" + (" fginn" if mt.fginn else "") + \
-        (f" d≤{mt.distance_threshold:g}" if mt.distance_threshold is not None else "")
-    geo = f"{g.ransac} η {g.threshold:g} px, Γ {g.max_iters}"
-    return f"{feat} · {match} · {geo}"
-
-
 def _deg(v) -> str:
     if v is None or not math.isfinite(float(v)):
         return "∞"
@@ -473,13 +378,13 @@ def pair_title(scene_name: str, pair: Pair, rec: dict, label: str | None = None)
     return lines
 
 
-def load_pair_images(scene: Scene, pm: PairMatches, max_side: int) -> tuple[np.ndarray, np.ndarray]:
+def load_pair_images(scene: Scene, pair: Pair, pm: PairResult, max_side: int) -> tuple[np.ndarray, np.ndarray]:
     """The pair's two images in colour (RGB) at the working resolution of ``pm``'s keypoints."""
     import cv2
 
     from pipeline.data.resize import load_image
     out = []
-    for name, (w, h) in zip((pm.pair.i, pm.pair.j), pm.sizes):
+    for name, (w, h) in zip((pair.i, pair.j), pm.sizes):
         img, _, _ = load_image(scene.images[name].path, max_side=max_side, gray=False)
         if img.shape[1] != w or img.shape[0] != h:
             img = cv2.resize(img, (int(w), int(h)), interpolation=cv2.INTER_AREA)
@@ -493,7 +398,8 @@ def render_pair(scene: Scene, pair: Pair, conf: PipelineConfig, cache=None, out:
     """Draw one pair for one configuration (and write it as PNG when ``out`` is given).
 
     Lines are the estimator's inliers; when the estimator failed, the tentative matches instead (the legend
-    says so). Returns a dict: the stereo record's numbers (NM, NI, err, err_R, err_t in degrees, failure),
+    says so). ``pm``: the pair's :class:`PairResult` when the caller has it (an evaluation with ``keep_pairs``):
+    nothing is recomputed. Returns a dict: the stereo record's numbers (NM, NI, err, err_R, err_t in degrees, failure),
     ``error_kind`` ("depth" | "epipolar" | "none"), ``stats`` of the errors, ``png`` (path or None) and
     ``figure`` (the :class:`MatchFigure`)."""
     pm = pm if pm is not None else pair_matches(scene, pair, conf, cache, estimator)
@@ -507,13 +413,11 @@ def render_pair(scene: Scene, pair: Pair, conf: PipelineConfig, cache=None, out:
         errors, kind = match_errors(scene, pair, p1, p2, pm.K1, pm.K2, pm.sizes, use_depth=use_depth)
     else:
         errors, kind = np.full(len(p1), np.nan), "none"
-    img1, img2 = load_pair_images(scene, pm, conf.feature.max_side)
+    img1, img2 = load_pair_images(scene, pair, pm, conf.feature.max_side)
     note = None
     if what != "inliers":
         why = rec.get("failure") or "no model"
         note = f"no inliers ({why}): the lines are the tentative matches"
-    elif rec.get("rerun"):
-        note = "this estimator is not seedable: figure and numbers are from a new run"
     fig = draw_matches(img1, img2, p1, p2, errors, title=pair_title(scene.name, pair, rec, label or config_label(conf)),
                        error_kind=kind, what=what, max_lines=max_lines, width=width, layout=layout, seed=seed,
                        note=note)

@@ -5,18 +5,17 @@ import json
 import math
 
 from tuner.formatting import render
-from tuner.options import (TASKS, add_multiview_options, add_pipeline_options, build_config, evaluate_config,
-                           multiview_config, resolve_data)
+from tuner.evaluate import evaluate_config
+from tuner.options import (add_multiview_options, add_pipeline_options, build_config, multiview_config, resolve_data,
+                           task_choices)
 
-COLUMNS = ["scene", "pairs", "NF", "NM", "NI", "mAA5", "mAA10", "failed", "match_seconds", "ransac_seconds"]
 IM_COLUMNS = ["scene", "pairs", "repeatability_3px", "matching_score_3px", "epipolar_matching_score"]
-MV_COLUMNS = ["scene", "bag_size", "bags", "SR", "RC", "NL", "TL", "mAA5", "mAA10", "ATE", "failed", "NM", "seconds"]
 
 
 def register(sub) -> None:
     ap = sub.add_parser("evaluate", help="evaluate one fixed configuration")
     add_pipeline_options(ap)
-    ap.add_argument("--task", default="stereo", choices=list(TASKS), help="stereo (default), multiview or both")
+    ap.add_argument("--task", default="stereo", choices=task_choices(), help="a task (see `tune list`), or both")
     add_multiview_options(ap)
     ap.add_argument("--pairs", action="store_true", help="include every pair record in the JSON")
     ap.add_argument("--bag-records", action="store_true", help="include every multiview bag record in the JSON")
@@ -25,24 +24,25 @@ def register(sub) -> None:
     ap.set_defaults(func=run)
 
 
-def stereo_rows(stereo: dict) -> list[dict]:
-    rows = [dict(scene=name, **{k: s[k] for k in COLUMNS[1:]}) for name, s in stereo["scenes"].items()]
-    rows.append(dict(scene="mean", **{k: stereo[k] for k in COLUMNS[1:]}))
-    return rows
-
-
-def multiview_rows(mv: dict) -> list[dict]:
-    """One row per scene and bag size, one per scene (mean over bag sizes), and the overall mean."""
+def task_rows(section: dict, columns) -> tuple[list[dict], list[str]]:
+    """Rows of one task's section: one per scene (and per group of a breakdown such as bag sizes, when the
+    summaries carry ``by_size``), then a mean row when there are several scenes."""
     rows = []
+    grouped = any("by_size" in s for s in section["scenes"].values())
+    cols = ["scene"] + (["bag_size"] if grouped else []) + list(columns)
 
-    def row(scene, size, s):
-        return dict(scene=scene, bag_size=size, **{k: s.get(k) for k in MV_COLUMNS[2:]})
-    for name, s in mv["scenes"].items():
-        for size, ss in s.get("by_size", {}).items():
-            rows.append(row(name, size, ss))
-        rows.append(row(name, "all", s))
-    rows.append(row("mean", "all", mv))
-    return rows
+    def row(scene, s, size=None):
+        r = dict(scene=scene, **{k: s.get(k) for k in columns})
+        if grouped:
+            r["bag_size"] = size if size is not None else "all"
+        return r
+    for name, s in section["scenes"].items():
+        for size, ss in (s.get("by_size") or {}).items():
+            rows.append(row(name, ss, size))
+        rows.append(row(name, s))
+    if len(section["scenes"]) > 1 or grouped:
+        rows.append(row(f"mean of {len(section['scenes'])} scene(s)", section))
+    return rows, cols
 
 
 def _jsonable(o):
@@ -58,10 +58,9 @@ def _jsonable(o):
 def run(args) -> int:
     conf = build_config(args)
     data = resolve_data(args.data)
-    mv = multiview_config(args) if args.task in ("multiview", "both") else None
     out = evaluate_config(conf, data, args.scenes, cache_dir=args.cache,
                           min_covisibility=args.covisibility, progress=not (args.quiet or args.json),
-                          with_pairs=args.pairs, task=args.task, multiview=mv, workers=args.workers,
+                          with_pairs=args.pairs, task=args.task, multiview=multiview_config(args), workers=args.workers,
                           gt_dir=args.gt_dir, with_bags=args.bag_records, keep_models=args.keep_models,
                           intermediate=args.intermediate)
     if args.json:
@@ -70,12 +69,13 @@ def run(args) -> int:
         c = conf
         print(f"{c.feature.name} ({c.feature.num_features}) | r={c.matching.ratio} {c.matching.strategy} | "
               f"{c.geometry.ransac} eta={c.geometry.threshold}px Gamma={c.geometry.max_iters} | data {data}")
-        if "stereo" in out:
-            print(render(stereo_rows(out["stereo"]), "markdown", COLUMNS))
-        if "multiview" in out:
-            print(f"multiview: COLMAP from tentative matches (intrinsics: {mv.intrinsics}); "
-                  f"SR, RC in %; ATE in ground-truth units")
-            print(render(multiview_rows(out["multiview"]), "markdown", MV_COLUMNS))
+        from pipeline.tasks import TASKS
+        for name in TASKS.names():
+            if name in out:
+                task = TASKS.get(name)
+                rows, cols = task_rows(out[name], task.columns)
+                print(f"{name}: {task.note}" if task.note else name)
+                print(render(rows, "markdown", cols))
         if "intermediate" in out:
             im = out["intermediate"]
             rows = [dict(scene=n, **{k: s.get(k) for k in IM_COLUMNS[1:]}) for n, s in im["scenes"].items()]

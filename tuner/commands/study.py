@@ -63,7 +63,8 @@ _positive_float = positive_float  # finite and > 0 (`--budget inf` used to pass)
 
 
 def register(sub) -> None:
-    from tuner.study import PRUNERS, SAMPLERS, TASKS
+    from tuner.options import add_multiview_options, task_choices
+    from tuner.study import PRUNERS, SAMPLERS
     ap = sub.add_parser("run", help="tune on the validation scenes, freeze the optimum, run the test scenes "
                                     "(the default command)")
     add_pipeline_options(ap, tuning=True)
@@ -71,7 +72,8 @@ def register(sub) -> None:
     _storage_opts(ap)
     t = ap.add_argument_group("study")
     t.add_argument("--study", default=None, help="study name (default <feature>-<num_features>-<ransac>-<task>)")
-    t.add_argument("--task", default="stereo", choices=list(TASKS), help=f"{' | '.join(TASKS)}")
+    t.add_argument("--task", default="stereo", choices=[t for t in task_choices() if t != "both"],
+                   help="the task tuned (see `tune list`)")
     t.add_argument("--space", default=None, help="search-space YAML replacing the default of the estimator family")
     t.add_argument("--fix", action="append", default=[], metavar="NAME=VALUE",
                    help="pin a parameter (ratio, threshold, max_iters, strategy); repeatable")
@@ -101,7 +103,7 @@ def register(sub) -> None:
     t.add_argument("--test-runs", type=_positive_int, default=3)
     t.add_argument("--retest", action="store_true", help="rerun the test even if test.json matches the frozen settings")
     t.add_argument("--verbose", action="store_true", help="Optuna's per-trial log lines")
-    _multiview_opts(ap)
+    add_multiview_options(ap)
     ap.set_defaults(func=run)
 
     c = sub.add_parser("calibrate", help="measure estimator seconds per pair vs max-iters; store Gamma_max(B)")
@@ -115,6 +117,8 @@ def register(sub) -> None:
     c.add_argument("--calibration-ratio", type=ratio_float, default=None, help="ratio test r of the timed matches")
     c.add_argument("--calibration-threshold", type=positive_float, default=None, help="eta (px) used while timing")
     c.add_argument("--force", action="store_true", help="measure again even if stored")
+    c.add_argument("--task", default="stereo", choices=[t for t in task_choices() if t != "both"],
+                   help="the task whose pairs are timed")
     c.set_defaults(func=run_calibrate)
 
     te = sub.add_parser("test", help="run a study's frozen settings on the test scenes (3 runs, averaged)")
@@ -159,19 +163,6 @@ def register(sub) -> None:
     ls.set_defaults(func=run_studies)
 
 
-def _multiview_opts(ap) -> None:
-    """The multiview task's options of `tune run --task multiview` (see ``tuner.options.multiview_config``)."""
-    g = ap.add_argument_group("multiview (--task multiview)")
-    g.add_argument("--bags", default=None,
-                   help="bag sizes[:counts], e.g. 5,10,25 or 5:10 (default: the protocol's 5:100,10:50,25:25)")
-    g.add_argument("--bag-min-points", type=int, default=100, help="each image must see this many of the bag's 3D points")
-    g.add_argument("--bag-seed", type=int, default=0, help="seed of the bag sampling")
-    g.add_argument("--mv-intrinsics", default="colmap", choices=["colmap", "prior", "fixed"],
-                   help="colmap: COLMAP estimates them (official); prior: known K, refined; fixed: known K")
-    g.add_argument("--workers", type=_positive_int, default=None,
-                   help="bags in parallel within a trial (default: available CPUs)")
-
-
 def _studies_dir(args) -> Path:
     from tuner.storage import default_studies_dir
     return Path(args.studies_dir).expanduser().resolve() if args.studies_dir else default_studies_dir()
@@ -195,11 +186,9 @@ def settings_from_args(args):
     from tuner.study import TuneSettings
     base = build_config(args, ratio=1.0, threshold=0.5, max_iters=1000,
                         seed=args.seed if args.seed is not None else 0)
+    from tuner.options import multiview_config
     quiet = bool(args.quiet or args.json)
-    mv = None
-    if args.task == "multiview":
-        from tuner.options import multiview_config
-        mv = multiview_config(args, seed=args.seed if args.seed is not None else 0)
+    mv = multiview_config(args, seed=args.seed if args.seed is not None else 0)
     return TuneSettings(
         base=base, data_root=resolve_data(args.data, download=True, quiet=quiet), task=args.task, study_name=args.study,
         storage=args.storage, studies_dir=_studies_dir(args), space_path=args.space,
@@ -211,7 +200,8 @@ def settings_from_args(args):
         max_pairs=args.max_pairs, chunk_pairs=args.chunk_pairs, cache_dir=args.cache,
         heartbeat=args.heartbeat if args.heartbeat and args.heartbeat > 0 else None,
         calibration_pairs=args.calibration_pairs, recalibrate=args.recalibrate, progress=not quiet,
-        test=not args.no_test, test_runs=args.test_runs, retest=args.retest, multiview=mv, workers=args.workers)
+        test=not args.no_test, test_runs=args.test_runs, retest=args.retest, multiview=mv, workers=args.workers,
+        gt_dir=args.gt_dir)
 
 
 def run(args) -> int:
@@ -248,44 +238,41 @@ def _fmt(v):
 
 
 def frozen_table(f: dict) -> str:
+    """The frozen settings: tuned and fixed parameters, the budget, the validation figures."""
+    from tuner.freeze import task_of
+    task = task_of(f)
     rows = []
     for k, v in f["params"].items():
         rows.append({"parameter": k, "value": _fmt(v), "": "tuned"})
     for k, v in f.get("fixed", {}).items():
         rows.append({"parameter": k, "value": _fmt(v), "": "fixed"})
     v = f.get("validation", {})
-    if f.get("task") == "multiview":
-        rows.append({"parameter": "validation mAA10", "value": _fmt(v.get("mAA10")),
-                     "": f"multiview: mAA5 {_fmt(v.get('mAA5'))}, SR {_fmt(v.get('SR'))}, RC {_fmt(v.get('RC'))}, "
-                         f"{_fmt(v.get('bags'))} bags"})
-        return render(rows, "markdown", ["parameter", "value", ""])
     b = f.get("budget", {})
-    rows.append({"parameter": "budget", "value": f"{b.get('seconds_per_pair')} s/pair",
-                 "": f"Gamma_max {b.get('gamma_max')}"})
-    rows.append({"parameter": "validation mAA10", "value": _fmt(v.get("mAA10")),
-                 "": f"mAA5 {_fmt(v.get('mAA5'))}, NI {_fmt(v.get('NI'))}, "
-                     f"{_fmt(v.get('ransac_seconds_median'))} s/pair"})
+    if "max_iters" in f["params"] or task.budget_seconds(v) is not None:
+        rows.append({"parameter": "budget", "value": f"{b.get('seconds_per_pair')} s/pair",
+                     "": f"Gamma_max {b.get('gamma_max')}"})
+    others = ", ".join(f"{k} {_fmt(v.get(k))}" for k in task.columns if k not in ("mAA10",) and v.get(k) is not None)
+    rows.append({"parameter": f"validation {task.objective}", "value": _fmt(v.get(task.objective)),
+                 "": f"{task.name}: {others}"})
     return render(rows, "markdown", ["parameter", "value", ""])
 
 
 def test_table(t: dict) -> str:
-    if t.get("task") == "multiview":
-        cols = ["scene", "SR", "RC", "NL", "TL", "mAA5", "mAA10", "ATE", "bags", "failed"]
-        m = t["mean"]
-        rows = [dict(scene=name, **{k: s.get(k) for k in cols[1:]}) for name, s in m.get("scenes", {}).items()]
-        rows.append(dict(scene="mean", **{k: m.get(k) for k in cols[1:]}))
-        head = (f"multiview test ({len(t.get('runs', []))} runs, COLMAP seeds varied, mean; "
-                f"mAA10 std {_fmt(t.get('std', {}).get('mAA10', 0.0))})")
-        return head + "\n" + render(rows, "markdown", cols)
-    cols = ["scene", "NF", "NM", "NI", "mAA5", "mAA10", "failed", "ransac_seconds_median"]
+    """The test runs: per scene and the mean over scenes of the task's columns."""
+    from tuner.freeze import task_of
+    task = task_of(t)
+    cols = ["scene"] + list(task.columns)
     m = t["mean"]
     rows = [dict(scene=name, **{k: s.get(k) for k in cols[1:]}) for name, s in m.get("scenes", {}).items()]
-    rows.append(dict(scene="mean", **{k: m.get(k) for k in cols[1:]}))
+    if len(rows) > 1:
+        rows.append(dict(scene=f"mean of {len(rows)} scenes", **{k: m.get(k) for k in cols[1:]}))
     b = t.get("budget", {})
-    head = (f"test ({len(t.get('runs', []))} runs, mean; mAA10 std {_fmt(t.get('std', {}).get('mAA10', 0.0))}; "
-            f"within the {b.get('test_seconds_per_pair')} s/pair test budget: "
-            f"{'yes' if b.get('within_budget') else 'no'})")
-    return head + "\n" + render(rows, "markdown", cols)
+    std = t.get("std", {}).get(task.objective, 0.0)
+    head = f"{task.name} test ({len(t.get('runs', []))} runs, mean; {task.objective} std {_fmt(std)}"
+    if task.budget_seconds(m) is not None:
+        head += (f"; within the {b.get('test_seconds_per_pair')} s/pair test budget: "
+                 f"{'yes' if b.get('within_budget') else 'no'}")
+    return head + ")\n" + render(rows, "markdown", cols)
 
 
 # -- tune calibrate ---------------------------------------------------------------------------------
@@ -294,7 +281,8 @@ def run_calibrate(args) -> int:
     from pipeline.cache import H5Cache
     from tuner.budget import calibrate
     from tuner.objective import ValidationSet
-    from tuner.options import load_scenes
+    from pipeline.tasks import make_task
+    from tuner.evaluate import load_scenes
     from tuner.space import load_space
     from tuner.study import _quiet_optuna
     _quiet_optuna()
@@ -310,7 +298,8 @@ def run_calibrate(args) -> int:
     budgets = tuple(args.budget or (0.5, 1.0))
     root = resolve_data(args.data)
     quiet = bool(args.quiet or args.json)
-    vs = ValidationSet.from_scenes(load_scenes(root, args.scenes, split="val"), args.covisibility, args.max_pairs)
+    task = make_task(args.task, min_covisibility=args.covisibility, max_pairs=args.max_pairs)
+    vs = ValidationSet.from_scenes(load_scenes(root, args.scenes, split="val"), task)
     cache = H5Cache(args.cache)
     cal = calibrate(conf.geometry.ransac, conf, vs.scenes, cache, vs.fingerprint, budgets=budgets, ratio=ratio,
                     threshold=threshold, max_pairs=args.pairs, studies_dir=_studies_dir(args), force=args.force,

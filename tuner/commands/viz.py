@@ -25,132 +25,13 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 
-from pipeline.config import PipelineConfig
 from pipeline.errors import ImtuneError
-from tuner.options import add_multiview_options, add_pipeline_options, build_config, multiview_config, resolve_data
+from tuner.options import add_multiview_options, add_pipeline_options, build_config, multiview_config, resolve_data, task_choices
 
 
-@dataclass
-class Source:
-    """A configuration to draw: the config, its label, and the study it comes from (if any)."""
-    conf: PipelineConfig
-    label: str
-    study: str | None = None
-    frozen: dict | None = None
-    path: Path | None = None
-
-
-# ---------------------------------------------------------------------------------------------- sources
-
-def _default_namespace() -> argparse.Namespace:
-    ap = argparse.ArgumentParser(add_help=False)
-    add_pipeline_options(ap)
-    return ap.parse_args([])
-
-
-def _from_flat(d: dict, path: Path) -> PipelineConfig:
-    ns = _default_namespace()
-    known = set(vars(ns))
-    for k, v in d.items():
-        key = str(k).replace("-", "_")
-        if key not in known:
-            raise ImtuneError(f"{path}: unknown option {k!r} (expected pipeline option names such as feature, "
-                              f"num_features, ratio, strategy, ransac, threshold, max_iters)")
-        setattr(ns, key, v)
-    return build_config(ns)
-
-
-def _from_imc(method: dict, path: Path) -> PipelineConfig:
-    """An official IMC benchmark method (config_common + config_<dataset>_stereo) -> PipelineConfig."""
-    import dataclasses
-
-    from pipeline.config import FeatureConfig, GeometryConfig, MatchConfig
-    from pipeline.geometry import imc_geom_to_config
-    common = method.get("config_common") or {}
-    task = next((v for k, v in method.items() if k.startswith("config_") and k.endswith("_stereo")), None)
-    if not isinstance(task, dict):
-        raise ImtuneError(f"{path}: IMC method config has no config_<dataset>_stereo section")
-    name = str(common.get("descriptor") or common.get("keypoint") or "sift").lower()
-    name = {"siftdef": "sift", "rootsiftdef": "rootsift"}.get(name, name)
-    from pipeline.features import EXTRACTORS
-    EXTRACTORS.get(name)
-    fc = FeatureConfig(name=name, num_features=int(common.get("num_keypoints", 8000)))
-    m = task.get("matcher") or {}
-    filt = m.get("filtering") or {}
-    ratio = float(filt.get("threshold", 1.0)) if "ratio" in str(filt.get("type", "")) else 1.0
-    sym = m.get("symmetric") or {}
-    strategy = str(sym.get("reduce", "both")) if sym.get("enabled", True) else "uni"
-    mc = MatchConfig(ratio=min(1.0, ratio), strategy=strategy, fginn="fginn" in str(filt.get("type", "")),
-                     method="flann" if m.get("flann") else "exact")
-    gc = GeometryConfig(**imc_geom_to_config(task.get("geom") or {}))
-    return dataclasses.replace(PipelineConfig(), feature=fc, matching=mc, geometry=gc)
-
-
-def load_config_file(path: str | Path) -> Source:
-    """A configuration from a YAML / JSON file (see the module docstring); one-line ImtuneError if invalid."""
-    import yaml
-
-    from pipeline.viz.stereo import config_label
-    from tuner.freeze import pipeline_from_dict
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as e:
-        raise ImtuneError(f"cannot read config file {path}: {e.strerror or e}") from None
-    try:
-        d = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
-    except (ValueError, yaml.YAMLError) as e:
-        raise ImtuneError(f"{path}: invalid {'JSON' if path.suffix.lower() == '.json' else 'YAML'} "
-                          f"({str(e).splitlines()[0]})") from None
-    if isinstance(d, list) and d and isinstance(d[0], dict) and "config_common" in d[0]:
-        d = d[0]
-    if not isinstance(d, dict) or not d:
-        raise ImtuneError(f"{path}: expected a mapping of configuration values")
-    if "config_common" in d:
-        conf = _from_imc(d, path)
-        return Source(conf, f"{d['config_common'].get('json_label', path.stem)}: {config_label(conf)}", path=path)
-    if isinstance(d.get("config"), dict):  # a frozen.yaml
-        conf = pipeline_from_dict(d["config"])
-        who = d.get("study") or path.stem
-        return Source(conf, f"{who}: {config_label(conf)}", study=None, frozen=d, path=path)
-    if any(isinstance(d.get(k), dict) for k in ("feature", "matching", "geometry")):
-        conf = pipeline_from_dict(d)
-    else:
-        conf = _from_flat(d, path)
-    return Source(conf, f"{path.stem}: {config_label(conf)}", path=path)
-
-
-def studies_dir(value: str | None = None) -> Path:
-    from tuner.storage import default_studies_dir
-    return Path(value).expanduser().resolve() if value else default_studies_dir()
-
-
-def load_study_source(name: str, sdir: Path) -> Source:
-    """The frozen settings of a study (``<sdir>/<study>/frozen.yaml``); one-line ImtuneError without them."""
-    from pipeline.viz.stereo import config_label
-    from tuner.freeze import load_frozen, pipeline_from_dict
-    frozen = load_frozen(sdir, name)
-    conf = pipeline_from_dict(frozen["config"])
-    trial = frozen.get("trial")
-    return Source(conf, f"{name}" + (f" (trial #{trial})" if trial is not None else "") + f": {config_label(conf)}",
-                  study=name, frozen=frozen)
-
-
-def resolve_source(spec: str, sdir: Path) -> Source:
-    """A config file path, else a study name."""
-    p = Path(spec).expanduser()
-    if p.is_file():
-        return load_config_file(p)
-    if p.suffix.lower() in (".yaml", ".yml", ".json") or "/" in spec:
-        raise ImtuneError(f"config file {p} does not exist")
-    from tuner.freeze import study_dir
-    if not (study_dir(sdir, spec) / "frozen.yaml").is_file():
-        raise ImtuneError(f"{spec!r} is neither a config file nor a study with frozen settings "
-                          f"({study_dir(sdir, spec) / 'frozen.yaml'} does not exist)")
-    return load_study_source(spec, sdir)
+from tuner.sources import Source, load_config_source, load_study_source, resolve_source, studies_dir  # noqa: E402,F401
 
 
 # ---------------------------------------------------------------------------------------------- command
@@ -169,7 +50,7 @@ def register(sub) -> None:
     s.add_argument("--studies-dir", default=None, help="where studies live (default $IMTUNE_STUDIES, else studies/)")
     s.add_argument("--split", default="test", choices=["val", "test"],
                    help="with --study and no --scenes: the study's test (default) or validation scenes")
-    s.add_argument("--task", default="stereo", choices=["stereo", "multiview", "both"])
+    s.add_argument("--task", default="stereo", choices=task_choices())
     s.add_argument("--pairs", default=None, help="comma-separated pairs 'IMAGE1|IMAGE2' or 'SCENE:IMAGE1|IMAGE2' "
                                                  "(quote them: '|' is the shell's pipe)")
     s.add_argument("--pair", nargs=2, action="append", default=None, metavar=("IMAGE1", "IMAGE2"),
@@ -248,10 +129,10 @@ def viz(args: argparse.Namespace) -> dict:
     """The whole `tune viz` command as one call on parsed options; returns {"figures": [...], "gallery": path,
     "out": folder, "failures": [...]}."""
     from pipeline.cache import H5Cache
-    from pipeline.viz.batch import VizOptions, gallery_entries, render_bags, render_compare, render_pairs
+    from pipeline.viz.batch import VizOptions, gallery_entries, render_compare, render_task
     from pipeline.viz.gallery import link_gallery, write_gallery
     from tuner.freeze import study_dir
-    from tuner.options import load_scenes
+    from tuner.evaluate import load_scenes
     chosen = [x for x in ("study", "config", "compare") if getattr(args, x)]
     if len(chosen) > 1:
         got = ", ".join("--" + c for c in chosen)
@@ -264,10 +145,10 @@ def viz(args: argparse.Namespace) -> dict:
     elif args.study:
         sources = [load_study_source(args.study, sdir)]
     elif args.config:
-        sources = [load_config_file(args.config)]
+        sources = [load_config_source(args.config)]
     else:
         conf = build_config(args)
-        from pipeline.viz.stereo import config_label
+        from pipeline.config_files import config_label
         sources = [Source(conf, config_label(conf))]
     primary = sources[0]
     root, names, min_cov = _scenes_for(args, primary)
@@ -293,17 +174,15 @@ def viz(args: argparse.Namespace) -> dict:
                                   pairs=specs or None, n=args.num, min_covisibility=min_cov, opts=opts,
                                   progress=progress)
     else:
-        if args.task in ("stereo", "both"):
-            results += render_pairs(scenes, primary.conf, out_dir, cache=cache, pairs=specs or None,
+        from pipeline.tasks import task_list
+        for name in task_list(args.task):
+            figs, rep = render_task(name, scenes, primary.conf, out_dir, cache=cache, pairs=specs or None,
                                     worst=args.worst, best=args.best, random=args.random,
                                     sample_seed=args.sample_seed, min_covisibility=min_cov, label=primary.label,
-                                    opts=opts, progress=progress)
-            if not specs:
-                replace |= {"worst", "best", "random"}
-        if args.task in ("multiview", "both"):
-            mv = multiview_config(args)
-            results += render_bags(scenes, primary.conf, mv, out_dir, cache=cache, bags=_parse_bags(args.bag),
-                                   label=primary.label, opts=opts, progress=progress)
+                                    opts=opts, progress=progress, mv=multiview_config(args),
+                                    bags=_parse_bags(args.bag))
+            results += figs
+            replace |= rep
     failures = [r for r in results if r.get("failure") and not r.get("png")]
     if results and len(failures) == len(results):
         raise ImtuneError(failures[0]["failure"])
@@ -330,7 +209,7 @@ def _line(r: dict) -> str:
     if r["section"] == "compare":
         parts = [f"{p['label'].split(':')[0]}: NI {p.get('NI')} err {deg(p.get('err'))}" for p in r["panels"]]
         return f"compare  {r['scene']} {r['pair']}  " + " | ".join(parts) + f"  -> {r['png']}"
-    if r["section"] == "multiview":
+    if "bag_size" in r:
         if not r.get("png"):
             return f"multiview {r['scene']} bag {r['bag_size']}#{r['bag']}: {r['failure']}"
         return (f"multiview {r['scene']} bag {r['bag_size']}#{r['bag']}  registered {len(r['registered'])}/"

@@ -1,0 +1,191 @@
+"""Configuration files -> ``PipelineConfig``: what `tune evaluate --config`, `tune compare` and `tune viz` read.
+
+    from pipeline.config_files import load_config_file, pipeline_from_dict
+    cf = load_config_file("frozen.yaml")        # ConfigFile(conf, label, kind, frozen, path)
+
+Accepted (YAML through ``yaml.safe_load``, or JSON by suffix):
+
+- a frozen.yaml (``config:`` holding the complete pipeline, written by `tune`);
+- a configuration file: ``config:`` (or the top level) with ``feature``, ``matching``, ``geometry`` sections as in
+  frozen.yaml; missing fields take the defaults; ``feature: {options: {edge_threshold: 10}}`` reaches the
+  extractor;
+- flat option names as on the command line (``feature: sift``, ``num_features: 2048``, ``ratio: 0.85``,
+  ``ransac: degensac``, ``threshold: 0.5``, ``max_iters: 10000``, ...; :data:`FLAT`);
+- an official IMC benchmark method JSON (``config_common`` + ``config_<dataset>_stereo``; a list of methods: the
+  first), as its users already have them.
+
+Every value is validated by the stage dataclasses (one-line ImtuneError naming the file and the problem).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from pipeline.config import FeatureConfig, GeometryConfig, MatchConfig, PipelineConfig
+from pipeline.errors import ImtuneError
+
+SECTIONS = {"feature": FeatureConfig, "matching": MatchConfig, "geometry": GeometryConfig}
+#: flat (command-line) names -> (section, field); names equal to a field of exactly one section are added below
+FLAT: dict[str, tuple[str, str]] = {"feature": ("feature", "name"), "matcher": ("matching", "method"),
+                                    "ransac": ("geometry", "ransac"), "matches": ("matching", "custom_matches"),
+                                    "feature_options": ("feature", "options")}
+for _sec, _cls in SECTIONS.items():
+    for _f in dataclasses.fields(_cls):
+        FLAT.setdefault(_f.name, (_sec, _f.name))
+
+
+@dataclass
+class ConfigFile:
+    """A configuration read from a file: ``conf``, a one-line ``label``, its ``kind`` ("frozen", "config",
+    "flat", "imc"), the frozen dict when it is a frozen.yaml, and the ``path``."""
+    conf: PipelineConfig
+    label: str
+    kind: str
+    frozen: dict | None = None
+    path: Path | None = None
+
+
+def config_label(conf: PipelineConfig) -> str:
+    """One line naming a configuration: feature (count), matching (r, strategy), estimator (eta, Gamma)."""
+    f, mt, g = conf.feature, conf.matching, conf.geometry
+    feat = f"{f.name} {f.num_features}" + (" upright" if f.upright else "")
+    match = f"r {mt.ratio:g} {mt.strategy}" + (" fginn" if mt.fginn else "") + \
+        (f" d≤{mt.distance_threshold:g}" if mt.distance_threshold is not None else "")
+    geo = f"{g.ransac} η {g.threshold:g} px, Γ {g.max_iters}"
+    return f"{feat} · {match} · {geo}"
+
+
+def _options(v):
+    """Extractor options as sorted (key, value) pairs, from a mapping or a list of pairs."""
+    if isinstance(v, dict):
+        return tuple(sorted((str(k), x) for k, x in v.items()))
+    return tuple(sorted(tuple(x) if isinstance(x, list) else x for x in (v or ())))
+
+
+def pipeline_from_dict(d: dict, base: PipelineConfig | None = None, where: str = "configuration") -> PipelineConfig:
+    """PipelineConfig from its ``to_dict()`` form; fields missing or None keep ``base``'s (default: the dataclass
+    defaults). Unknown sections or fields are a one-line ImtuneError naming ``where``."""
+    base = base or PipelineConfig()
+    if not isinstance(d, dict):
+        raise ImtuneError(f"{where}: expected a mapping with feature / matching / geometry sections")
+    unknown = [k for k in d if k not in SECTIONS]
+    if unknown:
+        raise ImtuneError(f"{where}: unknown section {unknown[0]!r} (expected {', '.join(SECTIONS)})")
+    kw = {}
+    for sec, cls in SECTIONS.items():
+        sub = d.get(sec) or {}
+        if not isinstance(sub, dict):
+            raise ImtuneError(f"{where}: {sec} must be a mapping, got {sub!r}")
+        names = {f.name for f in dataclasses.fields(cls)}
+        bad = [k for k in sub if k not in names]
+        if bad:
+            raise ImtuneError(f"{where}: unknown field {sec}.{bad[0]} (expected {', '.join(sorted(names))})")
+        vals = {k: v for k, v in sub.items() if v is not None}
+        for f in dataclasses.fields(cls):  # YAML's 2 for a float field is 2.0 (configs hash by their JSON form)
+            if f.name in vals and isinstance(f.default, float) and isinstance(vals[f.name], int) \
+                    and not isinstance(vals[f.name], bool):
+                vals[f.name] = float(vals[f.name])
+        for k in ("options", "prefilter_options"):
+            if k in vals:
+                vals[k] = _options(vals[k])
+        try:
+            kw[sec] = dataclasses.replace(getattr(base, sec), **vals)
+        except (TypeError, ValueError) as e:
+            raise ImtuneError(f"{where}: invalid {sec} section ({e})") from None
+    return PipelineConfig(**kw)
+
+
+def config_from_flat(d: dict, base: PipelineConfig | None = None, where: str = "configuration") -> PipelineConfig:
+    """Flat command-line names (:data:`FLAT`; ``-`` or ``_``) -> PipelineConfig over ``base``."""
+    nested: dict[str, dict] = {}
+    for k, v in d.items():
+        key = str(k).replace("-", "_")
+        if key not in FLAT:
+            raise ImtuneError(f"{where}: unknown option {k!r} (expected pipeline option names such as feature, "
+                              f"num_features, ratio, strategy, ransac, threshold, max_iters)")
+        sec, field = FLAT[key]
+        nested.setdefault(sec, {})[field] = v
+    return pipeline_from_dict(nested, base, where)
+
+
+def config_from_imc(method: dict, where: str = "IMC method") -> PipelineConfig:
+    """An official IMC benchmark method (config_common + config_<dataset>_stereo) -> PipelineConfig."""
+    from pipeline.geometry import imc_geom_to_config
+    common = method.get("config_common") or {}
+    task = next((v for k, v in method.items() if k.startswith("config_") and k.endswith("_stereo")), None)
+    if not isinstance(task, dict):
+        raise ImtuneError(f"{where}: IMC method config has no config_<dataset>_stereo section")
+    name = str(common.get("descriptor") or common.get("keypoint") or "sift").lower()
+    name = {"siftdef": "sift", "rootsiftdef": "rootsift"}.get(name, name)
+    from pipeline.features import EXTRACTORS
+    EXTRACTORS.get(name)
+    fc = FeatureConfig(name=name, num_features=int(common.get("num_keypoints", 8000)))
+    m = task.get("matcher") or {}
+    filt = m.get("filtering") or {}
+    ratio = float(filt.get("threshold", 1.0)) if "ratio" in str(filt.get("type", "")) else 1.0
+    sym = m.get("symmetric") or {}
+    strategy = str(sym.get("reduce", "both")) if sym.get("enabled", True) else "uni"
+    mc = MatchConfig(ratio=min(1.0, ratio), strategy=strategy, fginn="fginn" in str(filt.get("type", "")),
+                     method="flann" if m.get("flann") else "exact")
+    gc = GeometryConfig(**imc_geom_to_config(task.get("geom") or {}))
+    return PipelineConfig(feature=fc, matching=mc, geometry=gc)
+
+
+def read_mapping(path: str | Path):
+    """The parsed file (JSON by suffix, else YAML with safe_load); one-line ImtuneError if unreadable."""
+    import yaml
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise ImtuneError(f"cannot read config file {path}: {e.strerror or e}") from None
+    is_json = path.suffix.lower() == ".json"
+    try:
+        return json.loads(text) if is_json else yaml.safe_load(text)
+    except (ValueError, yaml.YAMLError) as e:
+        raise ImtuneError(f"{path}: invalid {'JSON' if is_json else 'YAML'} ({str(e).strip().splitlines()[0]})") from None
+
+
+def check_names(conf: PipelineConfig, where: str) -> PipelineConfig:
+    """The feature and estimator names are registered (one-line ImtuneError naming ``where`` otherwise)."""
+    from pipeline.features import EXTRACTORS
+    from pipeline.geometry import ESTIMATORS
+    for reg, name in ((EXTRACTORS, conf.feature.name), (ESTIMATORS, conf.geometry.ransac)):
+        try:
+            reg.get(name)
+        except ImtuneError as e:
+            raise ImtuneError(f"{where}: {e}") from None
+    return conf
+
+
+def load_config_file(path: str | Path, base: PipelineConfig | None = None) -> ConfigFile:
+    """A configuration from a file (see the module docstring); one-line ImtuneError if invalid."""
+    cf = _load(Path(path), base)
+    check_names(cf.conf, str(path))
+    return cf
+
+
+def _load(path: Path, base: PipelineConfig | None) -> ConfigFile:
+    d = read_mapping(path)
+    if isinstance(d, list) and d and isinstance(d[0], dict) and "config_common" in d[0]:
+        d = d[0]
+    if not isinstance(d, dict) or not d:
+        raise ImtuneError(f"{path}: expected a mapping of configuration values")
+    where = str(path)
+    if "config_common" in d:
+        conf = config_from_imc(d, where)
+        return ConfigFile(conf, f"{d['config_common'].get('json_label', path.stem)}: {config_label(conf)}", "imc",
+                          path=path)
+    if isinstance(d.get("config"), dict):
+        conf = pipeline_from_dict(d["config"], base, where)
+        if "study" in d and "trial" in d:  # a frozen.yaml
+            return ConfigFile(conf, f"{d.get('study') or path.stem}: {config_label(conf)}", "frozen", frozen=d,
+                              path=path)
+        return ConfigFile(conf, f"{path.stem}: {config_label(conf)}", "config", path=path)
+    if any(isinstance(d.get(k), dict) for k in ("matching", "geometry")) or isinstance(d.get("feature"), dict):
+        conf = pipeline_from_dict(d, base, where)
+        return ConfigFile(conf, f"{path.stem}: {config_label(conf)}", "config", path=path)
+    conf = config_from_flat(d, base, where)
+    return ConfigFile(conf, f"{path.stem}: {config_label(conf)}", "flat", path=path)

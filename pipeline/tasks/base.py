@@ -1,0 +1,155 @@
+"""The seam between the pipeline and whatever drives it (the tuner, `tune evaluate`, figures): one ``Task``.
+
+A task turns one fixed pipeline configuration and some scenes into figures::
+
+    from pipeline.tasks import get_task            # TASKS.get(name)(**options)
+    task = get_task("stereo", min_covisibility=0.1)
+    res = task.evaluate(scenes, conf, cache)           # TaskResult
+    res.summary["mAA10"], res.scenes["fountain-P11"], res.records[0]
+
+What a task declares (class attributes, read by the tuner, which has no task-specific branches):
+
+- ``name``: its registry name;
+- ``uses``: the searched parameters it consumes (names of ``tuner.protocol``'s table: ``ratio``,
+  ``strategy``, ``threshold``, ``max_iters``); a study never searches a parameter its task does not use;
+- ``summary_keys``: the figures it reports; repeated runs are aggregated over these (mean, std);
+- ``std_keys``: the figures whose run-to-run standard deviation is reported;
+- ``columns``: the columns of its readable per-scene table;
+- ``objective``: the figure a study maximises (mAA(10 deg));
+- ``space_file``: the search-space file used by default (None: the estimator family's file);
+- ``records_key``: the JSON key under which ``TaskResult.to_dict(with_records=True)`` lists the records;
+- ``note``: one line printed above its tables (units, what the figures mean).
+
+How the pieces are measured (the paper's protocol) lives in the concrete tasks beside this module
+(``stereo``, ``multiview``); how repeated runs aggregate is :meth:`Task.aggregate`. ``on_step`` is how a
+caller watches a long evaluation (the tuner feeds a pruner through it): it is called after each step with
+the summary of the records so far and may raise to stop; the task knows nothing of Optuna.
+
+A new task is one module with a ``Task`` subclass and one registry line::
+
+    @TASKS.register("mytask", "what it measures")
+    class MyTask(Task): ...
+"""
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, field
+from typing import Callable, ClassVar
+
+import numpy as np
+
+from pipeline.config import PipelineConfig
+from pipeline.registry import Registry
+
+TASKS = Registry("task")
+
+#: on_step(step, n_steps, summary_so_far): called after each evaluation step; may raise to stop early.
+OnStep = Callable[[int, int, dict], None]
+
+
+@dataclass
+class TaskResult:
+    """What a task's evaluation gives: ``summary`` (overall figures: the mean over scenes), ``scenes``
+    (per-scene summaries), ``records`` (one JSON-able dict per evaluated unit: a stereo pair, a multiview
+    bag), ``pairs`` (stereo with ``keep_pairs``: (scene, pair key) -> :class:`pipeline.tasks.stereo.PairResult`,
+    for figures that must not recompute anything) and ``seconds`` (wall time of the phases)."""
+    summary: dict
+    scenes: dict[str, dict]
+    records: list[dict] = field(default_factory=list)
+    pairs: dict = field(default_factory=dict)
+    seconds: dict = field(default_factory=dict)
+    records_key: str = "records"
+
+    def to_dict(self, with_records: bool = False) -> dict:
+        """JSON-able: the summary's keys, ``scenes``, ``wall_seconds`` and (optionally) the records."""
+        d = dict(self.summary)
+        d["scenes"] = self.scenes
+        if self.seconds:
+            d["wall_seconds"] = self.seconds
+        if with_records:
+            d[self.records_key] = self.records
+        return d
+
+
+class Task(abc.ABC):
+    """Base class of the tasks (see the module docstring). Options are keyword arguments of the
+    constructor, stored as attributes; :meth:`options` gives them back JSON-able (they are what a study
+    records and what a resumed study must match)."""
+
+    name: ClassVar[str] = ""
+    uses: ClassVar[tuple[str, ...]] = ()
+    summary_keys: ClassVar[tuple[str, ...]] = ("mAA5", "mAA10")
+    std_keys: ClassVar[tuple[str, ...]] = ("mAA5", "mAA10")
+    columns: ClassVar[tuple[str, ...]] = ("mAA5", "mAA10")
+    objective: ClassVar[str] = "mAA10"
+    space_file: ClassVar[str | None] = None
+    records_key: ClassVar[str] = "records"
+    note: ClassVar[str] = ""  # one line printed above the task's tables (units, what the figures mean)
+
+    @abc.abstractmethod
+    def evaluate(self, scenes: list, conf: PipelineConfig, cache=None, on_step: OnStep | None = None) -> TaskResult:
+        """Evaluate one configuration over the scenes (see the concrete classes for the protocol)."""
+
+    def options(self) -> dict:
+        """The task's settings that change its numbers, JSON-able (recorded by studies and test runs);
+        :meth:`from_options` rebuilds the task from them."""
+        return {}
+
+    @classmethod
+    def from_options(cls, options: dict | None, **extra) -> "Task":
+        """The task from :meth:`options`' dict (a study's, a frozen file's) and run-time ``extra`` keyword options
+        (progress, workers, ...; those the constructor does not take and None values are ignored)."""
+        import inspect
+        accepted = inspect.signature(cls.__init__).parameters
+        kw = {k: v for k, v in {**(options or {}), **extra}.items() if k in accepted and v is not None}
+        return cls(**kw)
+
+    def evaluation_units(self, scene) -> list:
+        """The pairs of ``scene`` this task's numbers depend on (the data fingerprint hashes them)."""
+        return list(scene.pairs)
+
+    def prepare(self, scenes: list, conf: PipelineConfig, cache, progress: bool = False) -> dict[str, float]:
+        """Warm the caches the evaluation reads (features, k-NN tables) once; returns features per image
+        (NF) per scene. Default: nothing to warm."""
+        return {}
+
+    def for_run(self, conf: PipelineConfig, k: int) -> tuple["Task", PipelineConfig]:
+        """The task and configuration of the ``k``-th repeated run (k = 0, 1, ...): the paper repeats test
+        runs with different random seeds. Default: the estimator seed ``seed + k``."""
+        import dataclasses
+        g = conf.geometry
+        return self, dataclasses.replace(conf, geometry=dataclasses.replace(g, seed=int(g.seed) + int(k)))
+
+    def budget_seconds(self, summary: dict) -> float | None:
+        """The statistic a time budget bounds (median estimator seconds per pair), or None when the task
+        has no estimator of ours to time (then every configuration is within any budget)."""
+        return None
+
+    def figures(self, result: TaskResult) -> dict:
+        """The JSON-able figures of a result that a study keeps per trial and a frozen file as its
+        validation figures: the summary keys and, per scene, the same."""
+        def part(s):
+            return {k: s.get(k) for k in self.summary_keys}
+        out = part(result.summary)
+        out["scenes"] = {name: part(s) for name, s in result.scenes.items()}
+        return out
+
+    def aggregate(self, runs: list[dict]) -> tuple[dict, dict]:
+        """Mean and standard deviation over repeated runs (``figures`` dicts) of every summary key, overall
+        and per scene (numbers and equal-length lists are averaged elementwise; None values are skipped)."""
+        def stats(parts, keys):
+            mean, std = {}, {}
+            for k in keys:
+                vals = [p[k] for p in parts if p.get(k) is not None]
+                if vals:
+                    a = np.asarray(vals, float)
+                    mean[k] = np.mean(a, axis=0).tolist()
+                    std[k] = np.std(a, axis=0).tolist()
+            return mean, std
+        mean, std = stats(runs, self.summary_keys)
+        mean["scenes"] = {}
+        for name in (runs[0].get("scenes") or {}) if runs else {}:
+            per = [r["scenes"][name] for r in runs if name in (r.get("scenes") or {})]
+            mean["scenes"][name] = stats(per, self.summary_keys)[0]
+        return mean, {k: std[k] for k in self.std_keys if k in std}
+

@@ -1,0 +1,72 @@
+"""One fixed configuration evaluated on some scenes, by one or several tasks — what `tune evaluate` prints.
+
+    from tuner.evaluate import evaluate_config, load_scenes
+    out = evaluate_config(conf, data_root, ["fountain-P11"], task="stereo")
+    out["stereo"]["mAA10"], out["stereo"]["scenes"]["fountain-P11"]
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from pipeline.config import PipelineConfig
+from pipeline.errors import ImtuneError
+
+
+def load_scenes(data_root: Path, names: list[str] | str | None, split: str = "val", gt_dir=None,
+                ground_truth: bool = True):
+    """Scenes by name (a list or a comma-separated string), or the data set's default split.
+
+    With ``ground_truth`` (default), a ground truth built by `tune data build-gt` (in ``gt_dir``, default
+    $IMTUNE_CACHE/gt) is attached to each scene: 3D points, co-visibility of its pairs (so the stereo
+    pairs are selected at co-visibility >= 0.1), poses for SfM-built scenes."""
+    from pipeline.data import default_splits, list_scenes, load_scene
+    from pipeline.data.ground_truth import prepare_scene_ground_truth
+    if isinstance(names, str):
+        names = [n.strip() for n in names.split(",") if n.strip()]
+    if not names:
+        names = list_scenes(data_root) if split == "all" else default_splits(data_root)[split]
+    scenes = [load_scene(data_root, n) for n in names]
+    if ground_truth:
+        for sc in scenes:
+            prepare_scene_ground_truth(sc, gt_dir)
+    return scenes
+
+
+def evaluate_config(conf: PipelineConfig, data_root: Path, scenes=None, cache_dir=None,
+                    min_covisibility: float | None = 0.1, progress: bool = False,
+                    with_pairs: bool = False, task: str = "stereo", multiview=None, workers: int | None = None,
+                    gt_dir=None, with_bags: bool = False, keep_models=None, intermediate: bool = False,
+                    max_pairs: int | None = None) -> dict:
+    """Evaluate one configuration; returns the JSON-able result of `tune evaluate`.
+
+    task: a registered task name (``stereo``, ``multiview``), a comma-separated list, or ``both``: the result
+    has one section per task (its summary, ``scenes``, and with ``with_pairs`` / ``with_bags`` its records) and
+    ``<task>_config`` with the task's options where it has any. The remaining arguments are the tasks' options
+    (each task takes those it knows: :func:`pipeline.tasks.make_task`): min_covisibility, max_pairs (stereo);
+    multiview (a ``MultiviewConfig``), workers (parallel bag processes), keep_models (multiview); gt_dir: where
+    built ground truth lives; intermediate: add an "intermediate" section (repeatability, matching scores,
+    ``pipeline.tasks.intermediate``). Raises ImtuneError when there is nothing to evaluate."""
+    from pipeline.cache import H5Cache
+    from pipeline.tasks import make_task, task_list
+    names = task_list(task)
+    scene_objs = load_scenes(data_root, scenes, split="all", gt_dir=gt_dir)
+    if not scene_objs:
+        raise ImtuneError(f"no scenes in {data_root} (see `tune data scenes --data {data_root}`)")
+    cache = H5Cache(cache_dir)
+    out = {"config": conf.to_dict(), "data": str(data_root), "scenes": [s.name for s in scene_objs]}
+    for name in names:
+        t = make_task(name, min_covisibility=min_covisibility, max_pairs=max_pairs, mv=multiview, workers=workers,
+                      keep_models=keep_models, progress=progress)
+        units = sum(len(t.evaluation_units(s)) for s in scene_objs)
+        if units == 0:
+            raise ImtuneError(f"nothing to evaluate: no {name} pairs in {', '.join(s.name for s in scene_objs)} "
+                              f"(a scene needs at least 2 images{' and co-visibility >= ' + str(min_covisibility) if min_covisibility else ''})")
+        res = t.evaluate(scene_objs, conf, cache)
+        out[name] = res.to_dict(with_records=with_pairs or with_bags)
+        if t.options():
+            out[f"{name}_config"] = t.options()
+    if intermediate:
+        from pipeline.tasks.intermediate import evaluate_intermediate
+        out["intermediate"] = evaluate_intermediate(scene_objs, conf, cache, min_covisibility=min_covisibility,
+                                                    progress=progress)
+    return out

@@ -1,0 +1,182 @@
+"""The protocol table: the parameters a study may search, where each lives in the pipeline configuration,
+its type and valid range, and the one feasibility rule. A leaf module (it imports nothing from the tuner).
+
+    from tuner.protocol import LEAVES, config_for, within_budget
+    LEAVES["threshold"]          # Leaf(section="geometry", field="threshold", type="float", ...)
+    conf = config_for(base, {"ratio": 0.85, "threshold": 0.5})
+    searchable("multiview")      # ("ratio", "strategy"): what the task consumes (Task.uses)
+
+Everything that needs the list derives from :data:`LEAVES`: search-space validation (``tuner.space``), the
+trial -> configuration mapping (:func:`config_for`), what a task does not search (:func:`unused_by`), the
+fixed part of a study (:func:`blank_searched`) and the frozen file's ``fixed`` section (:func:`fixed_values`).
+Which tasks use a parameter is each task's own declaration (``Task.uses``, see ``pipeline.tasks.base``):
+:func:`tasks_using` reads it from the task registry.
+
+Feasibility (the paper's budget): a configuration is within the budget B when the task's budget statistic
+(median estimator seconds per pair; ``Task.budget_seconds``) is <= B, or when the task times no estimator.
+A trial records it as the Optuna constraint ``budget`` (statistic - B, > 0 = infeasible) and the user attribute
+``feasible``; :func:`trial_within_budget` is what freeze, reports, plots and the dashboard notes all read.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+from pipeline.config import STRATEGIES, PipelineConfig
+from pipeline.errors import ImtuneError
+
+BUDGET_CONSTRAINT = "budget"
+
+
+@dataclass(frozen=True)
+class Leaf:
+    """One searchable parameter: ``section`` and ``field`` of ``PipelineConfig`` it sets, its ``type``
+    ("float", "int", "categorical"), valid range (``low`` / ``high``, ``low_open``: low excluded) or
+    ``choices``, its ``unit``, and how tables print its name (``symbol``: LaTeX, ``label``: plain)."""
+    name: str
+    section: str
+    field: str
+    type: str
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    choices: tuple = ()
+    unit: str = ""
+    symbol: str = ""
+    label: str = ""
+
+    def check(self, value, where: str):
+        """The validated value (strings from the command line converted); one-line ImtuneError otherwise."""
+        try:
+            if self.type == "categorical":
+                value = str(value)
+                if value not in self.choices:
+                    raise ValueError(f"must be one of {', '.join(self.choices)}")
+                return value
+            if isinstance(value, bool):
+                raise ValueError("is not a number")
+            if isinstance(value, str):
+                value = float(value)
+            value = float(value)
+            if not math.isfinite(value):
+                raise ValueError("must be finite")
+            if self.type == "int":
+                if value != int(value):
+                    raise ValueError("must be an integer")
+                value = int(value)
+            lo_ok = self.low is None or (value > self.low if self.low_open else value >= self.low)
+            hi_ok = self.high is None or value <= self.high
+            if not (lo_ok and hi_ok):
+                if self.type == "int" and self.high is None and not self.low_open:
+                    raise ValueError(f"must be an integer >= {self.low:g}")
+                raise ValueError(f"must be in {self.range_text()}")
+            return value
+        except (TypeError, ValueError) as e:
+            msg = str(e) if str(e).startswith(("must", "is not")) else "is not a valid value"
+            raise ImtuneError(f"{where}: {value!r} {msg}") from None
+
+    def range_text(self) -> str:
+        if self.type == "categorical":
+            return "{" + ", ".join(self.choices) + "}"
+        lo = "(" if self.low_open else "["
+        hi = f"{self.high:g}]" if self.high is not None else "inf)"
+        return f"{lo}{self.low if self.low is None else format(self.low, 'g')}, {hi}" + (f" {self.unit}" if self.unit else "")
+
+
+LEAVES: dict[str, Leaf] = {
+    "ratio": Leaf("ratio", "matching", "ratio", "float", 0.0, 1.0, low_open=True, symbol="$r$", label="r",
+                  unit=""),
+    "strategy": Leaf("strategy", "matching", "strategy", "categorical", choices=STRATEGIES, symbol="strategy",
+                     label="strategy"),
+    "threshold": Leaf("threshold", "geometry", "threshold", "float", 0.0, None, low_open=True, unit="px",
+                      symbol=r"$\eta$", label="eta"),
+    "max_iters": Leaf("max_iters", "geometry", "max_iters", "int", 1, None, unit="iterations",
+                      symbol=r"$\Gamma$", label="Gamma"),
+}
+PARAMS: tuple[str, ...] = tuple(LEAVES)
+TYPES: dict[str, str] = {k: v.type for k, v in LEAVES.items()}
+
+
+def leaf(name: str, where: str = "parameter") -> Leaf:
+    if name not in LEAVES:
+        raise ImtuneError(f"{where} {name!r}: unknown parameter (expected {', '.join(PARAMS)})")
+    return LEAVES[name]
+
+
+def tasks_using(name: str) -> list[str]:
+    """The registered tasks whose ``uses`` lists the parameter ``name``."""
+    from pipeline.tasks import TASKS
+    return [t for t in TASKS.names() if name in TASKS.get(t).uses]
+
+
+def searchable(task) -> tuple[str, ...]:
+    """The parameters ``task`` (a Task or a registered name) consumes, in table order."""
+    if isinstance(task, str):
+        from pipeline.tasks import TASKS
+        task = TASKS.get(task)
+    return tuple(p for p in PARAMS if p in task.uses)
+
+
+def unused_by(task) -> tuple[str, ...]:
+    """The parameters ``task`` does not consume: a study of that task never searches or records them."""
+    used = searchable(task)
+    return tuple(p for p in PARAMS if p not in used)
+
+
+def config_for(base: PipelineConfig, values: dict, seed: int | None = None) -> PipelineConfig:
+    """``base`` with the protocol parameters in ``values`` set (validated), and the estimator seed."""
+    sections: dict[str, dict] = {}
+    for name, v in values.items():
+        lf = leaf(name)
+        sections.setdefault(lf.section, {})[lf.field] = lf.check(v, name)
+    if seed is not None:
+        sections.setdefault("geometry", {})["seed"] = int(seed)
+    return dataclasses.replace(base, **{sec: dataclasses.replace(getattr(base, sec), **kw)
+                                        for sec, kw in sections.items()})
+
+
+def value_of(conf: PipelineConfig, name: str):
+    lf = leaf(name)
+    return getattr(getattr(conf, lf.section), lf.field)
+
+
+def blank_searched(conf: PipelineConfig, names) -> dict:
+    """``conf.to_dict()`` with the parameters ``names`` and the estimator seed blanked (None): the fixed part
+    of a study, which a resumed study must match."""
+    d = conf.to_dict()
+    for name in names:
+        lf = leaf(name)
+        d[lf.section][lf.field] = None
+    d["geometry"]["seed"] = None
+    return d
+
+
+def fixed_values(conf: PipelineConfig, searched, task) -> dict:
+    """The protocol parameters ``task`` uses but the study did not search, with their value in ``conf``."""
+    return {p: value_of(conf, p) for p in searchable(task) if p not in searched}
+
+
+def within_budget(seconds: float | None, budget: float | None) -> bool:
+    """THE feasibility rule: the budget statistic (median estimator seconds per pair) <= B. A task that times
+    no estimator (statistic None) or no budget is always within."""
+    return seconds is None or budget is None or float(seconds) <= float(budget)
+
+
+def trial_within_budget(trial) -> bool:
+    """:func:`within_budget` as a study records it: every Optuna constraint <= 0 (``budget`` = statistic - B)
+    and the user attribute ``feasible`` not False (set while the trial runs, before Optuna stores constraints)."""
+    return all(v <= 0 for v in (trial.constraints or {}).values()) and trial.user_attrs.get("feasible") is not False
+
+
+def best_feasible(study):
+    """The COMPLETE trial with the highest value among those within budget (None if none)."""
+    from optuna.trial import TrialState
+    best = None
+    for t in study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
+        if t.value is None or not trial_within_budget(t):
+            continue
+        key = (t.value, -float(t.user_attrs.get("ransac_seconds_median", 0.0)), -t.number)
+        if best is None or key > best[0]:
+            best = (key, t)
+    return best[1] if best else None

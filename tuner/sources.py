@@ -1,0 +1,61 @@
+"""Configurations named on the command line: a study (its frozen settings), a frozen.yaml, a configuration
+file or an IMC benchmark method JSON (``pipeline.config_files``) — what `tune compare`, `tune viz --compare` and
+`tune evaluate --config` take.
+
+    from tuner.sources import resolve_source
+    src = resolve_source("sift-8000-degensac-stereo", studies_dir)   # Source(conf, label, study, frozen, path)
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from pipeline.config import PipelineConfig
+from pipeline.errors import ImtuneError
+
+
+@dataclass
+class Source:
+    """A configuration to evaluate or draw: the config, its label, and the study it comes from (if any)."""
+    conf: PipelineConfig
+    label: str
+    study: str | None = None
+    frozen: dict | None = None
+    path: Path | None = None
+
+
+def studies_dir(value: str | None = None) -> Path:
+    from tuner.storage import default_studies_dir
+    return Path(value).expanduser().resolve() if value else default_studies_dir()
+
+
+def load_config_source(path: str | Path, base: PipelineConfig | None = None) -> Source:
+    """A configuration file (``pipeline.config_files.load_config_file``) as a Source."""
+    from pipeline.config_files import load_config_file
+    cf = load_config_file(path, base)
+    return Source(cf.conf, cf.label, frozen=cf.frozen, path=cf.path)
+
+
+def load_study_source(name: str, sdir: Path) -> Source:
+    """The frozen settings of a study (``<sdir>/<study>/frozen.yaml``); one-line ImtuneError without them."""
+    from pipeline.config_files import config_label, pipeline_from_dict
+    from tuner.freeze import load_frozen
+    frozen = load_frozen(sdir, name)
+    conf = pipeline_from_dict(frozen["config"], where=f"study {name} frozen.yaml")
+    trial = frozen.get("trial")
+    return Source(conf, f"{name}" + (f" (trial #{trial})" if trial is not None else "") + f": {config_label(conf)}",
+                  study=name, frozen=frozen)
+
+
+def resolve_source(spec: str, sdir: Path) -> Source:
+    """A config file path, else a study name (with frozen settings in ``sdir``)."""
+    p = Path(spec).expanduser()
+    if p.is_file():
+        return load_config_source(p)
+    if p.suffix.lower() in (".yaml", ".yml", ".json") or "/" in spec:
+        raise ImtuneError(f"config file {p} does not exist")
+    from tuner.freeze import study_dir
+    if not (study_dir(sdir, spec) / "frozen.yaml").is_file():
+        raise ImtuneError(f"{spec!r} is neither a config file nor a study with frozen settings "
+                          f"({study_dir(sdir, spec) / 'frozen.yaml'} does not exist)")
+    return load_study_source(spec, sdir)
