@@ -28,7 +28,7 @@ from typing import NamedTuple
 
 import yaml
 
-from pipeline.data.download import ENV_DATA_HOME, download_home
+from pipeline.data.download import ENV_DATA_HOME, download_home  # noqa: F401 (ENV_DATA_HOME: re-exported)
 from pipeline.errors import ImtuneError
 
 ENV_DATA = "IMTUNE_DATA"
