@@ -30,10 +30,7 @@ METRIC_NAME = "mAA(10°)"
 MARK = "**imtune**"
 
 
-def is_feasible(trial) -> bool:
-    """The one feasibility rule (as :func:`tuner.study.best_feasible`): every constraint <= 0 (the budget
-    constraint is median estimator seconds per pair - B) and the user attribute ``feasible`` not False."""
-    return all(v <= 0 for v in trial.constraints.values()) and trial.user_attrs.get("feasible") is not False
+from tuner.protocol import trial_within_budget as is_feasible  # noqa: E402  (the one feasibility rule)
 
 
 def median_seconds(trial, budget: float | None) -> float | None:
@@ -114,7 +111,8 @@ def annotate_study(study, frozen: dict | int | None = None) -> dict:
         if list(study.metric_names or []) != [METRIC_NAME]:
             study.set_metric_names([METRIC_NAME])
     budget = (attrs.get("budget") or {}).get("seconds_per_pair")
-    multiview = attrs.get("task") == "multiview"
+    from pipeline.tasks import TASKS
+    untimed = attrs.get("task", "stereo") in TASKS and not TASKS.get(attrs.get("task", "stereo")).timed
     trials = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
     over = [t for t in trials if not is_feasible(t)]
     feasible = [t for t in trials if is_feasible(t) and t.value is not None]
@@ -142,7 +140,7 @@ def annotate_study(study, frozen: dict | int | None = None) -> dict:
     if pick is not None and pick in by_no:
         t = by_no[pick]
         med = median_seconds(t, budget)
-        cost = "" if multiview or budget is None else (
+        cost = "" if untimed or budget is None else (
             f"; median estimator time {_s(med)} s <= {_s(budget)} s per pair")
         if frozen_no is not None and not is_feasible(t):  # a frozen file of an older rule: say both
             blocks[t.number] += "; yet frozen (frozen.yaml of this study): refreeze with `tune test --study NAME`"
@@ -161,7 +159,7 @@ def annotate_study(study, frozen: dict | int | None = None) -> dict:
 
     lines = [f"{MARK} · metric: {METRIC_NAME} on the validation scenes "
              f"({', '.join((attrs.get('data') or {}).get('val_scenes') or []) or '?'}), maximised"]
-    if not multiview and budget is not None:
+    if not untimed and budget is not None:
         gmax = (attrs.get("budget") or {}).get("gamma_max")
         lines.append(f"budget B = {_s(budget)} s median estimator time per pair"
                      + (f" (Gamma_max = {gmax} iterations)" if gmax else "")

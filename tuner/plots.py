@@ -344,9 +344,11 @@ def report_sections(storage, study_name: str, studies_dir: Path | str | None = N
         add(f"{METRIC} over eta and r", lambda: fig_contour(study))
     else:
         sections.append(Section(f"{METRIC} over eta and r", None, "eta and r are not both searched in this study"))
-    if task == "multiview":
+    from pipeline.tasks import TASKS
+    if not TASKS.get(task).timed:  # a task that times no estimator of ours
         sections.append(Section(f"{METRIC} vs estimator time per pair", None,
-                                "multiview study: COLMAP runs its own RANSAC, no estimator budget"))
+                                f"{task} study: no estimator of imtune's is timed (COLMAP runs its own RANSAC), "
+                                "no estimator budget"))
     else:
         add(f"{METRIC} vs estimator time per pair", lambda: fig_cost(study))
         add(f"{METRIC} vs iteration cap Gamma", lambda: fig_gamma(study),
@@ -358,7 +360,7 @@ def report_sections(storage, study_name: str, studies_dir: Path | str | None = N
     add("Accuracy vs angular threshold, by scene", lambda: fig_accuracy_threshold(sources, task),
         f"no per-scene accuracy stored for the frozen trial (trials of older imtune versions): run "
         f"`tune test --study {study_name}`")
-    if task == "stereo":
+    if "covisibility" in (best.user_attrs if best is not None else {}):  # the task records a breakdown
         add(f"{METRIC} by co-visibility, by scene", lambda: fig_covisibility(sources),
             _covisibility_hint(study, sources))
     return sections

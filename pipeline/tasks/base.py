@@ -18,7 +18,9 @@ What a task declares (class attributes, read by the tuner, which has no task-spe
 - ``objective``: the figure a study maximises (mAA(10 deg));
 - ``space_file``: the search-space file used by default (None: the estimator family's file);
 - ``records_key``: the JSON key under which ``TaskResult.to_dict(with_records=True)`` lists the records;
-- ``note``: one line printed above its tables (units, what the figures mean).
+- ``note``: one line printed above its tables (units, what the figures mean);
+- ``timed``: whether it times an estimator of ours per pair, so that a time budget applies
+  (:meth:`Task.budget_seconds`).
 
 How the pieces are measured (the paper's protocol) lives in the concrete tasks beside this module
 (``stereo``, ``multiview``); how repeated runs aggregate is :meth:`Task.aggregate`. ``on_step`` is how a
@@ -85,6 +87,7 @@ class Task(abc.ABC):
     space_file: ClassVar[str | None] = None
     records_key: ClassVar[str] = "records"
     note: ClassVar[str] = ""  # one line printed above the task's tables (units, what the figures mean)
+    timed: ClassVar[bool] = False  # True: it times an estimator of ours per pair (a time budget applies)
 
     @abc.abstractmethod
     def evaluate(self, scenes: list, conf: PipelineConfig, cache=None, on_step: OnStep | None = None) -> TaskResult:

@@ -228,6 +228,7 @@ class StereoTask(Task):
     std_keys = ("mAA5", "mAA10", "NI")
     columns = ("pairs", "NF", "NM", "NI", "mAA5", "mAA10", "failed", "match_seconds", "ransac_seconds")
     records_key = "pair_records"
+    timed = True
     note = "pose from F; mAA over 1..5 / 1..10 deg; seconds per pair"
 
     def __init__(self, min_covisibility: float | None = 0.1, max_pairs: int | None = None,

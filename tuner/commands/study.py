@@ -377,11 +377,18 @@ def run_table(args) -> int:
     args.task = None
     studies = _collect(args)
     args.task = task
-    stereo = [s for s in studies if s.task == "stereo"] if task != "multiview" else []
-    mv = [s for s in studies if s.task == "multiview"]
-    if not stereo and not mv:
+    from pipeline.tasks import TASKS
+    if task not in (None, "both", "all"):
+        TASKS.get(task)  # unknown -> one line listing the tasks
+        studies = [s for s in studies if s.task == task]
+    # the estimator settings (eta, Gamma, B) come from the studies whose task tunes them; the others (COLMAP's
+    # multiview task) contribute their own ratio-test column
+    known = [s for s in studies if s.task in TASKS]
+    geo = [s for s in known if "threshold" in TASKS.get(s.task).uses]
+    other = [s for s in known if s not in geo]
+    if not geo and not other:
         raise ImtuneError(f"no imtune {task} studies in the storage")
-    rows, cols = settings_rows(stereo, args.format, multiview=mv)
+    rows, cols = settings_rows(geo, args.format, multiview=other)
     print(render_table(rows, cols, args.format))
     return 0
 
