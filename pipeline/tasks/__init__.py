@@ -11,6 +11,9 @@ from __future__ import annotations
 
 from pipeline.tasks.base import TASKS, Task, TaskResult
 from pipeline.tasks import stereo, multiview  # noqa: F401,E402  (importing registers the tasks; order = listing order)
+from pipeline.features import load_plugins  # noqa: E402  (after the tasks: a plug-in may register one)
+
+load_plugins()  # $IMTUNE_PLUGINS modules may register tasks too (idempotent)
 
 __all__ = ["TASKS", "Task", "TaskResult", "get_task", "make_task", "task_list", "task_names"]
 

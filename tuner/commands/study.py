@@ -142,7 +142,8 @@ def register(sub) -> None:
         p = sub.add_parser(name, help=helptext)
         _storage_opts(p)
         p.add_argument("--format", default="markdown", help="markdown | csv | latex | json")
-        p.add_argument("--task", default="stereo")
+        p.add_argument("--task", default="all" if name == "table" else "stereo",
+                       help="a task (see `tune list`), or all" if name == "table" else "a task (see `tune list`)")
         p.set_defaults(func=fn)
 
     pl = sub.add_parser("plot", help="one HTML report of a study (plotly)")
