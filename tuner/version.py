@@ -13,7 +13,15 @@ def code_version() -> str:
         v = "0+unknown"
     root = Path(__file__).resolve().parents[1] / ".git"
     try:
+        if root.is_file():  # a worktree or submodule: ".git" names the real git folder
+            line = root.read_text().strip()
+            if line.startswith("gitdir:"):
+                root = (root.parent / line.split(":", 1)[1].strip()).resolve()
         head = (root / "HEAD").read_text().strip()
+        common = root  # a worktree keeps its HEAD here and the refs in the main git folder ("commondir")
+        if (root / "commondir").is_file():
+            common = (root / (root / "commondir").read_text().strip()).resolve()
+        root = common
         if head.startswith("ref:"):
             ref = head.split(None, 1)[1]
             p = root / ref
