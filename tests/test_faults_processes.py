@@ -228,15 +228,17 @@ def test_same_seed_in_two_workers_does_not_repeat_parameters(tmp_path, data3, ca
     args = quick(data3, tmp_path / "studies", storage, "seeded")  # --seed 1, TPE
     r = tune(*args, "--n-trials", 1, cache=cache)
     assert r.returncode == 0, r.stderr[-2000:]
-    workers = [_start([*args, "--n-trials", 9], cache) for _ in range(2)]
+    workers = [_start([*args, "--n-trials", 12], cache) for _ in range(2)]
     for w in workers:
         assert w.wait(timeout=300) == 0, w.stderr.read()[-2000:]
         w.communicate()
     ps = _params(storage, "seeded")
-    assert len(ps) >= 9 and _repeats(ps) == [], _repeats(ps)
+    # (before the fix every later worker replayed the first worker's trial 0, and each other's trials)
+    assert len(ps) >= 12 and _repeats(ps) == [], _repeats(ps)
     assert all(s is not None for _, _, s in ps)
-    assert len({s for _, _, s in ps}) == 3  # the first worker and the two concurrent ones
-    print(f"FAULT same --seed in two workers: {len(ps)} trials, 3 sampler seeds, repeated parameters 0")
+    seeds = {s for _, _, s in ps}
+    assert len(seeds) >= 2  # the first worker and the concurrent ones that got a trial
+    print(f"FAULT same --seed in two workers: {len(ps)} trials, {len(seeds)} sampler seeds, repeated parameters 0")
 
 
 def test_same_seed_resume_does_not_repeat_but_a_fresh_study_reproduces(tmp_path, data3, cache):
