@@ -92,10 +92,10 @@ def test_storage_errors_are_masked():
             open_storage(url, heartbeat=None)
         assert SECRET not in str(e.value) and "\n" not in str(e.value)
     # a storage fault mid-run names the storage masked
-    try:
-        raise RuntimeError(f"server closed the connection unexpectedly (postgresql://u:{SECRET}@h/db)")
-    except RuntimeError as err:
-        msg = storage_fault(err, f"postgresql://u@h/db?password={SECRET}")
+    import sqlalchemy.exc
+    err = sqlalchemy.exc.OperationalError("SELECT 1", {}, Exception(
+        f"server closed the connection unexpectedly (postgresql://u:{SECRET}@h/db)"))
+    msg = storage_fault(err, f"postgresql://u@h/db?password={SECRET}")
     assert msg and SECRET not in msg and "lost the connection" in msg
 
 

@@ -201,6 +201,7 @@ def test_storage_fault_mapping_walks_optunas_wrappers():
     msg = storage_fault(UnboundLocalError("'updated_state'"), "postgresql://u:pw@h/db")
     assert msg.startswith("lost the connection")
     assert storage_fault(ValueError("a bug"), "postgresql://u:pw@h/db") is None
+    assert storage_fault(ConnectionRefusedError("connection refused"), "postgresql://u:pw@h/db") is None
     assert storage_fault(UnboundLocalError("'updated_state'"), "sqlite:////tmp/x.db").startswith("the storage")
 
 

@@ -18,7 +18,10 @@ trial that the next worker marks FAIL after the grace period and re-enqueues onc
 are evaluated again), so no trial is silently lost.
 
 Passwords never leave this module unmasked: :func:`mask_url` is what logs, reports and study
-attributes see.
+attributes see (every credential form: userinfo password, an unencoded ``@`` in it, secret query
+parameters), :func:`scrub` cleans any exception text before it is printed. Commands that only read
+open the storage with ``must_exist=True`` (never create one); :func:`storage_fault` turns a storage
+that fails mid-run (full disk, server gone) into a one-line message.
 """
 from __future__ import annotations
 
@@ -493,12 +496,14 @@ def storage_fault(exc: BaseException, url: str | None = None, studies_dir: Path 
         kind = "unknown"
     chain = _chain(exc)
     keep = "completed trials are kept; rerun the same command to resume"
-    texts = [" ".join(str(e).split()).lower() for e in chain]
-    for e, t in zip(chain, texts):
+    for e in chain:
         if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG) and not _is_db(e):
             where = f" writing {e.filename}" if getattr(e, "filename", None) else ""
             return f"out of disk space{where} ({e.strerror}); free space and {keep}"
-    full = next((m.group(0) for e in chain for m in [_FULL_RE.search(str(e))] if m), None)
+    # only the database's own errors are read: "connection refused" from elsewhere is no storage fault
+    db = [e for e in chain if _is_db(e)]
+    texts = [" ".join(str(e).split()).lower() for e in db]
+    full = next((m.group(0) for e in db for m in [_FULL_RE.search(str(e))] if m), None)
     if full:
         return (f"the storage {label} cannot be written ({full}: the disk is full or a file-size limit is "
                 f"reached); free space (or give --storage a disk with room), then rerun the same command: "
@@ -514,7 +519,7 @@ def storage_fault(exc: BaseException, url: str | None = None, studies_dir: Path 
     updated_state = any(isinstance(e, UnboundLocalError) and "updated_state" in str(e) for e in chain)
     if updated_state and kind == "rdb":
         return f"lost the connection to the storage {label}; {keep}"
-    if optuna_storage or updated_state or any(_is_db(e) for e in chain):
+    if optuna_storage or updated_state or db:
         return f"the storage {label} failed ({scrub(_root_text(exc), url)}); {keep}"
     return None
 
