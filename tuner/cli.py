@@ -16,7 +16,7 @@ from pipeline.errors import ImtuneError
 
 # Subcommand modules: each has ``register(subparsers)`` that adds its parser with ``func=run``.
 SUBCOMMAND_MODULES = ["tuner.commands.evaluate", "tuner.commands.listing", "tuner.commands.data",
-                      "tuner.commands.viz", "tuner.commands.compare"]
+                      "tuner.commands.viz", "tuner.commands.compare", "tuner.commands.findings"]
 OPTIONAL_MODULES = ["tuner.commands.study"]  # the Optuna commands (run, calibrate, test, table, ...)
 DEFAULT_SUBCOMMAND = "run"
 

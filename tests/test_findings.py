@@ -1,0 +1,255 @@
+"""`tune findings`: the verdict rules on synthetic inputs with known truth, the findings table, and findings 1 and 4
+end to end on a 4-image Strecha subset (real features, estimators, SQLite storage), tiny trial counts:
+findings.json's schema, every number traced back to a study in the storage, a rerun reusing the studies, and
+findings that cannot run listed with their reason."""
+from __future__ import annotations
+
+import json
+import math
+import shutil
+
+import numpy as np
+import pytest
+
+from tests.conftest import DATA
+from tuner.findings import analysis as A
+from tuner.findings.definitions import BY_ID, FINDINGS, StudySpec
+from tuner.findings.runner import FindingsSettings, StudyOutcome, study_name
+
+KEYS = {"id", "claim", "paper", "measured", "difference", "ci", "p_value", "verdict", "studies"}
+
+
+# ------------------------------------------------------------------------------------------ rules
+
+def test_directional_rule():
+    assert A.directional([-0.01, 0.02]) == "inconclusive"  # the CI of the difference contains 0
+    assert A.directional([0.0, 0.1]) == "inconclusive"
+    assert A.directional([0.001, 0.1]) == "holds"
+    assert A.directional([-0.2, -0.001]) == "does not hold"
+
+
+def test_small_gain_rule():
+    m = A.SMALL_GAIN
+    assert A.small_gain([-0.05, m]) == "holds"
+    assert A.small_gain([-0.01, m + 0.01]) == "inconclusive"  # contains 0, reaches past the margin
+    assert A.small_gain([m + 0.001, 0.2]) == "does not hold"
+
+
+def test_combine():
+    assert A.combine(["holds", "holds"]) == "holds"
+    assert A.combine(["holds", "inconclusive"]) == "inconclusive"
+    assert A.combine(["holds", "does not hold"]) == "does not hold"
+    assert A.combine(["inconclusive", "holds"], "any") == "holds"
+    assert A.combine(["does not hold", "holds"], "any") == "inconclusive"
+    assert A.combine([]) == "inconclusive"
+
+
+def test_regions_rule():
+    a = {"optimum": 0.8, "region": [0.75, 0.85]}
+    assert A.compare_regions(a, {"optimum": 0.95, "region": [0.9, 0.99]}) == "differs"
+    assert A.compare_regions(a, {"optimum": 0.82, "region": [0.7, 0.9]}) == "same"
+    assert A.compare_regions(a, {"optimum": 0.88, "region": [0.84, 0.9]}) == "unclear"
+    trials = [({"ratio": 0.7}, 0.5), ({"ratio": 0.8}, 0.61), ({"ratio": 0.9}, 0.58), ({"ratio": 0.95}, 0.3)]
+    assert A.flat_region(trials, ({"ratio": 0.8}, 0.61), 0.55, "ratio") == [0.8, 0.9]
+    assert A.flat_region(trials, ({"ratio": 0.8}, 0.61), 0.55, "threshold") is None
+
+
+def _outcome(name, errs_by_run, ok=True):
+    """A StudyOutcome carrying synthetic test records: errs_by_run[k] = {(scene, i): err deg}."""
+    spec = StudySpec(owner=99, variant=name)
+    runs = [[{"scene": sc, "pair": f"{i}-x", "err": e} for (sc, i), e in run.items()] for run in errs_by_run]
+    maa = float(np.mean([np.mean([np.mean([e <= t for t in range(1, 11)]) for (s, _), e in run.items() if s == sc])
+                         for run in errs_by_run for sc in {s for s, _ in run}]))
+    return StudyOutcome(spec=spec, name=f"synthetic-{name}", ok=ok, frozen={"params": {}, "value": maa},
+                        test={"mean": {"mAA10": maa}, "data": {"pairs": len(runs[0])}, "budget": {}},
+                        test_runs=runs, attrs={"budget": {"gamma_max": 1000}})
+
+
+def test_analysis_on_synthetic_records():
+    """Finding 1's analysis on records with a known answer: B better on every pair -> holds; the same errors ->
+    difference exactly 0, CI [0, 0], inconclusive; B worse on every pair -> does not hold."""
+    rng = np.random.default_rng(0)
+    pairs = [("s1", i) for i in range(30)] + [("s2", i) for i in range(30)]
+    good = {p: float(rng.uniform(0.1, 2.0)) for p in pairs}
+    bad = {p: e + 6.0 for p, e in good.items()}
+    f = BY_ID[1]
+    r = A.analyse(f, {"defaults": _outcome("d", [bad]), "tuned": _outcome("t", [good])}, n_resamples=500)
+    assert r["verdict"] == "holds" and r["ci"][0] > 0 and r["difference"] > 0
+    assert r["p_value"] < 0.01
+    r = A.analyse(f, {"defaults": _outcome("d", [good]), "tuned": _outcome("t", [good])}, n_resamples=500)
+    assert r["difference"] == 0.0 and r["ci"] == [0.0, 0.0] and r["verdict"] == "inconclusive"
+    r = A.analyse(f, {"defaults": _outcome("d", [good]), "tuned": _outcome("t", [bad])}, n_resamples=500)
+    assert r["verdict"] == "does not hold"
+    # the same errors assigned to other pairs of the same scene: per-pair differences, mean exactly 0 -> CI has 0
+    mixed = dict(good)
+    for sc in ("s1", "s2"):
+        for i in range(0, 30, 2):
+            mixed[(sc, i)], mixed[(sc, i + 1)] = good[(sc, i + 1)], good[(sc, i)]
+    r = A.analyse(f, {"defaults": _outcome("d", [good]), "tuned": _outcome("t", [mixed])}, n_resamples=500)
+    assert r["ci"][0] <= 0 <= r["ci"][1] and r["verdict"] == "inconclusive"
+
+
+def test_missing_study_is_listed_with_reason():
+    f = BY_ID[12]
+    outs = {"rootsift": _outcome("r", [{("s", 0): 1.0, ("s", 1): 2.0}])}
+    for role in ("dog-tfeat", "dog-mkd", "aliked"):
+        outs[role] = StudyOutcome(spec=f.studies[role], name=role, reason=f"{role}: weights not found")
+    r = A.analyse(f, outs)
+    assert r["verdict"] == "not run"
+    assert "weights not found" in r["measured"]["reason"]
+    assert set(r["measured"]["missing"]) == {"dog-tfeat", "dog-mkd", "aliked"}
+
+
+def test_unavailable_feature_gives_reason():
+    """A feature whose weights are not here (HardNet: not in ../shared/weights) -> the study is not run and says why."""
+    from pipeline.features import resolve_feature
+    from pipeline.errors import UnavailableError
+    try:
+        resolve_feature("dog-hardnet").check_available()
+        pytest.skip("HardNet weights are available here")
+    except UnavailableError:
+        pass
+    from tuner.findings.runner import run_study
+    fs = FindingsSettings(data_root=DATA / "strecha", quick=True, progress=False)
+    o = run_study(StudySpec(owner=12, variant="tuned", feature="dog-hardnet"), fs, cache=None)
+    assert not o.ok and "weights" in o.reason
+
+
+# ------------------------------------------------------------------------------------------ the table
+
+def test_table_names_are_consistent():
+    """One study name = one configuration: specs shared between findings have identical settings, and every id
+    1-12 is defined once."""
+    assert [f.id for f in FINDINGS] == list(range(1, 13))
+    for quick in (True, False):
+        fs = FindingsSettings(data_root=DATA, quick=quick)
+        seen = {}
+        for f in FINDINGS:
+            for spec in f.studies.values():
+                n = study_name(spec, fs)
+                key = {k: v for k, v in spec.__dict__.items() if k != "label"}
+                key["num_features"] = spec.n_features(fs.mode()["num_features"])
+                assert seen.setdefault(n, key) == key, n
+
+
+# ------------------------------------------------------------------------------------------ end to end
+
+@pytest.fixture(scope="module")
+def subset(tmp_path_factory):
+    """fountain-P11 (validation) and entry-P10 (test), 4 images each, and an isolated cache."""
+    if not (DATA / "strecha").exists():
+        pytest.skip(f"real data not found at {DATA / 'strecha'} (expected ../shared beside the project)")
+    root = tmp_path_factory.mktemp("data")
+    for scene, names in (("fountain-P11", ("0003", "0004", "0005", "0006")),
+                         ("entry-P10", ("0002", "0003", "0004", "0005"))):
+        (root / scene / "images").mkdir(parents=True)
+        (root / scene / "gt_dense_cameras").mkdir()
+        for n in names:
+            src = DATA / "strecha" / scene
+            shutil.copy(src / "images" / f"{n}.jpg", root / scene / "images")
+            shutil.copy(src / "gt_dense_cameras" / f"{n}.jpg.camera", root / scene / "gt_dense_cameras")
+    return root
+
+
+def _cli(args, capsys):
+    from tuner.cli import main
+    capsys.readouterr()
+    rc = main(args)
+    out = capsys.readouterr()
+    return rc, out.out, out.err
+
+
+def _trial_count(storage):
+    import optuna
+    return {s.study_name: s.n_trials for s in optuna.get_all_study_summaries(storage, include_best_trial=False)}
+
+
+def test_findings_1_and_4_end_to_end(subset, tmp_path, monkeypatch, capsys):
+    import optuna
+
+    from tuner.findings.runner import records_from_test
+    from pipeline.metrics.uncertainty import paired_bootstrap
+    monkeypatch.setenv("IMTUNE_CACHE", str(tmp_path / "cache"))
+    sdir = tmp_path / "studies"
+    args = ["findings", "--data", str(subset), "--studies-dir", str(sdir), "--quick", "--only", "1,4",
+            "--trials", "2", "--max-pairs", "3", "--ci-resamples", "300", "--jobs", "1", "--json"]
+    rc, out, err = _cli(args, capsys)
+    assert rc == 0, err
+    res = json.loads(out)
+    assert set(res) == {"findings", "report"}
+    assert [f["id"] for f in res["findings"]] == [1, 4]
+    on_disk = json.loads((sdir / "findings" / "findings.json").read_text())
+    assert on_disk["findings"] == res["findings"]
+    assert res["report"] == str(sdir / "findings" / "report.html")
+    html = (sdir / "findings" / "report.html").read_text()
+    md = (sdir / "findings" / "report.md").read_text()
+    assert "--quick" in html and "trials per study: 2" in md and "pairs per scene: 3" in md
+    storage = f"sqlite:///{sdir / 'optuna.db'}"
+    names = set(optuna.get_all_study_names(storage))
+    for f in res["findings"]:
+        assert set(f) == KEYS
+        assert f["verdict"] in ("holds", "does not hold", "inconclusive")
+        assert f["claim"] == BY_ID[f["id"]].claim and f["paper"]
+        assert f["ci"][0] <= f["difference"] <= f["ci"][1]
+        assert 0 < f["p_value"] <= 1
+        assert f"<section id='finding-{f['id']}'>" in html
+        # every study named exists in the storage, and the numbers are its test results
+        assert f["studies"] and set(f["studies"]) <= names
+        studies = f["measured"]["studies"]
+        for role, s in studies.items():
+            if not s["ok"]:  # e.g. no feasible trial among 2 on a busy machine: listed with the reason, not dropped
+                assert s["reason"] and s["study"] not in f["studies"] and f["measured"]["missing"][role]
+                continue
+            assert s["study"] in f["studies"]
+            test = json.loads((sdir / s["study"] / "test.json").read_text())
+            assert s["mAA10"] == pytest.approx(test["mean"]["mAA10"], abs=1e-12)
+            st = optuna.load_study(study_name=s["study"], storage=storage)
+            assert st.user_attrs["test"]["mAA10"] == pytest.approx(s["mAA10"], abs=1e-12)
+            assert s["mAA10_ci"][0] <= s["mAA10_records"] <= s["mAA10_ci"][1]
+            assert s["study"].startswith(f"findings-") and s["study"].endswith("-p3")
+        # the key difference is the paired bootstrap of the two studies' test pair errors
+        a, b = BY_ID[f["id"]].key or BY_ID[f["id"]].relations[0]
+
+        def recs(study):
+            test = json.loads((sdir / study / "test.json").read_text())
+            runs = records_from_test(test)
+            if runs is None:
+                runs = json.loads((sdir / "findings" / "records" / f"{study}-test.json").read_text())["runs"]
+            return [{**r, "err": math.inf if r["err"] in (None, "inf") else float(r["err"])} for run in runs for r in run]
+        pb = paired_bootstrap(recs(studies[a]["study"]), recs(studies[b]["study"]), n_resamples=300)
+        assert pb["difference"] == pytest.approx(f["difference"], abs=1e-12)
+        assert pb["ci"] == pytest.approx(f["ci"], abs=1e-12)
+    f1, f4 = res["findings"]
+    assert any("defaults" in n for n in f1["studies"]) and any("tuned" in n for n in f1["studies"])
+    assert len(set(f4["measured"]["studies"][r]["study"] for r in ("both", "uni", "either"))) == 3
+    assert set(f4["measured"]["optimal_ratio"]) == {r for r in ("both", "uni", "either")
+                                                     if f4["measured"]["studies"][r]["ok"]}
+
+    # rerun: the same studies, no new trial, the same figures
+    before = _trial_count(storage)
+    rc, out2, err = _cli(args, capsys)
+    assert rc == 0, err
+    assert _trial_count(storage) == before
+    res2 = json.loads(out2)
+    for x, y in zip(res["findings"], res2["findings"]):
+        assert (x["verdict"], x["difference"], x["ci"], x["studies"]) == (y["verdict"], y["difference"], y["ci"],
+                                                                         y["studies"])
+
+
+def test_too_few_scenes_lists_every_finding_with_reason(subset, tmp_path, monkeypatch, capsys):
+    """Validation data only (no test scene): each selected finding is listed, "not run", with the reason."""
+    root = tmp_path / "data"
+    shutil.copytree(subset / "fountain-P11", root / "fountain-P11")
+    rc, out, err = _cli(["findings", "--data", str(root), "--studies-dir", str(tmp_path / "s"), "--only", "1,12",
+                         "--json"], capsys)
+    assert rc == 0, err
+    res = json.loads(out)
+    assert [f["id"] for f in res["findings"]] == [1, 12]
+    for f in res["findings"]:
+        assert set(f) == KEYS and f["verdict"] == "not run" and f["studies"] == []
+        assert "too few scenes" in f["measured"]["reason"] and "test scene" in f["measured"]["reason"]
+
+
+def test_bad_only_is_one_line(capsys):
+    rc, out, err = _cli(["findings", "--only", "1,13"], capsys)
+    assert rc == 2 and err.count("\n") == 1 and "no finding 13" in err

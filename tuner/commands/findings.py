@@ -1,0 +1,74 @@
+"""`tune findings`: the paper's findings checked on your data, one command.
+
+    tune findings --quick                 # a reduced but real version (2k features, 10 trials, 12 pairs / scene)
+    tune findings --only 1,4 --json       # a subset; print findings.json
+    tune findings --storage postgresql://... # several workers share the studies
+
+Python: :func:`tuner.findings.run_findings`.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def register(sub) -> None:
+    from tuner.argtypes import positive_int
+    ap = sub.add_parser("findings", help="check the paper's findings on this data (studies + verdicts + report)",
+                        description="Run the comparisons behind the paper's findings as ordinary, resumable studies "
+                                    "(tuned on the validation scenes, measured on the test scenes) and write "
+                                    "<studies dir>/findings/report.html, report.md and findings.json: per finding "
+                                    "the paper's claim, the measured numbers with 95% intervals, the paired test "
+                                    "of the key difference and a verdict (holds / does not hold / inconclusive).")
+    ap.add_argument("--data", default=None, help="data folder (else $IMTUNE_DATA, imtune.yaml, ../shared/data/strecha)")
+    ap.add_argument("--quick", action="store_true",
+                    help="reduced but real: 2048 features, 10 trials per study, 12 pairs per scene, 1 test run")
+    ap.add_argument("--only", default=None, metavar="ID,...", help="only these findings (ids 1-12)")
+    ap.add_argument("--jobs", type=positive_int, default=None,
+                    help="pair processes per trial (where the tree has the pair pool; default: the study's)")
+    ap.add_argument("--val-scenes", default=None, help="comma-separated validation scenes (default: the data split)")
+    ap.add_argument("--test-scenes", default=None, help="comma-separated test scenes (default: the data split)")
+    ap.add_argument("--cache", default=None, help="cache folder (else $IMTUNE_CACHE or ~/.cache/imtune)")
+    ap.add_argument("--seed", type=int, default=0, help="study and resampling seed")
+    ap.add_argument("--storage", default=None,
+                    help="sqlite:///PATH, postgresql://..., journal:PATH (default sqlite:///<studies dir>/optuna.db)")
+    ap.add_argument("--studies-dir", default=None,
+                    help="studies, their reports and findings/ (default $IMTUNE_STUDIES, else studies/)")
+    ap.add_argument("--json", action="store_true", help="print the findings.json object")
+    ap.add_argument("--quiet", action="store_true", help="no progress output")
+    # hidden overrides for tests and first looks (the report header states the values used)
+    ap.add_argument("--trials", type=positive_int, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--max-pairs", type=positive_int, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--test-runs", type=positive_int, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--ci-resamples", type=positive_int, default=2000, help=argparse.SUPPRESS)
+    ap.set_defaults(func=run)
+
+
+def _scenes(v):
+    return [n.strip() for n in v.split(",") if n.strip()] if v else None
+
+
+def run(args) -> int:
+    from tuner.findings import FindingsSettings, parse_only, run_findings
+    from tuner.findings.report import _jsonable
+    from tuner.options import resolve_data
+    from tuner.storage import default_studies_dir
+    only = parse_only(args.only)
+    sdir = Path(args.studies_dir).expanduser().resolve() if args.studies_dir else default_studies_dir()
+    quiet = args.quiet or args.json
+    fs = FindingsSettings(data_root=resolve_data(args.data), storage=args.storage, studies_dir=sdir, quick=args.quick,
+                          only=only, jobs=args.jobs, trials=args.trials, max_pairs=args.max_pairs,
+                          test_runs=args.test_runs, cache_dir=args.cache, seed=args.seed,
+                          val_scenes=_scenes(args.val_scenes), test_scenes=_scenes(args.test_scenes),
+                          n_resamples=args.ci_resamples, progress=not quiet)
+    out = run_findings(fs)
+    if args.json:
+        print(json.dumps(_jsonable(out), indent=2))
+        return 0
+    for f in out["findings"]:
+        ci = f"[{f['ci'][0]:+.4f}, {f['ci'][1]:+.4f}]" if f.get("ci") else ""
+        d = f"{f['difference']:+.4f} {ci}" if isinstance(f.get("difference"), (int, float)) else ""
+        print(f"{f['id']:>2}  {f['verdict']:<14} {d}")
+    print(f"report: {out['report']}")
+    return 0

@@ -1,0 +1,107 @@
+"""The paper's findings, checked on your data: `tune findings`.
+
+    from tuner.findings import FindingsSettings, run_findings
+    out = run_findings(FindingsSettings(data_root=Path("data/strecha"), quick=True, only=[1, 4]))
+    out["findings"][0]["verdict"]      # "holds" | "does not hold" | "inconclusive" | "not run"
+    out["report"]                      # <studies dir>/findings/report.html (report.md, findings.json beside it)
+
+Each finding (:data:`tuner.findings.definitions.FINDINGS`) names its studies; each study is an ordinary imtune
+study in the storage, tuned on the validation scenes and tested on the test scenes (``tuner.study.tune``), with
+a deterministic name, so a rerun reuses finished studies and several workers on one storage share the work.
+The verdict rules are in :mod:`tuner.findings.analysis`; the report writer in :mod:`tuner.findings.report`.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from pipeline.errors import ImtuneError
+from tuner.findings.analysis import NOT_RUN, analyse
+from tuner.findings.definitions import BY_ID, FINDINGS, Finding, StudySpec  # noqa: F401
+from tuner.findings.runner import FindingsSettings, StudyOutcome, run_study, study_name  # noqa: F401
+
+__all__ = ["FindingsSettings", "run_findings", "FINDINGS", "BY_ID", "parse_only", "check_scenes"]
+
+
+def parse_only(text: str | None) -> list[int] | None:
+    """``--only 1,4`` -> [1, 4]; one-line ImtuneError naming a bad id."""
+    if not text:
+        return None
+    out = []
+    for part in str(text).split(","):
+        part = part.strip()
+        if not part:
+            continue
+        try:
+            i = int(part)
+        except ValueError:
+            raise ImtuneError(f"--only {text!r}: {part!r} is not a finding id (ids 1-{len(FINDINGS)})") from None
+        if i not in BY_ID:
+            raise ImtuneError(f"--only {text!r}: no finding {i} (ids 1-{len(FINDINGS)})")
+        if i not in out:
+            out.append(i)
+    if not out:
+        raise ImtuneError(f"--only {text!r}: no finding id given (ids 1-{len(FINDINGS)})")
+    return out
+
+
+def check_scenes(fs: FindingsSettings) -> str | None:
+    """Why no finding can run on this data (no validation or no test scene), else None."""
+    from pipeline.data import default_splits
+    try:
+        splits = default_splits(fs.data_root)
+    except ImtuneError as e:
+        return str(e)
+    val = list(fs.val_scenes or splits.get("val") or [])
+    test = list(fs.test_scenes or splits.get("test") or [])
+    if not val:
+        return f"too few scenes: {fs.data_root} has no validation scene to tune on"
+    if not test:
+        return (f"too few scenes: {fs.data_root} has no test scene to measure on (validation: {', '.join(val)}); "
+                "add a splits.yaml with 'test'")
+    return None
+
+
+def run_findings(fs: FindingsSettings, write: bool = True) -> dict:
+    """Run (or resume) the studies of the selected findings, analyse them and write the report. Returns
+    ``{"findings": [{"id", "claim", "paper", "measured", "difference", "ci", "p_value", "verdict",
+    "studies"}], "report": PATH}`` (the object findings.json holds)."""
+    from pipeline.cache import H5Cache
+    from tuner.storage import default_studies_dir
+    t0 = time.perf_counter()
+    fs.studies_dir = Path(fs.studies_dir) if fs.studies_dir else default_studies_dir()
+    selected = [BY_ID[i] for i in (fs.only or [f.id for f in FINDINGS])]
+    no_data = check_scenes(fs)
+    cache = H5Cache(fs.cache_dir)
+    done: dict[str, StudyOutcome] = {}  # study name -> outcome (studies shared between findings run once)
+    results = []
+    for f in selected:
+        fs.say(f"finding {f.id}: {f.title}")
+        outcomes = {}
+        if no_data is None:
+            needs_regions = f.rule == "regions"
+            for role, spec in f.studies.items():
+                name = study_name(spec, fs)
+                o = done.get(name)
+                if o is None or (needs_regions and o.ok and o.val_ci is None):
+                    o = run_study(spec, fs, cache, need_regions=needs_regions)
+                    done[name] = o
+                    if not o.ok:
+                        fs.say(f"  {name}: not run ({o.reason})")
+                outcomes[role] = o
+            a = analyse(f, outcomes, n_resamples=fs.n_resamples, seed=fs.seed)
+        else:
+            a = {"measured": {"reason": no_data}, "difference": None, "ci": None, "p_value": None, "verdict": NOT_RUN}
+        a["measured"]["rule"] = f.rule
+        if f.notes:
+            a["measured"]["notes"] = f.notes
+        results.append({"id": f.id, "claim": f.claim, "paper": f.paper, "measured": a["measured"],
+                        "difference": a["difference"], "ci": a["ci"], "p_value": a["p_value"],
+                        "verdict": a["verdict"],
+                        "studies": [o.name for o in outcomes.values() if o.ok] if outcomes else []})
+        fs.say(f"  -> {a['verdict']}")
+    out = {"findings": results, "report": None}
+    if write:
+        from tuner.findings.report import write_report
+        out["report"] = str(write_report(out, fs, seconds=time.perf_counter() - t0))
+    return out

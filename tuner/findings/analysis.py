@@ -1,0 +1,227 @@
+"""Verdicts: from the studies' test records (and, for the "optimal value differs" findings, their trials) to
+"holds", "does not hold" or "inconclusive".
+
+Rules (the report states the one each finding uses):
+
+- ``better`` — the claim "B beats A": the paired bootstrap of mAA(10)(B) - mAA(10)(A) on the same test pairs
+  (:func:`pipeline.metrics.uncertainty.paired_bootstrap`). 95% CI above 0: holds; below 0: does not hold;
+  containing 0: inconclusive. A finding with several such relations combines them ("all": holds when every
+  one holds, does not hold when any is reversed; "any": holds when one holds and none is reversed).
+- ``small_gain`` — the claim "B adds at most a little over A": holds when the upper end of the CI of B - A is
+  <= SMALL_GAIN (mAA(10) points / 100), does not hold when its lower end is above SMALL_GAIN, inconclusive
+  otherwise (a CI containing 0 but reaching past the margin says nothing either way).
+- ``regions`` — "the optimal value of a parameter differs": each study's *flat region* is the range of the
+  parameter over its feasible completed trials whose validation mAA(10) lies within the 95% interval of the
+  best trial (value >= the interval's lower end). Two studies *differ* when their flat regions do not overlap;
+  they are the *same* when each one's optimum lies inside the other's flat region (either value is optimal for
+  both within the uncertainty); otherwise the comparison is *unclear*. A group of several studies differs
+  when some pair differs and is the same when every pair is. The finding holds when every group differs,
+  does not hold when some group is the same, and is inconclusive otherwise (also when a study is missing).
+"""
+from __future__ import annotations
+
+from pipeline.metrics.uncertainty import DEFAULT_LEVEL, combine_runs_interval, paired_bootstrap
+from tuner.findings.definitions import SMALL_GAIN, Finding
+
+HOLDS, FAILS, UNSURE, NOT_RUN = "holds", "does not hold", "inconclusive", "not run"
+
+
+def directional(ci) -> str:
+    """The ``better`` rule on the CI of B - A."""
+    lo, hi = float(ci[0]), float(ci[1])
+    if lo <= 0.0 <= hi:
+        return UNSURE
+    return HOLDS if lo > 0 else FAILS
+
+
+def small_gain(ci, margin: float = SMALL_GAIN) -> str:
+    """The ``small_gain`` rule on the CI of B - A."""
+    lo, hi = float(ci[0]), float(ci[1])
+    if hi <= margin:
+        return HOLDS
+    if lo > margin:
+        return FAILS
+    return UNSURE
+
+
+def combine(statuses: list[str], how: str = "all") -> str:
+    if not statuses:
+        return UNSURE
+    if how == "any":
+        if FAILS not in statuses and HOLDS in statuses:
+            return HOLDS
+        return FAILS if all(s == FAILS for s in statuses) else UNSURE
+    if FAILS in statuses:
+        return FAILS
+    return HOLDS if all(s == HOLDS for s in statuses) else UNSURE
+
+
+# ------------------------------------------------------------------------------------------ regions
+
+def flat_region(trials: list, best: tuple, ci_low: float, param: str) -> list | None:
+    """[min, max] of ``param`` over the trials (params, value) with value >= ``ci_low``; None if the parameter
+    was not searched. Always contains the best trial's value."""
+    vals = [p[param] for p, v in trials if param in p and v >= ci_low]
+    if param in best[0]:
+        vals.append(best[0][param])
+    if not vals:
+        return None
+    return [float(min(vals)), float(max(vals))]
+
+
+def compare_regions(a: dict, b: dict) -> str:
+    """'differs' / 'same' / 'unclear' for two {"optimum", "region"} dicts (see the module docstring)."""
+    ra, rb = a["region"], b["region"]
+    if ra[1] < rb[0] or rb[1] < ra[0]:
+        return "differs"
+    if ra[0] <= b["optimum"] <= ra[1] and rb[0] <= a["optimum"] <= rb[1]:
+        return "same"
+    return "unclear"
+
+
+def group_status(regions: dict, roles) -> tuple[str, list]:
+    """(differs / same / unclear, pairwise [(role a, role b, status)]) of a group; a missing study: unclear."""
+    present = [r for r in roles if regions.get(r)]
+    pairs = [(a, b, compare_regions(regions[a], regions[b])) for i, a in enumerate(present) for b in present[i + 1:]]
+    if len(present) < len(roles) or not pairs:
+        st = "differs" if any(p[2] == "differs" for p in pairs) else "unclear"
+        return st, pairs
+    if any(p[2] == "differs" for p in pairs):
+        return "differs", pairs
+    if all(p[2] == "same" for p in pairs):
+        return "same", pairs
+    return "unclear", pairs
+
+
+# ------------------------------------------------------------------------------------------ per finding
+
+def _flat(runs) -> list:
+    return [r for run in runs for r in run]
+
+
+def study_figures(o, n_resamples: int) -> dict:
+    """What a finding reports of one study: test mAA(10) (test.json's mean over runs) with its 95% interval
+    (:func:`combine_runs_interval` of the runs' pair records), the frozen parameters, Gamma_max."""
+    d = {"study": o.name, "label": o.spec.text(), "ok": o.ok}
+    if not o.ok:
+        d["reason"] = o.reason
+        return d
+    budget = (o.attrs.get("budget") or {})
+    d.update(params=(o.frozen or {}).get("params"), fixed=(o.frozen or {}).get("fixed"),
+             gamma_max=budget.get("gamma_max"), validation_mAA10=(o.frozen or {}).get("value"),
+             trials=len(o.trials))
+    if o.test is not None and o.test_runs:
+        ci = combine_runs_interval(o.test_runs, taus=(5, 10), n_resamples=n_resamples)
+        mean = o.test.get("mean") or {}
+        d.update(mAA10=mean.get("mAA10"), mAA10_ci=ci["mAA10_ci"], mAA5=mean.get("mAA5"), mAA5_ci=ci["mAA5_ci"],
+                 mAA10_records=ci["mAA10"], test_runs=len(o.test_runs), pairs=(o.test.get("data") or {}).get("pairs"),
+                 within_budget=(o.test.get("budget") or {}).get("within_budget"), records=o.records_note,
+                 test_file=o.test_path)
+    return d
+
+
+def relation(outcomes: dict, a: str, b: str, n_resamples: int, seed: int = 0) -> dict | None:
+    oa, ob = outcomes.get(a), outcomes.get(b)
+    if not (oa and ob and oa.ok and ob.ok and oa.test_runs and ob.test_runs):
+        return None
+    pb = paired_bootstrap(_flat(oa.test_runs), _flat(ob.test_runs), tau=10, n_resamples=n_resamples, seed=seed)
+    ma = pb["mAA10_a"]
+    return {"a": a, "b": b, "mAA10_a": ma, "mAA10_b": pb["mAA10_b"], "difference": pb["difference"],
+            "relative": (pb["difference"] / ma) if ma else None, "ci": pb["ci"], "p_value": pb["p_value"],
+            "pairs": pb["pairs"], "dropped": [pb["dropped_a"], pb["dropped_b"]]}
+
+
+def analyse(f: Finding, outcomes: dict, n_resamples: int = 2000, seed: int = 0) -> dict:
+    """{"measured", "difference", "ci", "p_value", "verdict", "rule"} of finding ``f`` from its studies'
+    outcomes (role -> StudyOutcome)."""
+    measured = {"studies": {role: study_figures(o, n_resamples) for role, o in outcomes.items()}}
+    missing = {role: o.reason for role, o in outcomes.items() if not o.ok}
+    if missing:
+        measured["missing"] = missing
+    out = {"measured": measured, "difference": None, "ci": None, "p_value": None}
+    if f.rule in ("better", "small_gain"):
+        rels = f.relations
+        if f.pick_best_b:  # the best available B (highest test mAA(10)) against the common A
+            cands = [(r, b) for r in rels if (b := relation(outcomes, *r, n_resamples, seed)) is not None]
+            measured["relations"] = [c for _, c in cands]
+            if not cands:
+                return {**out, "verdict": NOT_RUN, "measured": {**measured, "reason": _reason(missing)}}
+            key = max(cands, key=lambda c: c[1]["mAA10_b"])[1]
+            measured["key"] = f"{key['b']} (the best of {', '.join(r[1] for r, _ in cands)}) vs {key['a']}"
+            st = small_gain(key["ci"])
+        else:
+            computed = [(r, relation(outcomes, *r, n_resamples, seed)) for r in rels]
+            measured["relations"] = [c for _, c in computed if c is not None]
+            key_roles = f.key or rels[0]
+            key = relation(outcomes, *key_roles, n_resamples, seed)
+            if key is None:
+                return {**out, "verdict": NOT_RUN, "measured": {**measured, "reason": _reason(missing)}}
+            measured["key"] = f"{key_roles[1]} vs {key_roles[0]}"
+            if f.rule == "small_gain":
+                st = small_gain(key["ci"])
+            else:
+                statuses = [directional(c["ci"]) if c is not None else UNSURE for _, c in computed]
+                for (_, c), s in zip(computed, statuses):
+                    if c is not None:
+                        c["status"] = s
+                st = combine(statuses, f.combine)
+        measured["relative_difference"] = key["relative"]
+        extra = _extras(f, outcomes)
+        if extra:
+            measured.update(extra)
+        return {**out, "measured": measured, "difference": key["difference"], "ci": key["ci"],
+                "p_value": key["p_value"], "verdict": st}
+    # regions
+    regions = {}
+    for role, o in outcomes.items():
+        if not (o.ok and o.best and o.val_ci):
+            continue
+        reg = flat_region(o.trials, o.best, o.val_ci[0], f.region_param)
+        if reg is not None:
+            regions[role] = {"optimum": float(o.best[0][f.region_param]), "region": reg,
+                             "validation_mAA10": o.best[1], "validation_ci": o.val_ci,
+                             "trials_within": sum(1 for p, v in o.trials if v >= o.val_ci[0]), "trials": len(o.trials)}
+    measured["regions"] = regions
+    measured["parameter"] = f.region_param
+    groups, statuses = [], []
+    for label, roles in f.groups:
+        st, pairs = group_status(regions, roles)
+        groups.append({"group": label, "roles": list(roles), "status": st,
+                       "pairs": [{"a": a, "b": b, "status": s} for a, b, s in pairs],
+                       "missing": [r for r in roles if r not in regions]})
+        statuses.append({"differs": HOLDS, "same": FAILS}.get(st, UNSURE))
+    measured["groups"] = groups
+    if not regions:
+        return {**out, "measured": {**measured, "reason": _reason(missing)}, "verdict": NOT_RUN}
+    first = [r for r in f.groups[0][1] if r in regions]
+    diff = regions[first[0]]["optimum"] - regions[first[1]]["optimum"] if len(first) >= 2 else None
+    measured["key"] = f"optimal {f.region_param}: {first[0]} - {first[1]}" if len(first) >= 2 else None
+    return {**out, "measured": measured, "difference": diff, "verdict": combine(statuses, "all")}
+
+
+def _reason(missing: dict) -> str:
+    return "; ".join(f"{k}: {v}" for k, v in missing.items()) or "no study produced test results"
+
+
+def _extras(f: Finding, outcomes: dict) -> dict:
+    """Finding-specific figures beside the verdict (they do not change it)."""
+    out = {}
+    if f.id == 2:
+        g = {r: (o.attrs.get("budget") or {}).get("gamma_max") for r, o in outcomes.items() if o.ok}
+        out["gamma_max"] = g
+        vals = [v for v in g.values() if v]
+        if vals:
+            out["gamma_max_spread"] = max(vals) / min(vals)
+        from pipeline.metrics.uncertainty import rank_with_ties
+        items = [(r, _flat(o.test_runs)) for r, o in outcomes.items() if o.ok and o.test_runs]
+        if items:
+            out["ranking"] = [{k: row[k] for k in ("name", "rank", "mAA10", "shared", "note")}
+                              for row in rank_with_ties(items)]
+    if f.id == 4:
+        out["optimal_ratio"] = {r: ((o.frozen or {}).get("params") or {}).get("ratio") for r, o in outcomes.items()
+                                if o.ok}
+    return out
+
+
+__all__ = ["analyse", "directional", "small_gain", "combine", "flat_region", "compare_regions", "group_status",
+           "HOLDS", "FAILS", "UNSURE", "NOT_RUN", "DEFAULT_LEVEL"]

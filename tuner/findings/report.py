@@ -1,0 +1,231 @@
+"""The findings report: ``<studies dir>/findings/report.html`` (one section per finding: claim, paper, the rule,
+the studies with links to their frozen settings and test results, the measured numbers with 95% intervals,
+the paired difference, the verdict, a plot), ``report.md`` (the same text) and ``findings.json``."""
+from __future__ import annotations
+
+import datetime as _dt
+import html
+import json
+import math
+from pathlib import Path
+
+from tuner.findings.analysis import __doc__ as RULES_DOC
+from tuner.findings.definitions import BY_ID, SMALL_GAIN
+
+RULE_TEXT = {
+    "better": "paired bootstrap of mAA(10)(B) - mAA(10)(A) on the same test pairs: the 95% CI above 0 -> holds, "
+              "below 0 -> does not hold, containing 0 -> inconclusive",
+    "small_gain": f"paired bootstrap of mAA(10)(B) - mAA(10)(A): CI upper end <= {SMALL_GAIN:g} -> holds (at most a "
+                  f"small gain), lower end > {SMALL_GAIN:g} -> does not hold, otherwise inconclusive",
+    "regions": "flat region of the optimum = range of the parameter over the feasible trials whose validation "
+               "mAA(10) lies within the best trial's 95% interval; regions that do not overlap -> the optimal "
+               "values differ; each optimum inside the other's region -> the same; otherwise unclear. Holds when "
+               "every group differs, does not hold when one is the same, else inconclusive",
+}
+
+
+def _num(v, d=4):
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        if not math.isfinite(v):
+            return str(v)
+        return f"{v:.{d}f}"
+    return str(v)
+
+
+def _ci(ci, d=4):
+    return "-" if not ci else f"[{_num(float(ci[0]), d)}, {_num(float(ci[1]), d)}]"
+
+
+def settings_lines(fs) -> list[str]:
+    m = fs.mode()
+    from tuner.storage import storage_label
+    mode = "--quick (a reduced but real version: not the protocol)" if fs.quick else "full protocol"
+    return [
+        f"mode: {mode}",
+        f"features per image: {m['num_features']} (finding 9 also runs 8000)",
+        f"trials per study: {m['trials_effective']}; pairs per scene: {m['max_pairs'] or 'all'}; "
+        f"test runs: {m['test_runs']}" + (f"; multiview bags: {m['multiview_bags']}" if m.get("multiview_bags") else ""),
+        f"budget: {fs.budget:g} s per pair on validation (median estimator time), {fs.test_budget:g} s on test",
+        f"data: {fs.data_root}; validation scenes: {', '.join(fs.val_scenes) if fs.val_scenes else 'the data set split'}"
+        f"; test scenes: {', '.join(fs.test_scenes) if fs.test_scenes else 'the data set split'}",
+        f"storage: {storage_label(fs.storage, fs.studies_dir)}; studies dir: {fs.studies_dir}",
+        f"intervals: 95%, stratified bootstrap over test pairs ({fs.n_resamples} resamples, seed {fs.seed}); "
+        "paired differences on the same pairs; p: two-sided paired sign-flip test",
+    ]
+
+
+def _study_rows(f: dict) -> list[list[str]]:
+    rows = []
+    for role, s in (f["measured"].get("studies") or {}).items():
+        if not s.get("ok"):
+            rows.append([role, s["study"], "not run", "-", "-", "-", s.get("reason", "")])
+            continue
+        p = s.get("params") or {}
+        ps = ", ".join(f"{k}={_num(v, 3) if isinstance(v, float) else v}" for k, v in p.items())
+        rows.append([role, s["study"], _num(s.get("mAA10")), _ci(s.get("mAA10_ci")), _num(s.get("mAA5")), ps,
+                     f"Gamma_max {s.get('gamma_max') or '-'}; {s.get('trials', 0)} feasible trials; "
+                     f"{s.get('pairs') or '-'} test pairs x {s.get('test_runs') or '-'} runs"])
+    return rows
+
+
+STUDY_COLS = ["role", "study", "test mAA(10)", "95% CI", "mAA(5)", "frozen parameters", "notes"]
+
+
+def _md_table(cols, rows) -> str:
+    out = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    out += ["| " + " | ".join(str(c).replace("|", "/") for c in r) + " |" for r in rows]
+    return "\n".join(out)
+
+
+def _difference_text(f: dict) -> str:
+    m = f["measured"]
+    if f["verdict"] == "not run":
+        return f"Not run here: {m.get('reason') or m.get('missing')}"
+    if m.get("rule") == "regions":
+        parts = []
+        for role, r in (m.get("regions") or {}).items():
+            parts.append(f"{role}: optimum {m['parameter']} = {_num(r['optimum'], 3)}, flat region "
+                         f"{_ci(r['region'], 3)} ({r['trials_within']} of {r['trials']} feasible trials within the "
+                         f"optimum's interval {_ci(r['validation_ci'], 3)})")
+        for g in m.get("groups") or []:
+            parts.append(f"{g['group']}: {g['status']}" + (f" (missing: {', '.join(g['missing'])})" if g["missing"] else ""))
+        return "; ".join(parts)
+    rel = m.get("relative_difference")
+    txt = (f"{m.get('key')}: difference {_num(f['difference'])} mAA(10), 95% CI {_ci(f['ci'])}, p = "
+           f"{_num(f['p_value'], 3)}" + (f" (relative {100 * rel:+.1f}%)" if rel is not None else ""))
+    rels = [r for r in m.get("relations") or [] if not m.get("key", "").startswith(f"{r['b']} vs {r['a']}")]
+    for r in rels:
+        txt += (f"; {r['b']} vs {r['a']}: {_num(r['difference'])} {_ci(r['ci'])}, p = {_num(r['p_value'], 3)}"
+                + (f" -> {r['status']}" if r.get("status") else ""))
+    return txt
+
+
+def plot_finding(f: dict):
+    """A plotly figure: the studies' test mAA(10) with 95% intervals, or the flat regions (findings 6 and 7);
+    None when there is nothing to draw."""
+    import plotly.graph_objects as go
+    m = f["measured"]
+    if m.get("rule") == "regions":
+        regs = m.get("regions") or {}
+        if not regs:
+            return None
+        fig = go.Figure()
+        for role, r in regs.items():
+            fig.add_trace(go.Scatter(x=r["region"], y=[role, role], mode="lines", line={"width": 10}, opacity=0.5,
+                                     name=f"{role}: flat region", showlegend=False))
+            fig.add_trace(go.Scatter(x=[r["optimum"]], y=[role], mode="markers", marker={"size": 10, "color": "crimson"},
+                                     name=f"{role}: optimum", showlegend=False))
+        sym = {"ratio": "ratio test r", "threshold": "inlier threshold eta (px)"}.get(m["parameter"], m["parameter"])
+        fig.update_layout(title=f"Finding {f['id']}: flat regions of the optimal {m['parameter']} (dot: optimum)",
+                          xaxis_title=sym, yaxis_title="study", height=300 + 20 * len(regs))
+        return fig
+    st = [(role, s) for role, s in (m.get("studies") or {}).items() if s.get("ok") and s.get("mAA10") is not None]
+    if not st:
+        return None
+    fig = go.Figure(go.Bar(
+        x=[r for r, _ in st], y=[s["mAA10"] for _, s in st],
+        error_y={"type": "data", "symmetric": False, "array": [max(0.0, s["mAA10_ci"][1] - s["mAA10"]) for _, s in st],
+                 "arrayminus": [max(0.0, s["mAA10"] - s["mAA10_ci"][0]) for _, s in st]},
+        hovertext=[s["study"] for _, s in st]))
+    fig.update_layout(title=f"Finding {f['id']}: test mAA(10°) with 95% intervals", xaxis_title="study (role)",
+                      yaxis_title="test mAA(10°)", yaxis_range=[0, 1], height=340)
+    return fig
+
+
+def study_reports(out: dict, fs) -> dict:
+    """Write each study's own report (``tuner.plots.write_report``) beside its frozen settings; name -> path."""
+    from pipeline.errors import ImtuneError
+    from tuner.freeze import study_dir
+    from tuner.plots import write_report as study_report
+    from tuner.storage import open_storage
+    names = sorted({n for f in out["findings"] for n in f["studies"]})
+    if not names:
+        return {}
+    storage = open_storage(fs.storage, heartbeat=None, studies_dir=fs.studies_dir)
+    done = {}
+    for n in names:
+        try:
+            done[n] = study_report(storage, n, study_dir(fs.studies_dir, n) / "report.html", fs.studies_dir)
+        except ImtuneError:
+            continue
+    return done
+
+
+def write_report(out: dict, fs, seconds: float = 0.0) -> Path:
+    """Write report.md, report.html and findings.json under ``<studies dir>/findings``; returns report.html."""
+    from tuner.freeze import atomic_write
+    root = Path(fs.studies_dir) / "findings"
+    root.mkdir(parents=True, exist_ok=True)
+    import plotly.io as pio
+    reports = study_reports(out, fs)
+    first = True  # plotly.js embedded once, with the first figure (the report works offline)
+    report = root / "report.html"
+    out["report"] = str(report)
+    when = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    head = settings_lines(fs) + [f"wall time of this run: {seconds / 60:.1f} min; written {when}"]
+    verdict_rows = [[f["id"], BY_ID[f["id"]].title, f["verdict"], _num(f["difference"]), _ci(f["ci"]),
+                     _num(f["p_value"], 3)] for f in out["findings"]]
+    vcols = ["#", "finding", "verdict", "difference", "95% CI", "p"]
+    md = ["# imtune: the paper's findings on this data", "", *[f"- {h}" for h in head], "",
+          _md_table(vcols, verdict_rows), ""]
+    body = [f"<h1>imtune: the paper's findings on this data</h1><ul>{''.join(f'<li>{html.escape(h)}</li>' for h in head)}</ul>",
+            _html_table(vcols, verdict_rows)]
+    for f in out["findings"]:
+        d = BY_ID[f["id"]]
+        rule = RULE_TEXT[d.rule]
+        md += [f"## {f['id']}. {d.title} — {f['verdict']}", "", f"Paper: {f['claim']} ({f['paper']})", "",
+               f"Rule: {rule}.", ""]
+        if d.notes:
+            md += [f"Settings: {d.notes}", ""]
+        md += [f"Measured: {_difference_text(f)}", "", _md_table(STUDY_COLS, _study_rows(f)), ""]
+        fig = plot_finding(f)
+        div = pio.to_html(fig, full_html=False, include_plotlyjs=first) if fig is not None else ""
+        first = first and fig is None
+        links = " ".join(f'<a href="../{html.escape(n)}/{"report.html" if n in reports else "frozen.yaml"}">'
+                         f'{html.escape(n)}</a> (<a href="../{html.escape(n)}/frozen.yaml">frozen</a>, '
+                         f'<a href="../{html.escape(n)}/test.json">test</a>)' for n in f["studies"])
+        body.append(
+            f"<section id='finding-{f['id']}'><h2>{f['id']}. {html.escape(d.title)} — "
+            f"<span class='v {f['verdict'].replace(' ', '-')}'>{html.escape(f['verdict'])}</span></h2>"
+            f"<p><b>Paper</b>: {html.escape(f['claim'])} <i>({html.escape(f['paper'])})</i></p>"
+            f"<p><b>Rule</b>: {html.escape(rule)}.</p>"
+            + (f"<p><b>Settings</b>: {html.escape(d.notes)}</p>" if d.notes else "")
+            + f"<p><b>Measured</b>: {html.escape(_difference_text(f))}</p>"
+            + _html_table(STUDY_COLS, _study_rows(f))
+            + div
+            + (f"<p><b>Studies</b>: {links}</p>" if links else "") + "</section>")
+        md += [f"Studies: {', '.join(f['studies']) or 'none'} (their reports: ../<study>/report.html)", ""]
+    md += ["## How the verdicts are decided", "", RULES_DOC.strip(), ""]
+    body.append(f"<h2>How the verdicts are decided</h2><pre>{html.escape(RULES_DOC.strip())}</pre>")
+    style = ("body{font-family:sans-serif;max-width:70em;margin:1em auto;line-height:1.4}table{border-collapse:collapse}"
+             "td,th{border:1px solid #ccc;padding:2px 6px;font-size:90%}.v{padding:0 4px}.holds{background:#cfc}"
+             ".does-not-hold{background:#fcc}.inconclusive{background:#eee}.not-run{background:#ffd}")
+    atomic_write(report, "<!doctype html><html><head><meta charset='utf-8'><title>imtune findings</title>"
+                         f"<style>{style}</style></head><body>{''.join(body)}</body></html>")
+    atomic_write(root / "report.md", "\n".join(md))
+    atomic_write(root / "findings.json", json.dumps(_jsonable(out), indent=2))
+    return report
+
+
+def _html_table(cols, rows) -> str:
+    h = "".join(f"<th>{html.escape(str(c))}</th>" for c in cols)
+    b = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>" for r in rows)
+    return f"<table><tr>{h}</tr>{b}</table>"
+
+
+def _jsonable(o):
+    if isinstance(o, float) and not math.isfinite(o):
+        return None if math.isnan(o) else ("inf" if o > 0 else "-inf")
+    if isinstance(o, dict):
+        return {str(k): _jsonable(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_jsonable(v) for v in o]
+    try:
+        import numpy as np
+        if isinstance(o, np.generic):
+            return _jsonable(o.item())
+    except ImportError:
+        pass
+    return o

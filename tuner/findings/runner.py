@@ -1,0 +1,321 @@
+"""Run the studies of the findings: each an ordinary imtune study (``tuner.study.tune``: create or resume,
+calibrate, trials, freeze, test), then the per-pair records the statistics need.
+
+Per-pair test records come from the study's ``test.json`` when its runs carry them (``pair_errors`` triples or
+``pair_records``); otherwise the frozen configuration is evaluated again on the same test pairs with the same
+run seeds (``Task.for_run``) and the records are kept in ``<studies dir>/findings/records/<study>-test.json``,
+keyed by the test result's identity (trial, configuration, data, runs), so a rerun reads them back. Each run's
+mAA(10) from the records is checked against ``test.json``'s; a mismatch is reported, never hidden.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from pipeline.errors import ImtuneError, UnavailableError
+from tuner.findings.definitions import StudySpec
+
+QUICK = {"num_features": 2048, "trials": 10, "max_pairs": 12, "test_runs": 1,
+         "multiview_bags": ((5, 6), (10, 3))}
+FULL = {"num_features": 8000, "trials": None, "max_pairs": None, "test_runs": 3, "multiview_bags": None}
+
+
+@dataclass
+class FindingsSettings:
+    """What `tune findings` runs with. ``trials`` / ``max_pairs`` / ``test_runs`` None: the mode's value
+    (:data:`QUICK` with ``quick``, else :data:`FULL`: the protocol's 50 trials, every pair, 3 test runs)."""
+    data_root: Path
+    storage: str | None = None
+    studies_dir: Path | None = None
+    quick: bool = False
+    only: list | None = None
+    jobs: int | None = None
+    trials: int | None = None
+    max_pairs: int | None = None
+    test_runs: int | None = None
+    cache_dir: str | None = None
+    seed: int = 0
+    budget: float = 0.5
+    test_budget: float = 1.0
+    val_scenes: list | None = None
+    test_scenes: list | None = None
+    n_resamples: int = 2000
+    progress: bool = True
+    log: object = None
+
+    def mode(self) -> dict:
+        m = dict(QUICK if self.quick else FULL)
+        for k in ("trials", "max_pairs", "test_runs"):
+            if getattr(self, k) is not None:
+                m[k] = getattr(self, k)
+        m["trials_effective"] = m["trials"] or 50
+        return m
+
+    def say(self, msg: str) -> None:
+        if self.log is not None:
+            self.log(msg)
+        elif self.progress:
+            import sys
+            print(msg, file=sys.stderr, flush=True)
+
+
+@dataclass
+class StudyOutcome:
+    """One study's results (or why it could not run). ``test_runs``: per run, its stereo pair records."""
+    spec: StudySpec
+    name: str
+    ok: bool = False
+    reason: str = ""
+    frozen: dict | None = None
+    test: dict | None = None
+    test_path: str | None = None
+    test_runs: list | None = None
+    records_note: str = ""
+    attrs: dict = field(default_factory=dict)
+    trials: list = field(default_factory=list)  # (params, value) of feasible COMPLETE trials
+    best: tuple | None = None  # (params, value) of the best feasible trial
+    val_ci: list | None = None  # 95% interval of the best trial's validation mAA(10)
+    seconds: float = 0.0
+
+
+def study_name(spec: StudySpec, fs: FindingsSettings) -> str:
+    """Deterministic: ``findings-<owner>-<variant>-<feature>-<n>-<ransac>``, plus ``-p<N>`` when the pairs per
+    scene are capped (a capped study is a different study: its task options differ)."""
+    m = fs.mode()
+    name = spec.name(m["num_features"])
+    return name + (f"-p{m['max_pairs']}" if m["max_pairs"] else "")
+
+
+def base_config(spec: StudySpec, num_features: int):
+    from pipeline.config import FeatureConfig, GeometryConfig, MatchConfig, PipelineConfig
+    return PipelineConfig(
+        feature=FeatureConfig(name=spec.feature, num_features=int(num_features), upright=spec.upright,
+                              upright_plus=spec.upright_plus, mr_size=spec.mr_size),
+        matching=MatchConfig(ratio=1.0, strategy=spec.strategy, fginn=spec.fginn, method=spec.method),
+        geometry=GeometryConfig(ransac=spec.ransac, threshold=1.0, confidence=spec.confidence, max_iters=1))
+
+
+def unavailable(spec: StudySpec) -> str | None:
+    """Why the study's feature or estimator cannot run here (missing weights, packages), else None."""
+    from pipeline.features import resolve_feature
+    from pipeline.geometry import get_estimator
+    try:
+        resolve_feature(spec.feature).check_available()
+        get_estimator(spec.ransac)
+    except UnavailableError as e:
+        return str(e)
+    except ImtuneError as e:
+        return str(e)
+    return None
+
+
+def tune_settings(spec: StudySpec, fs: FindingsSettings):
+    from tuner.study import TuneSettings
+    m = fs.mode()
+    kw = {}
+    names = {f.name for f in dataclasses.fields(TuneSettings)}
+    if fs.jobs is not None and "jobs" in names:  # the pair pool (issue 10), where this tree has it
+        kw["jobs"] = int(fs.jobs)
+    mv = None
+    if spec.task == "multiview" and m["multiview_bags"]:
+        from pipeline.tasks.multiview import MultiviewConfig
+        mv = MultiviewConfig(bags=tuple(m["multiview_bags"]))
+    return TuneSettings(
+        base=base_config(spec, spec.n_features(m["num_features"])), data_root=Path(fs.data_root), task=spec.task,
+        study_name=study_name(spec, fs), storage=fs.storage, studies_dir=fs.studies_dir,
+        fixes=[f"{k}={v}" for k, v in spec.fixes], n_trials=m["trials"], seed=fs.seed, budget=fs.budget,
+        test_budget=fs.test_budget, val_scenes=fs.val_scenes, test_scenes=fs.test_scenes,
+        max_pairs=m["max_pairs"], cache_dir=fs.cache_dir, progress=fs.progress, test=spec.test,
+        test_runs=m["test_runs"], multiview=mv, log=fs.log, **kw)
+
+
+# ------------------------------------------------------------------------------------------ records
+
+def _plain(o):
+    from tuner.freeze import _plain as plain
+    return plain(o)
+
+
+def _err(e) -> float:
+    return math.inf if e is None or e == "inf" else float(e)
+
+
+def records_from_test(test: dict) -> list | None:
+    """Per-run stereo pair records stored in a test result (``pair_errors`` [scene, pair, err] triples or
+    ``pair_records`` dicts), or None when a run has neither."""
+    out = []
+    for r in test.get("runs") or []:
+        if r.get("pair_errors") is not None:
+            out.append([{"scene": sc, "pair": pr, "err": _err(e)} for sc, pr, e in r["pair_errors"]])
+        elif r.get("pair_records") is not None:
+            out.append([{"scene": x["scene"], "pair": x["pair"], "err": _err(x["err"])} for x in r["pair_records"]])
+        else:
+            return None
+    return out or None
+
+
+def _read_json(path: Path):
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _evaluate_runs(frozen: dict, data_root: Path, scene_names: list, split: str, runs: int, cache) -> list:
+    """[(records, summary), ...]: the frozen configuration on ``scene_names``, run k with the task's k-th seed
+    (the very loop of :func:`tuner.freeze.run_test`, keeping the records)."""
+    from tuner.evaluate import load_scenes
+    from tuner.freeze import pipeline_from_dict, task_of
+    from tuner.objective import ValidationSet
+    task = task_of(frozen)
+    conf = pipeline_from_dict(frozen["config"])
+    vs = ValidationSet.from_scenes(load_scenes(data_root, scene_names, split=split), task)
+    vs.prepare(conf, cache)
+    out = []
+    for k in range(int(runs)):
+        t, c = task.for_run(conf, k)
+        res = t.evaluate(vs.scene_objs, c, cache)
+        out.append((res.records, dict(res.summary)))
+    return out
+
+
+def test_records(frozen: dict, test: dict, records_dir: Path, cache) -> tuple[list, str]:
+    """(per-run pair records of the test result, note). See the module docstring."""
+    stored = records_from_test(test)
+    if stored is not None:
+        return stored, "pair errors from test.json"
+    path = records_dir / f"{test['study']}-test.json"
+    ident = _plain(test.get("identity"))
+    old = _read_json(path)
+    if old and old.get("identity") == ident:
+        runs = [[{**r, "err": _err(r["err"])} for r in run] for run in old["runs"]]
+        return runs, old.get("note", "")
+    fz = {"task": test.get("task", "stereo"), "task_options": test.get("task_options"), "config": frozen["config"]}
+    got = _evaluate_runs(fz, Path(test["data"]["root"]), test["data"]["scenes"], "test", len(test["runs"]), cache)
+    runs = [[{"scene": r["scene"], "pair": r["pair"], "err": _err(r["err"])} for r in recs] for recs, _ in got]
+    diffs = [abs(float(s.get("mAA10", 0.0)) - float(tr.get("mAA10") or 0.0)) for (_, s), tr in zip(got, test["runs"])]
+    worst = max(diffs) if diffs else 0.0
+    note = ("pair errors re-evaluated (test.json has none); each run's mAA(10) equals test.json's"
+            if worst <= 1e-9 else
+            f"pair errors re-evaluated (test.json has none); mAA(10) differs from test.json by up to {worst:.4f} "
+            "(the estimator is not deterministic here): intervals and paired tests use the re-evaluated errors")
+    from pipeline.fileio import atomic_write
+    atomic_write(path, json.dumps(_plain({"study": test["study"], "identity": ident, "note": note,
+                                          "runs": [[{**r} for r in run] for run in runs]})))
+    return runs, note
+
+
+def validation_interval(study, frozen: dict, best, records_dir: Path, cache, n_resamples: int) -> list | None:
+    """95% interval of the best feasible trial's validation mAA(10): its own ``mAA10_ci`` attribute when the
+    trial recorded one, else a bootstrap of its configuration's records re-evaluated on the validation pairs
+    (cached in ``records/<study>-val.json``), shifted to the trial's value."""
+    ci = best.user_attrs.get("mAA10_ci")
+    if ci:
+        return [float(ci[0]), float(ci[1])]
+    from pipeline.metrics.uncertainty import bag_intervals, maa_intervals
+    from tuner.freeze import pipeline_from_dict, task_of
+    from tuner.protocol import config_for
+    attrs = study.user_attrs
+    base = pipeline_from_dict(attrs["pipeline"])
+    fixed = dict(attrs["search_space_resolved"].get("fixed", {}))
+    conf = config_for(base, {**fixed, **best.params}, seed=int(attrs.get("seed", 0)))
+    path = records_dir / f"{study.study_name}-val.json"
+    ident = _plain({"trial": best.number, "config": conf.to_dict(), "fingerprint": attrs.get("data_fingerprint")})
+    old = _read_json(path)
+    if old and old.get("identity") == ident:
+        recs = old["records"]
+    else:
+        fz = {"task": attrs.get("task", "stereo"), "task_options": attrs.get("task_options"), "config": conf.to_dict()}
+        (recs, _), = _evaluate_runs(fz, Path(frozen["data"]["root"]), attrs["data"]["val_scenes"], "val", 1, cache)
+        from pipeline.fileio import atomic_write
+        atomic_write(path, json.dumps(_plain({"study": study.study_name, "identity": ident, "records": recs})))
+    task = task_of(attrs)
+    if task.records_key == "bag_records":
+        for r in recs:
+            r["errors"] = [_err(e) for e in r["errors"]]
+        iv = bag_intervals(recs, taus=(10,), n_resamples=n_resamples)
+    else:
+        for r in recs:
+            r["err"] = _err(r["err"])
+        iv = maa_intervals(recs, taus=(10,), n_resamples=n_resamples)
+    # the interval's half-widths around its own point, placed at the trial's value (same pairs, same config)
+    from pipeline.metrics.uncertainty import maa_from_errors  # noqa: F401  (documented equivalence)
+    lo, hi = iv["mAA10_ci"]
+    point = float(best.user_attrs.get("mAA10", best.value if best.value is not None else 0.0))
+    centre = _point(recs, task)
+    return [point - (centre - lo), point + (hi - centre)]
+
+
+def _point(recs, task) -> float:
+    import numpy as np
+
+    from pipeline.metrics.uncertainty import maa_from_errors
+    by: dict = {}
+    if task.records_key == "bag_records":
+        for r in recs:
+            by.setdefault((r["scene"], r["bag_size"]), []).append(maa_from_errors(r["errors"], 10))
+        scenes: dict = {}
+        for (sc, _), v in by.items():
+            scenes.setdefault(sc, []).append(float(np.mean(v)))
+        return float(np.mean([np.mean(v) for v in scenes.values()])) if scenes else 0.0
+    for r in recs:
+        by.setdefault(r["scene"], []).append(r["err"])
+    return float(np.mean([maa_from_errors(v, 10) for v in by.values()])) if by else 0.0
+
+
+# ------------------------------------------------------------------------------------------ one study
+
+def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool = False) -> StudyOutcome:
+    """Create or resume the study of ``spec``, run its missing trials, freeze, test; then its records."""
+    import optuna
+    from optuna.trial import TrialState
+
+    from tuner.freeze import study_dir
+    from tuner.protocol import best_feasible, trial_within_budget
+    from tuner.study import tune
+    name = study_name(spec, fs)
+    out = StudyOutcome(spec=spec, name=name)
+    why = unavailable(spec)
+    if why:
+        out.reason = why
+        return out
+    t0 = time.perf_counter()
+    s = tune_settings(spec, fs)
+    try:
+        res = tune(s)
+    except UnavailableError as e:
+        out.reason = str(e)
+        return out
+    except ImtuneError as e:
+        out.reason = f"could not run: {e}"
+        return out
+    out.frozen, out.test = res["frozen"], res["test"]
+    sdir = Path(s.studies_dir)
+    records_dir = sdir / "findings" / "records"
+    study = optuna.load_study(study_name=name, storage=_storage(fs, sdir))
+    out.attrs = dict(study.user_attrs)
+    best = best_feasible(study)
+    out.best = (dict(best.params), float(best.value)) if best is not None else None
+    out.trials = [(dict(t.params), float(t.value)) for t in study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
+                  if t.value is not None and trial_within_budget(t)]
+    if out.test is not None:
+        out.test_path = str(study_dir(sdir, name) / "test.json")
+        try:
+            out.test_runs, out.records_note = test_records(out.frozen, out.test, records_dir, cache)
+        except ImtuneError as e:
+            out.reason = f"test records: {e}"
+            return out
+    if need_regions and best is not None:
+        out.val_ci = validation_interval(study, out.frozen, best, records_dir, cache, fs.n_resamples)
+    out.ok = True
+    out.seconds = time.perf_counter() - t0
+    return out
+
+
+def _storage(fs: FindingsSettings, sdir: Path):
+    from tuner.storage import open_storage
+    return open_storage(fs.storage, heartbeat=None, studies_dir=sdir)
