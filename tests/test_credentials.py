@@ -54,11 +54,19 @@ def test_paths_are_untouched(path):
     assert mask_url(path) == path
 
 
-def test_unencoded_at_in_password_connects_with_the_whole_password():
+@pytest.mark.parametrize("url,user,password,host,query", [
+    ("postgresql://u:left-Part@right-Part@dbhost:5432/db", "u", "left-Part@right-Part", "dbhost", {}),
+    ("postgresql://u:a@b:c@dbhost:5432/db", "u", "a@b:c", "dbhost", {}),  # SQLAlchemy alone cannot parse it
+    ("postgresql://u:pa@ss@[::1]:5432/db", "u", "pa@ss", "::1", {}),
+    ("postgresql://u:pw@dbhost/db?application_name=a@b", "u", "pw", "dbhost", {"application_name": "a@b"}),
+    ("postgresql://u:pa@ss@dbhost/db?application_name=a@b", "u", "pa@ss", "dbhost", {"application_name": "a@b"}),
+    ("postgresql://us@er@dbhost/db", "us@er", None, "dbhost", {}),
+])
+def test_unencoded_at_connects_with_the_whole_password(url, user, password, host, query):
     from sqlalchemy.engine import make_url
-    kind, norm = classify("postgresql://u:left-Part@right-Part@dbhost:5432/db")
+    kind, norm = classify(url)
     u = make_url(norm)
-    assert kind == "rdb" and u.password == "left-Part@right-Part" and u.host == "dbhost" and u.port == 5432
+    assert kind == "rdb" and (u.username, u.password, u.host, dict(u.query)) == (user, password, host, query)
 
 
 @pytest.mark.parametrize("text,url", [

@@ -97,12 +97,29 @@ def _repair_at(url: str) -> str:
 
     SQLAlchemy (like libpq) ends the password at the first ``@``, so an unencoded ``@`` in a password
     makes ``ss@host`` the host name and ``ss`` leaks in every message naming the host. A host name cannot
-    contain ``@``, so the userinfo is taken to run to the last ``@`` of the URL (as ``urllib.parse`` does)
-    and the password is percent-encoded; URLs with at most one ``@`` are returned unchanged."""
+    contain ``@``: where SQLAlchemy's host does, everything up to its last ``@`` belongs to the password
+    (or, with no password, to the user name), which is then percent-encoded. Where SQLAlchemy cannot
+    parse the URL at all (e.g. ``u:a@b:c@host:5432``: it reads ``c@host:5432`` as the port), the userinfo
+    is taken to run to the last ``@`` of the URL, as ``urllib.parse`` does. URLs with at most one ``@``,
+    or whose other ``@`` is elsewhere (a path, a query value), are returned unchanged."""
     from urllib.parse import quote, unquote
     scheme, sep, rest = url.partition("://")
     if not sep or rest.startswith("/") or rest.count("@") < 2:
         return url
+    from sqlalchemy.engine import make_url
+    try:
+        u = make_url(url)
+    except Exception:  # noqa: BLE001 - ArgumentError, ValueError (a port that is no number): see below
+        u = None
+    if u is not None:
+        if not u.host or "@" not in u.host:
+            return url
+        extra, host = u.host.rsplit("@", 1)
+        if u.password is not None:
+            u = u.set(password=f"{u.password}@{extra}", host=host)
+        else:
+            u = u.set(username=f"{u.username or ''}@{extra}", host=host)
+        return u.render_as_string(hide_password=False)
     at = rest.rfind("@")
     userinfo, after = rest[:at], rest[at + 1:]
     user, colon, pw = userinfo.partition(":")
