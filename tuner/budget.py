@@ -9,12 +9,19 @@ median time per pair stays within B (log-log interpolation between measured poin
 Calibrations are stored per machine, estimator, feature configuration, calibration matches and data
 in ``<studies dir>/budgets.json`` (written atomically under a file lock, so workers starting together
 measure once), and copied into each study's user attributes when the study is created.
+
+``jobs``: a study evaluates its pairs with ``jobs`` worker processes, so the estimator is timed with ``jobs``
+copies of it running at once (each in its own spawned process, started together at a barrier:
+:class:`pipeline.tasks.pool.ConcurrentRunner`); the curve's median is over every process's pairs. Gamma_max(B) then
+reflects a machine whose cores are all busy (memory bandwidth, caches, turbo shared), not one idle core. The number
+of jobs is part of the stored calibration's key.
 """
 from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
 import fcntl
+import contextlib
 import json
 import math
 import socket
@@ -50,6 +57,7 @@ class Calibration:
     data_fingerprint: str = ""
     ceiling: int = GAMMA_CEILING
     seconds: float = 0.0  # wall time the measurement took
+    jobs: int = 1  # estimator processes timed at once (a study with --jobs N is calibrated with N)
 
     def gamma_max(self, budget: float) -> int:
         """Largest max_iters whose median estimator time per pair is <= ``budget`` seconds."""
@@ -104,10 +112,14 @@ def _round_down(g: float) -> int:
     return int(math.floor(g / 10 ** e) * 10 ** e)
 
 
-def calibration_key(estimator: str, feature_conf, ratio: float, threshold: float, data_fingerprint: str) -> str:
+def calibration_key(estimator: str, feature_conf, ratio: float, threshold: float, data_fingerprint: str,
+                    jobs: int = 1) -> str:
     from pipeline.config import config_hash
-    return "|".join([socket.gethostname(), estimator, config_hash(feature_conf, 10),
-                     f"r={ratio:g}", f"eta={threshold:g}", data_fingerprint])
+    parts = [socket.gethostname(), estimator, config_hash(feature_conf, 10), f"r={ratio:g}", f"eta={threshold:g}",
+             data_fingerprint]
+    if int(jobs) != 1:  # a calibration measured alone keeps its key (stores written before --jobs stay valid)
+        parts.append(f"jobs={int(jobs)}")
+    return "|".join(parts)
 
 
 # -- the store --------------------------------------------------------------------------------------
@@ -179,12 +191,35 @@ def calibration_matches(scenes, conf, cache, max_pairs: int = 8, progress: bool 
     return out
 
 
-def measure_curve(estimator_name: str, matches, threshold: float, confidence: float, budget: float,
-                  seed: int = 0, ceiling: int = GAMMA_CEILING, progress: bool = False) -> list:
-    """Time the estimator at increasing caps until the median time per pair exceeds ``budget``
-    (the next cap is aimed just past the budget, so measuring costs a few times B per pair)."""
+def _time_cap(payload, g: int) -> list[float]:
+    """Estimator seconds of every calibration pair at cap ``g`` (``payload``: name, matches, eta, confidence, seed)."""
     from pipeline.geometry import get_estimator
-    est = get_estimator(estimator_name)
+    name, matches, threshold, confidence, seed = payload
+    est = get_estimator(name)
+    return [float(est.estimate(p1, p2, threshold, confidence, int(g), seed=seed, sizes=sz).seconds)
+            for p1, p2, sz in matches]
+
+
+def measure_curve(estimator_name: str, matches, threshold: float, confidence: float, budget: float,
+                  seed: int = 0, ceiling: int = GAMMA_CEILING, progress: bool = False, jobs: int = 1) -> list:
+    """Time the estimator at increasing caps until the median time per pair exceeds ``budget``
+    (the next cap is aimed just past the budget, so measuring costs a few times B per pair). ``jobs`` > 1: every
+    cap is timed in ``jobs`` processes at once, each on all the pairs; the statistics are over all of them."""
+    with contextlib.ExitStack() as stack:
+        payload = (estimator_name, matches, threshold, confidence, seed)
+        if int(jobs) > 1:
+            from pipeline.tasks.pool import ConcurrentRunner
+            run = stack.enter_context(ConcurrentRunner(int(jobs), payload))
+
+            def time_cap(g):
+                return [s for part in run(_time_cap, int(g)) for s in part]
+        else:
+            def time_cap(g):
+                return _time_cap(payload, int(g))
+        return _measure(estimator_name, time_cap, budget, ceiling, progress)
+
+
+def _measure(estimator_name: str, time_cap, budget: float, ceiling: int, progress: bool) -> list:
     curve = []
     g = GAMMA_START
     bar = None
@@ -193,10 +228,7 @@ def measure_curve(estimator_name: str, matches, threshold: float, confidence: fl
         bar = tqdm(desc=f"calibrating {estimator_name}", unit="cap", leave=False)
     try:
         while True:
-            secs = []
-            for pts1, pts2, sizes in matches:
-                r = est.estimate(pts1, pts2, threshold, confidence, int(g), seed=seed, sizes=sizes)
-                secs.append(r.seconds)
+            secs = time_cap(g)
             med, p90 = float(np.median(secs)), float(np.percentile(secs, 90))
             curve.append((int(g), med, p90))
             if bar is not None:
@@ -218,16 +250,17 @@ def measure_curve(estimator_name: str, matches, threshold: float, confidence: fl
 def calibrate(estimator_name: str, base_conf, scenes, cache, data_fingerprint: str, *,
               budgets: tuple[float, ...] = (0.5,), ratio: float = 0.9, threshold: float = 0.5,
               max_pairs: int = 8, studies_dir: Path | str | None = None, force: bool = False,
-              progress: bool = False, seed: int = 0) -> Calibration:
+              progress: bool = False, seed: int = 0, jobs: int = 1) -> Calibration:
     """Gamma_max calibration for ``estimator_name`` (reused from ``budgets.json`` unless ``force``).
 
     scenes: [(Scene, [Pair, ...]), ...] validation scenes and their selected pairs; base_conf: the
     study's PipelineConfig (feature and matching settings); ratio / threshold: the matches and eta
-    timed. The curve is measured up to the largest of ``budgets``."""
+    timed. The curve is measured up to the largest of ``budgets``; ``jobs``: estimator processes timed at once
+    (the study's ``--jobs``)."""
     from pipeline.geometry import ESTIMATORS
     cls = ESTIMATORS.get(estimator_name)
     conf = dataclasses.replace(base_conf, matching=dataclasses.replace(base_conf.matching, ratio=float(ratio)))
-    key = calibration_key(estimator_name, conf.feature, ratio, threshold, data_fingerprint)
+    key = calibration_key(estimator_name, conf.feature, ratio, threshold, data_fingerprint, jobs=jobs)
     store = Path(studies_dir) / BUDGETS_FILE if studies_dir is not None else None
     bmax = max(budgets)
 
@@ -250,12 +283,12 @@ def calibrate(estimator_name: str, base_conf, scenes, cache, data_fingerprint: s
         else:
             matches = calibration_matches(scenes, conf, cache, max_pairs=max_pairs, progress=progress)
             curve = measure_curve(estimator_name, matches, threshold, conf.geometry.confidence, bmax,
-                                  seed=seed, progress=progress)
+                                  seed=seed, progress=progress, jobs=jobs)
         cal = Calibration(estimator=estimator_name, feature=dataclasses.asdict(conf.feature), ratio=float(ratio),
                           threshold=float(threshold), pairs=int(min(max_pairs, sum(len(p) for _, p in scenes))),
                           curve=[list(c) for c in curve], host=socket.gethostname(),
                           created=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-                          data_fingerprint=data_fingerprint, seconds=time.perf_counter() - t0)
+                          data_fingerprint=data_fingerprint, seconds=time.perf_counter() - t0, jobs=int(jobs))
         if store is not None:
             data = _read_store(store)
             data[key] = cal.to_dict()

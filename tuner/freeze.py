@@ -145,7 +145,8 @@ def test_scene_names(frozen: dict, data_root: Path, scenes=None) -> list[str]:
 
 def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None = None, *, scenes=None,
              cache=None, runs: int = 3, max_pairs: int | None = None, test_budget: float | None = None,
-             progress: bool = False, reuse: bool = True, workers: int | None = None) -> dict:
+             progress: bool = False, reuse: bool = True, workers: int | None = None,
+             jobs: int | None = None) -> dict:
     """Evaluate the frozen configuration with its task on the test scenes ``runs`` times (the k-th run with the
     task's k-th seed: ``Task.for_run``) and aggregate (``Task.aggregate``: mean and std). Writes
     ``<studies_dir>/<study>/test.json`` when ``studies_dir`` is given; with ``reuse``, an existing test.json for
@@ -158,7 +159,8 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
     from tuner.version import code_version
     data_root = Path(data_root)
     names = test_scene_names(frozen, data_root, scenes)
-    task = task_of(frozen, max_pairs=max_pairs, workers=workers, progress=progress)
+    task = task_of(frozen, max_pairs=max_pairs, workers=workers, progress=progress,
+                   jobs=jobs)  # stereo pair processes: not a task option (the numbers do not depend on it)
     conf = pipeline_from_dict(frozen["config"])
     tb = float(test_budget if test_budget is not None else frozen.get("budget", {}).get("test_seconds_per_pair", 1.0))
     vs = ValidationSet.from_scenes(load_scenes(data_root, names, split="test"), task)
@@ -217,13 +219,14 @@ def test_summary(result: dict) -> dict:
 
 def run_test_for_study(study, frozen: dict, studies_dir, *, data_root=None, scenes=None, cache=None, runs: int = 3,
                        max_pairs=None, test_budget=None, progress: bool = False, reuse: bool = True,
-                       workers: int | None = None) -> dict:
+                       workers: int | None = None, jobs: int | None = None) -> dict:
     """:func:`run_test` and store its summary in the study's user attribute ``test``."""
     root = data_root or frozen.get("data", {}).get("root")
     if root is None or not Path(root).is_dir():
         from tuner.options import resolve_data
         root = resolve_data(None)
     result = run_test(frozen, root, studies_dir, scenes=scenes, cache=cache, runs=runs, max_pairs=max_pairs,
-                      test_budget=test_budget, progress=progress, reuse=reuse, workers=workers)
+                      test_budget=test_budget, progress=progress, reuse=reuse, workers=workers,
+                      jobs=jobs)
     study.set_user_attr("test", test_summary(result))
     return result

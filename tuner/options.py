@@ -138,6 +138,27 @@ def task_choices() -> list[str]:
     return TASKS.names() + ["both"]
 
 
+def jobs_count(s: str) -> int:
+    """``--jobs N``: an integer >= 1 (argparse's one-line error otherwise); above the CPUs this process may use it
+    is allowed, with a one-line note (the estimators then share cores, and their measured seconds grow)."""
+    import sys
+
+    from pipeline.tasks.pool import available_cpus
+    n = positive_int(s)
+    cpus = available_cpus()
+    if n > cpus:
+        print(f"note: --jobs {n} is more than the {cpus} CPUs this process may use; the pair workers will share "
+              "cores (estimator seconds then include waiting for one)", file=sys.stderr)
+    return n
+
+
+def add_jobs_option(ap: argparse.ArgumentParser) -> None:
+    """``--jobs N``: stereo pairs evaluated by N worker processes (default: every CPU this process may use)."""
+    ap.add_argument("--jobs", type=jobs_count, default=None, metavar="N",
+                    help="worker processes evaluating stereo pairs, and estimators timed at once by the budget "
+                         "calibration (default: every CPU this process may use; 1: no pool)")
+
+
 def task_options(args: argparse.Namespace, **overrides) -> dict:
     """Every task option the parsed command line gives (``pipeline.tasks.make_task`` hands each task the ones
     it takes): min_covisibility, max_pairs, mv (the multiview settings), workers, keep_models."""
@@ -145,4 +166,4 @@ def task_options(args: argparse.Namespace, **overrides) -> dict:
     v.update(overrides)
     return {"min_covisibility": v.get("covisibility"), "max_pairs": v.get("max_pairs"),
             "mv": multiview_config(args, **overrides) if "bags" in v else None,
-            "workers": v.get("workers"), "keep_models": v.get("keep_models")}
+            "workers": v.get("workers"), "keep_models": v.get("keep_models"), "jobs": v.get("jobs")}

@@ -111,6 +111,7 @@ class TuneSettings:
     retest: bool = False
     multiview: object = None  # MultiviewConfig of task "multiview" (None: the protocol's bags)
     workers: int | None = None  # multiview: bag processes per trial (None: the task's default, all CPUs)
+    jobs: int | None = None  # stereo: pair worker processes (None: every usable CPU); calibration uses as many
     gt_dir: str | None = None  # built ground truth (default $IMTUNE_GT, $IMTUNE_CACHE/gt, ~/.cache/imtune/gt)
     log: object = None  # callable(str) for status lines; None = stderr unless progress is off
     verbose: bool = False  # Optuna's own INFO log lines
@@ -119,7 +120,8 @@ class TuneSettings:
         """The study's task with these settings' options (each task takes those it knows)."""
         from pipeline.tasks import make_task
         return make_task(self.task, min_covisibility=self.min_covisibility, max_pairs=self.max_pairs,
-                         step_pairs=self.chunk_pairs, mv=self.multiview, workers=self.workers, **extra)
+                         step_pairs=self.chunk_pairs, mv=self.multiview, workers=self.workers, jobs=self.jobs,
+                         **extra)
 
     def say(self, msg: str) -> None:
         if self.log is not None:
@@ -262,6 +264,7 @@ def setup_study(s: TuneSettings) -> StudyContext:
     import optuna
     from pipeline.cache import H5Cache
     from pipeline.geometry import get_estimator
+    from pipeline.tasks.pool import resolve_jobs
     from tuner.budget import calibrate
     from tuner.objective import Objective
     from tuner.protocol import blank_searched
@@ -317,7 +320,8 @@ def setup_study(s: TuneSettings) -> StudyContext:
             cal = calibrate(base.geometry.ransac, base, vs.scenes, cache, vs.fingerprint,
                             budgets=(s.budget,), ratio=space.calibration["ratio"],
                             threshold=space.calibration["threshold"], max_pairs=s.calibration_pairs,
-                            studies_dir=s.studies_dir, force=s.recalibrate, progress=s.progress, seed=int(s.seed or 0))
+                            studies_dir=s.studies_dir, force=s.recalibrate, progress=s.progress, seed=int(s.seed or 0),
+                            jobs=resolve_jobs(s.jobs))  # timed with as many estimators running as a trial runs
             gmax = cal.gamma_max(s.budget)
             s.say(f"budget: {s.budget:g} s per pair -> Gamma_max = {gmax} for {base.geometry.ransac} "
                   f"(calibrated on {cal.pairs} pairs, {len(cal.curve)} caps)")
@@ -456,6 +460,6 @@ def tune(s: TuneSettings) -> dict:
         return out
     out["test"] = run_test_for_study(ctx.study, frozen, s.studies_dir, data_root=s.data_root,
                                      scenes=s.test_scenes, cache=ctx.cache, runs=s.test_runs,
-                                     max_pairs=s.max_pairs, progress=s.progress, reuse=not s.retest,
+                                     max_pairs=s.max_pairs, progress=s.progress, reuse=not s.retest, jobs=s.jobs,
                                      workers=s.workers)
     return out

@@ -129,6 +129,13 @@ def evaluate_pair(scene: Scene, pair: Pair, fi: ImageFeatures, fj: ImageFeatures
     return out
 
 
+def failed_pair(scene: Scene, pair: Pair, why: str) -> dict:
+    """The record of a pair that could not be evaluated at all (its worker process died): error +inf, counted."""
+    return {"pair": pair.key, "scene": scene.name, "NM": 0, "NI": 0, "err": math.inf, "err_R": math.inf,
+            "err_t": math.inf, "match_seconds": 0.0, "filter_seconds": 0.0, "ransac_seconds": 0.0,
+            "covisibility": pair.covisibility, "failure": why}
+
+
 def summarize(records: list[dict], nf: float) -> dict:
     """Per-scene (or any group of records) summary: mAA(5), mAA(10), accuracy at 1..10 deg, NF, NM, NI,
     pair count, failures, seconds per pair (matching; estimator mean, median and 90th percentile)."""
@@ -219,7 +226,14 @@ class StereoTask(Task):
 
     ``step_pairs``: pairs per ``on_step`` call (stratified over scenes, see :func:`stratified_steps`; None = one
     step). ``keep_pairs``: keep every :class:`PairResult` in ``TaskResult.pairs`` (figures). ``progress``: tqdm bars.
-    Overall figures are the mean over scenes of the per-scene figures (the benchmark averages scenes)."""
+    Overall figures are the mean over scenes of the per-scene figures (the benchmark averages scenes).
+
+    ``jobs``: worker processes evaluating the pairs (:mod:`pipeline.tasks.pool`; None: every CPU this process may
+    use; 1: in this process). Each worker keeps the scenes' features and k-NN tables in memory for as long as the
+    same data is evaluated (a whole study), measures the estimator's seconds around the library call alone, and
+    the records are the same, in the same order, for any ``jobs`` (each pair is evaluated alone with the
+    estimator's seed; steps are reported in order with the pairs of the steps so far). A pair whose worker died
+    is a recorded failure (``"worker process died"``)."""
 
     name = "stereo"
     uses = ("ratio", "strategy", "threshold", "max_iters")
@@ -232,7 +246,13 @@ class StereoTask(Task):
     note = "pose from F; mAA over 1..5 / 1..10 deg; seconds per pair"
 
     def __init__(self, min_covisibility: float | None = 0.1, max_pairs: int | None = None,
-                 step_pairs: int | None = None, keep_pairs: bool = False, progress: bool = False):
+                 step_pairs: int | None = None, keep_pairs: bool = False, progress: bool = False,
+                 jobs: int | None = None):
+        from pipeline.tasks.pool import resolve_jobs
+        # worker processes evaluating the pairs (None: every CPU this process may use); not in options(): the
+        # records are the same for any number of jobs (each pair is evaluated alone, with the estimator's seed)
+        self.jobs = resolve_jobs(jobs)
+        self._data = None  # (data key, PairData): the scenes' features and k-NN tables, read once
         self.min_covisibility = min_covisibility
         self.max_pairs = max_pairs
         self.step_pairs = step_pairs
@@ -283,36 +303,77 @@ class StereoTask(Task):
         from tqdm.auto import tqdm
 
         from pipeline.geometry import get_estimator
+        from pipeline.tasks.pool import WORKER_DIED, PairSpec, pair_pool
         cache = cache if cache is not None else H5Cache()
         estimator = get_estimator(conf.geometry.ransac)
         t0 = time.perf_counter()
         all_pairs = self._checked_pairs(scenes)
-        prepared = [prepare_scene(sc, conf, cache, pairs, progress=self.progress)
-                    for sc, pairs in zip(scenes, all_pairs)]
-        nf = {sc.name: float(np.mean([len(f.keypoints) for f in feats.values()])) if feats else 0.0
-              for sc, (feats, _) in zip(scenes, prepared)}
+        spec = PairSpec(scenes=list(scenes), pairs=all_pairs, conf=conf, cache_root=str(cache.root),
+                        evaluate=evaluate_pair)
+        data = self._pair_data(spec, cache)
+        nf = data.nf
         t1 = time.perf_counter()
         steps = stratified_steps([len(p) for p in all_pairs], self.step_pairs)
+        order = [sp for step in steps for sp in step]  # the serial order; a pool completes in any order
+        step_of = {sp: k for k, step in enumerate(steps) for sp in step}
+        left = [len(step) for step in steps]
         done: dict[tuple[int, int], dict] = {}
         kept = {}
-        bar = tqdm(total=sum(len(p) for p in all_pairs), desc="stereo", disable=not self.progress, leave=False)
-        for k, step in enumerate(steps):
-            for si, pi in step:
+        bar = tqdm(total=len(order), desc="stereo", disable=not self.progress, leave=False)
+        pool = pair_pool(self.jobs, spec) if self.jobs > 1 and len(order) > 1 else None
+        results = pool.imap(order, conf, keep=self.keep_pairs) if pool is not None else \
+            ((k, self._inline_pair(data, scenes, all_pairs, order[k], conf, estimator)) for k in range(len(order)))
+        next_step = 0
+        try:
+            for k, out in results:
+                si, pi = order[k]
                 scene, pair = scenes[si], all_pairs[si][pi]
-                feats, tables = prepared[si]
-                tab, knn_s = tables[pair.key]
-                pr = evaluate_pair(scene, pair, feats[pair.i], feats[pair.j], tab, knn_s, conf, estimator)
-                done[(si, pi)] = pr.record
-                if self.keep_pairs:
-                    kept[(scene.name, pair.key)] = pr
+                if out is WORKER_DIED:
+                    out = failed_pair(scene, pair, WORKER_DIED)
+                rec = out.record if isinstance(out, PairResult) else out
+                done[(si, pi)] = rec
+                if self.keep_pairs and isinstance(out, PairResult):
+                    kept[(scene.name, pair.key)] = out
                 bar.update(1)
-            if on_step is not None:
-                on_step(k, len(steps), self._summaries(scenes, done, nf)[0])
-        bar.close()
+                left[step_of[(si, pi)]] -= 1
+                # steps report in order, each with exactly the records of the steps so far (what a serial run
+                # reports, whatever a pool finished early): the pruner sees the same values for any jobs
+                while next_step < len(steps) and left[next_step] == 0:
+                    if on_step is not None:
+                        so_far = {sp: r for sp, r in done.items() if step_of[sp] <= next_step}
+                        summary = self._summaries(scenes, so_far, nf)[0]
+                        summary["units_total"] = len(order)  # what a budget rule may prove from the pairs so far
+                        summary["budget_seconds_units"] = [r["ransac_seconds"] for r in so_far.values()]
+                        on_step(next_step, len(steps), summary)
+                    next_step += 1
+        except KeyboardInterrupt:
+            if pool is not None:
+                pool.terminate()  # Ctrl-C: the workers stop now, not after their pairs
+            raise
+        finally:
+            if hasattr(results, "close"):
+                results.close()  # a pruned trial: what has not started is cancelled
+            bar.close()
         summary, per_scene, records = self._summaries(scenes, done, nf)
         return TaskResult(summary=summary, scenes=per_scene, records=records, pairs=kept,
                           seconds={"prepare": t1 - t0, "pairs": time.perf_counter() - t1},
                           records_key=self.records_key)
+
+    def _pair_data(self, spec, cache):
+        """The scenes' features and k-NN tables, read from the cache once per data (every trial of a study
+        reuses them; :func:`pipeline.tasks.pool.pair_data_key`)."""
+        from pipeline.tasks.pool import load_pair_data
+        if self._data is None or self._data[0] != spec.key:
+            self._data = (spec.key, load_pair_data(spec, cache, progress=self.progress))
+        return self._data[1]
+
+    @staticmethod
+    def _inline_pair(data, scenes, all_pairs, sp, conf, estimator) -> PairResult:
+        si, pi = sp
+        scene, pair = scenes[si], all_pairs[si][pi]
+        tab, knn_s = data.tables[si][pair.key]
+        feats = data.feats[si]
+        return evaluate_pair(scene, pair, feats[pair.i], feats[pair.j], tab, knn_s, conf, estimator)
 
     @staticmethod
     def _summaries(scenes, done: dict, nf: dict):

@@ -6,8 +6,8 @@ import math
 
 from tuner.formatting import render
 from tuner.evaluate import evaluate_config
-from tuner.options import (add_multiview_options, add_pipeline_options, build_config, multiview_config, resolve_data,
-                           task_choices)
+from tuner.options import (add_jobs_option, add_multiview_options, add_pipeline_options, build_config, multiview_config,
+                           resolve_data, task_choices)
 
 IM_COLUMNS = ["scene", "pairs", "repeatability_3px", "matching_score_3px", "epipolar_matching_score"]
 
@@ -21,6 +21,7 @@ def register(sub) -> None:
     ap.add_argument("--bag-records", action="store_true", help="include every multiview bag record in the JSON")
     ap.add_argument("--intermediate", action="store_true",
                     help="also repeatability and matching score at 1..10 px (depth maps) / epipolar matching score")
+    add_jobs_option(ap)
     ap.set_defaults(func=run)
 
 
@@ -62,7 +63,7 @@ def run(args) -> int:
                           min_covisibility=args.covisibility, progress=not (args.quiet or args.json),
                           with_pairs=args.pairs, task=args.task, multiview=multiview_config(args), workers=args.workers,
                           gt_dir=args.gt_dir, with_bags=args.bag_records, keep_models=args.keep_models,
-                          intermediate=args.intermediate)
+                          intermediate=args.intermediate, jobs=args.jobs)
     if args.json:
         print(json.dumps(_jsonable(out), indent=2))
     else:

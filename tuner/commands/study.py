@@ -63,7 +63,7 @@ _positive_float = positive_float  # finite and > 0 (`--budget inf` used to pass)
 
 
 def register(sub) -> None:
-    from tuner.options import add_multiview_options, task_choices
+    from tuner.options import add_jobs_option, add_multiview_options, task_choices
     from tuner.study import PRUNERS, SAMPLERS
     ap = sub.add_parser("run", help="tune on the validation scenes, freeze the optimum, run the test scenes "
                                     "(the default command)")
@@ -104,6 +104,7 @@ def register(sub) -> None:
     t.add_argument("--retest", action="store_true", help="rerun the test even if test.json matches the frozen settings")
     t.add_argument("--verbose", action="store_true", help="Optuna's per-trial log lines")
     add_multiview_options(ap)
+    add_jobs_option(t)
     ap.set_defaults(func=run)
 
     c = sub.add_parser("calibrate", help="measure estimator seconds per pair vs max-iters; store Gamma_max(B)")
@@ -119,6 +120,7 @@ def register(sub) -> None:
     c.add_argument("--force", action="store_true", help="measure again even if stored")
     c.add_argument("--task", default="stereo", choices=[t for t in task_choices() if t != "both"],
                    help="the task whose pairs are timed")
+    add_jobs_option(c)
     c.set_defaults(func=run_calibrate)
 
     te = sub.add_parser("test", help="run a study's frozen settings on the test scenes (3 runs, averaged)")
@@ -135,6 +137,7 @@ def register(sub) -> None:
                     help="multiview studies: bags in parallel (default: available CPUs)")
     te.add_argument("--json", action="store_true")
     te.add_argument("--quiet", action="store_true")
+    add_jobs_option(te)
     te.set_defaults(func=run_test_cmd)
 
     for name, helptext, fn in (("table", "optimal-settings table over all studies in the storage", run_table),
@@ -202,6 +205,7 @@ def settings_from_args(args):
         heartbeat=args.heartbeat if args.heartbeat and args.heartbeat > 0 else None,
         calibration_pairs=args.calibration_pairs, recalibrate=args.recalibrate, progress=not quiet,
         test=not args.no_test, test_runs=args.test_runs, retest=args.retest, multiview=mv, workers=args.workers,
+        jobs=args.jobs,
         gt_dir=args.gt_dir)
 
 
@@ -300,11 +304,13 @@ def run_calibrate(args) -> int:
     root = resolve_data(args.data)
     quiet = bool(args.quiet or args.json)
     task = make_task(args.task, min_covisibility=args.covisibility, max_pairs=args.max_pairs)
+    from pipeline.tasks.pool import resolve_jobs
     vs = ValidationSet.from_scenes(load_scenes(root, args.scenes, split="val"), task)
     cache = H5Cache(args.cache)
     cal = calibrate(conf.geometry.ransac, conf, vs.scenes, cache, vs.fingerprint, budgets=budgets, ratio=ratio,
                     threshold=threshold, max_pairs=args.pairs, studies_dir=_studies_dir(args), force=args.force,
-                    progress=not quiet, seed=int(args.seed or 0))
+                    progress=not quiet, seed=int(args.seed or 0),
+                    jobs=resolve_jobs(args.jobs))  # as many estimators at once as a study's trial runs
     caps = {f"{b:g}": cal.gamma_max(b) for b in budgets}
     if args.json:
         print(json.dumps(_jsonable({"calibration": cal.to_dict(), "gamma_max": caps,
@@ -338,7 +344,7 @@ def run_test_cmd(args) -> int:
     quiet = bool(args.quiet or args.json)
     root = resolve_data(args.data) if args.data else None
     kw = dict(scenes=_scenes(args.scenes), cache=H5Cache(args.cache), runs=args.runs, max_pairs=args.max_pairs,
-              test_budget=args.test_budget, progress=not quiet, reuse=args.reuse, workers=args.workers)
+              test_budget=args.test_budget, progress=not quiet, reuse=args.reuse, workers=args.workers, jobs=args.jobs)
     if study is not None:
         frozen, path = freeze(study, sdir)
         result = run_test_for_study(study, frozen, sdir, data_root=root, **kw)

@@ -1,0 +1,447 @@
+"""Worker processes for the stereo pairs of an evaluation (``--jobs``): a persistent pool that keeps the
+evaluated scenes' features and k-NN tables in memory, and a short-lived pool that runs one function in every
+worker at once (the budget calibration times the estimator with all cores busy).
+
+    from pipeline.tasks.pool import pair_pool, resolve_jobs
+    pool = pair_pool(jobs, spec)                 # reused while the same data is evaluated (a whole study)
+    for index, result in pool.imap(items):       # completion order; ``WORKER_DIED`` for a killed worker's item
+        ...
+
+Why processes and not threads: OpenCV's and pydegensac's estimators hold the GIL for parts of their work, and a
+trial's cost is the estimator's; each worker runs BLAS / OpenMP / OpenCV with one thread, so ``jobs`` workers use
+``jobs`` cores and an estimator's measured seconds are those of one core.
+
+What a worker holds: the ``PairSpec`` (scenes, their pairs, the feature and matching configuration, the cache
+folder) arrives once, as the pool initializer's argument (pickled once per worker at spawn); on its first pair a
+worker reads those scenes' features and k-NN tables from the h5 cache (:func:`load_pair_data`) and keeps them for
+the pool's life. The pool lives as long as the same data is evaluated (``PairSpec.key``): every trial of a study
+reuses it; evaluating other data (the test scenes after a study) replaces it. ``shutdown_pools`` (also at exit)
+stops it.
+
+Faults: a worker that dies (killed by the OS, kill -9, a crash in a library) breaks the executor. The pair it was
+evaluating (each worker writes the item it runs into a shared array) comes back as :data:`WORKER_DIED`, every other
+unfinished item is resubmitted to a fresh pool, and the evaluation goes on. Ctrl-C (``KeyboardInterrupt``) kills
+the workers at once (they ignore SIGINT themselves, so a terminal's Ctrl-C reaches only the parent, which stops
+them; no traceback per worker and no wait for the pairs in flight).
+"""
+from __future__ import annotations
+
+import atexit
+import contextlib
+import hashlib
+import json
+import os
+import signal
+import threading
+from dataclasses import asdict, dataclass, field
+
+from pipeline.errors import ImtuneError
+
+#: the failure recorded for the item a dead worker was evaluating
+WORKER_DIED = "worker process died"
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
+                "VECLIB_MAXIMUM_THREADS")
+
+
+def available_cpus() -> int:
+    """CPUs this process may run on (``os.sched_getaffinity``; ``os.cpu_count`` where unavailable)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def resolve_jobs(jobs: int | None) -> int:
+    """``jobs`` as a process count: None -> every usable CPU; below 1 -> ImtuneError."""
+    if jobs is None:
+        return available_cpus()
+    try:
+        n = int(jobs)
+    except (TypeError, ValueError):
+        raise ImtuneError(f"jobs must be an integer >= 1, got {jobs!r}") from None
+    if n < 1:
+        raise ImtuneError(f"jobs must be >= 1 (worker processes evaluating pairs), got {n}")
+    return n
+
+
+@contextlib.contextmanager
+def single_thread_env():
+    """BLAS / OpenMP limited to one thread in processes started inside the block (a spawned worker inherits the
+    environment and imports numpy before any initializer runs, so the variables must be set here). Restored
+    afterwards. (pipeline.tasks.multiview does the same for its bag workers.)"""
+    saved = {k: os.environ.get(k) for k in _THREAD_VARS}
+    os.environ.update({k: "1" for k in _THREAD_VARS})
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+@contextlib.contextmanager
+def _sigint_ignored():
+    """SIGINT ignored while workers are started: an ignored signal stays ignored across exec, so a spawned
+    worker never sees the terminal's Ctrl-C (the parent stops it). Only the main thread may set handlers."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+def _limit_threads_here() -> None:
+    try:
+        import cv2
+        cv2.setNumThreads(1)
+    except Exception:  # noqa: BLE001 - OpenCV absent or built without a thread pool
+        pass
+
+
+def _kill(procs) -> None:
+    for p in list(procs):
+        try:
+            p.kill()
+        except Exception:  # noqa: BLE001 - already gone
+            pass
+    for p in list(procs):
+        try:
+            p.join(timeout=5)
+        except Exception:  # noqa: BLE001
+            pass
+
+
+# ------------------------------------------------------------------------------------- the pair data
+
+@dataclass
+class PairSpec:
+    """What the pair workers evaluate: the scenes, the pairs of each (``pairs[s]``), the configuration whose
+    feature and matching sections made the cached features and k-NN tables, the cache folder, and the function
+    evaluating one pair (``evaluate(scene, pair, fi, fj, tables, knn_seconds, conf, estimator)``, a module-level
+    function: it is sent by name, so this module imports no task)."""
+    scenes: list
+    pairs: list
+    conf: object  # PipelineConfig
+    cache_root: str
+    evaluate: object = None  # e.g. pipeline.tasks.stereo.evaluate_pair
+    key: str = field(default="")
+
+    def __post_init__(self):
+        if not self.key:
+            self.key = pair_data_key(self.scenes, self.pairs, self.conf, self.cache_root)
+
+
+def pair_data_key(scenes, pairs, conf, cache_root) -> str:
+    """Identity of the data a pool holds: cache folder, feature configuration, the k-NN stage's settings, every
+    scene's used image files and pair keys (a trial changes none of them; r, eta and Gamma are applied later)."""
+    from pipeline.matching import neighbours_needed
+    m = conf.matching
+    parts = [str(cache_root), asdict(conf.feature), m.method, neighbours_needed(m), str(m.custom_matches)]
+    for sc, ps in zip(scenes, pairs):
+        names = sorted({p.i for p in ps} | {p.j for p in ps})
+        parts.append([sc.name, [str(sc.images[n].path) for n in names], [p.key for p in ps]])
+    return hashlib.sha1(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:20]
+
+
+@dataclass
+class PairData:
+    """Features (``feats[s][image name]``) and k-NN tables (``tables[s][pair key]`` = (tables, seconds)) of the
+    scenes of a :class:`PairSpec`, and features per image per scene (``nf``)."""
+    feats: list
+    tables: list
+    nf: dict
+
+
+def load_pair_data(spec: PairSpec, cache=None, progress: bool = False) -> PairData:
+    """Read (or compute and cache) every scene's features and k-NN tables: what a worker keeps in memory."""
+    import numpy as np
+    from tqdm.auto import tqdm
+
+    from pipeline.cache import H5Cache
+    from pipeline.tasks.prepare import image_features, pair_knn
+    cache = cache if cache is not None else H5Cache(spec.cache_root)
+    conf = spec.conf
+    feats, tables, nf = [], [], {}
+    for sc, ps in zip(spec.scenes, spec.pairs):  # as pipeline.tasks.stereo.prepare_scene
+        names = sorted({p.i for p in ps} | {p.j for p in ps})
+        f = {n: image_features(cache, sc.images[n], conf.feature)
+             for n in tqdm(names, desc=f"{sc.name}: features", disable=not progress, leave=False)}
+        t = {p.key: pair_knn(cache, f[p.i], f[p.j], conf.matching)
+             for p in tqdm(ps, desc=f"{sc.name}: matching", disable=not progress, leave=False)}
+        feats.append(f)
+        tables.append(t)
+        nf[sc.name] = float(np.mean([len(x.keypoints) for x in f.values()])) if f else 0.0
+    return PairData(feats=feats, tables=tables, nf=nf)
+
+
+# ------------------------------------------------------------------------------------- in the worker
+
+_W: dict = {}  # the worker's state: spec, data (loaded at its first pair), slot, status array, estimators
+
+
+def _init_pair_worker(spec: PairSpec, status, counter) -> None:
+    _limit_threads_here()
+    with counter.get_lock():
+        slot = int(counter.value)
+        counter.value += 1
+    _W.clear()
+    _W.update(spec=spec, data=None, slot=slot, status=status, estimators={})
+    if 2 * slot + 1 < len(status):
+        status[2 * slot] = os.getpid()
+        status[2 * slot + 1] = -1
+
+
+def _pair_item(sub_id: int, si: int, pi: int, conf, keep: bool):
+    """One pair in the worker: ``spec.evaluate`` (:func:`pipeline.tasks.stereo.evaluate_pair`) on the data in
+    memory. Returns the PairResult (``keep``) or its record."""
+    status, slot = _W["status"], _W["slot"]
+    mine = 2 * slot + 1 < len(status)
+    if mine:
+        status[2 * slot + 1] = sub_id  # what the parent reads if this process dies
+    try:
+        if _W["data"] is None:
+            _W["data"] = load_pair_data(_W["spec"])
+        data, spec = _W["data"], _W["spec"]
+        name = conf.geometry.ransac
+        est = _W["estimators"].get(name)
+        if est is None:
+            from pipeline.geometry import get_estimator
+            est = _W["estimators"][name] = get_estimator(name)
+        scene, pair = spec.scenes[si], spec.pairs[si][pi]
+        tab, knn_s = data.tables[si][pair.key]
+        feats = data.feats[si]
+        pr = spec.evaluate(scene, pair, feats[pair.i], feats[pair.j], tab, knn_s, conf, est)
+    finally:
+        if mine:
+            status[2 * slot + 1] = -1
+    return pr if keep else pr.record
+
+
+# ------------------------------------------------------------------------------------- in the parent
+
+class PairPool:
+    """``jobs`` spawned worker processes evaluating the pairs of one :class:`PairSpec` (see the module
+    docstring). Use :func:`pair_pool` to get the process's pool for some data."""
+
+    def __init__(self, jobs: int, spec: PairSpec):
+        self.jobs = int(jobs)
+        self.spec = spec
+        self.key = spec.key
+        self._ex = None
+        self._procs: dict = {}
+        self._status = None
+        self._sub = 0
+        self.restarts = 0  # fresh pools started after a worker died
+
+    # the executor ------------------------------------------------------------------------------
+    def _start(self):
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+        ctx = mp.get_context("spawn")
+        self._status = ctx.Array("q", [0] * (2 * self.jobs))
+        counter = ctx.Value("i", 0)
+        self._procs = {}
+        self._ex = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx, initializer=_init_pair_worker,
+                                       initargs=(self.spec, self._status, counter))
+
+    def _submit(self, *args):
+        if self._ex is None:
+            self._start()
+        with single_thread_env(), _sigint_ignored():  # a worker spawned here inherits both
+            f = self._ex.submit(_pair_item, *args)
+        self._procs.update(getattr(self._ex, "_processes", None) or {})
+        return f
+
+    def _drop(self, kill: bool) -> None:
+        """Forget the executor; ``kill``: kill its processes now (a broken pool, Ctrl-C, shutdown)."""
+        ex, procs = self._ex, list(self._procs.values())
+        self._ex, self._procs = None, {}
+        if ex is None:
+            return
+        if kill:
+            _kill(procs)  # Python 3.11's broken executor joins its workers: they must be gone
+        try:
+            ex.shutdown(wait=not kill, cancel_futures=True)
+        except Exception:  # noqa: BLE001 - a broken executor
+            pass
+
+    def shutdown(self) -> None:
+        """Stop the workers (idle ones exit at once; the call queue is closed)."""
+        self._drop(kill=False)
+
+    def terminate(self) -> None:
+        self._drop(kill=True)
+
+    def _dead_items(self) -> set[int]:
+        """Submission ids that a process which died on its own was evaluating (the executor itself terminates the
+        survivors with SIGTERM after a break: those are not culprits)."""
+        out = set()
+        st = self._status
+        if st is None:
+            return out
+        for slot in range(len(st) // 2):
+            pid, sub = int(st[2 * slot]), int(st[2 * slot + 1])
+            p = self._procs.get(pid)
+            code = p.exitcode if p is not None else None
+            if sub >= 0 and code is not None and code != -signal.SIGTERM:
+                out.add(sub)
+        return out
+
+    # evaluating --------------------------------------------------------------------------------
+    def imap(self, items: list, conf, keep: bool = False, in_flight: int | None = None):
+        """Evaluate ``items`` ([(scene index, pair index)]); yields (position in ``items``, PairResult / record, or
+        :data:`WORKER_DIED`) in completion order. At most ``in_flight`` (default 2 x jobs) items are submitted
+        at a time, in the order given. Closing the generator early (a pruned trial) cancels what has not started;
+        an exception (Ctrl-C) kills the workers."""
+        from concurrent.futures import FIRST_COMPLETED, wait
+        from concurrent.futures.process import BrokenProcessPool
+        cap = int(in_flight or 2 * self.jobs)
+        todo = list(range(len(items)))[::-1]  # a stack: pop() gives the next in order
+        unexplained = 0  # consecutive breaks with no worker dead inside a pair
+        inflight: dict = {}  # future -> (submission id, item position)
+        clean = False
+        try:
+            while todo or inflight:
+                try:
+                    while todo and len(inflight) < cap:
+                        k = todo.pop()
+                        self._sub += 1
+                        si, pi = items[k]
+                        inflight[self._submit(self._sub, si, pi, conf, keep)] = (self._sub, k)
+                    done, _ = wait(list(inflight), return_when=FIRST_COMPLETED)
+                    for f in done:
+                        r = f.result()  # BrokenProcessPool below; a worker's exception (a bug) propagates
+                        _, k = inflight.pop(f)
+                        yield k, r
+                except BrokenProcessPool:
+                    dead = self._dead_items()
+                    finished, again = [], []
+                    for f, (sub, k) in list(inflight.items()):
+                        if f.done() and not f.cancelled() and f.exception() is None:
+                            finished.append((k, f.result()))
+                        elif sub in dead:
+                            finished.append((k, WORKER_DIED))
+                        else:
+                            again.append(k)
+                    if dead:
+                        unexplained = 0
+                    else:  # no worker died inside a pair (at start-up, or sent SIGTERM): retry once, then stop
+                        unexplained += 1
+                        if unexplained > 1:
+                            codes = sorted({str(p.exitcode) for p in self._procs.values() if p.exitcode is not None})
+                            self._drop(kill=True)
+                            raise ImtuneError(
+                                f"the stereo pair workers keep dying before they evaluate a pair (exit codes "
+                                f"{', '.join(codes) or 'unknown'}); run with --jobs 1 to see the error (a script "
+                                "using jobs > 1 needs the `if __name__ == \"__main__\":` guard: workers are spawned)")
+                    inflight.clear()
+                    self._drop(kill=True)
+                    self.restarts += 1
+                    todo.extend(sorted(again, reverse=True))
+                    for k, r in finished:
+                        yield k, r
+            clean = True
+        except GeneratorExit:  # the consumer stopped (a pruned trial): keep the pool, drop what has not started
+            for f in inflight:
+                f.cancel()
+            clean = True
+            raise
+        finally:
+            if not clean:  # Ctrl-C or an error: stop at once
+                self._drop(kill=True)
+
+
+_POOLS: dict[str, PairPool] = {}
+_POOLS_LOCK = threading.Lock()
+
+
+def pair_pool(jobs: int, spec: PairSpec) -> PairPool:
+    """This process's pool for ``spec``'s data with ``jobs`` workers: the running one when it holds the same data
+    (the same key) with as many workers, else a new one (the previous pool is shut down: one pool at a time, so a
+    study's workers are replaced by the test run's)."""
+    with _POOLS_LOCK:
+        p = _POOLS.get("stereo")
+        if p is not None and p.key == spec.key and p.jobs == int(jobs):
+            p.spec = spec
+            return p
+        if p is not None:
+            p.shutdown()
+        p = _POOLS["stereo"] = PairPool(jobs, spec)
+        return p
+
+
+def shutdown_pools() -> None:
+    """Stop every pool of this process (called at exit)."""
+    with _POOLS_LOCK:
+        for p in _POOLS.values():
+            try:
+                p.shutdown()
+            except Exception:  # noqa: BLE001
+                pass
+        _POOLS.clear()
+
+
+atexit.register(shutdown_pools)
+
+
+# ------------------------------------------------------------------------------------- all at once
+
+_C: dict = {}
+
+
+def _init_concurrent(payload, barrier) -> None:
+    _limit_threads_here()
+    _C.clear()
+    _C.update(payload=payload, barrier=barrier)
+
+
+def _concurrent_item(fn, args):
+    _C["barrier"].wait(timeout=300)  # every worker starts together: the measurement sees all cores busy
+    return os.getpid(), fn(_C["payload"], *args)
+
+
+class ConcurrentRunner:
+    """``jobs`` spawned processes that each run ``fn(payload, *args)`` at the same moment (a barrier), so every
+    call is measured on a machine whose ``jobs`` cores are all busy. ``payload`` is sent once per worker.
+
+        with ConcurrentRunner(jobs, payload) as run:
+            results = run(fn, *args)      # one result per worker
+    """
+
+    def __init__(self, jobs: int, payload):
+        self.jobs = int(jobs)
+        self.payload = payload
+        self._ex = None
+
+    def __enter__(self):
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+        ctx = mp.get_context("spawn")
+        self._barrier = ctx.Barrier(self.jobs)
+        with single_thread_env(), _sigint_ignored():
+            self._ex = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx, initializer=_init_concurrent,
+                                           initargs=(self.payload, self._barrier))
+        return self
+
+    def __call__(self, fn, *args) -> list:
+        with single_thread_env(), _sigint_ignored():
+            futs = [self._ex.submit(_concurrent_item, fn, args) for _ in range(self.jobs)]
+        out = [f.result() for f in futs]
+        pids = {pid for pid, _ in out}
+        if len(pids) != self.jobs:  # cannot happen with the barrier; a silent overlap would be a wrong figure
+            raise ImtuneError(f"concurrent measurement ran on {len(pids)} processes, not {self.jobs}")
+        return [r for _, r in out]
+
+    def __exit__(self, exc_type, exc, tb):
+        ex, self._ex = self._ex, None
+        if ex is None:
+            return False
+        if exc_type is not None:
+            _kill(list((getattr(ex, "_processes", None) or {}).values()))
+        ex.shutdown(wait=exc_type is None, cancel_futures=True)
+        return False

@@ -1,0 +1,246 @@
+"""Stereo pairs in a pool of worker processes (``--jobs``, pipeline.tasks.pool) on real Strecha images: the same
+records and pruning steps for any number of jobs, a `tune` study with the same trial values under --jobs 1 and 2,
+a worker killed with SIGKILL mid-pair (a recorded failure, the evaluation goes on), Ctrl-C stopping the pool, the
+bad-input lines, and the budget calibrated with as many estimators running at once. Real processes and signals."""
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import DATA, ROOT, copy_strecha_subset
+
+STRECHA = DATA / "strecha"
+pytestmark = pytest.mark.skipif(not STRECHA.is_dir(), reason=f"real data not found at {STRECHA}")
+TIMING = ("seconds",)  # record keys that are measurements of time (they differ run to run, whatever the jobs)
+
+
+def _untimed(records):
+    return [{k: v for k, v in r.items() if not any(t in k for t in TIMING)} for r in records]
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    return tmp_path_factory.mktemp("pool-cache")
+
+
+@pytest.fixture(scope="module")
+def data4(tmp_path_factory):
+    return copy_strecha_subset(tmp_path_factory.mktemp("pool-data4"), ["0003.jpg", "0004.jpg", "0005.jpg", "0006.jpg"])
+
+
+def _conf(max_iters=5000, threshold=0.5, ratio=0.85, strategy="both"):
+    from pipeline.config import FeatureConfig, GeometryConfig, MatchConfig, PipelineConfig
+    return PipelineConfig(feature=FeatureConfig(name="sift", num_features=2048),
+                          matching=MatchConfig(ratio=ratio, strategy=strategy),
+                          geometry=GeometryConfig(ransac="degensac", threshold=threshold, max_iters=max_iters, seed=3))
+
+
+def _scenes(root=STRECHA):
+    from tuner.evaluate import load_scenes
+    return load_scenes(Path(root), ["fountain-P11"])
+
+
+def _env(cache):
+    return dict(os.environ, IMTUNE_CACHE=str(cache), PYTHONUNBUFFERED="1")
+
+
+def tune(*args, cache, timeout=900):
+    return subprocess.run([sys.executable, "-m", "tuner", *map(str, args)], capture_output=True, text=True, cwd=ROOT,
+                          env=_env(cache), timeout=timeout)
+
+
+def test_same_records_and_steps_for_jobs_1_and_2(cache):
+    from pipeline.cache import H5Cache
+    from pipeline.tasks.pool import shutdown_pools
+    from pipeline.tasks.stereo import StereoTask
+    scenes, conf, h5 = _scenes(), _conf(), H5Cache(cache)
+    out = {}
+    for jobs in (1, 2):
+        steps = []
+        task = StereoTask(max_pairs=10, step_pairs=4, jobs=jobs)
+        res = task.evaluate(scenes, conf, h5, on_step=lambda k, n, s: steps.append(
+            (k, n, s["pairs"], s["mAA10"], s["units_total"], len(s["budget_seconds_units"]))))
+        again = task.evaluate(scenes, conf, h5)  # the second trial reuses the pool and the data in memory
+        out[jobs] = (res, steps, again)
+    shutdown_pools()
+    (r1, s1, a1), (r2, s2, a2) = out[1], out[2]
+    assert len(r1.records) == 10 and [r["pair"] for r in r1.records] == [r["pair"] for r in r2.records]
+    assert _untimed(r1.records) == _untimed(r2.records) == _untimed(a2.records)
+    assert s1 == s2 and [s[0] for s in s1] == [0, 1, 2] and s1[-1][2] == 10 and s1[0][4] == 10
+    assert r1.summary["mAA10"] == r2.summary["mAA10"] and math.isfinite(r2.summary["mAA10"])
+    assert all(r["ransac_seconds"] > 0 for r in r2.records if r["failure"] is None)  # measured in the workers
+    print(f"POOL jobs 1 vs 2: {len(r1.records)} records identical (timings aside), steps {s1}")
+
+
+def test_a_worker_killed_mid_pair_is_a_recorded_failure(cache):
+    from pipeline.cache import H5Cache
+    from pipeline.tasks import pool as poolmod
+    from pipeline.tasks.stereo import StereoTask
+    scenes, h5 = _scenes(), H5Cache(cache)
+    # no ratio test, one direction, eta 0.05 px: DEGENSAC runs all 50k iterations (~0.5 s a pair), so a worker
+    # found busy is still inside its pair when the signal lands
+    conf = _conf(max_iters=50_000, threshold=0.05, ratio=1.0, strategy="uni")
+    clean = StereoTask(max_pairs=6, step_pairs=2, jobs=1).evaluate(scenes, conf, h5)
+    killed = []
+
+    def on_step(k, n, summary):
+        if killed:
+            return
+        killed.append(None)  # one attempt
+        p = poolmod._POOLS["stereo"]
+        deadline = time.time() + 20
+        while time.time() < deadline:
+            st = p._status
+            busy = [(int(st[2 * s]), int(st[2 * s + 1])) for s in range(p.jobs) if int(st[2 * s + 1]) >= 0]
+            if busy:
+                os.kill(busy[0][0], signal.SIGKILL)
+                killed[0] = busy[0]
+                return
+            time.sleep(0.01)
+
+    task = StereoTask(max_pairs=6, step_pairs=2, jobs=2)
+    res = task.evaluate(scenes, conf, h5, on_step=on_step)
+    pool = poolmod._POOLS["stereo"]
+    assert killed[0] is not None and pool.restarts == 1
+    died = [r for r in res.records if r["failure"] == poolmod.WORKER_DIED]
+    assert len(died) == 1 and died[0]["err"] == math.inf
+    others = [r for r in res.records if r["failure"] != poolmod.WORKER_DIED]
+    assert _untimed(others) == _untimed([r for r in clean.records if r["pair"] != died[0]["pair"]])
+    was_failed = not math.isfinite(next(r for r in clean.records if r["pair"] == died[0]["pair"])["err"])
+    assert len(res.records) == len(clean.records) == 6
+    assert res.summary["failed"] == clean.summary["failed"] + (0 if was_failed else 1)  # it counts, as a failure
+    # and the pool works again for the next trial
+    again = task.evaluate(scenes, conf, h5)
+    assert _untimed(again.records) == _untimed(clean.records)
+    poolmod.shutdown_pools()
+    print(f"POOL kill -9 of worker {killed[0][0]} mid-pair: 1 pair recorded '{poolmod.WORKER_DIED}', "
+          f"{len(others)} others identical to the serial run, next evaluation complete")
+
+
+def _children(pid):
+    out = []
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            stat = (d / "stat").read_text()
+            ppid = int(stat.rsplit(")", 1)[1].split()[1])
+            cmd = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except (OSError, ValueError, IndexError):
+            continue
+        if ppid == pid and "spawn_main" in cmd and "resource_tracker" not in cmd:
+            out.append(int(d.name))
+    return out
+
+
+def _alive(pid):
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def test_ctrl_c_stops_the_pool_at_once(tmp_path, cache):
+    data = copy_strecha_subset(tmp_path / "data", ["0003.jpg", "0004.jpg", "0005.jpg", "0006.jpg"])
+    args = ["evaluate", "--data", data, "--scenes", "fountain-P11", "--num-features", "2048", "--jobs", "2",
+            "--ratio", "1", "--strategy", "uni", "--max-iters", "1000000", "--threshold", "0.05", "--json"]
+    p = subprocess.Popen([sys.executable, "-m", "tuner", *map(str, args)], cwd=ROOT, env=_env(cache),
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        deadline = time.time() + 300
+        workers = []
+        while time.time() < deadline and p.poll() is None and len(workers) < 2:
+            time.sleep(0.2)
+            workers = _children(p.pid)
+        assert len(workers) == 2, "the pool never started"
+        time.sleep(2.0)  # the workers are inside their pairs (1e6 iterations each)
+        os.killpg(p.pid, signal.SIGINT)  # what a terminal's Ctrl-C does: the whole foreground group
+        _, err = p.communicate(timeout=60)  # a hang fails here
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.communicate()
+    assert p.returncode == 130, err[-2000:]
+    assert "Traceback" not in err and len([ln for ln in err.splitlines() if ln.strip()]) <= 2, err[-2000:]
+    deadline = time.time() + 30
+    while time.time() < deadline and any(_alive(w) for w in workers):
+        time.sleep(0.1)
+    assert not any(_alive(w) for w in workers)
+    print(f"POOL Ctrl-C: exit 130, workers {workers} gone, stderr {err.strip()!r}")
+
+
+def test_tune_evaluate_json_records_identical_for_jobs_1_and_2(data4, cache):
+    outs = []
+    for jobs in (1, 2):
+        r = tune("evaluate", "--data", data4, "--scenes", "fountain-P11", "--num-features", "2048", "--jobs", jobs,
+                 "--seed", "5", "--pairs", "--json", cache=cache)
+        assert r.returncode == 0, r.stderr[-2000:]
+        outs.append(json.loads(r.stdout)["stereo"])
+    a, b = outs
+    assert len(a["pair_records"]) == 6
+    assert _untimed(a["pair_records"]) == _untimed(b["pair_records"])
+    assert a["mAA10"] == b["mAA10"] and a["NI"] == b["NI"]
+
+
+def quick(data, studies, storage, name, *extra):
+    return ["--data", data, "--feature", "sift", "--num-features", "2048", "--ransac", "degensac",
+            "--scenes", "fountain-P11", "--max-pairs", "6", "--chunk-pairs", "2", "--studies-dir", studies,
+            "--storage", storage, "--study", name, "--no-test", "--quiet", *extra]
+
+
+def test_study_same_trial_values_with_jobs_1_and_2(tmp_path, data4, cache):
+    import optuna
+    from tuner.storage import open_storage
+    got = []
+    for jobs in (1, 2):
+        storage = f"sqlite:///{tmp_path}/j{jobs}.db"
+        # Gamma pinned and a generous budget: the trials' values depend on their parameters only (a calibrated
+        # Gamma_max and the over-budget rule depend on timings, which no two runs share)
+        r = tune(*quick(data4, tmp_path / f"s{jobs}", storage, "same", "--n-trials", "5", "--sampler", "random",
+                        "--seed", "11", "--fix", "max_iters=3000", "--budget", "10", "--jobs", jobs), cache=cache)
+        assert r.returncode == 0, r.stderr[-2000:]
+        study = optuna.load_study(study_name="same", storage=open_storage(storage, heartbeat=None))
+        got.append([(t.number, t.state.name, t.params, t.value, t.intermediate_values, t.user_attrs.get("sampler_seed"),
+                     t.user_attrs.get("NI")) for t in study.trials])
+    assert len(got[0]) == 5 and got[0] == got[1]
+    assert len({tuple(sorted(t[2].items())) for t in got[0]}) == 5
+    print(f"POOL study --jobs 1 vs 2: {len(got[0])} trials, identical parameters, values, intermediate values")
+
+
+def test_jobs_bad_input_and_note(data4, cache):
+    for bad in ("0", "-2", "x"):
+        r = tune("evaluate", "--data", data4, "--jobs", bad, cache=cache)
+        lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+        assert r.returncode == 2 and len(lines) == 1 and "--jobs" in lines[0], r.stderr
+    from pipeline.tasks.pool import available_cpus
+    n = available_cpus() + 1
+    r = tune("evaluate", "--data", data4, "--scenes", "fountain-P11", "--num-features", "2048", "--jobs", n,
+             "--json", cache=cache)
+    assert r.returncode == 0, r.stderr[-2000:]
+    notes = [ln for ln in r.stderr.splitlines() if ln.startswith("note: --jobs")]
+    assert len(notes) == 1 and f"more than the {n - 1} CPUs" in notes[0]
+    from pipeline.errors import ImtuneError
+    from pipeline.tasks.stereo import StereoTask
+    with pytest.raises(ImtuneError, match="jobs must be >= 1"):
+        StereoTask(jobs=0)
+
+
+def test_calibration_times_as_many_estimators_as_jobs(tmp_path, data4, cache):
+    cals = {}
+    for jobs in (1, 2):
+        r = tune("calibrate", "--data", data4, "--scenes", "fountain-P11", "--num-features", "2048", "--pairs", "3",
+                 "--budget", "0.05", "--studies-dir", tmp_path, "--jobs", jobs, "--json", "--quiet", cache=cache)
+        assert r.returncode == 0, r.stderr[-2000:]
+        cals[jobs] = json.loads(r.stdout)["calibration"]
+    assert cals[1]["jobs"] == 1 and cals[2]["jobs"] == 2
+    store = json.loads((tmp_path / "budgets.json").read_text())
+    assert len(store) == 2 and sum(k.endswith("|jobs=2") for k in store) == 1  # two calibrations, kept apart
