@@ -10,7 +10,8 @@ so rerunning reuses finished studies and several workers on one storage share th
 study owned by another (finding 2 ranks the estimator of finding 1, ...) reuses that study by name.
 
 Paper references are to Jin et al., "Image Matching Across Wide Baselines: From Paper to Practice", IJCV 2021
-(arXiv:2003.01587v5); the section names are the paper's, the figure / table numbers as we read them there.
+(arXiv:2003.01587v5). The section / figure / table numbers were written from memory and have not been checked
+against the PDF: treat them as pointers, and correct them here if they are off (the report says so too).
 """
 from __future__ import annotations
 

@@ -53,6 +53,8 @@ def settings_lines(fs) -> list[str]:
         f"storage: {storage_label(fs.storage, fs.studies_dir)}; studies dir: {fs.studies_dir}",
         f"intervals: 95%, stratified bootstrap over test pairs ({fs.n_resamples} resamples, seed {fs.seed}); "
         "paired differences on the same pairs; p: two-sided paired sign-flip test",
+        "paper references (section / figure / table of arXiv:2003.01587v5) are pointers written from memory, not "
+        "checked against the PDF",
     ]
 
 
