@@ -49,7 +49,8 @@ def _study(storage, name):
 
 
 def _wait_for_fresh_running(p, storage, name, after: int, timeout=300):
-    """Wait until the worker runs a new trial (number > after, not a retry); returns (its number, completed)."""
+    """Wait until the worker evaluates a new trial (number > after, not a retry, parameters sampled); returns
+    (its number, the completed trial numbers)."""
     deadline = time.time() + timeout
     while time.time() < deadline and p.poll() is None:
         time.sleep(0.2)
@@ -61,7 +62,8 @@ def _wait_for_fresh_running(p, storage, name, after: int, timeout=300):
             ts = study.get_trials(deepcopy=False)
         finally:
             st.engine.dispose()
-        fresh = [t for t in ts if t.state.name == "RUNNING" and t.number > after
+        # params set: the sampler is done and the trial is evaluating the pairs (where the kill should land)
+        fresh = [t for t in ts if t.state.name == "RUNNING" and t.number > after and t.params
                  and "failed_trial" not in t.system_attrs]
         if fresh:
             return fresh[0].number, {t.number for t in ts if t.state.name == "COMPLETE"}
