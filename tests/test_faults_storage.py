@@ -355,3 +355,14 @@ def test_heartbeat_zero_is_off(tmp_path, data3, cache):
     finally:
         con.close()
     shutil.rmtree(tmp_path / "studies", ignore_errors=True)
+
+
+@pytest.mark.parametrize("content,needle", [(b"", "holds no Optuna studies"), (b"not a database\n" * 100,
+                                                                              "not an SQLite database")])
+def test_read_only_commands_leave_a_foreign_file_alone(tmp_path, cache, content, needle):
+    f = tmp_path / "other.db"
+    f.write_bytes(content)
+    for cmd in (["studies"], ["table"]):
+        line = one_line_error(tune(*cmd, "--storage", f"sqlite:///{f}", "--studies-dir", tmp_path / "s", cache=cache))
+        assert needle in line, line
+    assert f.read_bytes() == content and sorted(p.name for p in tmp_path.iterdir()) == ["other.db"]

@@ -289,6 +289,8 @@ def _prepare_sqlite(path: Path, must_exist: bool = False) -> None:
             what = "a folder, not a file" if path.is_dir() else "no such file"
             raise ImtuneError(f"no SQLite storage at {path.resolve()} ({what}); pass the --storage (or --studies-dir) the "
                               "studies were run with, or run `tune` first")
+        if path.stat().st_size == 0:  # an empty file: nothing to switch to WAL, and it is left empty
+            return
     else:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
