@@ -160,6 +160,13 @@ class Objective:
             sec = task.budget_seconds(summary)
             over = bool(self.prune_over_budget) and self.budget is not None and sec is not None \
                 and sec > self.prune_over_budget * self.budget
+            # a proof, not a guess: once more than half of ALL the trial's units (the task's ``units_total``) took
+            # more than B (``budget_seconds_units``: the per-unit values of the budget statistic so far), the
+            # trial's final median is > B whatever the remaining units take
+            each, total = summary.get("budget_seconds_units"), summary.get("units_total")
+            n_over = sum(1 for x in each if float(x) > self.budget) if each and total and self.budget is not None else 0
+            proven = bool(total) and 2 * n_over > int(total)
+            over = over or proven
             if over or trial.should_prune():
                 n = int(summary.get("pairs", 0) or 0)
                 if sec is not None and self.budget is not None:
@@ -168,7 +175,11 @@ class Objective:
                 trial.set_user_attr("pruned_at_pairs", n)
                 trial.set_user_attr("feasible", within_budget(sec, self.budget))
                 trial.set_user_attr("timing", self._timing(n, float(summary.get("ransac_seconds", 0.0)) * n, t0))
-                if over:
+                if proven:
+                    trial.set_user_attr("pruned_reason", f"over budget: {n_over} of its {int(total)} pairs already "
+                                                         f"took more than {self.budget:g} s (median > B whatever "
+                                                         "the rest take)")
+                elif over:
                     trial.set_user_attr("pruned_reason", f"over budget: median {sec:.3f} s > "
                                                          f"{self.prune_over_budget:g} x {self.budget:g} s")
                 raise optuna.TrialPruned()

@@ -36,7 +36,8 @@ from tuner.protocol import best_feasible  # noqa: F401  (re-exported: the study'
 from tuner.version import code_version  # noqa: F401  (re-exported)
 
 SAMPLERS = ("tpe", "random", "cmaes", "grid")
-PRUNERS = ("median", "none")
+PRUNERS = ("median", "sha", "hyperband", "none")
+DEFAULT_PRUNER = "median"  # the fastest to the same frozen optimum in benchmarks/study_wall_time.py (README)
 SCHEMA = 1
 DEFAULT_TRIALS = 50
 
@@ -92,7 +93,7 @@ class TuneSettings:
     timeout: float | None = None
     seed: int | None = None
     sampler: str = "tpe"
-    pruner: str = "median"
+    pruner: str = DEFAULT_PRUNER
     startup_trials: int | None = None
     budget: float = 0.5
     test_budget: float = 1.0
@@ -112,6 +113,7 @@ class TuneSettings:
     multiview: object = None  # MultiviewConfig of task "multiview" (None: the protocol's bags)
     workers: int | None = None  # multiview: bag processes per trial (None: the task's default, all CPUs)
     jobs: int | None = None  # stereo: pair worker processes (None: every usable CPU); calibration uses as many
+    warm_start: list = field(default_factory=list)  # studies (same storage) whose optimum + best trials go first
     gt_dir: str | None = None  # built ground truth (default $IMTUNE_GT, $IMTUNE_CACHE/gt, ~/.cache/imtune/gt)
     log: object = None  # callable(str) for status lines; None = stderr unless progress is off
     verbose: bool = False  # Optuna's own INFO log lines
@@ -176,12 +178,119 @@ def make_sampler(name: str, seed: int | None, space, startup_trials: int | None 
 
 
 def make_pruner(name: str):
+    """Optuna's pruner ``name``. A trial's steps are its chunks of pairs (``--chunk-pairs``, stratified over the
+    scenes so that an early chunk is representative; the intermediate value is the running mAA(10)):
+
+    - ``median``: MedianPruner, after 5 complete trials, from the second chunk on: stop a trial whose running value
+      is below the median of the other trials' at the same chunk;
+    - ``sha``: SuccessiveHalvingPruner (asynchronous successive halving), rungs at chunks 1, 2, 4, ... (reduction
+      factor 2): a trial continues past a rung only in the top half of the trials that reached it;
+    - ``hyperband``: HyperbandPruner (several successive-halving brackets; the maximum resource is the number of
+      chunks of the first complete trial), reduction factor 2;
+    - ``none``: every trial runs all its pairs.
+
+    Whatever the pruner, a trial proven over the time budget is stopped (``tuner.objective``)."""
     import optuna
     if name not in PRUNERS:
         raise ImtuneError(f"unknown pruner {name!r} (choose from {', '.join(PRUNERS)})")
     if name == "none":
         return optuna.pruners.NopPruner()
+    if name == "sha":
+        return optuna.pruners.SuccessiveHalvingPruner(min_resource=1, reduction_factor=2, min_early_stopping_rate=0)
+    if name == "hyperband":
+        return optuna.pruners.HyperbandPruner(min_resource=1, max_resource="auto", reduction_factor=2)
     return optuna.pruners.MedianPruner(n_startup_trials=5, n_warmup_steps=1)
+
+
+WARM_START_BEST = 3  # feasible trials taken from each warm-start study, besides its frozen optimum
+
+
+def _source_picks(src, best: int) -> list:
+    """The frozen optimum of a study (its selection rule; the best feasible trial by default) and its ``best``
+    best feasible complete trials, best first, without repeats."""
+    from optuna.trial import TrialState
+
+    from tuner.protocol import trial_value, trial_within_budget
+    picks = []
+    try:
+        from tuner.select import select_trial
+        frozen = select_trial(src, src.user_attrs.get("select"))[0]
+    except (ImportError, ImtuneError):
+        frozen = best_feasible(src)
+    if frozen is not None:
+        picks.append(frozen)
+    ok = [t for t in src.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
+          if trial_value(t) is not None and trial_within_budget(t)]
+    ok.sort(key=lambda t: (-trial_value(t), t.number))
+    for t in ok:
+        if len(picks) >= best + (1 if frozen is not None else 0):
+            break
+        if all(t.number != q.number for q in picks):
+            picks.append(t)
+    return picks
+
+
+def project_params(params: dict, space) -> dict:
+    """Trial parameters of another study projected into ``space`` (a resolved SearchSpace): parameters ``space``
+    does not search are dropped; numbers are clipped to its range (so Gamma is capped by this study's Gamma_max),
+    rounded for integers and snapped to a step; a categorical value is kept only if ``space`` allows it."""
+    import math as _m
+    out = {}
+    for name, p in space.params.items():
+        if name not in params or params[name] is None:
+            continue
+        v = params[name]
+        if p.type == "categorical":
+            if v in list(p.choices):
+                out[name] = v
+            continue
+        try:
+            x = float(v)
+        except (TypeError, ValueError):
+            continue
+        if not _m.isfinite(x):
+            continue
+        lo, hi = float(p.low), float(p.high)
+        x = min(max(x, lo), hi)
+        if p.step:
+            x = lo + round((x - lo) / float(p.step)) * float(p.step)
+            x = min(max(x, lo), hi)
+        out[name] = int(round(x)) if p.type == "int" else float(x)
+    return out
+
+
+def warm_start(study, storage, space, sources: list, best: int = WARM_START_BEST, say=None) -> list[dict]:
+    """``--warm-start STUDY`` (repeatable): enqueue the frozen optimum and the ``best`` best feasible trials of each
+    source study (in the same storage) as this study's first trials, projected into its space
+    (:func:`project_params`), without repeats. Only a study without trials is warm-started (a resumed study keeps
+    its history); an unknown source is a one-line error naming the studies in the storage. Returns what was
+    enqueued ([{"study", "trial", "params"}]), also recorded in the study's user attribute ``warm_start``."""
+    if not sources:
+        return []
+    srcs = []
+    for name in dict.fromkeys(sources):
+        if name == study.study_name:
+            raise ImtuneError(f"--warm-start {name}: a study cannot warm-start itself")
+        srcs.append(load_study(storage, name))  # unknown -> one line listing the studies
+    if study.get_trials(deepcopy=False):
+        if say is not None:
+            say(f"warm start skipped: study {study.study_name} already has trials")
+        return []
+    done, seen = [], set()
+    for src in srcs:
+        for t in _source_picks(src, best):
+            params = project_params(t.params, space)
+            key = tuple(sorted(params.items()))
+            if not params or key in seen:
+                continue
+            seen.add(key)
+            study.enqueue_trial(params, user_attrs={"warm_start": f"{src.study_name}#{t.number}"},
+                                skip_if_exists=True)
+            done.append({"study": src.study_name, "trial": t.number, "params": params})
+    study.set_user_attr("warm_start", done)
+    if say is not None:
+        say(f"warm start: {len(done)} trial(s) enqueued from {', '.join(s.study_name for s in srcs)}")
+    return done
 
 
 def load_study(storage, name: str):
@@ -388,6 +497,7 @@ def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
         return len(st.get_trials(deepcopy=False, states=(TrialState.COMPLETE, TrialState.PRUNED)))
 
     fail_stale_trials(study)  # trials of killed workers: FAIL, parameters re-enqueued once
+    warm_start(study, ctx.storage, ctx.space, s.warm_start, say=s.say)  # a new study only
     done0 = finished(study)
     bar = None
     if s.progress:

@@ -64,7 +64,7 @@ _positive_float = positive_float  # finite and > 0 (`--budget inf` used to pass)
 
 def register(sub) -> None:
     from tuner.options import add_jobs_option, add_multiview_options, task_choices
-    from tuner.study import PRUNERS, SAMPLERS
+    from tuner.study import DEFAULT_PRUNER, PRUNERS, SAMPLERS
     ap = sub.add_parser("run", help="tune on the validation scenes, freeze the optimum, run the test scenes "
                                     "(the default command)")
     add_pipeline_options(ap, tuning=True)
@@ -82,7 +82,13 @@ def register(sub) -> None:
                         "(default 50; the whole grid with --sampler grid)")
     t.add_argument("--timeout", type=_positive_float, default=None, help="stop this worker after this many seconds")
     t.add_argument("--sampler", default="tpe", choices=list(SAMPLERS), help=f"{' | '.join(SAMPLERS)} (default tpe)")
-    t.add_argument("--pruner", default="median", choices=list(PRUNERS), help=f"{' | '.join(PRUNERS)} (default median)")
+    t.add_argument("--pruner", default=DEFAULT_PRUNER, choices=list(PRUNERS),
+                   help=f"{' | '.join(PRUNERS)}: Optuna's median, successive-halving or Hyperband pruner over the "
+                        f"chunks of pairs, or none (default {DEFAULT_PRUNER}; see the README's tuning section)")
+    t.add_argument("--warm-start", action="append", default=[], metavar="STUDY",
+                   help="first trials: the frozen optimum and the 3 best feasible trials of STUDY (same storage), "
+                        "projected into this study's space (clipped to its ranges, Gamma to its Gamma_max); "
+                        "repeatable; only a study without trials")
     t.add_argument("--startup-trials", type=_positive_int, default=None,
                    help="random trials before TPE models (default: n_trials / 5, between 3 and 10)")
     t.add_argument("--budget", type=_positive_float, default=0.5,
@@ -205,7 +211,7 @@ def settings_from_args(args):
         heartbeat=args.heartbeat if args.heartbeat and args.heartbeat > 0 else None,
         calibration_pairs=args.calibration_pairs, recalibrate=args.recalibrate, progress=not quiet,
         test=not args.no_test, test_runs=args.test_runs, retest=args.retest, multiview=mv, workers=args.workers,
-        jobs=args.jobs,
+        jobs=args.jobs, warm_start=list(args.warm_start),
         gt_dir=args.gt_dir)
 
 
