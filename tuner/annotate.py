@@ -28,6 +28,7 @@ import warnings
 
 METRIC_NAME = "mAA(10°)"
 MARK = "**imtune**"
+SECONDS_NAME = "median estimator time per pair (s)"  # the second objective of a pareto study
 
 
 from tuner.protocol import trial_within_budget as is_feasible  # noqa: E402  (the one feasibility rule)
@@ -105,25 +106,29 @@ def annotate_study(study, frozen: dict | int | None = None) -> dict:
     import optuna
     from optuna.trial import TrialState
 
+    from tuner.protocol import trial_value as _value  # a pareto study's trials have two values: mAA10 first
+
     attrs = study.user_attrs
+    names = [METRIC_NAME] + [SECONDS_NAME] * (len(study.directions) - 1)  # pareto: the time objective too
     with warnings.catch_warnings():  # set_metric_names is "experimental" in Optuna 5
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-        if list(study.metric_names or []) != [METRIC_NAME]:
-            study.set_metric_names([METRIC_NAME])
+        if list(study.metric_names or []) != names:
+            study.set_metric_names(names)
     budget = (attrs.get("budget") or {}).get("seconds_per_pair")
     from pipeline.tasks import TASKS
     untimed = attrs.get("task", "stereo") in TASKS and not TASKS.get(attrs.get("task", "stereo")).timed
     trials = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
     over = [t for t in trials if not is_feasible(t)]
-    feasible = [t for t in trials if is_feasible(t) and t.value is not None]
-    best_feas = max(feasible, key=lambda t: (t.value, -float(t.user_attrs.get("ransac_seconds_median", 0.0)),
+    feasible = [t for t in trials if is_feasible(t) and _value(t) is not None]
+    best_feas = max(feasible, key=lambda t: (_value(t), -float(t.user_attrs.get("ransac_seconds_median", 0.0)),
                                              -t.number)) if feasible else None
     frozen_no = frozen.get("trial") if isinstance(frozen, dict) else frozen
     frozen_no = int(frozen_no) if frozen_no is not None else None
     pick = frozen_no if frozen_no is not None else (best_feas.number if best_feas else None)
-    valued = [t for t in trials if t.value is not None]
+    # (a pareto study's dashboard shows its Pareto front, over-budget trials included: no single Best Trial)
+    valued = [t for t in trials if _value(t) is not None and len(study.directions) == 1]
     # what the dashboard's "Best Trial" card shows: the highest value, constraints ignored
-    dash_best = max(valued, key=lambda t: t.value) if valued else None
+    dash_best = max(valued, key=lambda t: _value(t)) if valued else None
     out = {"frozen": frozen_no, "best_feasible": best_feas.number if best_feas else None,
            "over_budget": [t.number for t in over], "dashboard_best": dash_best.number if dash_best else None,
            "notes_written": 0}
@@ -145,10 +150,10 @@ def annotate_study(study, frozen: dict | int | None = None) -> dict:
         if frozen_no is not None and not is_feasible(t):  # a frozen file of an older rule: say both
             blocks[t.number] += "; yet frozen (frozen.yaml of this study): refreeze with `tune test --study NAME`"
         elif frozen_no is not None:
-            blocks[t.number] = (f"{MARK} · **frozen**: the best feasible trial, {METRIC_NAME} = {t.value:.3f}"
+            blocks[t.number] = (f"{MARK} · **frozen**: the best feasible trial, {METRIC_NAME} = {_value(t):.3f}"
                                 f"{cost}; its settings are in frozen.yaml and run on the test scenes")
         else:
-            blocks[t.number] = (f"{MARK} · best feasible trial (what `tune` freezes), {METRIC_NAME} = {t.value:.3f}"
+            blocks[t.number] = (f"{MARK} · best feasible trial (what `tune` freezes), {METRIC_NAME} = {_value(t):.3f}"
                                 f"{cost}; not frozen yet")
     written = 0
     noted = _trials_with_imtune_note(study)
@@ -167,7 +172,7 @@ def annotate_study(study, frozen: dict | int | None = None) -> dict:
     if pick is not None and pick in by_no:
         t = by_no[pick]
         word = "frozen" if frozen_no is not None else "best feasible (not frozen yet)"
-        lines.append(f"{word}: trial {t.number}, {METRIC_NAME} = {t.value:.3f}"
+        lines.append(f"{word}: trial {t.number}, {METRIC_NAME} = {_value(t):.3f}"
                      + (f" ({_params_text(t.params)})" if t.params else ""))
     elif trials:
         lines.append("no feasible trial yet: nothing can be frozen")
@@ -176,7 +181,7 @@ def annotate_study(study, frozen: dict | int | None = None) -> dict:
         lines.append(f"over budget: {len(over)} of {len(trials)} completed trials (trial {nums})")
     if dash_best is not None and not is_feasible(dash_best):
         lines.append(f"the dashboard's Best Trial ranks by value only and ignores the budget: its trial "
-                     f"{dash_best.number} ({METRIC_NAME} = {dash_best.value:.3f}) is over budget")
+                     f"{dash_best.number} ({METRIC_NAME} = {_value(dash_best):.3f}) is over budget")
     written += _set_note(study, "  \n".join(lines))
     out["notes_written"] = written
     return out

@@ -69,7 +69,7 @@ def task_of(d: dict, **extra):
 
 def frozen_from_study(study) -> dict:
     """The frozen settings (a dict) of the study's best feasible trial; ImtuneError if there is none."""
-    from tuner.protocol import best_feasible, config_for, fixed_values
+    from tuner.protocol import best_feasible, config_for, fixed_values, trial_value
     attrs = study.user_attrs
     if not attrs.get("imtune"):
         raise ImtuneError(f"study {study.study_name!r} was not created by imtune")
@@ -90,7 +90,7 @@ def frozen_from_study(study) -> dict:
     return _plain({
         "study": study.study_name,
         "trial": best.number,
-        "value": best.value,
+        "value": trial_value(best),  # mAA(10 deg); a pareto study's best trial within B on its front
         "task": task.name,
         "task_options": task.options(),
         "feature": attrs.get("feature"), "num_features": attrs.get("num_features"), "ransac": attrs.get("ransac"),

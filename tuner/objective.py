@@ -15,6 +15,13 @@ Each trial records, as user attributes, the task's figures (``Task.figures``: fo
 (units, budget B, ``ransac_seconds_total`` and ``evaluate_seconds`` of the trial, for the overhead benchmark).
 Feasibility is also an Optuna constraint (``trial.set_constraint("budget", statistic - B)``), so TPE treats
 infeasible trials so; a task that times no estimator records no constraint.
+
+``objectives=PARETO`` (``tune --objective pareto``, see :mod:`tuner.pareto`): the trial returns (mAA(10 deg),
+median estimator seconds per pair) for a two-objective study (maximise, minimise). Such a trial reports no
+intermediate values and is never pruned (Optuna's ``Trial.report`` / ``should_prune`` do not support
+multi-objective studies; and a trial over B is a point of the front, not a waste), and records no budget
+constraint (Optuna's Pareto front, ``study.best_trials``, would keep only trials within B); ``feasible``
+still says whether it is within B.
 """
 from __future__ import annotations
 
@@ -30,6 +37,8 @@ from pipeline.errors import ImtuneError
 from tuner.protocol import BUDGET_CONSTRAINT, config_for, within_budget
 
 MAX_FAILED_LISTED = 50
+SINGLE = ("mAA10",)  # objectives: the task's objective figure, maximised
+PARETO = ("mAA10", "seconds")  # ... and the median estimator seconds per pair, minimised
 
 
 def data_fingerprint(scenes_units, task_options: dict | None = None) -> str:
@@ -124,10 +133,17 @@ class Objective:
     search space; vs: the prepared validation set; cache: an H5Cache (shared by all trials of this process);
     budget: B in seconds per pair (median estimator time; None = no budget); prune_over_budget: stop a trial
     early once its running budget statistic exceeds this multiple of B (it is infeasible whatever the rest
-    gives)."""
+    gives); objectives: :data:`SINGLE` (return the task's objective figure) or :data:`PARETO` (return it
+    and the median estimator seconds per pair; a task that times no estimator cannot)."""
 
     def __init__(self, task, base: PipelineConfig, space, vs: ValidationSet, cache, budget: float | None = None,
-                 prune_over_budget: float = 2.0):
+                 prune_over_budget: float = 2.0, objectives: tuple = SINGLE):
+        if tuple(objectives) not in (SINGLE, PARETO):
+            raise ImtuneError(f"objectives {tuple(objectives)!r}: expected {SINGLE!r} or {PARETO!r}")
+        if tuple(objectives) == PARETO and not task.timed:
+            raise ImtuneError(f"task {task.name} times no estimator of imtune's: it cannot run a pareto study "
+                              "(accuracy against estimator time); use --objective mAA10")
+        self.objectives = tuple(objectives)
         self.task = task
         self.base = base
         self.space = space
@@ -145,7 +161,11 @@ class Objective:
         return {"pairs": n_units, "budget": self.budget, "ransac_seconds_total": float(ransac_total),
                 "evaluate_seconds": time.perf_counter() - t0}
 
-    def __call__(self, trial) -> float:
+    @property
+    def pareto(self) -> bool:
+        return self.objectives == PARETO
+
+    def __call__(self, trial) -> float | tuple[float, float]:
         import optuna
         task = self.task
         t0 = time.perf_counter()
@@ -184,10 +204,10 @@ class Objective:
                                                          f"{self.prune_over_budget:g} x {self.budget:g} s")
                 raise optuna.TrialPruned()
 
-        res = task.evaluate(self.vs.scene_objs, conf, self.cache, on_step=on_step)
+        res = task.evaluate(self.vs.scene_objs, conf, self.cache, on_step=None if self.pareto else on_step)
         attrs = task.figures(res)
         sec = task.budget_seconds(res.summary)
-        if sec is not None and self.budget is not None:
+        if sec is not None and self.budget is not None and not self.pareto:
             set_budget_constraint(trial, sec - self.budget)
         failed = failed_units(res.records, len(self.vs.scenes) > 1)
         attrs["failed_pairs"] = failed[:MAX_FAILED_LISTED]
@@ -196,4 +216,6 @@ class Objective:
         attrs["timing"].update({f"{k}_seconds": float(v) for k, v in res.seconds.items()})
         for k, v in attrs.items():
             trial.set_user_attr(k, v)
+        if self.pareto:
+            return float(res.summary[task.objective]), float(sec)
         return float(res.summary[task.objective])

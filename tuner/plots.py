@@ -9,6 +9,7 @@ Sections: optimization history (over-budget trials marked), parameter importance
 inlier threshold eta and the ratio test r (contour), mAA(10°) against the median estimator time per pair
 (with the budget B), mAA(10°) against the iteration cap Gamma, the mAA(10°)-against-eta curves of every
 study of the same task in the storage (best mAA(10°) per eta bin: the paper's inlier-threshold figure),
+for a pareto study (``tune --objective pareto``) its accuracy-cost Pareto front (:mod:`tuner.pareto`),
 and the breakdowns of the frozen (best feasible) trial by scene: accuracy against the angular threshold
 (1..10°; stereo pairs, or multiview pairs of the bags) and mAA(10°) by co-visibility bin (stereo) — from
 the trial's user attributes (validation scenes) and, once `tune test` has run, from
@@ -29,6 +30,7 @@ import numpy as np
 
 from pipeline.errors import ImtuneError
 from tuner.annotate import METRIC_NAME, is_feasible
+from tuner.protocol import trial_value as _value  # a pareto study's trials have two values: mAA10 first
 
 METRIC = METRIC_NAME  # "mAA(10°)"
 FEASIBLE = "within budget"
@@ -99,10 +101,15 @@ def _hover_params(t) -> str:
         f"{PARAM_SHORT.get(k, k).split(' (')[0]} = {v}" for k, v in t.params.items())
 
 
+def _target(study):
+    """Optuna's visualizations need the objective named in a multi-objective (pareto) study: mAA(10°), the first."""
+    return (lambda t: t.values[0]) if len(study.directions) > 1 else None
+
+
 def fig_history(study):
     """Optuna's optimization history (infeasible trials in their own trace), titled and labeled."""
     import optuna.visualization as ov
-    fig = ov.plot_optimization_history(study, target_name=METRIC)
+    fig = ov.plot_optimization_history(study, target=_target(study), target_name=METRIC)
     names = {METRIC: f"{METRIC} of a trial", "Best Value": "best within budget so far",
              "Infeasible Trial": INFEASIBLE}
     for tr in fig.data:
@@ -115,7 +122,13 @@ def fig_history(study):
 def fig_importances(study):
     """Optuna's fANOVA parameter importances for mAA(10°), parameters named as in the paper."""
     import optuna.visualization as ov
-    fig = ov.plot_param_importances(study, target_name=METRIC)
+    if len(study.directions) > 1:  # pareto: Optuna's PED-ANOVA ranks a given target low-is-better: negate mAA10
+        import warnings
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            fig = ov.plot_param_importances(study, target=lambda t: -t.values[0], target_name=METRIC)
+    else:
+        fig = ov.plot_param_importances(study, target_name=METRIC)
     for tr in fig.data:
         if getattr(tr, "y", None) is not None:
             tr.y = [PARAM_SHORT.get(str(n), str(n)) for n in tr.y]
@@ -127,7 +140,7 @@ def fig_importances(study):
 def fig_contour(study):
     """mAA(10°) over eta (log axis) and r: Optuna's contour, axes labeled with units."""
     import optuna.visualization as ov
-    fig = ov.plot_contour(study, params=["threshold", "ratio"], target_name=METRIC)
+    fig = ov.plot_contour(study, params=["threshold", "ratio"], target=_target(study), target_name=METRIC)
     etas = [t.params["threshold"] for t in _complete(study) if "threshold" in t.params]
     for ax in ("xaxis", "yaxis"):
         axis = fig.layout[ax]
@@ -150,7 +163,7 @@ def fig_cost(study):
         if not ts:
             continue
         fig.add_trace(go.Scatter(
-            x=[t.user_attrs["ransac_seconds_median"] for t in ts], y=[t.value for t in ts], mode="markers", name=name,
+            x=[t.user_attrs["ransac_seconds_median"] for t in ts], y=[_value(t) for t in ts], mode="markers", name=name,
             marker=dict(color=color, size=8), text=[_hover_params(t) for t in ts],
             hovertemplate="%{text}<br>median %{x:.3f} s per pair<br>mAA(10°) %{y:.3f}<extra></extra>"))
     b = (study.user_attrs.get("budget") or {}).get("seconds_per_pair")
@@ -172,7 +185,7 @@ def fig_gamma(study):
     for feas, name, color in ((True, FEASIBLE, "#1f77b4"), (False, INFEASIBLE, "#bbbbbb")):
         ts = [t for t in trials if is_feasible(t) == feas]
         if ts:
-            fig.add_trace(go.Scatter(x=[t.params["max_iters"] for t in ts], y=[t.value for t in ts], mode="markers",
+            fig.add_trace(go.Scatter(x=[t.params["max_iters"] for t in ts], y=[_value(t) for t in ts], mode="markers",
                                      name=name, marker=dict(color=color, size=8), text=[_hover_params(t) for t in ts],
                                      hovertemplate="%{text}<br>mAA(10°) %{y:.3f}<extra></extra>"))
     gammas = [t.params["max_iters"] for t in trials]
@@ -198,7 +211,7 @@ def fig_eta_curves(storage, study):
         if not summ.user_attrs.get("imtune") or summ.user_attrs.get("task", "stereo") != task:
             continue
         st = optuna.load_study(study_name=summ.study_name, storage=storage)
-        pts = [(t.params["threshold"], t.value) for t in _complete(st) if "threshold" in t.params and is_feasible(t)]
+        pts = [(t.params["threshold"], _value(t)) for t in _complete(st) if "threshold" in t.params and is_feasible(t)]
         if len(pts) < 2:
             continue
         eta = np.array([p[0] for p in pts], float)
@@ -353,6 +366,9 @@ def report_sections(storage, study_name: str, studies_dir: Path | str | None = N
         add(f"{METRIC} vs estimator time per pair", lambda: fig_cost(study))
         add(f"{METRIC} vs iteration cap Gamma", lambda: fig_gamma(study),
             "Gamma is not searched in this study (pinned with --fix, or the estimator has no iteration cap)")
+        if len(study.directions) > 1:  # a pareto study (tune --objective pareto): its accuracy-cost front
+            from tuner.pareto import fig_front
+            add(f"{METRIC} vs estimator time per pair: Pareto front", lambda: fig_front(study))
     add(f"{METRIC} vs eta across studies", lambda: fig_eta_curves(storage, study),
         f"needs studies with at least 2 trials within budget that search eta: {more}")
     best = best_feasible(study)
@@ -386,7 +402,7 @@ def write_report(storage, study_name: str, out: Path | str, studies_dir: Path | 
     if best is not None:
         ps = ", ".join(f"{PARAM_SHORT.get(k, k)} = {v:.4g}" if isinstance(v, float) else f"{PARAM_SHORT.get(k, k)} = {v}"
                        for k, v in best.params.items())
-        head.append(f"<p><b>frozen (best within budget): trial {best.number}</b>, {METRIC} = {best.value:.3f}; "
+        head.append(f"<p><b>frozen (best within budget): trial {best.number}</b>, {METRIC} = {_value(best):.3f}; "
                     f"{html.escape(ps)}</p>")
     body, first = [], True
     for s in sections:

@@ -169,14 +169,30 @@ def trial_within_budget(trial) -> bool:
     return all(v <= 0 for v in (trial.constraints or {}).values()) and trial.user_attrs.get("feasible") is not False
 
 
+def trial_value(trial) -> float | None:
+    """The trial's objective figure (mAA(10 deg)): its value, or in a multi-objective (``--objective pareto``)
+    study the first of its values (the second is the median estimator seconds per pair). Optuna's
+    ``FrozenTrial.value`` raises on a multi-objective trial: read this instead."""
+    return float(trial.values[0]) if trial.values else None
+
+
+def trial_seconds(trial) -> float:
+    """The trial's budget statistic: the time objective of a pareto trial, else its user attribute (0 if unknown)."""
+    if trial.values and len(trial.values) > 1:
+        return float(trial.values[1])
+    return float(trial.user_attrs.get("ransac_seconds_median", 0.0) or 0.0)
+
+
 def best_feasible(study):
-    """The COMPLETE trial with the highest value among those within budget (None if none)."""
+    """The COMPLETE trial with the highest value (:func:`trial_value`) among those within budget, the faster
+    then the earlier on ties (None if none). In a pareto study this is the best trial within B read off the
+    Pareto front (the fastest of equal mAA, so it is on the front)."""
     from optuna.trial import TrialState
     best = None
     for t in study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
-        if t.value is None or not trial_within_budget(t):
+        if trial_value(t) is None or not trial_within_budget(t):
             continue
-        key = (t.value, -float(t.user_attrs.get("ransac_seconds_median", 0.0)), -t.number)
+        key = (trial_value(t), -trial_seconds(t), -t.number)
         if best is None or key > best[0]:
             best = (key, t)
     return best[1] if best else None

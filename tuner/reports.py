@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pipeline.errors import ImtuneError
+from tuner.protocol import trial_value  # a pareto study's trials have two values: mAA10 first
 
 
 @dataclass
@@ -162,10 +163,10 @@ def settings_rows(studies: list[StudyInfo], fmt: str = "markdown",
         row = {"feature": feat, "features": nf}
         by_est = {s.ransac: s for s in group}
         scored = [s for s in group if s.best is not None]
-        top = max(scored, key=lambda s: s.best.value) if scored else None
+        top = max(scored, key=lambda s: trial_value(s.best)) if scored else None
         row["r"] = _num(_param(top, "ratio"), 3) if top else None
         mv_scored = [s for s in mv_groups.get((feat, nf), []) if s.best is not None]
-        mv_top = max(mv_scored, key=lambda s: s.best.value) if mv_scored else None
+        mv_top = max(mv_scored, key=lambda s: trial_value(s.best)) if mv_scored else None
         row["r_multiview"] = _num(_param(mv_top, "ratio"), 3) if mv_top else None
         for e in ests:
             s = by_est.get(e)
@@ -178,18 +179,18 @@ def settings_rows(studies: list[StudyInfo], fmt: str = "markdown",
             bs = {_budget(s) for s in group} - {None}
             row["B"] = bs.pop() if len(bs) == 1 else None
         row["r from"] = top.ransac if top else None
-        row["mAA10 val"] = _num(top.best.value, 4) if top else None
-        row["mAA10 mv val"] = _num(mv_top.best.value, 4) if mv_top else None
+        row["mAA10 val"] = _num(trial_value(top.best), 4) if top else None
+        row["mAA10 mv val"] = _num(trial_value(mv_top.best), 4) if mv_top else None
         if fmt == "json":
             row["studies"] = {s.ransac: {"study": s.name, "trial": s.best.number if s.best else None,
-                                         "value": s.best.value if s.best else None,
+                                         "value": trial_value(s.best) if s.best else None,
                                          "params": dict(s.best.params) if s.best else None,
                                          "gamma_max": (s.attrs.get("budget") or {}).get("gamma_max"),
                                          "budget": _budget(s),
                                          "complete_trials": s.n_complete}
                               for s in group}
             row["multiview_studies"] = {s.ransac: {"study": s.name, "trial": s.best.number if s.best else None,
-                                                   "value": s.best.value if s.best else None,
+                                                   "value": trial_value(s.best) if s.best else None,
                                                    "params": dict(s.best.params) if s.best else None,
                                                    "complete_trials": s.n_complete}
                                         for s in mv_groups.get((feat, nf), [])}

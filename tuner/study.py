@@ -38,6 +38,11 @@ from tuner.version import code_version  # noqa: F401  (re-exported)
 SAMPLERS = ("tpe", "random", "cmaes", "grid")
 PRUNERS = ("median", "sha", "hyperband", "none")
 DEFAULT_PRUNER = "median"  # the fastest to the same frozen optimum in benchmarks/study_wall_time.py (README)
+# mAA10: maximise mAA(10 deg) within the budget B; pareto: a two-objective study (maximise mAA(10 deg), minimise
+# the median estimator seconds per pair) whose Pareto front tuner.pareto draws and reads the best within B off
+OBJECTIVES = ("mAA10", "pareto")
+PARETO_SUFFIX = "-pareto"
+PARETO_SPAN = 4.0
 SCHEMA = 1
 DEFAULT_TRIALS = 50
 
@@ -117,6 +122,8 @@ class TuneSettings:
     gt_dir: str | None = None  # built ground truth (default $IMTUNE_GT, $IMTUNE_CACHE/gt, ~/.cache/imtune/gt)
     log: object = None  # callable(str) for status lines; None = stderr unless progress is off
     verbose: bool = False  # Optuna's own INFO log lines
+    objective: str = "mAA10"  # "mAA10" | "pareto" (OBJECTIVES)
+    pareto_span: float = PARETO_SPAN  # pareto: Gamma searched up to Gamma_max(span x B), the front crosses B
 
     def make_task(self, **extra):
         """The study's task with these settings' options (each task takes those it knows)."""
@@ -383,15 +390,26 @@ def setup_study(s: TuneSettings) -> StudyContext:
     if s.sampler not in SAMPLERS:
         raise ImtuneError(f"unknown sampler {s.sampler!r} (choose from {', '.join(SAMPLERS)})")
     make_pruner(s.pruner)
+    pareto = s.objective == "pareto"
+    if s.objective not in OBJECTIVES:
+        raise ImtuneError(f"unknown objective {s.objective!r} (choose from {', '.join(OBJECTIVES)})")
+    if pareto and s.sampler == "cmaes":
+        raise ImtuneError("sampler cmaes is single-objective in Optuna: use --sampler tpe (multi-objective TPE), "
+                          "random or grid with --objective pareto")
+    if pareto and not (math.isfinite(s.pareto_span) and s.pareto_span >= 1):
+        raise ImtuneError(f"--pareto-span must be a number >= 1, got {s.pareto_span}")
     if not (s.budget > 0 and s.test_budget > 0):
         raise ImtuneError("budgets must be > 0 seconds per pair")
     if s.n_trials is not None and s.n_trials < 1:
         raise ImtuneError(f"--n-trials must be >= 1, got {s.n_trials}")
     task = s.make_task()  # unknown task -> one line listing the tasks
+    if pareto and not task.timed:
+        raise ImtuneError(f"task {task.name} times no estimator of imtune's: it cannot run a pareto study "
+                          "(accuracy against estimator time); use --objective mAA10")
     get_estimator(s.base.geometry.ransac)  # unknown / unavailable estimator: one line, now
     s.studies_dir = Path(s.studies_dir) if s.studies_dir else default_studies_dir()
     space = load_study_space(s, task)
-    name = s.study_name or default_study_name(s.base, task.name)
+    name = s.study_name or default_study_name(s.base, task.name) + (PARETO_SUFFIX if pareto else "")
     storage = open_storage(s.storage, heartbeat=s.heartbeat, studies_dir=s.studies_dir)
     cache = H5Cache(s.cache_dir)
     vs = open_validation(s, task)
@@ -416,6 +434,10 @@ def setup_study(s: TuneSettings) -> StudyContext:
     except KeyError:
         pass
     stored = dict(study.user_attrs) if study is not None else {}
+    if study is not None and len(study.directions) != (2 if pareto else 1):
+        raise ImtuneError(f"study {name!r} exists as a {'pareto' if len(study.directions) > 1 else 'mAA10'} study: "
+                          f"rerun with --objective {'pareto' if len(study.directions) > 1 else 'mAA10'} "
+                          "or name a new study with --study")
     if study is not None and stored.get("imtune") is None and len(study.trials) > 0:
         raise ImtuneError(f"study {name!r} exists in the storage but was not created by imtune; name another with --study")
     created = not stored.get("imtune")
@@ -427,7 +449,8 @@ def setup_study(s: TuneSettings) -> StudyContext:
         cal = None
         if space.needs_calibration:
             cal = calibrate(base.geometry.ransac, base, vs.scenes, cache, vs.fingerprint,
-                            budgets=(s.budget,), ratio=space.calibration["ratio"],
+                            budgets=(s.budget, s.budget * s.pareto_span) if pareto else (s.budget,),
+                            ratio=space.calibration["ratio"],
                             threshold=space.calibration["threshold"], max_pairs=s.calibration_pairs,
                             studies_dir=s.studies_dir, force=s.recalibrate, progress=s.progress, seed=int(s.seed or 0),
                             jobs=resolve_jobs(s.jobs))  # timed with as many estimators running as a trial runs
@@ -436,13 +459,19 @@ def setup_study(s: TuneSettings) -> StudyContext:
                   f"(calibrated on {cal.pairs} pairs, {len(cal.curve)} caps)")
         else:
             gmax = None
-        resolved = space.resolve(gmax)
+        # pareto: Gamma reaches past Gamma_max(B) so that the front shows what time beyond B buys
+        resolved = space.resolve(cal.gamma_max(s.budget * s.pareto_span) if pareto and cal else gmax)
         mine["budget"].update(gamma_max=gmax, gamma_max_test=cal.gamma_max(s.test_budget) if cal and cal.covers(s.test_budget) else None,
                               calibration=cal.to_dict() if cal else None)
+        if pareto:
+            mine["objective"] = {"name": "pareto", "values": ["mAA10", "median estimator seconds per pair"],
+                                 "directions": ["maximize", "minimize"], "pareto_span": float(s.pareto_span)}
+            mine["budget"]["gamma_max_front"] = cal.gamma_max(s.budget * s.pareto_span) if cal else None
         mine["search_space_resolved"] = resolved.spec()
         mine["created"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
         mine["sampler"] = s.sampler
-        study = optuna.create_study(study_name=name, storage=storage, direction="maximize", load_if_exists=True)
+        study = optuna.create_study(study_name=name, storage=storage, load_if_exists=True,
+                                    directions=["maximize", "minimize"] if pareto else ["maximize"])
         again = study.user_attrs
         if not again.get("imtune"):
             for k, v in mine.items():
@@ -456,7 +485,9 @@ def setup_study(s: TuneSettings) -> StudyContext:
     resolved.calibration = space.calibration
     # every trial of a study uses the estimator seed the study was created with
     base = dataclasses.replace(base, geometry=dataclasses.replace(base.geometry, seed=int(stored.get("seed", 0))))
-    objective = Objective(task, base, resolved, vs, cache, budget=float(stored["budget"]["seconds_per_pair"]))
+    from tuner.objective import PARETO, SINGLE
+    objective = Objective(task, base, resolved, vs, cache, budget=float(stored["budget"]["seconds_per_pair"]),
+                          objectives=PARETO if pareto else SINGLE)
     return StudyContext(study=study, storage=storage, name=name, space=resolved, vs=vs, objective=objective,
                         attrs=stored, cache=cache, created=created)
 
@@ -490,7 +521,9 @@ def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
     # each worker's sampler seed derives from --seed and its first trial number: the same --seed in two
     # workers or a resume never replays the same parameters (issue 14 item 9; see tuner.seeding)
     sampler = worker_seeded(lambda seed: make_sampler(s.sampler, seed, ctx.space, startup), s.seed)
-    study = optuna.load_study(study_name=ctx.name, storage=ctx.storage, sampler=sampler, pruner=make_pruner(s.pruner))
+    # Optuna prunes single-objective studies only (Trial.report / should_prune raise on multi-objective ones)
+    pruner = make_pruner("none" if getattr(ctx.objective, "pareto", False) else s.pruner)
+    study = optuna.load_study(study_name=ctx.name, storage=ctx.storage, sampler=sampler, pruner=pruner)
     ctx.study = study
 
     def finished(st) -> int:
@@ -533,7 +566,8 @@ def _set_postfix(bar, study) -> None:
     c = trial_counts(study)
     parts = []
     if b is not None:
-        parts.append(f"best mAA10={b.value:.4f} (#{b.number})")
+        from tuner.protocol import trial_value
+        parts.append(f"best mAA10={trial_value(b):.4f} (#{b.number})")
     if c["pruned"]:
         parts.append(f"pruned={c['pruned']}")
     if c["infeasible"]:
@@ -551,6 +585,9 @@ def tune(s: TuneSettings) -> dict:
     s.say(f"study {ctx.name} in {storage_label(s.storage, s.studies_dir)} "
           f"({'created' if ctx.created else 'resumed'}; sampler {s.sampler}, target "
           f"{s.n_trials or ('the grid' if s.sampler == 'grid' else DEFAULT_TRIALS)} trials)")
+    if ctx.objective.pareto:
+        s.say("objective pareto: maximize mAA(10°), minimize median estimator seconds per pair; no pruning "
+              "(Optuna prunes single-objective studies only); frozen: the best trial within B on the front")
     run = optimize(ctx, s)
     out = {"study": ctx.name, "storage": storage_label(s.storage, s.studies_dir), "worker": run,
            "counts": trial_counts(ctx.study), "frozen": None, "frozen_path": None, "test": None}

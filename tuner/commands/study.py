@@ -7,6 +7,8 @@
     tune table [--format csv|latex|json]               # optimal settings over all studies
     tune results                                       # test results: NF, NI and mAA(10) per estimator
     tune plot --study NAME                             # one HTML report
+    tune --objective pareto ...                        # accuracy vs estimator time: study <default>-pareto
+    tune plot --pareto A-pareto B-pareto               # their Pareto fronts on one figure, with the budget B
     tune dashboard [--port 8080]                       # optuna-dashboard on 127.0.0.1
 
 Every command takes ``--storage URL`` (default ``sqlite:///<studies dir>/optuna.db``) and
@@ -109,6 +111,12 @@ def register(sub) -> None:
     t.add_argument("--test-runs", type=_positive_int, default=3)
     t.add_argument("--retest", action="store_true", help="rerun the test even if test.json matches the frozen settings")
     t.add_argument("--verbose", action="store_true", help="Optuna's per-trial log lines")
+    t.add_argument("--objective", default="mAA10", choices=["mAA10", "pareto"],
+                   help="mAA10: maximize mAA(10°) within the budget B; pareto: a two-objective study (maximize "
+                        "mAA(10°), minimize median estimator seconds per pair; no pruning), named <default>-pareto; "
+                        "`tune plot` draws its front, freeze takes its best trial within B")
+    t.add_argument("--pareto-span", type=_positive_float, default=4.0,
+                   help="pareto: search Gamma up to Gamma_max(span x B), so that the front reaches past B")
     add_multiview_options(ap)
     add_jobs_option(t)
     ap.set_defaults(func=run)
@@ -155,10 +163,14 @@ def register(sub) -> None:
                        help="a task (see `tune list`), or all" if name == "table" else "a task (see `tune list`)")
         p.set_defaults(func=fn)
 
-    pl = sub.add_parser("plot", help="one HTML report of a study (plotly)")
-    pl.add_argument("--study", required=True)
+    pl = sub.add_parser("plot", help="one HTML report of a study, or the Pareto fronts of several (plotly)")
+    pl.add_argument("--study", default=None, help="the study whose report is drawn")
+    pl.add_argument("--pareto", nargs="+", default=None, metavar="STUDY",
+                    help="overlay the accuracy-cost Pareto fronts of these studies (one per estimator) on one "
+                         "figure, with the budget B")
     _storage_opts(pl)
-    pl.add_argument("--out", default=None, help="HTML file (default <studies dir>/<study>/report.html)")
+    pl.add_argument("--out", default=None, help="HTML file (default <studies dir>/<study>/report.html; with "
+                                                "--pareto <studies dir>/pareto.html)")
     pl.set_defaults(func=run_plot)
 
     d = sub.add_parser("dashboard", help="serve optuna-dashboard on the storage (127.0.0.1)")
@@ -212,7 +224,7 @@ def settings_from_args(args):
         calibration_pairs=args.calibration_pairs, recalibrate=args.recalibrate, progress=not quiet,
         test=not args.no_test, test_runs=args.test_runs, retest=args.retest, multiview=mv, workers=args.workers,
         jobs=args.jobs, warm_start=list(args.warm_start),
-        gt_dir=args.gt_dir)
+        gt_dir=args.gt_dir, objective=args.objective, pareto_span=args.pareto_span)
 
 
 def run(args) -> int:
@@ -423,7 +435,16 @@ def run_plot(args) -> int:
     from tuner.study import _quiet_optuna
     _quiet_optuna()
     sdir = _studies_dir(args)
+    if not args.study and not args.pareto:
+        raise ImtuneError("tune plot: name a study (--study NAME) or the studies whose fronts to overlay "
+                          "(--pareto NAME [NAME ...])")
+    if args.study and args.pareto:
+        raise ImtuneError("tune plot: --study and --pareto draw different pages; give one of them")
     storage = open_storage(args.storage, heartbeat=None, studies_dir=sdir, must_exist=True)
+    if args.pareto:
+        from tuner.pareto import write_overlay
+        print(str(write_overlay(storage, args.pareto, Path(args.out) if args.out else sdir / "pareto.html")))
+        return 0
     out = Path(args.out) if args.out else study_dir(sdir, args.study) / "report.html"
     path = write_report(storage, args.study, out, studies_dir=sdir)
     print(str(path))
@@ -439,6 +460,7 @@ def run_dashboard(args) -> int:
 def run_studies(args) -> int:
     import optuna
     from tuner.storage import open_storage
+    from tuner.protocol import trial_value
     from tuner.study import _quiet_optuna, best_feasible, trial_counts
     _quiet_optuna()
     storage = open_storage(args.storage, heartbeat=None, studies_dir=_studies_dir(args), must_exist=True)
@@ -449,7 +471,7 @@ def run_studies(args) -> int:
         b = best_feasible(st)
         rows.append({"study": summ.study_name, "complete": c["complete"], "pruned": c["pruned"],
                      "infeasible": c["infeasible"], "running": c["running"], "failed": c["fail"],
-                     "best mAA10": b.value if b else None, "best trial": b.number if b else None})
+                     "best mAA10": trial_value(b) if b else None, "best trial": b.number if b else None})
     if args.json:
         print(json.dumps(_jsonable(rows), indent=2))
     elif rows:
