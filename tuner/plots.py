@@ -376,7 +376,9 @@ def report_sections(storage, study_name: str, studies_dir: Path | str | None = N
     add("Accuracy vs angular threshold, by scene", lambda: fig_accuracy_threshold(sources, task),
         f"no per-scene accuracy stored for the frozen trial (trials of older imtune versions): run "
         f"`tune test --study {study_name}`")
-    if "covisibility" in (best.user_attrs if best is not None else {}):  # the task records a breakdown
+    # the section exists where the task's figures carry a co-visibility breakdown (pairs with co-visibility)
+    if any("covisibility" in sm for _, scenes in sources for sm in scenes.values()) or \
+            "covisibility" in (best.user_attrs if best is not None else {}):
         add(f"{METRIC} by co-visibility, by scene", lambda: fig_covisibility(sources),
             _covisibility_hint(study, sources))
     return sections
