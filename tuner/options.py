@@ -9,6 +9,9 @@ default ``../shared/data/strecha`` next to the project.
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import functools
+import math
 import os
 from pathlib import Path
 
@@ -51,6 +54,9 @@ def add_pipeline_options(ap: argparse.ArgumentParser, tuning: bool = False) -> N
     g.add_argument("--clahe", default="none", choices=["none", "detector", "descriptor", "both"])
     g.add_argument("--mr-size", type=positive_float, default=None, help="descriptor support scale (SIFT mrSize)")
     g.add_argument("--max-side", type=int, default=1024, help="resize so the long side is at most this (px)")
+    g.add_argument("--feature-option", action="append", type=feature_option, default=[], metavar="KEY=VALUE",
+                   help="an extractor option, e.g. edge_threshold=10 or contrast_threshold=0.04 for sift (an unknown "
+                        "KEY lists the extractor's options); repeatable")
     g.add_argument("--matcher", default="exact", choices=["exact", "flann"])
     g.add_argument("--strategy", default="both", help="both | either | uni")
     g.add_argument("--distance-threshold", type=nonnegative_float, default=None)
@@ -98,13 +104,138 @@ def build_config(args: argparse.Namespace, **overrides) -> PipelineConfig:
         raise ImtuneError("--matches custom:DIR needs --feature custom:DIR (the match indices refer to those keypoints)")
     fc = FeatureConfig(name=v["feature"], num_features=int(v["num_features"]), low_threshold=not v["no_low_threshold"],
                        upright=bool(v["upright"] or v["upright_plus"]), upright_plus=bool(v["upright_plus"]),
-                       clahe=v["clahe"], mr_size=v["mr_size"], max_side=int(v["max_side"]))
+                       clahe=v["clahe"], mr_size=v["mr_size"], max_side=int(v["max_side"]),
+                       options=tuple(sorted(dict(v.get("feature_option") or ()).items())))
     mc = MatchConfig(ratio=float(v["ratio"]), strategy=v["strategy"], distance_threshold=v["distance_threshold"],
                      fginn=bool(v["fginn"]), method=v["matcher"], prefilter=prefilter,
                      prefilter_options=prefilter_options, custom_matches=custom_matches)
     gc = GeometryConfig(ransac=v["ransac"], threshold=float(v["threshold"]), confidence=float(v["confidence"]),
                         max_iters=int(v["max_iters"]), seed=int(v["seed"]))
-    return PipelineConfig(feature=fc, matching=mc, geometry=gc)
+    conf = PipelineConfig(feature=fc, matching=mc, geometry=gc)
+    if fc.options:
+        check_feature_options(conf, "--feature-option")
+    return conf
+
+
+# -- extractor options (--feature-option KEY=VALUE; `config: feature: options:` in a file) -------------------
+
+def option_value(text: str):
+    """A typed value from the command line: true/false/yes/no/on/off -> bool, then int, then a finite float,
+    else the text itself (the extractor converts it to its option's type, or says why it cannot)."""
+    t = text.strip()
+    low = t.lower()
+    if low in ("true", "yes", "on"):
+        return True
+    if low in ("false", "no", "off"):
+        return False
+    try:
+        return int(t)
+    except ValueError:
+        pass
+    try:
+        f = float(t)
+    except ValueError:
+        return t
+    if not math.isfinite(f):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return f
+
+
+def feature_option(text: str) -> tuple:
+    """``KEY=VALUE`` -> (key, typed value) for ``--feature-option``."""
+    key, sep, value = text.partition("=")
+    if not sep or not key.strip() or not value.strip():
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE (e.g. edge_threshold=10), got {text!r}")
+    return key.strip(), option_value(value)
+
+
+def check_feature_options(conf: PipelineConfig, where: str) -> None:
+    """The extractor accepts ``conf.feature.options`` (names and values): it is built once here — OpenCV and
+    kornia extractors check their options when built, cheaply (weights load at the first image) — so that a
+    wrong name fails now, in one line listing the valid ones, and not at the first uncached image."""
+    if not conf.feature.options:
+        return
+    from pipeline.features import get_extractor
+    try:
+        get_extractor(conf.feature)
+    except ImtuneError as e:
+        raise ImtuneError(f"{where}: {e}") from None
+
+
+# -- which options the user typed (so that a configuration file's values give way only to those) ------------
+
+EXPLICIT = "_explicit_options"
+
+
+@functools.lru_cache(maxsize=None)
+def _tracked(cls):
+    class Tracked(cls):
+        """Records its dest on the namespace: argparse calls an action only for an option on the command line."""
+
+        def __call__(self, parser, namespace, values, option_string=None):
+            seen = set(getattr(namespace, EXPLICIT, ()) or ())
+            seen.add(self.dest)
+            setattr(namespace, EXPLICIT, frozenset(seen))
+            super().__call__(parser, namespace, values, option_string)
+    Tracked.__name__ = f"Tracked{cls.__name__}"
+    return Tracked
+
+
+def track_explicit(ap: argparse.ArgumentParser) -> None:
+    """Make ``ap`` record the options given on its command line (:func:`explicit_options`). An option typed
+    with its default value (``--ratio 0.85``) counts as given; argparse's defaults never do."""
+    for action in ap._actions:
+        if action.option_strings and action.dest not in (argparse.SUPPRESS, "help"):
+            action.__class__ = _tracked(type(action))
+
+
+def explicit_options(args: argparse.Namespace) -> frozenset:
+    """The dests of the options typed on the command line (needs :func:`track_explicit` on the parser)."""
+    return frozenset(getattr(args, EXPLICIT, ()) or ())
+
+
+#: pipeline options (argparse dests of :func:`add_pipeline_options`) -> the PipelineConfig fields they set
+OPTION_FIELDS: dict[str, tuple[tuple[str, str], ...]] = {
+    "feature": (("feature", "name"),), "num_features": (("feature", "num_features"),),
+    "no_low_threshold": (("feature", "low_threshold"),), "upright": (("feature", "upright"),),
+    "upright_plus": (("feature", "upright"), ("feature", "upright_plus")), "clahe": (("feature", "clahe"),),
+    "mr_size": (("feature", "mr_size"),), "max_side": (("feature", "max_side"),),
+    "feature_option": (("feature", "options"),),
+    "matcher": (("matching", "method"),), "strategy": (("matching", "strategy"),),
+    "distance_threshold": (("matching", "distance_threshold"),), "fginn": (("matching", "fginn"),),
+    "prefilter": (("matching", "prefilter"), ("matching", "prefilter_options")),
+    "matches": (("matching", "custom_matches"),),
+    "ransac": (("geometry", "ransac"),), "confidence": (("geometry", "confidence"),),
+    "ratio": (("matching", "ratio"),), "threshold": (("geometry", "threshold"),),
+    "max_iters": (("geometry", "max_iters"),), "seed": (("geometry", "seed"),),
+}
+
+
+def config_over(base: PipelineConfig, args: argparse.Namespace, where: str = "configuration") -> tuple:
+    """``base`` (a configuration file's) with the pipeline options typed on the command line on top; returns
+    (config, the option names that overrode the file). Fields no option sets (``fginn_px``, ...) keep the
+    file's. Extractor options: the file's (kept only while the feature stays the file's), then each
+    ``--feature-option`` over them."""
+    given = explicit_options(args)
+    cli = build_config(args)
+    kw: dict[str, dict] = {"feature": {}, "matching": {}, "geometry": {}}
+    used = []
+    for dest, fields in OPTION_FIELDS.items():
+        if dest in given:
+            used.append("--" + dest.replace("_", "-"))
+            for sec, f in fields:
+                kw[sec][f] = getattr(getattr(cli, sec), f)
+    name = kw["feature"].get("name", base.feature.name)
+    opts = dict(base.feature.options or ()) if name == base.feature.name else {}
+    if "feature_option" in given:
+        opts.update(dict(cli.feature.options or ()))
+    kw["feature"]["options"] = tuple(sorted(opts.items()))
+    try:
+        conf = dataclasses.replace(base, **{sec: dataclasses.replace(getattr(base, sec), **v) for sec, v in kw.items()})
+    except (TypeError, ValueError) as e:
+        raise ImtuneError(f"{where} with {' '.join(used)}: {e}") from None
+    check_feature_options(conf, where if "feature_option" not in given else f"{where} with --feature-option")
+    return conf, used
 
 
 def add_multiview_options(ap: argparse.ArgumentParser) -> None:

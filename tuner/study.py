@@ -66,6 +66,8 @@ def feature_label(conf: PipelineConfig) -> str:
         tags.append(f"mr{f.mr_size:g}")
     if f.max_side != 1024:
         tags.append(f"side{f.max_side}")
+    for k, v in f.options or ():  # extractor options (--feature-option): sift+edge_threshold5
+        tags.append(f"{k}{v:g}" if isinstance(v, float) else f"{k}{v}")
     m = conf.matching
     if m.method != "exact":
         tags.append(m.method)
@@ -137,6 +139,13 @@ class TuneSettings:
             self.log(msg)
         elif self.progress:
             print(msg, file=sys.stderr, flush=True)
+
+    def warn(self, msg: str) -> None:
+        """One warning line: through ``log`` when set, else on stderr even when progress is off (--quiet / --json)."""
+        if self.log is not None or self.progress:
+            self.say(f"warning: {msg}")
+        else:
+            print(f"warning: {msg}", file=sys.stderr, flush=True)
 
 
 @dataclass
@@ -358,6 +367,36 @@ def test_scene_names(s: TuneSettings) -> list[str]:
     return list(default_splits(s.data_root).get("test", []))
 
 
+def preflight(s: TuneSettings, task, stored: dict | None = None) -> list[str]:
+    """Fail fast: check, before any calibration or trial, everything that would stop the study after tuning —
+    the test run's scenes (``--test-scenes``, else those the study was created with, else the data set's test
+    split) exist, load, have ground truth and something for ``task`` to evaluate. Reads the scenes' metadata
+    only (no features). Returns the test scene names ([] with ``--no-test``); a one-line ImtuneError naming
+    the flag that fixes it (``--test-scenes``, ``--no-test``) otherwise."""
+    if not s.test:
+        return []
+    from tuner.evaluate import load_scenes
+    skip = "or tune without the test run: --no-test"
+    names = list(s.test_scenes or ((stored or {}).get("data") or {}).get("test_scenes") or test_scene_names(s))
+    if not names:
+        raise ImtuneError(f"no test scenes: {s.data_root} has no test split; name them with --test-scenes A,B "
+                          f"(or add a splits.yaml with 'test' to the data folder), {skip}")
+    for n in names:
+        try:
+            (scene,) = load_scenes(s.data_root, [n], split="test", gt_dir=s.gt_dir)
+        except ImtuneError as e:
+            raise ImtuneError(f"test scene {n!r}: {e}; choose others with --test-scenes, {skip}") from None
+        units = task.evaluation_units(scene)
+        if not units:
+            raise ImtuneError(f"test scene {n!r}: nothing for the {task.name} task to evaluate (no pairs with "
+                              f"{task.options() or 'its options'}); choose others with --test-scenes, {skip}")
+        why = scene.missing_ground_truth(units)
+        if why:
+            raise ImtuneError(f"test scene {n!r} has no ground truth to evaluate against ({why}); build it with "
+                              f"`tune data build-gt --data {scene.root}`, choose others with --test-scenes, {skip}")
+    return names
+
+
 def load_study_space(s: TuneSettings, task):
     """The study's search space: ``--space``, else the task's own file (``Task.space_file``), else the estimator
     family's; then ``--fix`` pins; then every parameter the task does not use dropped (never searched, never
@@ -443,6 +482,7 @@ def setup_study(s: TuneSettings) -> StudyContext:
     created = not stored.get("imtune")
     if not created:
         check_compatible(name, stored, mine)
+    preflight(s, task, stored)  # fail fast: nothing after tuning may stop the study (before any calibration)
     s.say(f"validation: {', '.join(vs.scene_names)} ({vs.n_pairs} pairs) from {s.data_root}")
     vs.prepare(base, cache, progress=s.progress)
     if created:
@@ -590,12 +630,16 @@ def tune(s: TuneSettings) -> dict:
               "(Optuna prunes single-objective studies only); frozen: the best trial within B on the front")
     run = optimize(ctx, s)
     out = {"study": ctx.name, "storage": storage_label(s.storage, s.studies_dir), "worker": run,
-           "counts": trial_counts(ctx.study), "frozen": None, "frozen_path": None, "test": None}
+           "counts": trial_counts(ctx.study), "frozen": None, "frozen_path": None, "test": None, "warnings": []}
     if best_feasible(ctx.study) is None:
         raise ImtuneError(f"study {ctx.name!r}: no feasible completed trial yet (all over the "
                           f"{ctx.attrs['budget']['seconds_per_pair']} s budget, pruned or failed); run more trials")
     frozen, path = freeze(ctx.study, s.studies_dir)
     out["frozen"], out["frozen_path"] = frozen, str(path)
+    from tuner.diagnostics import optimum_warnings  # on a bound, Gamma_max at the ceiling, every trial 0
+    out["warnings"] = list(frozen["warnings"]) if "warnings" in frozen else optimum_warnings(ctx.study, frozen)
+    for w in out["warnings"]:
+        s.warn(w)
     from tuner.storage import fail_stale_trials
     fail_stale_trials(ctx.study)
     others = [t for t in ctx.study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))]

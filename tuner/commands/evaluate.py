@@ -8,12 +8,19 @@ from tuner.formatting import render
 from tuner.evaluate import evaluate_config
 from tuner.options import (add_jobs_option, add_multiview_options, add_pipeline_options, build_config, multiview_config,
                            resolve_data, task_choices)
+from tuner.options import OPTION_FIELDS, config_over, explicit_options, track_explicit  # --config (issue 13 item 8)
 
 IM_COLUMNS = ["scene", "pairs", "repeatability_3px", "matching_score_3px", "epipolar_matching_score"]
 
 
 def register(sub) -> None:
     ap = sub.add_parser("evaluate", help="evaluate one fixed configuration")
+    c = ap.add_argument_group("configuration file")
+    c.add_argument("--config", default=None, metavar="FILE|STUDY",
+                   help="start from this configuration: a frozen.yaml, a YAML / JSON with config: feature / matching / "
+                        "geometry (feature: options: reach the extractor), an IMC benchmark method JSON, or a study "
+                        "name (its frozen settings); the pipeline options typed on the command line override it")
+    c.add_argument("--studies-dir", default=None, help="where --config STUDY lives (default $IMTUNE_STUDIES, else studies/)")
     add_pipeline_options(ap)
     ap.add_argument("--task", default="stereo", choices=task_choices(), help="a task (see `tune list`), or both")
     add_multiview_options(ap)
@@ -23,6 +30,7 @@ def register(sub) -> None:
                     help="also repeatability and matching score at 1..10 px (depth maps) / epipolar matching score")
     add_jobs_option(ap)
     ap.set_defaults(func=run)
+    track_explicit(ap)  # which options were typed: those, and only those, override --config's values
 
 
 def task_rows(section: dict, columns) -> tuple[list[dict], list[str]]:
@@ -56,17 +64,36 @@ def _jsonable(o):
     return o
 
 
+def config_of(args):
+    """The configuration `tune evaluate` runs and a line saying where it came from: ``--config``'s (a file or a
+    study, ``tuner.sources.resolve_source``) with the pipeline options typed on the command line on top (a
+    frozen study's task too, unless --task is typed); without ``--config``, the options alone (line None)."""
+    if not getattr(args, "config", None):
+        return build_config(args), None
+    from tuner.sources import resolve_source, studies_dir
+    src = resolve_source(args.config, studies_dir(getattr(args, "studies_dir", None)))
+    conf, used = config_over(src.conf, args, where=f"--config {args.config}")
+    if src.frozen and src.frozen.get("task") and "task" not in explicit_options(args):
+        args.task = src.frozen["task"]
+    return conf, (f"config {args.config} ({src.label})"
+                  + (f"; overridden on the command line: {', '.join(used)}" if used else ""))
+
+
 def run(args) -> int:
-    conf = build_config(args)
+    conf, source = config_of(args)
     data = resolve_data(args.data)
     out = evaluate_config(conf, data, args.scenes, cache_dir=args.cache,
                           min_covisibility=args.covisibility, progress=not (args.quiet or args.json),
                           with_pairs=args.pairs, task=args.task, multiview=multiview_config(args), workers=args.workers,
                           gt_dir=args.gt_dir, with_bags=args.bag_records, keep_models=args.keep_models,
                           intermediate=args.intermediate, jobs=args.jobs)
+    if source:
+        out["config_source"] = {"config": args.config, "overridden": sorted(explicit_options(args) & set(OPTION_FIELDS))}
     if args.json:
         print(json.dumps(_jsonable(out), indent=2))
     else:
+        if source:
+            print(source)
         c = conf
         print(f"{c.feature.name} ({c.feature.num_features}) | r={c.matching.ratio} {c.matching.strategy} | "
               f"{c.geometry.ransac} eta={c.geometry.threshold}px Gamma={c.geometry.max_iters} | data {data}")
