@@ -36,7 +36,7 @@ def evaluate_config(conf: PipelineConfig, data_root: Path, scenes=None, cache_di
                     min_covisibility: float | None = 0.1, progress: bool = False,
                     with_pairs: bool = False, task: str = "stereo", multiview=None, workers: int | None = None,
                     gt_dir=None, with_bags: bool = False, keep_models=None, intermediate: bool = False,
-                    max_pairs: int | None = None, jobs: int | None = None) -> dict:
+                    max_pairs: int | None = None, ci_resamples: int | None = None, jobs: int | None = None) -> dict:
     """Evaluate one configuration; returns the JSON-able result of `tune evaluate`.
 
     task: a registered task name (``stereo``, ``multiview``), a comma-separated list, or ``both``: the result
@@ -45,8 +45,9 @@ def evaluate_config(conf: PipelineConfig, data_root: Path, scenes=None, cache_di
     (each task takes those it knows: :func:`pipeline.tasks.make_task`): min_covisibility, max_pairs (stereo);
     multiview (a ``MultiviewConfig``), workers (parallel bag processes), keep_models (multiview); gt_dir: where
     built ground truth lives; intermediate: add an "intermediate" section (repeatability, matching scores,
-    ``pipeline.tasks.intermediate``); jobs: stereo pair worker processes (None: every usable CPU; the records do
-    not depend on it). Raises ImtuneError when there is nothing to evaluate."""
+    ``pipeline.tasks.intermediate``); ci_resamples: bootstrap resamples of the mAA intervals (``mAA5_ci``,
+    ``mAA10_ci``; None: the task's default, 2000; 0: none); jobs: stereo pair worker processes (None: every
+    usable CPU; the records do not depend on it). Raises ImtuneError when there is nothing to evaluate."""
     from pipeline.cache import H5Cache
     from pipeline.tasks import make_task, task_list
     names = task_list(task)
@@ -57,7 +58,8 @@ def evaluate_config(conf: PipelineConfig, data_root: Path, scenes=None, cache_di
     out = {"config": conf.to_dict(), "data": str(data_root), "scenes": [s.name for s in scene_objs]}
     for name in names:
         t = make_task(name, min_covisibility=min_covisibility, max_pairs=max_pairs, mv=multiview, workers=workers,
-                      keep_models=keep_models, progress=progress, jobs=jobs)
+                      keep_models=keep_models, progress=progress, jobs=jobs,
+                      **({} if ci_resamples is None else {"ci_resamples": ci_resamples}))
         units = sum(len(t.evaluation_units(s)) for s in scene_objs)
         if units == 0:
             raise ImtuneError(f"nothing to evaluate: no {name} pairs in {', '.join(s.name for s in scene_objs)} "

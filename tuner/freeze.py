@@ -67,13 +67,18 @@ def task_of(d: dict, **extra):
     return TASKS.get(d.get("task", "stereo")).from_options(d.get("task_options"), **extra)
 
 
-def frozen_from_study(study) -> dict:
-    """The frozen settings (a dict) of the study's best feasible trial; ImtuneError if there is none."""
+def frozen_from_study(study, select: str | None = None) -> dict:
+    """The frozen settings (a dict) of the trial the selection rule picks (``tuner.select``: best, one-se,
+    smooth; None: the rule recorded in the study, else ``tuner.select.DEFAULT_RULE``) among the feasible ones;
+    ImtuneError if there is none. Also records the selection, how flat the optimum is and warnings (optimum on
+    a bound of the search space, ...)."""
     from tuner.protocol import best_feasible, config_for, fixed_values, trial_value
+    from tuner import select as sel
     attrs = study.user_attrs
     if not attrs.get("imtune"):
         raise ImtuneError(f"study {study.study_name!r} was not created by imtune")
-    best = best_feasible(study)
+    optimum = best_feasible(study)
+    best, selection = sel.select_trial(study, sel.check_rule(select or attrs.get("select")))
     if best is None:
         raise ImtuneError(f"study {study.study_name!r} has no feasible completed trial (none within the "
                           f"{attrs['budget']['seconds_per_pair']} s per pair budget); run more trials first")
@@ -83,11 +88,12 @@ def frozen_from_study(study) -> dict:
     conf = config_for(base, {**fixed, **best.params}, seed=int(attrs.get("seed", 0)))
     ua = best.user_attrs
     validation = {k: ua.get(k) for k in task.summary_keys + ("scenes",)}
+    validation.update({k: v for k, v in ua.items() if k.endswith("_ci")})  # 95% intervals (tuner.select)
     if validation.get("pairs") is None:
         validation["pairs"] = (ua.get("timing") or {}).get("pairs")
     budget = dict(attrs["budget"])
     budget.pop("calibration", None)
-    return _plain({
+    out = _plain({
         "study": study.study_name,
         "trial": best.number,
         "value": trial_value(best),  # mAA(10 deg); a pareto study's best trial within B on its front
@@ -101,17 +107,33 @@ def frozen_from_study(study) -> dict:
         "budget": budget,
         "data": {**attrs.get("data", {}), "fingerprint": attrs.get("data_fingerprint")},
         "validation": validation,
+        "selection": selection,
+        # how flat the optimum is: the trials within the optimum's 95% interval and the region they span
+        "robustness": sel.flat_region(study, optimum, task.objective),
         "search_space": attrs.get("search_space_resolved"),
         "code_version": attrs.get("code_version"),
         "frozen_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     })
+    out["warnings"] = _plain(sel.optimum_warnings(study, out))  # on a bound, Gamma_max at the ceiling, all 0
+    return out
 
 
-def freeze(study, studies_dir: Path | str) -> tuple[dict, Path]:
-    """Write ``<studies_dir>/<study>/frozen.yaml`` from the best feasible trial; returns (dict, path)."""
-    frozen = frozen_from_study(study)
+def freeze(study, studies_dir: Path | str, select: str | None = None, warn=None) -> tuple[dict, Path]:
+    """Write ``<studies_dir>/<study>/frozen.yaml`` from the trial the selection rule ``select`` picks (None: the
+    study's recorded rule, else the default; an explicit rule is recorded in the study); returns (dict, path).
+    Each of ``frozen["warnings"]`` (``tuner.select.optimum_warnings``: optimum on a bound, ...) is also passed to
+    ``warn`` (a callable taking one line) when given."""
+    if select is not None:
+        from tuner.select import check_rule
+        study.set_user_attr("select", check_rule(select))
+    frozen = frozen_from_study(study, select)
+    if warn is not None:  # one line each (tune run prints them itself, through TuneSettings.warn)
+        for w in frozen["warnings"]:
+            warn(w)
     path = study_dir(studies_dir, study.study_name) / "frozen.yaml"
-    header = (f"# imtune frozen settings of study {study.study_name}: best feasible trial #{frozen['trial']}\n"
+    rule = (frozen.get("selection") or {}).get("rule", "best")
+    header = (f"# imtune frozen settings of study {study.study_name}: feasible trial #{frozen['trial']} "
+              f"(selection rule {rule})\n"
               "# params: searched values; fixed: values not searched; config: the complete pipeline\n")
     atomic_write(path, header + yaml.safe_dump(frozen, sort_keys=False, default_flow_style=False))
     from tuner.annotate import annotate_study; annotate_study(study, frozen)  # noqa: E702 - dashboard notes
@@ -145,10 +167,15 @@ def test_scene_names(frozen: dict, data_root: Path, scenes=None) -> list[str]:
 
 def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None = None, *, scenes=None,
              cache=None, runs: int = 3, max_pairs: int | None = None, test_budget: float | None = None,
-             progress: bool = False, reuse: bool = True, workers: int | None = None,
-             jobs: int | None = None) -> dict:
+             progress: bool = False, reuse: bool = True, workers: int | None = None, reference: str | None = None,
+             jobs: int | None = None,
+             ci_resamples: int | None = None) -> dict:
     """Evaluate the frozen configuration with its task on the test scenes ``runs`` times (the k-th run with the
-    task's k-th seed: ``Task.for_run``) and aggregate (``Task.aggregate``: mean and std). Writes
+    task's k-th seed: ``Task.for_run``) and aggregate (``Task.aggregate``: mean and std). Each run keeps its pair
+    errors (``pair_errors``); the mean carries the 95% interval of ``tuner.select.test_interval`` (``interval``
+    says how it accounts for the run-to-run variation; ``ci_resamples`` 0: none). ``reference`` (None: the
+    paper defaults, "none", a config file or study: ``tuner.select.reference_config``) is evaluated on the same
+    pairs and runs and compared by a paired bootstrap (``reference.comparison``). Writes
     ``<studies_dir>/<study>/test.json`` when ``studies_dir`` is given; with ``reuse``, an existing test.json for
     the same trial, configuration, task options and data is returned as is. ``max_pairs`` / ``workers``
     override the task's options (stereo pairs per scene; multiview bag processes)."""
@@ -159,20 +186,24 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
     from tuner.version import code_version
     data_root = Path(data_root)
     names = test_scene_names(frozen, data_root, scenes)
-    task = task_of(frozen, max_pairs=max_pairs, workers=workers, progress=progress,
+    from tuner import select as sel
+    task = task_of(frozen, max_pairs=max_pairs, workers=workers, progress=progress, ci_resamples=ci_resamples,
                    jobs=jobs)  # stereo pair processes: not a task option (the numbers do not depend on it)
     conf = pipeline_from_dict(frozen["config"])
+    n_ci = int(getattr(task, "ci_resamples", 0) or 0)
+    ref = sel.reference_config(frozen, reference, task)
     tb = float(test_budget if test_budget is not None else frozen.get("budget", {}).get("test_seconds_per_pair", 1.0))
     vs = ValidationSet.from_scenes(load_scenes(data_root, names, split="test"), task)
     out_path = study_dir(studies_dir, frozen["study"]) / "test.json" if studies_dir is not None else None
     ident = {"trial": frozen.get("trial"), "config": frozen["config"], "task_options": task.options(),
-             "fingerprint": vs.fingerprint, "runs": int(runs), "test_budget": tb}
+             "fingerprint": vs.fingerprint, "runs": int(runs), "test_budget": tb, "ci_resamples": n_ci,
+             "reference": None if ref is None else ref[0].to_dict()}
     old = _previous_result(out_path, ident) if reuse else None
     if old is not None:
         return old
     cache = cache if cache is not None else H5Cache()
     vs.prepare(conf, cache, progress=progress)
-    results = []
+    results, errors = [], []
     it = range(int(runs))
     if progress:
         from tqdm.auto import tqdm
@@ -182,8 +213,33 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
         res = t.evaluate(vs.scene_objs, c, cache)
         f = t.figures(res)
         f.update(run=k, seed=int(c.geometry.seed), task_options=t.options())
+        errors.append(sel.pair_errors(res.records))
+        if errors[-1] is not None:
+            f["pair_errors"] = errors[-1]  # [[scene, pair, err deg], ...]: what paired comparisons read
         results.append(f)
     mean, std = task.aggregate(results)
+    interval = sel.test_interval(mean, errors, n_ci)
+    reference_out = None
+    if ref is not None:  # the same pairs, runs and seeds with the reference configuration
+        rconf, rlabel = ref
+        vs.prepare(rconf, cache, progress=progress)
+        rres, rerr = [], []
+        for k in range(int(runs)):
+            t, c = task.for_run(rconf, k)
+            res = t.evaluate(vs.scene_objs, c, cache)
+            f = t.figures(res)
+            f.update(run=k, seed=int(c.geometry.seed))
+            rerr.append(sel.pair_errors(res.records))
+            if rerr[-1] is not None:
+                f["pair_errors"] = rerr[-1]
+            rres.append(f)
+        rmean, rstd = task.aggregate(rres)
+        sel.test_interval(rmean, rerr, n_ci)
+        cmp = sel.compare_reference(rerr, errors, n_ci or 2000)
+        reference_out = {"label": rlabel, "spec": sel.reference_spec(reference), "config": rconf.to_dict(),
+                         task.objective: rmean.get(task.objective), "mean": rmean, "std": rstd, "runs": rres,
+                         "comparison": cmp,
+                         "note": "" if cmp else f"no per-pair errors in {task.name} records: no paired comparison"}
     sec = task.budget_seconds(mean)  # the one feasibility rule, on the mean over runs
     out = _plain({
         "study": frozen["study"], "trial": frozen.get("trial"), "task": task.name, "task_options": task.options(),
@@ -193,7 +249,7 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
                  **task.options()},
         "budget": {"test_seconds_per_pair": tb, "within_budget": within_budget(sec, tb),
                    "statistic": "median estimator seconds per pair"},
-        "runs": results, "mean": mean, "std": std,
+        "runs": results, "mean": mean, "std": std, "interval": interval, "reference": reference_out,
         "validation": frozen.get("validation"),
         "code_version": code_version(),
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
@@ -212,21 +268,33 @@ def test_summary(result: dict) -> dict:
             "scenes": result["data"]["scenes"], **scalars,
             **{f"{k}_std": v for k, v in (result.get("std") or {}).items() if not isinstance(v, list)},
             "within_budget": result.get("budget", {}).get("within_budget"),
-            "per_scene": {k: {kk: vv for kk, vv in v.items() if not isinstance(vv, (list, dict))}
+            **{k: v for k, v in m.items() if k.endswith("_ci")},  # 95% intervals of the mean over runs
+            "reference": _reference_summary(result.get("reference")),
+            "per_scene": {k: {kk: vv for kk, vv in v.items() if not isinstance(vv, (list, dict)) or kk.endswith("_ci")}
                           for k, v in m.get("scenes", {}).items()},
             "created": result.get("created")}
 
 
+def _reference_summary(ref: dict | None) -> dict | None:
+    if not ref:
+        return None
+    c = ref.get("comparison") or {}
+    return {"label": ref.get("label"), "mAA10": ref.get("mAA10"),
+            **{k: c.get(k) for k in ("difference", "ci", "p_value", "significant", "pairs") if k in c}}
+
+
 def run_test_for_study(study, frozen: dict, studies_dir, *, data_root=None, scenes=None, cache=None, runs: int = 3,
                        max_pairs=None, test_budget=None, progress: bool = False, reuse: bool = True,
-                       workers: int | None = None, jobs: int | None = None) -> dict:
+                       workers: int | None = None, reference: str | None = None,
+                       ci_resamples: int | None = None, jobs: int | None = None) -> dict:
     """:func:`run_test` and store its summary in the study's user attribute ``test``."""
     root = data_root or frozen.get("data", {}).get("root")
     if root is None or not Path(root).is_dir():
         from tuner.options import resolve_data
         root = resolve_data(None)
     result = run_test(frozen, root, studies_dir, scenes=scenes, cache=cache, runs=runs, max_pairs=max_pairs,
-                      test_budget=test_budget, progress=progress, reuse=reuse, workers=workers,
-                      jobs=jobs)
+                      test_budget=test_budget, progress=progress, reuse=reuse, workers=workers, reference=reference,
+                      jobs=jobs,
+                      ci_resamples=ci_resamples)
     study.set_user_attr("test", test_summary(result))
     return result

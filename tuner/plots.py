@@ -384,6 +384,45 @@ def report_sections(storage, study_name: str, studies_dir: Path | str | None = N
     return sections
 
 
+def _uncertainty_lines(study, studies_dir=None) -> list[str]:
+    """HTML paragraphs: the frozen trial (its selection rule) with the 95% interval of its validation mAA(10°), how
+    flat the optimum is, the warnings, and from test.json the test mAA(10°) with its interval and the paired
+    comparison with the reference configuration."""
+    import json
+
+    from tuner.freeze import frozen_from_study, study_dir
+    from tuner.select import comparison_text, flat_text
+    try:
+        f = frozen_from_study(study)
+    except Exception as e:  # noqa: BLE001 - the rest of the report still draws
+        return [f"<p><i>{html.escape(f'frozen settings unavailable: {e}')}</i></p>"]
+    v = f.get("validation") or {}
+    ci = v.get("mAA10_ci")
+    sel = f.get("selection") or {}
+    ps = ", ".join(f"{PARAM_SHORT.get(k, k)} = {x:.4g}" if isinstance(x, float) else f"{PARAM_SHORT.get(k, k)} = {x}"
+                   for k, x in (f.get("params") or {}).items())
+    txt = (f"frozen ({sel.get('rule', 'best')} rule): trial {f['trial']}, validation {METRIC} = "
+           + (f"{v.get('mAA10'):.3f}" if v.get("mAA10") is not None else "?")
+           + (f" [95% interval {ci[0]:.3f}, {ci[1]:.3f}]" if ci else " (no interval stored)") + f"; {ps}")
+    out = [f"<p><b>{html.escape(txt)}</b><br>{html.escape(sel.get('note', ''))}</p>",
+           f"<p>{html.escape(flat_text(f.get('robustness')))}</p>"]
+    out += [f"<p style='color:#b00'>warning: {html.escape(w)}</p>" for w in f.get("warnings") or []]
+    p = study_dir(studies_dir, study.study_name) / "test.json" if studies_dir is not None else None
+    if p is not None and p.is_file():
+        try:
+            t = json.loads(p.read_text())
+        except (OSError, ValueError):
+            return out
+        m = t.get("mean") or {}
+        tci = m.get("mAA10_ci")
+        line = (f"test ({len(t.get('runs') or [])} runs, trial {t.get('trial')}): {METRIC} = "
+                + (f"{m.get('mAA10'):.3f}" if m.get("mAA10") is not None else "?")
+                + (f" [95% interval {tci[0]:.3f}, {tci[1]:.3f}, over pairs and runs]" if tci else "")
+                + f", std over runs {(t.get('std') or {}).get('mAA10', 0.0):.3f}")
+        out.append(f"<p><b>{html.escape(line)}</b><br>{html.escape(comparison_text(t.get('reference')))}</p>")
+    return out
+
+
 def write_report(storage, study_name: str, out: Path | str, studies_dir: Path | str | None = None) -> Path:
     """Write the HTML report of one study; returns its path. ``studies_dir``: where test.json is read
     for the test-scene breakdowns."""
@@ -404,8 +443,9 @@ def write_report(storage, study_name: str, out: Path | str, studies_dir: Path | 
     if best is not None:
         ps = ", ".join(f"{PARAM_SHORT.get(k, k)} = {v:.4g}" if isinstance(v, float) else f"{PARAM_SHORT.get(k, k)} = {v}"
                        for k, v in best.params.items())
-        head.append(f"<p><b>frozen (best within budget): trial {best.number}</b>, {METRIC} = {_value(best):.3f}; "
+        head.append(f"<p><b>optimum (best within budget): trial {best.number}</b>, {METRIC} = {_value(best):.3f}; "
                     f"{html.escape(ps)}</p>")
+        head += _uncertainty_lines(study, studies_dir)
     body, first = [], True
     for s in sections:
         if s.fig is not None:  # the figure carries its own title: no second heading above it

@@ -42,7 +42,8 @@ class StudyInfo:
 
 
 def collect_studies(storage, task: str | None = None, studies_dir: Path | str | None = None) -> list[StudyInfo]:
-    """Every imtune study in the storage (others are skipped), with its best feasible trial and test
+    """Every imtune study in the storage (others are skipped), with the trial it freezes (``best``: its selection
+    rule's pick, by default the best feasible trial) and test
     summary (study attribute ``test``, else ``<studies_dir>/<study>/test.json``)."""
     import optuna
     from optuna.trial import TrialState
@@ -67,10 +68,20 @@ def collect_studies(storage, task: str | None = None, studies_dir: Path | str | 
                     test = None
         out.append(StudyInfo(name=summ.study_name, task=attrs.get("task", "stereo"), feature=attrs.get("feature", "?"),
                              num_features=int(attrs.get("num_features") or 0), ransac=attrs.get("ransac", "?"),
-                             attrs=attrs, best=best_feasible(study),
+                             attrs=attrs, best=_frozen_trial(study),
                              n_complete=len(study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))),
                              test=test))
     return out
+
+
+def _frozen_trial(study):
+    """The trial the study freezes: its selection rule (``tuner.select``; the default rule: the best feasible)."""
+    from tuner.select import select_trial
+    try:
+        return select_trial(study, study.user_attrs.get("select"))[0]
+    except ImtuneError:  # an unknown recorded rule (a newer imtune): the best feasible
+        from tuner.protocol import best_feasible
+        return best_feasible(study)
 
 
 def _groups(studies: list[StudyInfo]):
@@ -181,6 +192,12 @@ def settings_rows(studies: list[StudyInfo], fmt: str = "markdown",
         row["r from"] = top.ransac if top else None
         row["mAA10 val"] = _num(trial_value(top.best), 4) if top else None
         row["mAA10 mv val"] = _num(trial_value(mv_top.best), 4) if mv_top else None
+        for key, st in (("mAA10 val", top), ("mAA10 mv val", mv_top)):  # the optimum's 95% interval
+            ci = (st.best.user_attrs.get("mAA10_ci") if st is not None else None)
+            if fmt == "json":
+                row[f"{key} ci"] = [round(float(x), 4) for x in ci] if ci else None
+            elif ci and row[key] is not None:
+                row[key] = _with_ci(row[key], ci)
         if fmt == "json":
             row["studies"] = {s.ransac: {"study": s.name, "trial": s.best.number if s.best else None,
                                          "value": trial_value(s.best) if s.best else None,
@@ -205,6 +222,7 @@ def settings_rows(studies: list[StudyInfo], fmt: str = "markdown",
     if multiview:
         names.append("mAA10 mv val")
     if fmt == "json":
+        names += (["mAA10 val ci"] if studies else []) + (["mAA10 mv val ci"] if multiview else [])
         names += ["studies"] + (["multiview_studies"] if multiview else [])
     plain, tex = _settings_caption(studies, multiview, per_est_budget)
     labels = {"r": "$r$ stereo", "r from": "$r$ from", "r_multiview": "$r$ multiview", "B": "$B$ (s)",

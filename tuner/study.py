@@ -126,13 +126,16 @@ class TuneSettings:
     verbose: bool = False  # Optuna's own INFO log lines
     objective: str = "mAA10"  # "mAA10" | "pareto" (OBJECTIVES)
     pareto_span: float = PARETO_SPAN  # pareto: Gamma searched up to Gamma_max(span x B), the front crosses B
+    select: str | None = None  # tuner.select rule freezing the study (best | one-se | smooth; None: recorded/default)
+    reference: str | None = None  # test runs compared with: None = paper defaults, "none", a config file or study
+    ci_resamples: int = 2000  # bootstrap resamples of every mAA's 95% interval (0 = none)
 
     def make_task(self, **extra):
         """The study's task with these settings' options (each task takes those it knows)."""
         from pipeline.tasks import make_task
         return make_task(self.task, min_covisibility=self.min_covisibility, max_pairs=self.max_pairs,
                          step_pairs=self.chunk_pairs, mv=self.multiview, workers=self.workers, jobs=self.jobs,
-                         **extra)
+                         **{"ci_resamples": self.ci_resamples, **extra})
 
     def say(self, msg: str) -> None:
         if self.log is not None:
@@ -634,7 +637,7 @@ def tune(s: TuneSettings) -> dict:
     if best_feasible(ctx.study) is None:
         raise ImtuneError(f"study {ctx.name!r}: no feasible completed trial yet (all over the "
                           f"{ctx.attrs['budget']['seconds_per_pair']} s budget, pruned or failed); run more trials")
-    frozen, path = freeze(ctx.study, s.studies_dir)
+    frozen, path = freeze(ctx.study, s.studies_dir, select=s.select)
     out["frozen"], out["frozen_path"] = frozen, str(path)
     from tuner.diagnostics import optimum_warnings  # on a bound, Gamma_max at the ceiling, every trial 0
     out["warnings"] = list(frozen["warnings"]) if "warnings" in frozen else optimum_warnings(ctx.study, frozen)
@@ -652,5 +655,5 @@ def tune(s: TuneSettings) -> dict:
     out["test"] = run_test_for_study(ctx.study, frozen, s.studies_dir, data_root=s.data_root,
                                      scenes=s.test_scenes, cache=ctx.cache, runs=s.test_runs,
                                      max_pairs=s.max_pairs, progress=s.progress, reuse=not s.retest, jobs=s.jobs,
-                                     workers=s.workers)
+                                     workers=s.workers, reference=s.reference, ci_resamples=s.ci_resamples)
     return out

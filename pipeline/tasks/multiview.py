@@ -43,6 +43,7 @@ from pipeline.data.scene import Scene
 from pipeline.errors import ImtuneError
 from pipeline.metrics.pose import accuracy_curve, mean_average_accuracy, pose_error_deg
 from pipeline.tasks.base import TASKS, Task, TaskResult
+from pipeline.tasks.stereo import CI_KEYS, CI_RESAMPLES, CI_SEED, add_intervals
 
 BAG_STAGE_VERSION = "1"
 MULTIVIEW_KEYS = ("SR", "RC", "NL", "TL", "mAA5", "mAA10", "ATE", "NM", "bags", "failed", "seconds")
@@ -460,7 +461,8 @@ class MultiviewTask(Task):
     note = "COLMAP from our tentative matches; SR, RC in %; ATE in ground-truth units"
 
     def __init__(self, mv: MultiviewConfig | dict | None = None, workers: int | None = None, use_cache: bool = True,
-                 keep_models: str | Path | None = None, progress: bool = False):
+                 keep_models: str | Path | None = None, progress: bool = False, ci_resamples: int = CI_RESAMPLES):
+        self.ci_resamples = int(ci_resamples or 0)  # bootstrap over bags of the final summary (0 = none)
         if isinstance(mv, dict):
             mv = MultiviewConfig(**{k: (tuple(tuple(x) for x in v) if k == "bags" else v) for k, v in mv.items()})
         self.mv = mv or MultiviewConfig()
@@ -483,7 +485,8 @@ class MultiviewTask(Task):
     def for_run(self, conf: PipelineConfig, k: int):
         """COLMAP's seed varies across repeated runs (the bags stay the same)."""
         t = MultiviewTask(dataclasses.replace(self.mv, seed=int(self.mv.seed) + int(k)), workers=self.workers,
-                          use_cache=self.use_cache, keep_models=self.keep_models, progress=self.progress)
+                          use_cache=self.use_cache, keep_models=self.keep_models, progress=self.progress,
+                          ci_resamples=self.ci_resamples)
         return t, conf
 
     def figures(self, result: TaskResult) -> dict:
@@ -494,6 +497,7 @@ class MultiviewTask(Task):
             d = {k: s.get(k) for k in keys}
             d["accuracy"] = s.get("accuracy")
             d["by_size"] = {size: {k: v.get(k) for k in keys} for size, v in (s.get("by_size") or {}).items()}
+            d.update({k: v for k, v in s.items() if k in CI_KEYS})  # intervals, where computed
             return d
         out = part(result.summary)
         out["scenes"] = {name: part(s) for name, s in result.scenes.items()}
@@ -537,7 +541,13 @@ class MultiviewTask(Task):
         finally:
             if keep_models is None:
                 shutil.rmtree(tmp, ignore_errors=True)
-        return TaskResult(summary=combine(summaries), scenes=summaries, records=all_records, seconds=secs,
+        summary = combine(summaries)
+        if self.ci_resamples:  # the final summary only: a bootstrap over bags (never on a step)
+            from pipeline.metrics.uncertainty import bag_intervals
+            add_intervals(summary, summaries, bag_intervals(all_records, n_resamples=self.ci_resamples, seed=CI_SEED,
+                                                            scenes=[sc.name for sc in scenes]), self.ci_resamples)
+            summary["ci"]["method"] = "percentile bootstrap, resampling bags within each scene and bag size"
+        return TaskResult(summary=summary, scenes=summaries, records=all_records, seconds=secs,
                           records_key=self.records_key)
 
 

@@ -19,10 +19,27 @@ from pipeline.errors import ImtuneError
 from pipeline.data.resize import scaled_K
 from pipeline.data.scene import Pair, Scene
 from pipeline.metrics.pose import accuracy_curve, mean_average_accuracy, pose_error_deg
+from pipeline.metrics.uncertainty import maa_intervals
 from pipeline.tasks.base import TASKS, Task, TaskResult
 from pipeline.tasks.prepare import ImageFeatures, image_features, pair_knn, tentative_matches
 
 MIN_MATCHES = 8
+CI_RESAMPLES = 2000  # default bootstrap resamples of the mAA intervals (pipeline.metrics.uncertainty)
+CI_SEED = 0  # the intervals are seeded: the same records always give the same interval
+CI_KEYS = ("mAA5_ci", "mAA10_ci")
+
+
+def add_intervals(summary: dict, per_scene: dict, ci: dict, n_resamples: int) -> None:
+    """Copy the ``mAA<tau>_ci`` intervals of ``ci`` (``maa_intervals`` / ``bag_intervals``) into a task's final
+    summary and per-scene summaries, and record how they were made (``ci``: method, resamples, level)."""
+    for k in CI_KEYS:
+        if k in ci:
+            summary[k] = ci[k]
+        for name, s in per_scene.items():
+            if k in (ci.get("scenes") or {}).get(name, {}):
+                s[k] = ci["scenes"][name][k]
+    summary["ci"] = {"level": 0.95, "resamples": int(n_resamples), "seed": CI_SEED,
+                     "method": "percentile bootstrap, resampling units within each scene"}
 
 
 def pose_from_F(F: np.ndarray, K1: np.ndarray, K2: np.ndarray, pts1: np.ndarray, pts2: np.ndarray):
@@ -247,7 +264,7 @@ class StereoTask(Task):
 
     def __init__(self, min_covisibility: float | None = 0.1, max_pairs: int | None = None,
                  step_pairs: int | None = None, keep_pairs: bool = False, progress: bool = False,
-                 jobs: int | None = None):
+                 ci_resamples: int = CI_RESAMPLES, jobs: int | None = None):
         from pipeline.tasks.pool import resolve_jobs
         # worker processes evaluating the pairs (None: every CPU this process may use); not in options(): the
         # records are the same for any number of jobs (each pair is evaluated alone, with the estimator's seed)
@@ -258,6 +275,9 @@ class StereoTask(Task):
         self.step_pairs = step_pairs
         self.keep_pairs = keep_pairs
         self.progress = progress
+        # bootstrap resamples of the final summary's mAA intervals (0 = none); not in options(): an interval
+        # describes the numbers, it never changes them (a study resumed with another count stays the same study)
+        self.ci_resamples = int(ci_resamples or 0)
 
     def options(self) -> dict:
         return {"min_covisibility": self.min_covisibility, "max_pairs": self.max_pairs}
@@ -276,6 +296,8 @@ class StereoTask(Task):
         out["scenes"] = {k: {kk: v.get(kk) for kk in ("mAA5", "mAA10", "NF", "NM", "NI", "pairs", "failed",
                                                      "ransac_seconds_median", "accuracy", "covisibility")}
                          for k, v in result.scenes.items()}
+        for part, src in [(out, s)] + [(out["scenes"][k], v) for k, v in result.scenes.items()]:
+            part.update({k: v for k, v in src.items() if k in CI_KEYS})  # intervals, where computed
         return out
 
     def _checked_pairs(self, scenes: list[Scene]) -> list[list[Pair]]:
@@ -355,6 +377,9 @@ class StereoTask(Task):
                 results.close()  # a pruned trial: what has not started is cancelled
             bar.close()
         summary, per_scene, records = self._summaries(scenes, done, nf)
+        if self.ci_resamples:  # the final summary only: never on a pruner's step
+            add_intervals(summary, per_scene, maa_intervals(records, n_resamples=self.ci_resamples, seed=CI_SEED,
+                                                            scenes=[sc.name for sc in scenes]), self.ci_resamples)
         return TaskResult(summary=summary, scenes=per_scene, records=records, pairs=kept,
                           seconds={"prepare": t1 - t0, "pairs": time.perf_counter() - t1},
                           records_key=self.records_key)

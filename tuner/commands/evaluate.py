@@ -28,9 +28,49 @@ def register(sub) -> None:
     ap.add_argument("--bag-records", action="store_true", help="include every multiview bag record in the JSON")
     ap.add_argument("--intermediate", action="store_true",
                     help="also repeatability and matching score at 1..10 px (depth maps) / epipolar matching score")
+    add_ci_options(ap)
     add_jobs_option(ap)
     ap.set_defaults(func=run)
     track_explicit(ap)  # which options were typed: those, and only those, override --config's values
+
+
+def _ci_kind(s: str) -> str:
+    import argparse
+    if s.lower() not in ("bootstrap", "none"):
+        raise argparse.ArgumentTypeError(f"unknown interval {s!r} (bootstrap or none)")
+    return s.lower()
+
+
+def _resamples(s: str) -> int:
+    import argparse
+    try:
+        v = int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {s!r}") from None
+    if v < 100:
+        raise argparse.ArgumentTypeError(f"must be >= 100 for a 95% interval, got {v} (use --ci none to skip)")
+    return v
+
+
+def add_ci_options(ap) -> None:
+    """``--ci bootstrap|none`` and ``--ci-resamples N``: the 95% intervals of every mAA (shared by the commands)."""
+    g = ap.add_argument_group("confidence intervals")
+    g.add_argument("--ci", type=_ci_kind, default="bootstrap",
+                   help="95%% interval of every mAA: bootstrap over pairs stratified by scene (bags for "
+                        "multiview), seeded; none = skip")
+    g.add_argument("--ci-resamples", type=_resamples, default=2000, help="bootstrap resamples")
+
+
+def ci_resamples(args) -> int:
+    """The resample count the options ask for (0: no intervals)."""
+    return 0 if getattr(args, "ci", "bootstrap") == "none" else int(getattr(args, "ci_resamples", 2000) or 2000)
+
+
+def with_ci(v, ci) -> str | None:
+    """A readable ``value [lo, hi]`` (3 decimals, as every mAA is shown); the value alone without an interval."""
+    if v is None:
+        return None
+    return f"{float(v):.3f} [{ci[0]:.3f}, {ci[1]:.3f}]" if ci else f"{float(v):.3f}"
 
 
 def task_rows(section: dict, columns) -> tuple[list[dict], list[str]]:
@@ -42,6 +82,9 @@ def task_rows(section: dict, columns) -> tuple[list[dict], list[str]]:
 
     def row(scene, s, size=None):
         r = dict(scene=scene, **{k: s.get(k) for k in columns})
+        for k in columns:  # mAA with its interval, where computed: "value [lo, hi]"
+            if s.get(f"{k}_ci"):
+                r[k] = with_ci(s.get(k), s[f"{k}_ci"])
         if grouped:
             r["bag_size"] = size if size is not None else "all"
         return r
@@ -86,7 +129,7 @@ def run(args) -> int:
                           min_covisibility=args.covisibility, progress=not (args.quiet or args.json),
                           with_pairs=args.pairs, task=args.task, multiview=multiview_config(args), workers=args.workers,
                           gt_dir=args.gt_dir, with_bags=args.bag_records, keep_models=args.keep_models,
-                          intermediate=args.intermediate, jobs=args.jobs)
+                          intermediate=args.intermediate, ci_resamples=ci_resamples(args), jobs=args.jobs)
     if source:
         out["config_source"] = {"config": args.config, "overridden": sorted(explicit_options(args) & set(OPTION_FIELDS))}
     if args.json:
@@ -102,7 +145,9 @@ def run(args) -> int:
             if name in out:
                 task = TASKS.get(name)
                 rows, cols = task_rows(out[name], task.columns)
-                print(f"{name}: {task.note}" if task.note else name)
+                ci = (out[name].get("ci") or {})
+                note = task.note + (f"; [95% interval: {ci['method']}, {ci['resamples']} resamples]" if ci else "")
+                print(f"{name}: {note}" if note else name)
                 print(render(rows, "markdown", cols))
         if "intermediate" in out:
             im = out["intermediate"]

@@ -24,6 +24,7 @@ from pathlib import Path
 from pipeline.errors import ImtuneError
 from tuner.argtypes import positive_float, ratio_float
 from tuner.formatting import render
+from tuner.commands.evaluate import add_ci_options, ci_resamples, with_ci
 from tuner.options import add_pipeline_options, build_config, resolve_data
 
 FORMATS = ("markdown", "csv", "latex", "json")
@@ -62,6 +63,29 @@ def _nonnegative_int(s: str) -> int:
 
 
 _positive_float = positive_float  # finite and > 0 (`--budget inf` used to pass)
+
+
+def resolve_reference(value: str | None, sdir):
+    """``--reference``: "paper" (None), "none", or a config file / study resolved to its Source."""
+    from tuner.select import reference_spec
+    kind = reference_spec(value)
+    if kind in ("paper", "none"):
+        return kind
+    from tuner.sources import resolve_source
+    return resolve_source(kind, sdir)
+
+
+def _select_opts(g) -> None:
+    """``--select`` (which trial is frozen: tuner.select) and ``--reference`` (what test runs are compared with)."""
+    from tuner.select import DEFAULT_RULE, RULES
+    g.add_argument("--select", default=None, choices=list(RULES),
+                   help=f"which feasible trial is frozen: best (highest validation mAA), one-se (the centre of the "
+                        f"trials within one standard error of the best), smooth (best of the surface averaged over "
+                        f"neighbouring trials); see tuner/select.py (default: the study's rule, else {DEFAULT_RULE})")
+    g.add_argument("--reference", default=None, metavar="FILE|STUDY|none",
+                   help="configuration the test runs are compared with on the same pairs (paired bootstrap): a "
+                        "config file or study, none to skip (default: the paper defaults r 0.85 both, eta 0.5 px, "
+                        "Gamma 50k with the study's feature and estimator)")
 
 
 def register(sub) -> None:
@@ -111,6 +135,7 @@ def register(sub) -> None:
     t.add_argument("--test-runs", type=_positive_int, default=3)
     t.add_argument("--retest", action="store_true", help="rerun the test even if test.json matches the frozen settings")
     t.add_argument("--verbose", action="store_true", help="Optuna's per-trial log lines")
+    _select_opts(t)
     t.add_argument("--objective", default="mAA10", choices=["mAA10", "pareto"],
                    help="mAA10: maximize mAA(10°) within the budget B; pareto: a two-objective study (maximize "
                         "mAA(10°), minimize median estimator seconds per pair; no pruning), named <default>-pareto; "
@@ -118,6 +143,7 @@ def register(sub) -> None:
     t.add_argument("--pareto-span", type=_positive_float, default=4.0,
                    help="pareto: search Gamma up to Gamma_max(span x B), so that the front reaches past B")
     add_multiview_options(ap)
+    add_ci_options(ap)
     add_jobs_option(t)
     ap.set_defaults(func=run)
 
@@ -151,6 +177,8 @@ def register(sub) -> None:
                     help="multiview studies: bags in parallel (default: available CPUs)")
     te.add_argument("--json", action="store_true")
     te.add_argument("--quiet", action="store_true")
+    _select_opts(te)
+    add_ci_options(te)
     add_jobs_option(te)
     te.set_defaults(func=run_test_cmd)
 
@@ -224,7 +252,8 @@ def settings_from_args(args):
         calibration_pairs=args.calibration_pairs, recalibrate=args.recalibrate, progress=not quiet,
         test=not args.no_test, test_runs=args.test_runs, retest=args.retest, multiview=mv, workers=args.workers,
         jobs=args.jobs, warm_start=list(args.warm_start),
-        gt_dir=args.gt_dir, objective=args.objective, pareto_span=args.pareto_span)
+        gt_dir=args.gt_dir, objective=args.objective, pareto_span=args.pareto_span, select=args.select,
+        reference=resolve_reference(args.reference, _studies_dir(args)), ci_resamples=ci_resamples(args))
 
 
 def run(args) -> int:
@@ -275,9 +304,26 @@ def frozen_table(f: dict) -> str:
         rows.append({"parameter": "budget", "value": f"{b.get('seconds_per_pair')} s/pair",
                      "": f"Gamma_max {b.get('gamma_max')}"})
     others = ", ".join(f"{k} {_fmt(v.get(k))}" for k in task.columns if k not in ("mAA10",) and v.get(k) is not None)
-    rows.append({"parameter": f"validation {task.objective}", "value": _fmt(v.get(task.objective)),
+    obj = v.get(task.objective)
+    rows.append({"parameter": f"validation {task.objective}",
+                 "value": with_ci(obj, v.get(f"{task.objective}_ci")) if obj is not None else _fmt(obj),
                  "": f"{task.name}: {others}"})
-    return render(rows, "markdown", ["parameter", "value", ""])
+    return render(rows, "markdown", ["parameter", "value", ""]) + _frozen_notes(f)
+
+
+def _frozen_notes(f: dict) -> str:
+    """The selection rule, how flat the optimum is and the warnings of a frozen file, one line each."""
+    from tuner.select import flat_text
+    lines = []
+    sel = f.get("selection") or {}
+    if sel:
+        lines.append(f"selection: {sel.get('rule')} (best trial #{sel.get('best_trial')}"
+                     + (f", value {sel['best_value']:.3f}" if sel.get("best_value") is not None else "")
+                     + f"): {sel.get('note', '')}")
+    if "robustness" in f:
+        lines.append(flat_text(f.get("robustness")))
+    lines += [f"warning: {w}" for w in f.get("warnings") or []]
+    return ("\n" + "\n".join(lines)) if lines else ""
 
 
 def test_table(t: dict) -> str:
@@ -286,16 +332,26 @@ def test_table(t: dict) -> str:
     task = task_of(t)
     cols = ["scene"] + list(task.columns)
     m = t["mean"]
-    rows = [dict(scene=name, **{k: s.get(k) for k in cols[1:]}) for name, s in m.get("scenes", {}).items()]
+    def row(scene, s):  # mAA with its 95% interval: "value [lo, hi]"
+        return dict(scene=scene, **{k: with_ci(s.get(k), s[f"{k}_ci"]) if s.get(f"{k}_ci") and s.get(k) is not None
+                                    else s.get(k) for k in cols[1:]})
+    rows = [row(name, s) for name, s in m.get("scenes", {}).items()]
     if len(rows) > 1:
-        rows.append(dict(scene=f"mean of {len(rows)} scenes", **{k: m.get(k) for k in cols[1:]}))
+        rows.append(row(f"mean of {len(rows)} scenes", m))
     b = t.get("budget", {})
     std = t.get("std", {}).get(task.objective, 0.0)
     head = f"{task.name} test ({len(t.get('runs', []))} runs, mean; {task.objective} std {_fmt(std)}"
     if task.budget_seconds(m) is not None:
         head += (f"; within the {b.get('test_seconds_per_pair')} s/pair test budget: "
                  f"{'yes' if b.get('within_budget') else 'no'}")
-    return head + ")\n" + render(rows, "markdown", cols)
+    tail = []
+    if t.get("interval"):
+        tail.append(f"intervals: 95%, over pairs and runs ({t['interval'].get('resamples')} resamples; "
+                    "tuner.select.TEST_INTERVAL_NOTE, test.json 'interval')")
+    if "reference" in t:
+        from tuner.select import comparison_text
+        tail.append(comparison_text(t.get("reference")))
+    return head + ")\n" + render(rows, "markdown", cols) + "".join("\n" + x for x in tail)
 
 
 # -- tune calibrate ---------------------------------------------------------------------------------
@@ -362,9 +418,11 @@ def run_test_cmd(args) -> int:
     quiet = bool(args.quiet or args.json)
     root = resolve_data(args.data) if args.data else None
     kw = dict(scenes=_scenes(args.scenes), cache=H5Cache(args.cache), runs=args.runs, max_pairs=args.max_pairs,
-              test_budget=args.test_budget, progress=not quiet, reuse=args.reuse, workers=args.workers, jobs=args.jobs)
+              test_budget=args.test_budget, progress=not quiet, reuse=args.reuse, workers=args.workers, jobs=args.jobs,
+              reference=resolve_reference(args.reference, _studies_dir(args)), ci_resamples=ci_resamples(args))
     if study is not None:
-        frozen, path = freeze(study, sdir)
+        frozen, path = freeze(study, sdir, select=args.select,
+                              warn=lambda w: print(f"warning: {w}", file=sys.stderr, flush=True))
         result = run_test_for_study(study, frozen, sdir, data_root=root, **kw)
     else:
         frozen = load_frozen(sdir, args.study)  # no such study in this storage: the frozen file alone

@@ -1,0 +1,157 @@
+"""Selection rules: which of `--select best | one-se | smooth` generalises best from validation to test.
+
+Leave-one-scene-out on the Strecha scenes (fountain-P11, Herz-Jesus-P8, entry-P10): for each held-out scene,
+one study tunes eta, r and Gamma on the other two (the tuner's own objective, TPE, median pruner, budget B), then
+each rule (``tuner.select``) picks a trial from the *same* trials, and that trial's configuration is evaluated on
+every pair of the held-out scene. The untuned paper defaults (r 0.85 both, eta 0.5 px, Gamma 50k) are evaluated
+on the same pairs, and each rule's pick is compared with them by the paired bootstrap.
+
+    python benchmarks/selection_rules.py                       # sift 2000, degensac, 24 trials, 15 pairs/scene
+    python benchmarks/selection_rules.py --trials 40 --max-pairs 0 --seeds 2 --json out.json
+
+Prints per fold and rule: the frozen trial, its validation mAA(10) [95% interval], the held-out test mAA(10)
+[interval], the drop (validation - test) and the difference to the paper defaults [interval]; then per rule the
+mean test mAA(10) over folds, the mean drop and the folds won, and the winner (highest mean test mAA(10); ties:
+the smaller mean drop). With three folds a winner is a tendency, not a significant result: the table says so.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+SCENES = ("fountain-P11", "Herz-Jesus-P8", "entry-P10")
+
+
+def _f(v, ci=None) -> str:
+    if v is None:
+        return "-"
+    return f"{v:.3f}" + (f" [{ci[0]:.3f}, {ci[1]:.3f}]" if ci else "")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=None, help="the Strecha folder (default: ../shared/data/strecha)")
+    ap.add_argument("--feature", default="sift")
+    ap.add_argument("--num-features", type=int, default=2000)
+    ap.add_argument("--ransac", default="degensac")
+    ap.add_argument("--trials", type=int, default=24, help="trials per study (one study per fold and seed)")
+    ap.add_argument("--max-pairs", type=int, default=15, help="validation pairs per scene (0 = all)")
+    ap.add_argument("--test-max-pairs", type=int, default=0, help="test pairs of the held-out scene (0 = all)")
+    ap.add_argument("--seeds", type=int, default=1, help="studies per fold (seeds 0..N-1)")
+    ap.add_argument("--budget", type=float, default=0.5)
+    ap.add_argument("--cache", default=None)
+    ap.add_argument("--workdir", default=None, help="storage and studies folder (default: a temporary one)")
+    ap.add_argument("--json", default=None, help="also write every figure to this JSON file")
+    args = ap.parse_args(argv)
+
+    import warnings
+    warnings.filterwarnings("ignore")
+    import optuna
+    from pipeline.cache import H5Cache
+    from pipeline.config_files import pipeline_from_dict
+    from tuner.freeze import frozen_from_study, run_test
+    from tuner.select import RULES, select_trial
+    from tuner.study import TuneSettings, _quiet_optuna, tune
+    _quiet_optuna()
+    root = Path(args.data) if args.data else Path(__file__).resolve().parents[2] / "shared" / "data" / "strecha"
+    if not all((root / s).is_dir() for s in SCENES):
+        print(f"selection_rules: the Strecha scenes {', '.join(SCENES)} are not all in {root} (give --data)",
+              file=sys.stderr)
+        return 2
+    work = Path(args.workdir or tempfile.mkdtemp(prefix="imtune-select-"))
+    work.mkdir(parents=True, exist_ok=True)
+    storage = f"sqlite:///{work / 'selection.db'}"
+    cache = H5Cache(args.cache)
+    base = pipeline_from_dict({"feature": {"name": args.feature, "num_features": args.num_features},
+                               "geometry": {"ransac": args.ransac}})
+    t_all = time.perf_counter()
+    rows, results = [], []
+    for held in SCENES:
+        val = [s for s in SCENES if s != held]
+        for seed in range(args.seeds):
+            name = f"loso-{held}-s{seed}-{args.feature}{args.num_features}-{args.ransac}"
+            t0 = time.perf_counter()
+            s = TuneSettings(base=base, data_root=root, study_name=name, storage=storage, studies_dir=work,
+                             n_trials=args.trials, seed=seed, budget=args.budget, val_scenes=val, test_scenes=[held],
+                             max_pairs=args.max_pairs or None, cache_dir=args.cache, calibration_pairs=6,
+                             progress=False, test=False, log=lambda m: None)
+            tune(s)
+            study = optuna.load_study(study_name=name, storage=storage)
+            tune_s = time.perf_counter() - t0
+            tested: dict[int, dict] = {}  # trial number -> test result (rules often agree)
+            ref = None
+            for rule in RULES:
+                trial, info = select_trial(study, rule)
+                frozen = frozen_from_study(study, rule)
+                if trial.number not in tested:
+                    tested[trial.number] = run_test(frozen, root, None, scenes=[held], cache=cache, runs=1,
+                                                    max_pairs=args.test_max_pairs or None,
+                                                    reference="paper" if ref is None else "none")
+                    if ref is None:
+                        r0 = tested[trial.number]["reference"]
+                        ref = {"mAA10": r0["mAA10"], "mAA10_ci": r0["mean"].get("mAA10_ci"), "runs": r0["runs"]}
+                t = tested[trial.number]
+                # the paired comparison with the paper defaults on the same held-out pairs
+                from tuner.select import compare_reference
+                cmp = compare_reference([r.get("pair_errors") for r in ref["runs"]],
+                                        [r.get("pair_errors") for r in t["runs"]], 2000)
+                v = frozen["validation"]
+                row = {"held_out": held, "seed": seed, "rule": rule, "trial": trial.number,
+                       "params": frozen["params"], "val": v.get("mAA10"), "val_ci": v.get("mAA10_ci"),
+                       "test": t["mean"]["mAA10"], "test_ci": t["mean"].get("mAA10_ci"),
+                       "drop": v.get("mAA10") - t["mean"]["mAA10"],
+                       "vs_defaults": cmp["difference"] if cmp else None, "vs_defaults_ci": cmp["ci"] if cmp else None,
+                       "defaults": ref["mAA10"], "defaults_ci": ref["mAA10_ci"], "tune_seconds": tune_s,
+                       "select_note": info.get("note")}
+                rows.append(row)
+            print(f"fold held-out {held} (seed {seed}): tuned on {', '.join(val)} in {tune_s:.0f} s; "
+                  f"paper defaults on {held}: {_f(ref['mAA10'], ref['mAA10_ci'])}", flush=True)
+            for r in rows[-len(RULES):]:
+                p = r["params"]
+                print(f"  {r['rule']:7s} trial {r['trial']:3d} (r {p.get('ratio', float('nan')):.3f}, eta "
+                      f"{p.get('threshold', float('nan')):.3g} px, Gamma {int(p.get('max_iters', 0)):,}): val "
+                      f"{_f(r['val'], r['val_ci'])} -> test {_f(r['test'], r['test_ci'])}, drop {r['drop']:+.3f}, "
+                      f"vs defaults {r['vs_defaults']:+.3f} [{r['vs_defaults_ci'][0]:+.3f}, "
+                      f"{r['vs_defaults_ci'][1]:+.3f}]", flush=True)
+    # summary per rule
+    import numpy as np
+    folds = sorted({(r["held_out"], r["seed"]) for r in rows})
+    summary = []
+    for rule in RULES:
+        rr = [r for r in rows if r["rule"] == rule]
+        wins = 0
+        for fk in folds:
+            here = {r["rule"]: r["test"] for r in rows if (r["held_out"], r["seed"]) == fk}
+            if here[rule] >= max(here.values()) - 1e-12:
+                wins += 1
+        summary.append({"rule": rule, "mean_test": float(np.mean([r["test"] for r in rr])),
+                        "mean_val": float(np.mean([r["val"] for r in rr])),
+                        "mean_drop": float(np.mean([r["drop"] for r in rr])),
+                        "mean_vs_defaults": float(np.mean([r["vs_defaults"] for r in rr])),
+                        "folds_won": wins, "folds": len(folds)})
+    winner = max(summary, key=lambda s: (round(s["mean_test"], 9), -s["mean_drop"]))
+    print()
+    print(f"| rule | mean val mAA10 | mean test mAA10 | mean drop (val - test) | mean vs paper defaults | "
+          f"folds won (ties count for each) |")
+    print("|---|---:|---:|---:|---:|---:|")
+    for s in summary:
+        print(f"| {s['rule']} | {s['mean_val']:.3f} | {s['mean_test']:.3f} | {s['mean_drop']:+.3f} | "
+              f"{s['mean_vs_defaults']:+.3f} | {s['folds_won']}/{s['folds']} |")
+    print(f"\nwinner: {winner['rule']} (highest mean held-out mAA(10) over {len(folds)} folds; ties: smaller drop). "
+          f"{len(folds)} folds: a tendency, not a significant result. Total {time.perf_counter() - t_all:.0f} s; "
+          f"{args.feature} {args.num_features}, {args.ransac}, {args.trials} trials, {args.max_pairs or 'all'} "
+          f"validation pairs per scene; studies in {work}")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"rows": rows, "summary": summary, "winner": winner["rule"],
+                                               "args": vars(args)}, indent=2, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,177 @@
+"""tuner.select on synthetic studies whose answer is known by construction: the selection rules (best, one-se,
+smooth), the flat region of the optimum, frozen files made with a rule, the reference configuration, and the
+test-run interval / reference comparison helpers. Real Optuna studies (in-memory storage), no mocks."""
+import math
+
+import optuna
+import pytest
+
+from pipeline.config import PipelineConfig
+from pipeline.errors import ImtuneError
+from tuner import select as sel
+from tuner.freeze import frozen_from_study
+
+optuna.logging.set_verbosity(optuna.logging.ERROR)
+
+SPACE = {"params": {"threshold": {"type": "float", "low": 0.1, "high": 2.0, "log": True},
+                    "ratio": {"type": "float", "low": 0.6, "high": 1.0, "log": False},
+                    "max_iters": {"type": "int", "low": 1000, "high": 100000, "log": True}},
+         "fixed": {}}
+DISTS = {"threshold": optuna.distributions.FloatDistribution(0.1, 2.0, log=True),
+         "ratio": optuna.distributions.FloatDistribution(0.6, 1.0),
+         "max_iters": optuna.distributions.IntDistribution(1000, 100000, log=True)}
+
+
+def at(a: float, b: float, c: float) -> dict:
+    """Parameters at normalised coordinates (a, b, c) of (log eta, r, log Gamma)."""
+    lg = math.log
+    return {"threshold": math.exp(lg(0.1) + a * (lg(2.0) - lg(0.1))), "ratio": 0.6 + 0.4 * b,
+            "max_iters": int(round(math.exp(lg(1000) + c * (lg(100000) - lg(1000)))))}
+
+
+def make_study(trials) -> optuna.Study:
+    """trials: [(coords, value, ci or None, feasible)]"""
+    st = optuna.create_study(direction="maximize")
+    st.set_user_attr("imtune", 1)
+    st.set_user_attr("task", "stereo")
+    st.set_user_attr("search_space_resolved", SPACE)
+    st.set_user_attr("search_space", SPACE)
+    st.set_user_attr("pipeline", PipelineConfig().to_dict())
+    st.set_user_attr("budget", {"seconds_per_pair": 0.5, "gamma_max": 100000})
+    st.set_user_attr("seed", 0)
+    for coords, value, ci, feasible in trials:
+        ua = {"feasible": feasible, "mAA10": value, "ransac_seconds_median": 0.1}
+        if ci is not None:
+            ua["mAA10_ci"] = list(ci)
+        st.add_trial(optuna.trial.create_trial(params=at(*coords), distributions=DISTS, value=value, user_attrs=ua))
+    return st
+
+
+# the best (0.80 [0.70, 0.90]: SE = half-width 0.1 / 1.96 = 0.051) at an edge of a plateau centred on (0.5, 0.5, 0.5)
+PLATEAU = [((0.9, 0.5, 0.5), 0.80, (0.70, 0.90), True),   # 0: best
+           ((0.1, 0.5, 0.5), 0.76, (0.66, 0.86), True),   # 1
+           ((0.5, 0.5, 0.5), 0.75, (0.65, 0.85), True),   # 2: the plateau's centre
+           ((0.5, 0.9, 0.5), 0.77, (0.67, 0.87), True),   # 3
+           ((0.5, 0.1, 0.5), 0.755, (0.65, 0.85), True),  # 4
+           ((0.49, 0.5, 0.5), 0.745, (0.64, 0.84), True),  # 5: 0.055 below the best: more than one SE
+           ((0.52, 0.5, 0.52), 0.60, (0.5, 0.7), True),   # 6: near the centre but far below
+           ((0.5, 0.5, 0.5), 0.95, (0.9, 1.0), False)]    # 7: over budget: never frozen
+
+
+def test_best_is_the_highest_feasible():
+    st = make_study(PLATEAU)
+    t, info = sel.select_trial(st, "best")
+    assert t.number == 0 and info["rule"] == "best" and info["best_trial"] == 0
+
+
+def test_one_se_picks_the_centre_of_the_trials_within_one_se():
+    st = make_study(PLATEAU)
+    t, info = sel.select_trial(st, "one-se")
+    assert info["se"] == pytest.approx(0.1 / 1.959963984540054)  # half-width 0.1
+    assert info["within_one_se"] == [0, 1, 2, 3, 4]  # 5 is 0.055 > 1 SE below; 7 is infeasible
+    assert t.number == 2
+
+
+def test_one_se_without_an_interval_falls_back_to_the_best():
+    st = make_study([(c, v, None, f) for c, v, _, f in PLATEAU])
+    t, info = sel.select_trial(st, "one-se")
+    assert t.number == 0 and "no interval" in info["note"]
+
+
+def test_smooth_prefers_a_good_neighbourhood_to_a_lucky_spike():
+    spike = [((0.9, 0.9, 0.9), 0.90, (0.8, 1.0), True)]
+    around_spike = [((0.9 + d1, 0.9 + d2, 0.9), 0.10, (0.0, 0.2), True)
+                    for d1, d2 in ((0.02, 0), (-0.02, 0), (0, 0.02), (0, -0.02), (0.02, 0.02))]
+    cluster = [((0.2 + d, 0.2, 0.2 + d), v, (v - 0.1, v + 0.1), True)
+               for d, v in ((0.0, 0.70), (0.02, 0.72), (-0.02, 0.70), (0.04, 0.69), (-0.04, 0.70), (0.01, 0.71))]
+    st = make_study(spike + around_spike + cluster)
+    assert sel.select_trial(st, "best")[0].number == 0
+    t, info = sel.select_trial(st, "smooth")
+    assert t.number == 1 + 5 + 1  # the 0.72 member of the cluster
+    assert info["k"] == 5
+    # its smoothed value: itself and its 5 nearest (the rest of the cluster)
+    assert info["smoothed_value"] == pytest.approx((0.70 + 0.72 + 0.70 + 0.69 + 0.70 + 0.71) / 6)
+
+
+def test_unknown_rule_is_a_one_line_error():
+    with pytest.raises(ImtuneError, match="unknown selection rule 'median'"):
+        sel.check_rule("median")
+
+
+def test_flat_region_spans_the_trials_within_the_optimum_interval():
+    st = make_study(PLATEAU)
+    best = sel.select_trial(st, "best")[0]
+    flat = sel.flat_region(st, best)
+    # CI of the best [0.70, 0.90]: trials 0-5 (0.745 >= 0.70), not 6 (0.60) nor the infeasible 7
+    assert flat["trials"] == 6 and flat["of"] == 7
+    eta = flat["params"]["threshold"]
+    assert eta["min"] == pytest.approx(at(0.1, 0, 0)["threshold"]) and eta["max"] == pytest.approx(at(0.9, 0, 0)["threshold"])
+    assert eta["share_of_range"] == pytest.approx(0.8, abs=1e-3)
+    assert flat["params"]["ratio"]["share_of_range"] == pytest.approx(0.8, abs=1e-3)
+    assert "6 of 7" in sel.flat_text(flat)
+
+
+def test_frozen_from_study_uses_the_rule_and_records_it():
+    st = make_study(PLATEAU)
+    f = frozen_from_study(st, "one-se")
+    assert f["trial"] == 2 and f["selection"]["rule"] == "one-se"
+    assert f["config"]["geometry"]["threshold"] == pytest.approx(at(0.5, 0.5, 0.5)["threshold"])
+    assert f["validation"]["mAA10_ci"] == [0.65, 0.85]
+    assert f["robustness"]["trials"] == 6  # flatness is about the optimum (the best), whatever the rule
+    assert frozen_from_study(st, "best")["trial"] == 0
+    st.set_user_attr("select", "one-se")  # a rule recorded in the study is the default of later freezes
+    assert frozen_from_study(st)["trial"] == 2
+
+
+def test_frozen_optimum_on_a_bound_warns_with_a_wider_range():
+    st = make_study([((0.0, 0.5, 0.5), 0.8, (0.7, 0.9), True), ((0.5, 0.5, 0.5), 0.6, (0.5, 0.7), True)])
+    f = frozen_from_study(st, "best")
+    assert any("lower bound" in w and "0.05" in w for w in f["warnings"]), f["warnings"]
+
+
+def test_every_trial_zero_warns():
+    st = make_study([((0.5, 0.5, 0.5), 0.0, (0.0, 0.0), True), ((0.2, 0.5, 0.5), 0.0, (0.0, 0.0), True)])
+    f = frozen_from_study(st, "best")
+    assert any("0" in w and "every" in w for w in f["warnings"]), f["warnings"]
+
+
+def test_reference_is_the_paper_defaults_with_the_study_feature_and_estimator():
+    frozen = {"task": "stereo", "config": {"feature": {"name": "orb", "num_features": 2000},
+                                           "matching": {"ratio": 0.7, "strategy": "either"},
+                                           "geometry": {"ransac": "magsac", "threshold": 3.0, "max_iters": 777}}}
+    conf, label = sel.reference_config(frozen, None)
+    assert (conf.feature.name, conf.feature.num_features, conf.geometry.ransac) == ("orb", 2000, "magsac")
+    assert (conf.matching.ratio, conf.matching.strategy) == (0.85, "both")
+    assert (conf.geometry.threshold, conf.geometry.max_iters) == (0.5, 50000)
+    assert "paper defaults" in label
+    assert sel.reference_config(frozen, "none") is None
+    # multiview: COLMAP's RANSAC is not ours, only r and the strategy are the paper's
+    mv, _ = sel.reference_config({**frozen, "task": "multiview"}, "paper")
+    assert mv.matching.ratio == 0.85 and mv.geometry.threshold == 3.0 and mv.geometry.max_iters == 777
+    with pytest.raises(ImtuneError, match="resolve"):
+        sel.reference_config(frozen, "some-file.yaml")
+
+
+def test_test_interval_and_self_comparison():
+    import numpy as np
+    rng = np.random.default_rng(3)
+    runs = [[["A", f"p{i}", float(e)] for i, e in enumerate(rng.exponential(4.0, 20))] +
+            [["B", f"q{i}", float(e) if e < 9 else "inf"] for i, e in enumerate(rng.exponential(6.0, 12))]
+            for _ in range(3)]
+    from pipeline.metrics.uncertainty import maa_from_errors
+    per_run = []
+    for r in runs:
+        a = maa_from_errors([e for s, _, e in r if s == "A"])
+        b = maa_from_errors([e for s, _, e in r if s == "B"])
+        per_run.append((a + b) / 2)
+    mean = {"mAA10": float(np.mean(per_run)), "mAA5": 0.0, "scenes": {"A": {}, "B": {}}}
+    info = sel.test_interval(mean, runs, 500)
+    assert info["consistent_with_mean"] and info["runs"] == 3
+    lo, hi = mean["mAA10_ci"]
+    assert lo <= mean["mAA10"] <= hi and "mAA10_ci" in mean["scenes"]["A"]
+    assert sel.test_interval(mean, runs, 0) is None
+    assert sel.test_interval({"mAA10": 0.5}, [None], 500) is None  # no pair errors (multiview): none
+    same = sel.compare_reference(runs, runs, 500)
+    assert same["difference"] == 0.0 and same["p_value"] == 1.0 and not same["significant"]
+    assert "no significant difference" in sel.comparison_text({"label": "x", "mAA10": 0.5, "comparison": same})
+    assert sel.pair_errors([{"scene": "A", "bag": 1, "errors": [1.0]}]) is None

@@ -1,0 +1,324 @@
+"""Which trial a study freezes, how flat its optimum is, and what a test run is compared against.
+
+    from tuner.select import select_trial, flat_region, reference_config
+    trial, info = select_trial(study, "one-se")     # the trial to freeze and why
+    flat_region(study, best)                         # trials within the optimum's 95% interval
+
+Selection rules (``--select``), all over the study's COMPLETE trials within the budget
+(:func:`tuner.protocol.trial_within_budget`, THE feasibility rule):
+
+- ``best``: the highest validation mAA(10) (:func:`tuner.protocol.best_feasible`; ties: the faster, then the
+  earlier trial).
+- ``one-se``: the one-standard-error rule (Breiman et al.; Hastie, Tibshirani & Friedman, ESL 7.10). SE is the
+  best trial's bootstrap standard error, read from its 95% interval as half-width / 1.96. Every trial whose value
+  is within one SE of the best is as good as the best given the validation pairs. Among them we freeze the one
+  closest to their centroid in normalised (log eta, r, log Gamma) space: the middle of the near-optimal plateau.
+  Why this and not "the simplest model" of the classic rule: (eta, r, Gamma) have no complexity order (a larger
+  eta is not simpler than a smaller one), but the risk we guard against is concrete: the optimum of the
+  validation scenes sits elsewhere on the test scenes, and the point farthest from the plateau's edges is the
+  one a shifted plateau is most likely still to contain. The best trial sits at an edge of it more often than
+  not (TPE samples densely around the maximum's noise).
+- ``smooth``: the best of a smoothed surface: each trial's value is averaged with the values of its
+  ``SMOOTH_K`` nearest neighbours (Euclidean, normalised (log eta, r, log Gamma) space); the trial with the
+  highest average is frozen (ties: the higher own value). A lucky trial surrounded by poor ones loses to one in a
+  good neighbourhood.
+
+Normalised space: each searched numeric parameter mapped to [0, 1] over its search range (log scale where the
+space says ``log: true``: eta and Gamma); categorical parameters (the strategy) are not coordinates.
+
+Which rule generalises best from validation to test was measured by ``benchmarks/selection_rules.py``
+(leave-one-scene-out on the three Strecha scenes); ``DEFAULT_RULE`` is its winner (see the README).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from pipeline.errors import ImtuneError
+
+RULES = ("best", "one-se", "smooth")
+DEFAULT_RULE = "best"  # benchmarks/selection_rules.py (README, "Uncertainty")
+SMOOTH_K = 5
+Z95 = 1.959963984540054  # normal quantile of 0.975: SE = half-width / Z95
+
+#: the untuned "paper defaults" a test run is compared with (r 0.85 mutual, eta 0.5 px, Gamma 50k)
+PAPER_DEFAULTS = {"ratio": 0.85, "strategy": "both", "threshold": 0.5, "max_iters": 50_000}
+REFERENCE_LABEL = "paper defaults (r 0.85 both, eta 0.5 px, Gamma 50,000)"
+
+PARAM_LABEL = {"threshold": ("eta", "px"), "ratio": ("r", ""), "max_iters": ("Gamma", "")}
+
+
+def check_rule(rule: str | None) -> str:
+    rule = DEFAULT_RULE if rule is None else str(rule)
+    if rule not in RULES:
+        raise ImtuneError(f"unknown selection rule {rule!r} (choose {', '.join(RULES)})")
+    return rule
+
+
+# ------------------------------------------------------------------------------------------ trials
+
+def feasible_trials(study) -> list:
+    """COMPLETE trials with a value, within the budget (THE feasibility rule)."""
+    from optuna.trial import TrialState
+
+    from tuner.protocol import trial_within_budget
+    return [t for t in study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
+            if _value(t) is not None and math.isfinite(_value(t)) and trial_within_budget(t)]
+
+
+def _value(trial) -> float | None:
+    """The trial's mAA(10): ``tuner.protocol.trial_value`` (a pareto study's first objective) where it exists."""
+    try:
+        from tuner.protocol import trial_value
+    except ImportError:  # the protocol of before pareto studies
+        return None if trial.value is None else float(trial.value)
+    v = trial_value(trial)
+    return None if v is None else float(v)
+
+
+def numeric_params(space_spec: dict | None) -> dict[str, dict]:
+    """The searched numeric parameters of a (resolved) search-space spec: name -> {low, high, log}."""
+    out = {}
+    for name, p in ((space_spec or {}).get("params") or {}).items():
+        if p.get("type") in ("float", "int") and isinstance(p.get("low"), (int, float)) \
+                and isinstance(p.get("high"), (int, float)):
+            out[name] = {"low": float(p["low"]), "high": float(p["high"]), "log": bool(p.get("log"))}
+    return out
+
+
+def normalise(value: float, p: dict) -> float:
+    """``value`` mapped to [0, 1] over the search range (log scale for log parameters); 0 for a one-point range."""
+    lo, hi, v = p["low"], p["high"], float(value)
+    if p["log"] and lo > 0 and hi > 0 and v > 0:
+        lo, hi, v = math.log(lo), math.log(hi), math.log(v)
+    return 0.0 if hi == lo else (v - lo) / (hi - lo)
+
+
+def coordinates(trials: list, space_spec: dict | None) -> np.ndarray:
+    """(n_trials, n_numeric_params) normalised coordinates; a parameter a trial lacks sits at 0.5."""
+    ps = numeric_params(space_spec)
+    X = np.full((len(trials), len(ps)), 0.5)
+    for i, t in enumerate(trials):
+        for j, (name, p) in enumerate(ps.items()):
+            if name in t.params:
+                X[i, j] = normalise(t.params[name], p)
+    return X
+
+
+def interval_of(trial, objective: str = "mAA10") -> list[float] | None:
+    ci = (trial.user_attrs or {}).get(f"{objective}_ci")
+    return [float(ci[0]), float(ci[1])] if ci and len(ci) == 2 else None
+
+
+def standard_error(trial, objective: str = "mAA10") -> float | None:
+    """The trial's bootstrap standard error: the 95% interval's half-width / 1.96 (None without an interval)."""
+    ci = interval_of(trial, objective)
+    return None if ci is None else (ci[1] - ci[0]) / (2.0 * Z95)
+
+
+# ------------------------------------------------------------------------------------------ rules
+
+def select_trial(study, rule: str | None = None, objective: str = "mAA10", k: int = SMOOTH_K):
+    """(trial, info) of ``rule`` (see the module docstring); (None, info) when no trial is feasible.
+
+    info: ``{"rule", "best_trial", "best_value", "note", ...}`` — for one-se also ``se`` and ``within_one_se``
+    (trial numbers); for smooth ``k`` and ``smoothed_value``."""
+    from tuner.protocol import best_feasible
+    rule = check_rule(rule)
+    best = best_feasible(study)
+    info: dict = {"rule": rule, "best_trial": None if best is None else best.number,
+                  "best_value": None if best is None else _value(best), "note": ""}
+    if best is None or rule == "best":
+        info["note"] = "the highest validation value within the budget"
+        return best, info
+    cands = feasible_trials(study)
+    spec = study.user_attrs.get("search_space_resolved")
+    X = coordinates(cands, spec)
+    values = np.array([_value(t) for t in cands])
+    if rule == "one-se":
+        se = standard_error(best, objective)
+        if se is None:
+            info["note"] = "no interval stored for the best trial (older imtune): the best trial"
+            return best, info
+        idx = [i for i, v in enumerate(values) if v >= _value(best) - se - 1e-12]
+        centre = X[idx].mean(axis=0)
+        d = np.linalg.norm(X[idx] - centre, axis=1) if X.shape[1] else np.zeros(len(idx))
+        # closest to the plateau's centre; ties: the higher value, then the earlier trial
+        pick = min(idx, key=lambda i: (round(float(d[idx.index(i)]), 12), -values[i], cands[i].number))
+        info.update(se=se, within_one_se=sorted(cands[i].number for i in idx),
+                    note=f"{len(idx)} trial(s) within one SE ({se:.4f}) of the best: the one closest to their "
+                         "centre in normalised (log eta, r, log Gamma)")
+        return cands[pick], info
+    # smooth
+    kk = int(max(0, min(int(k), len(cands) - 1)))
+    if kk == 0 or X.shape[1] == 0:
+        info.update(k=kk, smoothed_value=_value(best), note="too few trials to smooth: the best trial")
+        return best, info
+    D = np.linalg.norm(X[:, None, :] - X[None, :, :], axis=2)
+    sm = np.empty(len(cands))
+    for i in range(len(cands)):
+        order = np.argsort(D[i], kind="stable")
+        nn = [j for j in order if j != i][:kk]
+        sm[i] = float(np.mean(np.concatenate([[values[i]], values[nn]])))
+    pick = max(range(len(cands)), key=lambda i: (round(sm[i], 12), values[i], -cands[i].number))
+    info.update(k=kk, smoothed_value=float(sm[pick]),
+                note=f"the best value averaged with its {kk} nearest trials in normalised (log eta, r, log Gamma)")
+    return cands[pick], info
+
+
+# ------------------------------------------------------------------------------------------ robustness
+
+def flat_region(study, optimum, objective: str = "mAA10") -> dict | None:
+    """How flat the optimum is: the completed feasible trials whose value lies within the optimum's 95% interval
+    (value >= its lower end), how many, and per searched numeric parameter the min / max they span and the share
+    of the (log) search range that is. None without an interval for the optimum."""
+    ci = interval_of(optimum, objective) if optimum is not None else None
+    if ci is None:
+        return None
+    cands = feasible_trials(study)
+    inside = [t for t in cands if ci[0] - 1e-12 <= _value(t) <= ci[1] + 1e-12]
+    ps = numeric_params(study.user_attrs.get("search_space_resolved"))
+    params = {}
+    for name, p in ps.items():
+        vals = [float(t.params[name]) for t in inside if name in t.params]
+        if not vals:
+            continue
+        lo, hi = min(vals), max(vals)
+        params[name] = {"min": lo, "max": hi, "search_low": p["low"], "search_high": p["high"],
+                        "share_of_range": round(normalise(hi, p) - normalise(lo, p), 4)}
+    return {"interval": ci, "optimum_trial": optimum.number, "trials": len(inside), "of": len(cands),
+            "params": params,
+            "note": f"{len(inside)} of {len(cands)} completed feasible trials lie within the optimum's 95% interval "
+                    f"[{ci[0]:.3f}, {ci[1]:.3f}]"}
+
+
+def flat_text(flat: dict | None) -> str:
+    """One readable line of :func:`flat_region`."""
+    if not flat:
+        return "flatness: unknown (no interval stored for the optimum)"
+    parts = []
+    for name, r in flat["params"].items():
+        sym, unit = PARAM_LABEL.get(name, (name, ""))
+        fmt = (lambda v: f"{int(round(v)):,}") if name == "max_iters" else (lambda v: f"{v:.3g}")
+        parts.append(f"{sym} {fmt(r['min'])}-{fmt(r['max'])}{(' ' + unit) if unit else ''} "
+                     f"({100 * r['share_of_range']:.0f}% of its range)")
+    return (f"flat region: {flat['trials']} of {flat['of']} trials within the optimum's interval "
+            f"[{flat['interval'][0]:.3f}, {flat['interval'][1]:.3f}]" + (": " + ", ".join(parts) if parts else ""))
+
+
+def optimum_warnings(study, frozen: dict) -> list[str]:
+    """The one-line warnings about a frozen optimum (on a bound of the search space with the wider range to
+    search, Gamma_max at the search ceiling, every trial scoring 0): ``tuner.diagnostics.optimum_warnings``, the
+    one implementation (what `tune run` prints at freeze time and frozen.yaml keeps under ``warnings``)."""
+    try:
+        from tuner.diagnostics import optimum_warnings as _warnings
+    except ImportError:  # a checkout without the diagnostics module
+        return []
+    return list(_warnings(study, frozen))
+
+
+# ------------------------------------------------------------------------------------------ reference
+
+def reference_spec(value: str | None) -> str:
+    """``--reference``: None / "paper" = the paper defaults, "none" = no comparison, else a file or study."""
+    if value is not None and not isinstance(value, str):
+        return "given"  # a resolved configuration (Source or (config, label))
+    if value is None or str(value).strip().lower() in ("", "paper", "default", "defaults"):
+        return "paper"
+    return "none" if str(value).strip().lower() == "none" else str(value)
+
+
+def reference_config(frozen: dict, spec, task=None):
+    """(PipelineConfig, label) of the reference a test run is compared with; None for "none".
+
+    ``spec``: None / "paper" — the frozen configuration (the study's feature, matcher, estimator) with the paper
+    defaults for the protocol parameters its task uses (r 0.85 mutual, eta 0.5 px, Gamma 50k); "none"; a
+    resolved configuration: a ``(PipelineConfig, label)`` pair or a :class:`tuner.sources.Source` (the CLI resolves
+    ``--reference FILE|STUDY`` with :func:`tuner.sources.resolve_source`, which reads frozen files itself)."""
+    from pipeline.config_files import pipeline_from_dict
+    from tuner.protocol import config_for, searchable
+    if hasattr(spec, "conf") and hasattr(spec, "label"):
+        return spec.conf, spec.label
+    if isinstance(spec, tuple) and len(spec) == 2:
+        return spec
+    kind = reference_spec(spec)
+    if kind == "none":
+        return None
+    if kind != "paper":
+        raise ImtuneError(f"reference {spec!r}: resolve a config file or study first "
+                          "(tuner.sources.resolve_source), or give 'paper' or 'none'")
+    if task is None:
+        from pipeline.tasks import TASKS
+        task = TASKS.get(frozen.get("task", "stereo"))
+    base = pipeline_from_dict(frozen["config"])
+    values = {k: v for k, v in PAPER_DEFAULTS.items() if k in searchable(task)}
+    return config_for(base, values), REFERENCE_LABEL
+
+
+# ------------------------------------------------------------------------------------------ test runs
+
+TEST_INTERVAL_NOTE = (
+    "95% interval of the mean over the test runs (pipeline.metrics.uncertainty.combine_runs_interval): a "
+    "percentile bootstrap over pairs stratified by scene of the run-averaged pair scores (this already contains "
+    "the per-pair seed noise), widened by the run-to-run variation shared by all pairs (the variance of the "
+    "runs' mAAs beyond what per-pair noise explains, G / R, with Student's t at Welch-Satterthwaite degrees of "
+    "freedom); the std over runs is reported beside it")
+
+
+def pair_errors(records: list[dict]) -> list | None:
+    """``[[scene, pair, err], ...]`` of a task's records when they are per-pair (stereo); None otherwise."""
+    if not records or not all("err" in r and "pair" in r for r in records):
+        return None
+    return [[r["scene"], r["pair"], r["err"]] for r in records]
+
+
+def _as_records(errors: list) -> list[dict]:
+    return [{"scene": sc, "pair": p, "err": math.inf if e is None or e == "inf" else float(e)} for sc, p, e in errors]
+
+
+def test_interval(mean: dict, runs_errors: list, n_resamples: int) -> dict | None:
+    """Put the interval of the mean over runs (``mAA5_ci``, ``mAA10_ci``, overall and per scene) into ``mean``
+    (``Task.aggregate``'s) from the runs' pair errors; returns how it was made, or None (no pair errors or
+    ``n_resamples`` 0: then the runs' own intervals are all there is)."""
+    if not n_resamples or not runs_errors or any(e is None for e in runs_errors):
+        return None
+    from pipeline.metrics.uncertainty import combine_runs_interval
+    iv = combine_runs_interval([_as_records(e) for e in runs_errors], n_resamples=int(n_resamples))
+    for k in ("mAA5", "mAA10"):
+        mean[f"{k}_ci"] = iv[f"{k}_ci"]
+        for name, s in (mean.get("scenes") or {}).items():
+            if name in iv["scenes"]:
+                s[f"{k}_ci"] = iv["scenes"][name][f"{k}_ci"]
+    check = abs(float(iv["mAA10"]) - float(mean.get("mAA10", iv["mAA10"])))
+    return {"method": TEST_INTERVAL_NOTE, "level": 0.95, "resamples": int(n_resamples), "runs": iv["runs"],
+            "consistent_with_mean": bool(check < 1e-9)}
+
+
+def compare_reference(ref_errors: list, errors: list, n_resamples: int) -> dict | None:
+    """Paired bootstrap (pipeline.metrics.uncertainty.paired_bootstrap) of the frozen settings (B) against the
+    reference (A) on the same test pairs, each pair's score averaged over the runs; ``difference`` > 0: the frozen
+    settings are better. None where either side has no pair errors."""
+    if not ref_errors or not errors or any(e is None for e in list(ref_errors) + list(errors)):
+        return None
+    from pipeline.metrics.uncertainty import paired_bootstrap
+    a = [x for e in ref_errors for x in _as_records(e)]
+    b = [x for e in errors for x in _as_records(e)]
+    return paired_bootstrap(a, b, tau=10, n_resamples=int(n_resamples or 2000))
+
+
+def comparison_text(ref: dict | None) -> str:
+    """One readable line of a test result's ``reference`` section."""
+    if not ref:
+        return "reference: none"
+    c = ref.get("comparison")
+    m = ref.get("mAA10")
+    head = f"vs {ref.get('label')}: reference mAA10 " + (f"{m:.3f}" if m is not None else "?")
+    if not c:
+        return head + f" ({ref.get('note') or 'no paired comparison'})"
+    lo, hi = c["ci"]
+    verdict = ("no significant difference" if not c["significant"] else
+               ("frozen settings significantly better" if c["difference"] > 0 else
+                "frozen settings significantly WORSE: tuning did not generalise"))
+    return (f"{head}; frozen - reference {c['difference']:+.3f} [{lo:+.3f}, {hi:+.3f}], p = {c['p_value']:.3g} "
+            f"over {c['pairs']} paired pairs: {verdict}")
