@@ -151,7 +151,11 @@ def route(argv: list[str], ap: argparse.ArgumentParser) -> list[str] | None:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    ap = build_parser()
+    try:
+        ap = build_parser()  # imports the registries: a broken $IMTUNE_PLUGINS module is a one-line error
+    except ImtuneError as e:
+        print(f"tune: error: {e}", file=sys.stderr)
+        return 2
     argv = route(argv, ap)
     if argv is None:  # bare `tune`: a short help, nothing started
         sys.stdout.write(short_help(ap))
@@ -170,6 +174,12 @@ def main(argv: list[str] | None = None) -> int:
     except ImtuneError as e:
         print(f"tune: error: {scrub(e, url)}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # `tune ... | head`: the reader left; nothing more to say
+        try:
+            sys.stdout = open(os.devnull, "w")
+        except OSError:
+            pass
+        return 0
     except KeyboardInterrupt:
         kept = "; completed trials are kept, rerun the same command to resume" if hasattr(args, "storage") else ""
         print(f"tune: interrupted{kept}", file=sys.stderr)

@@ -169,7 +169,7 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
              cache=None, runs: int = 3, max_pairs: int | None = None, test_budget: float | None = None,
              progress: bool = False, reuse: bool = True, workers: int | None = None, reference: str | None = None,
              jobs: int | None = None,
-             ci_resamples: int | None = None) -> dict:
+             ci_resamples: int | None = None, gt_dir=None) -> dict:
     """Evaluate the frozen configuration with its task on the test scenes ``runs`` times (the k-th run with the
     task's k-th seed: ``Task.for_run``) and aggregate (``Task.aggregate``: mean and std). Each run keeps its pair
     errors (``pair_errors``); the mean carries the 95% interval of ``tuner.select.test_interval`` (``interval``
@@ -193,7 +193,7 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
     n_ci = int(getattr(task, "ci_resamples", 0) or 0)
     ref = sel.reference_config(frozen, reference, task)
     tb = float(test_budget if test_budget is not None else frozen.get("budget", {}).get("test_seconds_per_pair", 1.0))
-    vs = ValidationSet.from_scenes(load_scenes(data_root, names, split="test"), task)
+    vs = ValidationSet.from_scenes(load_scenes(data_root, names, split="test", gt_dir=gt_dir), task)
     out_path = study_dir(studies_dir, frozen["study"]) / "test.json" if studies_dir is not None else None
     ident = {"trial": frozen.get("trial"), "config": frozen["config"], "task_options": task.options(),
              "fingerprint": vs.fingerprint, "runs": int(runs), "test_budget": tb, "ci_resamples": n_ci,
@@ -286,7 +286,7 @@ def _reference_summary(ref: dict | None) -> dict | None:
 def run_test_for_study(study, frozen: dict, studies_dir, *, data_root=None, scenes=None, cache=None, runs: int = 3,
                        max_pairs=None, test_budget=None, progress: bool = False, reuse: bool = True,
                        workers: int | None = None, reference: str | None = None,
-                       ci_resamples: int | None = None, jobs: int | None = None) -> dict:
+                       ci_resamples: int | None = None, jobs: int | None = None, gt_dir=None) -> dict:
     """:func:`run_test` and store its summary in the study's user attribute ``test``."""
     root = data_root or frozen.get("data", {}).get("root")
     if root is None or not Path(root).is_dir():
@@ -294,7 +294,6 @@ def run_test_for_study(study, frozen: dict, studies_dir, *, data_root=None, scen
         root = resolve_data(None)
     result = run_test(frozen, root, studies_dir, scenes=scenes, cache=cache, runs=runs, max_pairs=max_pairs,
                       test_budget=test_budget, progress=progress, reuse=reuse, workers=workers, reference=reference,
-                      jobs=jobs,
-                      ci_resamples=ci_resamples)
+                      jobs=jobs, ci_resamples=ci_resamples, gt_dir=gt_dir)
     study.set_user_attr("test", test_summary(result))
     return result

@@ -389,14 +389,12 @@ def preflight(s: TuneSettings, task, stored: dict | None = None) -> list[str]:
             (scene,) = load_scenes(s.data_root, [n], split="test", gt_dir=s.gt_dir)
         except ImtuneError as e:
             raise ImtuneError(f"test scene {n!r}: {e}; choose others with --test-scenes, {skip}") from None
-        units = task.evaluation_units(scene)
-        if not units:
-            raise ImtuneError(f"test scene {n!r}: nothing for the {task.name} task to evaluate (no pairs with "
-                              f"{task.options() or 'its options'}); choose others with --test-scenes, {skip}")
-        why = scene.missing_ground_truth(units)
+        why = task.check_scene(scene)  # the task says what it needs (pairs, ground truth, bags)
+        if why and why.startswith("no ground truth"):
+            raise ImtuneError(f"test scene {n!r} has {why}; build it with `tune data build-gt --data {scene.root}`, "
+                              f"choose others with --test-scenes, {skip}")
         if why:
-            raise ImtuneError(f"test scene {n!r} has no ground truth to evaluate against ({why}); build it with "
-                              f"`tune data build-gt --data {scene.root}`, choose others with --test-scenes, {skip}")
+            raise ImtuneError(f"test scene {n!r}: {why}; choose others with --test-scenes, {skip}")
     return names
 
 
@@ -655,5 +653,6 @@ def tune(s: TuneSettings) -> dict:
     out["test"] = run_test_for_study(ctx.study, frozen, s.studies_dir, data_root=s.data_root,
                                      scenes=s.test_scenes, cache=ctx.cache, runs=s.test_runs,
                                      max_pairs=s.max_pairs, progress=s.progress, reuse=not s.retest, jobs=s.jobs,
-                                     workers=s.workers, reference=s.reference, ci_resamples=s.ci_resamples)
+                                     workers=s.workers, reference=s.reference, ci_resamples=s.ci_resamples,
+                                     gt_dir=s.gt_dir)
     return out

@@ -111,6 +111,15 @@ class Task(abc.ABC):
         """The pairs of ``scene`` this task's numbers depend on (the data fingerprint hashes them)."""
         return list(scene.pairs)
 
+    def check_scene(self, scene) -> str | None:
+        """Why this task cannot evaluate ``scene`` (nothing to evaluate, missing ground truth), or None. Reads
+        the scene's metadata only (callers check test scenes before any tuning)."""
+        units = self.evaluation_units(scene)
+        if not units:
+            return f"nothing for the {self.name} task to evaluate (no pairs with {self.options() or 'its options'})"
+        why = scene.missing_ground_truth(units)
+        return f"no ground truth to evaluate against ({why})" if why else None
+
     def prepare(self, scenes: list, conf: PipelineConfig, cache, progress: bool = False) -> dict[str, float]:
         """Warm the caches the evaluation reads (features, k-NN tables) once; returns features per image
         (NF) per scene. Default: nothing to warm."""

@@ -482,6 +482,17 @@ class MultiviewTask(Task):
     def evaluation_units(self, scene: Scene) -> list:
         return scene.select_pairs(None)
 
+    def check_scene(self, scene: Scene) -> str | None:
+        """Bags need ground-truth poses and either the scene's own bags or 3D points to sample them from."""
+        if len(scene.images) < 2:
+            return "nothing for the multiview task to evaluate (fewer than 2 images)"
+        if not scene.bags and scene.observations is None:
+            return "no ground truth to evaluate against (no multiview bags and no 3D points to sample them from)"
+        missing = [n for n, im in scene.images.items() if im.R is None]
+        if missing:
+            return f"no ground truth to evaluate against (no pose for image {missing[0]})"
+        return None
+
     def for_run(self, conf: PipelineConfig, k: int):
         """COLMAP's seed varies across repeated runs (the bags stay the same)."""
         t = MultiviewTask(dataclasses.replace(self.mv, seed=int(self.mv.seed) + int(k)), workers=self.workers,
