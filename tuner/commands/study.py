@@ -410,11 +410,17 @@ def run_test_cmd(args) -> int:
     from tuner.study import _quiet_optuna
     _quiet_optuna()
     sdir = _studies_dir(args)
-    storage = open_storage(args.storage, heartbeat=None, studies_dir=sdir)
-    try:
+    study, no_storage = None, None
+    try:  # a test never creates a storage: without one, the study's frozen file alone is enough
+        storage = open_storage(args.storage, heartbeat=None, studies_dir=sdir, must_exist=True)
         study = optuna.load_study(study_name=args.study, storage=storage)
     except KeyError:
-        study = None
+        pass
+    except ImtuneError as e:
+        no_storage = e
+    from tuner.freeze import study_dir
+    if study is None and no_storage is not None and not (study_dir(sdir, args.study) / "frozen.yaml").is_file():
+        raise no_storage
     quiet = bool(args.quiet or args.json)
     root = resolve_data(args.data) if args.data else None
     kw = dict(scenes=_scenes(args.scenes), cache=H5Cache(args.cache), runs=args.runs, max_pairs=args.max_pairs,
