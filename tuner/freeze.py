@@ -17,7 +17,6 @@ budget (default 1 s). The mean is also stored in the study's user attribute ``te
 """
 from __future__ import annotations
 
-import dataclasses
 import datetime as _dt
 import json
 import math

@@ -1,10 +1,7 @@
 """The command line's shared option groups (pipeline, data, output, multiview) and their translation into
 the library's objects (``PipelineConfig``, task options). Library calls live in ``tuner.evaluate``,
-``tuner.study`` and ``tuner.freeze``; the commands in ``tuner.commands``.
-
-Data folder precedence (first wins): ``--data``, the ``IMTUNE_DATA`` environment variable, the
-``data:`` key of ``imtune.yaml`` (current directory, then the project root), then the built-in
-default ``../shared/data/strecha`` next to the project.
+``tuner.study`` and ``tuner.freeze``; the commands in ``tuner.commands``. The data folder rule is
+``pipeline.data.locate`` (re-exported here as ``resolve_data``).
 """
 from __future__ import annotations
 
@@ -12,32 +9,10 @@ import argparse
 import dataclasses
 import functools
 import math
-import os
-from pathlib import Path
-
-import yaml
 
 from pipeline.config import FeatureConfig, GeometryConfig, MatchConfig, PipelineConfig
 from pipeline.errors import ImtuneError
 from tuner.argtypes import nonnegative_float, positive_float, positive_int, probability_float, ratio_float, unit_float
-
-PROJECT_ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_DATA = PROJECT_ROOT.parent / "shared" / "data" / "strecha"
-
-
-def project_config() -> tuple[dict, Path | None]:
-    """The first ``imtune.yaml`` found (cwd, then project root), parsed with yaml.safe_load."""
-    for p in (Path.cwd() / "imtune.yaml", PROJECT_ROOT / "imtune.yaml"):
-        if p.is_file():
-            try:
-                d = yaml.safe_load(p.read_text()) or {}
-            except yaml.YAMLError as e:
-                raise ImtuneError(f"{p}: invalid YAML ({str(e).splitlines()[0]})")
-            if not isinstance(d, dict):
-                raise ImtuneError(f"{p}: expected a mapping at top level")
-            return d, p
-    return {}, None
-
 
 # The data folder rule lives in the pipeline (one rule for every command; the main job may download):
 from pipeline.data.locate import resolve_data  # noqa: E402,F401
@@ -73,7 +48,8 @@ def add_pipeline_options(ap: argparse.ArgumentParser, tuning: bool = False) -> N
         g.add_argument("--max-iters", type=int, default=50000, help="RANSAC iteration cap Gamma")
     g.add_argument("--seed", type=int, default=0)
     d = ap.add_argument_group("data")
-    d.add_argument("--data", default=None, help="data folder (else $IMTUNE_DATA, imtune.yaml, ../shared/data/strecha)")
+    d.add_argument("--data", default=None, help="data folder (else $IMTUNE_DATA, imtune.yaml, the download location $IMTUNE_DATA_HOME, "
+                        "then ../shared/data beside the project; `tune data scenes` says which was found)")
     d.add_argument("--scenes", default=None, help="comma-separated scene names")
     d.add_argument("--covisibility", type=unit_float, default=0.1, help="minimum pair co-visibility where known")
     d.add_argument("--cache", default=None, help="cache folder (else $IMTUNE_CACHE or ~/.cache/imtune)")
