@@ -132,3 +132,34 @@ def test_tiny_study_end_to_end(capsys, data):
     assert code == 0, err
     html = (studies / "tiny" / "report.html").read_text()
     assert "95% interval" in html and "flat region" in html and "frozen - reference" in html
+
+
+def _bag(scene, size, k, errors):
+    return {"scene": scene, "bag_size": size, "bag": k, "success": True, "RC": 100.0, "NL": 10, "TL": 3.0,
+            "ATE": 0.1, "NM": 50.0, "seconds": 1.0, "errors": list(errors)}
+
+
+def test_multiview_bag_intervals_are_those_of_the_task_summary():
+    """The multiview wiring (pipeline.tasks.multiview: summarize_scene -> combine, then add_intervals with
+    bag_intervals) on bag records with known errors: with every bag of a (scene, size) group alike the interval
+    is degenerate and must equal the task's own mAA exactly (same weights: bag sizes, then scenes, unequal bag
+    counts); with varied bags it contains it."""
+    from pipeline.metrics.uncertainty import bag_intervals
+    from pipeline.tasks.multiview import combine, summarize_scene
+    from pipeline.tasks.stereo import add_intervals
+    alike = ([_bag("a", 5, k, [0.5, 3.0, 20.0]) for k in range(4)] + [_bag("a", 10, k, [1.5] * 6) for k in range(2)]
+             + [_bag("b", 5, k, [7.0, float("inf")]) for k in range(3)])
+    rng = np.random.default_rng(0)
+    varied = [_bag(r["scene"], r["bag_size"], r["bag"], rng.exponential(5.0, 6)) for r in alike]
+    for recs, degenerate in ((alike, True), (varied, False)):
+        per = {n: summarize_scene([r for r in recs if r["scene"] == n]) for n in ("a", "b")}
+        summary = combine(per)
+        add_intervals(summary, per, bag_intervals(recs, n_resamples=500, scenes=["a", "b"]), 500)
+        for k in ("mAA5", "mAA10"):
+            lo, hi = summary[f"{k}_ci"]
+            if degenerate:
+                assert lo == pytest.approx(summary[k], abs=1e-12) and hi == pytest.approx(summary[k], abs=1e-12)
+            else:
+                assert lo < summary[k] < hi
+            for n in ("a", "b"):
+                assert inside(per[n][f"{k}_ci"], per[n][k])
