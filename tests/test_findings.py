@@ -26,6 +26,11 @@ def test_directional_rule():
     assert A.directional([0.0, 0.1]) == "inconclusive"
     assert A.directional([0.001, 0.1]) == "holds"
     assert A.directional([-0.2, -0.001]) == "does not hold"
+    # the exact paired sign-flip test must agree with the bootstrap interval
+    assert A.directional([0.01, 0.3], p_value=0.01) == "holds"
+    assert A.directional([0.01, 0.3], p_value=0.13) == "inconclusive"
+    assert A.directional([-0.3, -0.01], p_value=0.049) == "does not hold"
+    assert A.directional([-0.01, 0.3], p_value=0.001) == "inconclusive"
 
 
 def test_small_gain_rule():
@@ -47,8 +52,19 @@ def test_combine():
 def test_regions_rule():
     a = {"optimum": 0.8, "region": [0.75, 0.85]}
     assert A.compare_regions(a, {"optimum": 0.95, "region": [0.9, 0.99]}) == "differs"
-    assert A.compare_regions(a, {"optimum": 0.82, "region": [0.7, 0.9]}) == "same"
-    assert A.compare_regions(a, {"optimum": 0.88, "region": [0.84, 0.9]}) == "unclear"
+    # overlapping but wide: too little data to tell -> unclear; both inside one narrow band -> the same optimum
+    assert A.compare_regions(a, {"optimum": 0.82, "region": [0.7, 0.9]}) == "unclear"
+    assert A.compare_regions({"optimum": 0.8, "region": [0.79, 0.82]},
+                             {"optimum": 0.81, "region": [0.8, 0.83]}) == "same"
+    assert A.compare_regions({"optimum": 0.45, "region": [0.4, 0.5]},
+                             {"optimum": 0.5, "region": [0.45, 0.55]}, "threshold") == "same"
+    assert A.compare_regions({"optimum": 0.45, "region": [0.3, 0.5]},
+                             {"optimum": 0.5, "region": [0.45, 0.55]}, "threshold") == "unclear"
+    regs = {"x": {"optimum": 0.8, "region": [0.75, 0.85]}, "y": {"optimum": 0.95, "region": [0.9, 0.99]},
+            "z": {"optimum": 0.84, "region": [0.7, 0.9]}}
+    assert A.group_status(regs, ("x", "y", "z"))[0] == "differs"
+    assert A.group_status(regs, ("x", "z"))[0] == "unclear"
+    assert A.group_status(regs, ("x", "missing"))[0] == "unclear"
     trials = [({"ratio": 0.7}, 0.5), ({"ratio": 0.8}, 0.61), ({"ratio": 0.9}, 0.58), ({"ratio": 0.95}, 0.3)]
     assert A.flat_region(trials, ({"ratio": 0.8}, 0.61), 0.55, "ratio") == [0.8, 0.9]
     assert A.flat_region(trials, ({"ratio": 0.8}, 0.61), 0.55, "threshold") is None
@@ -253,3 +269,30 @@ def test_too_few_scenes_lists_every_finding_with_reason(subset, tmp_path, monkey
 def test_bad_only_is_one_line(capsys):
     rc, out, err = _cli(["findings", "--only", "1,13"], capsys)
     assert rc == 2 and err.count("\n") == 1 and "no finding 13" in err
+
+
+def test_two_workers_share_the_studies(subset, tmp_path):
+    """Two `tune findings` processes on one SQLite storage at once: both finish with a verdict, and the studies
+    hold the target number of trials (at most one beyond it: a trial still running in the other worker)."""
+    import os
+    import subprocess
+    import sys
+
+    import optuna
+    sdir = tmp_path / "studies"
+    env = {**os.environ, "IMTUNE_CACHE": str(tmp_path / "cache")}
+    cmd = [sys.executable, "-m", "tuner", "findings", "--data", str(subset), "--studies-dir", str(sdir), "--quick",
+           "--only", "1", "--trials", "3", "--max-pairs", "3", "--ci-resamples", "200", "--jobs", "1", "--json"]
+    procs = [subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for _ in range(2)]
+    outs = [p.communicate(timeout=600) for p in procs]
+    for p, (out, err) in zip(procs, outs):
+        assert p.returncode == 0, err
+        f = json.loads(out)["findings"][0]
+        assert f["verdict"] in ("holds", "does not hold", "inconclusive"), f["measured"]
+    from optuna.trial import TrialState
+    storage = f"sqlite:///{sdir / 'optuna.db'}"
+    for name in optuna.get_all_study_names(storage):
+        st = optuna.load_study(study_name=name, storage=storage)
+        n = len(st.get_trials(deepcopy=False, states=(TrialState.COMPLETE, TrialState.PRUNED)))
+        assert 3 <= n <= 4, (name, n)

@@ -4,8 +4,10 @@
 Rules (the report states the one each finding uses):
 
 - ``better`` — the claim "B beats A": the paired bootstrap of mAA(10)(B) - mAA(10)(A) on the same test pairs
-  (:func:`pipeline.metrics.uncertainty.paired_bootstrap`). 95% CI above 0: holds; below 0: does not hold;
-  containing 0: inconclusive. A finding with several such relations combines them ("all": holds when every
+  (:func:`pipeline.metrics.uncertainty.paired_bootstrap`). 95% CI containing 0: inconclusive. Otherwise the
+  paired sign-flip test must agree (p < 0.05): then CI above 0 holds, below 0 does not hold; when they
+  disagree (the percentile bootstrap is too narrow on a few dozen pairs, the sign-flip test is exact) the
+  verdict is inconclusive. A finding with several such relations combines them ("all": holds when every
   one holds, does not hold when any is reversed; "any": holds when one holds and none is reversed).
 - ``small_gain`` — the claim "B adds at most a little over A": holds when the upper end of the CI of B - A is
   <= SMALL_GAIN (mAA(10) points / 100), does not hold when its lower end is above SMALL_GAIN, inconclusive
@@ -13,8 +15,9 @@ Rules (the report states the one each finding uses):
 - ``regions`` — "the optimal value of a parameter differs": each study's *flat region* is the range of the
   parameter over its feasible completed trials whose validation mAA(10) lies within the 95% interval of the
   best trial (value >= the interval's lower end). Two studies *differ* when their flat regions do not overlap;
-  they are the *same* when each one's optimum lies inside the other's flat region (either value is optimal for
-  both within the uncertainty); otherwise the comparison is *unclear*. A group of several studies differs
+  they are the *same* when both flat regions fit in one band of :data:`SAME_BAND` (r: 0.05 wide; eta: a factor
+  1.5), i.e. the data pin both optima to one value; otherwise (overlapping but wide regions: too few pairs or
+  trials to tell) the comparison is *unclear*. A group of several studies differs
   when some pair differs and is the same when every pair is. The finding holds when every group differs,
   does not hold when some group is the same, and is inconclusive otherwise (also when a study is missing).
 """
@@ -24,13 +27,17 @@ from pipeline.metrics.uncertainty import DEFAULT_LEVEL, combine_runs_interval, p
 from tuner.findings.definitions import SMALL_GAIN, Finding
 
 HOLDS, FAILS, UNSURE, NOT_RUN = "holds", "does not hold", "inconclusive", "not run"
+#: the band two flat regions must fit in to count as the same optimum: ("abs", width) or ("ratio", max / min)
+SAME_BAND = {"ratio": ("abs", 0.05), "threshold": ("ratio", 1.5)}
 
 
-def directional(ci) -> str:
-    """The ``better`` rule on the CI of B - A."""
+def directional(ci, p_value: float | None = None, level: float = DEFAULT_LEVEL) -> str:
+    """The ``better`` rule on the CI of B - A (and the paired test's p-value, when given)."""
     lo, hi = float(ci[0]), float(ci[1])
     if lo <= 0.0 <= hi:
         return UNSURE
+    if p_value is not None and not float(p_value) < 1.0 - level:
+        return UNSURE  # the exact sign-flip test does not confirm the bootstrap interval
     return HOLDS if lo > 0 else FAILS
 
 
@@ -69,20 +76,22 @@ def flat_region(trials: list, best: tuple, ci_low: float, param: str) -> list | 
     return [float(min(vals)), float(max(vals))]
 
 
-def compare_regions(a: dict, b: dict) -> str:
+def compare_regions(a: dict, b: dict, param: str = "ratio") -> str:
     """'differs' / 'same' / 'unclear' for two {"optimum", "region"} dicts (see the module docstring)."""
     ra, rb = a["region"], b["region"]
     if ra[1] < rb[0] or rb[1] < ra[0]:
         return "differs"
-    if ra[0] <= b["optimum"] <= ra[1] and rb[0] <= a["optimum"] <= rb[1]:
-        return "same"
-    return "unclear"
+    lo, hi = min(ra[0], rb[0]), max(ra[1], rb[1])
+    kind, width = SAME_BAND.get(param, ("abs", 0.0))
+    narrow = (hi - lo <= width) if kind == "abs" else (lo > 0 and hi / lo <= width)
+    return "same" if narrow else "unclear"
 
 
-def group_status(regions: dict, roles) -> tuple[str, list]:
+def group_status(regions: dict, roles, param: str = "ratio") -> tuple[str, list]:
     """(differs / same / unclear, pairwise [(role a, role b, status)]) of a group; a missing study: unclear."""
     present = [r for r in roles if regions.get(r)]
-    pairs = [(a, b, compare_regions(regions[a], regions[b])) for i, a in enumerate(present) for b in present[i + 1:]]
+    pairs = [(a, b, compare_regions(regions[a], regions[b], param)) for i, a in enumerate(present)
+             for b in present[i + 1:]]
     if len(present) < len(roles) or not pairs:
         st = "differs" if any(p[2] == "differs" for p in pairs) else "unclear"
         return st, pairs
@@ -160,7 +169,7 @@ def analyse(f: Finding, outcomes: dict, n_resamples: int = 2000, seed: int = 0) 
             if f.rule == "small_gain":
                 st = small_gain(key["ci"])
             else:
-                statuses = [directional(c["ci"]) if c is not None else UNSURE for _, c in computed]
+                statuses = [directional(c["ci"], c["p_value"]) if c is not None else UNSURE for _, c in computed]
                 for (_, c), s in zip(computed, statuses):
                     if c is not None:
                         c["status"] = s
@@ -185,7 +194,7 @@ def analyse(f: Finding, outcomes: dict, n_resamples: int = 2000, seed: int = 0) 
     measured["parameter"] = f.region_param
     groups, statuses = [], []
     for label, roles in f.groups:
-        st, pairs = group_status(regions, roles)
+        st, pairs = group_status(regions, roles, f.region_param)
         groups.append({"group": label, "roles": list(roles), "status": st,
                        "pairs": [{"a": a, "b": b, "status": s} for a, b, s in pairs],
                        "missing": [r for r in roles if r not in regions]})

@@ -13,14 +13,16 @@ from tuner.findings.analysis import __doc__ as RULES_DOC
 from tuner.findings.definitions import BY_ID, SMALL_GAIN
 
 RULE_TEXT = {
-    "better": "paired bootstrap of mAA(10)(B) - mAA(10)(A) on the same test pairs: the 95% CI above 0 -> holds, "
-              "below 0 -> does not hold, containing 0 -> inconclusive",
+    "better": "paired bootstrap of mAA(10)(B) - mAA(10)(A) on the same test pairs: the 95% CI containing 0 -> "
+              "inconclusive; otherwise, when the paired sign-flip test agrees (p < 0.05), CI above 0 -> holds, below "
+              "0 -> does not hold, and inconclusive when it does not",
     "small_gain": f"paired bootstrap of mAA(10)(B) - mAA(10)(A): CI upper end <= {SMALL_GAIN:g} -> holds (at most a "
                   f"small gain), lower end > {SMALL_GAIN:g} -> does not hold, otherwise inconclusive",
     "regions": "flat region of the optimum = range of the parameter over the feasible trials whose validation "
                "mAA(10) lies within the best trial's 95% interval; regions that do not overlap -> the optimal "
-               "values differ; each optimum inside the other's region -> the same; otherwise unclear. Holds when "
-               "every group differs, does not hold when one is the same, else inconclusive",
+               "values differ; both regions inside one narrow band (r: 0.05, eta: a factor 1.5) -> the same; "
+               "otherwise unclear. Holds when every group differs, does not hold when one is the same, else "
+               "inconclusive",
 }
 
 
@@ -58,6 +60,40 @@ def settings_lines(fs) -> list[str]:
     ]
 
 
+def paper_comparison(f: dict) -> str | None:
+    """The paper's headline number beside ours, where the paper gives one (findings 1, 2, 3, 4), from the
+    measured figures; also stored as ``measured["paper_comparison"]``."""
+    m = f["measured"]
+    st = m.get("studies") or {}
+
+    def maa(role):
+        s = st.get(role) or {}
+        return s.get("mAA10") if s.get("ok") else None
+    txt = None
+    if f["id"] == 1 and maa("defaults") is not None and maa("tuned"):
+        ours = (maa("defaults") - maa("tuned")) / maa("tuned")
+        m["paper_comparison"] = {"paper": -0.293, "ours": ours, "what": "relative mAA(10) change of the defaults vs tuned"}
+        txt = f"relative mAA(10) of the defaults vs tuned: paper -29.3%, here {100 * ours:+.1f}%"
+    elif f["id"] == 3 and maa("tuned") is not None and maa("gamma1000"):
+        ours = (maa("tuned") - maa("gamma1000")) / maa("gamma1000")
+        m["paper_comparison"] = {"paper": [0.10, 0.15], "ours": ours, "what": "relative gain of lifting Gamma = 1000"}
+        txt = f"relative gain of lifting Gamma = 1000: paper +10% to +15%, here {100 * ours:+.1f}%"
+    elif f["id"] == 2:
+        g = {r: s.get("gamma_max") for r, s in st.items() if s.get("ok")}
+        if g:
+            m["paper_comparison"] = {"paper": {"magsac": 10000, "pyransac": 250000}, "ours": g, "what": "Gamma_max at 0.5 s"}
+            order = sorted((r for r in st if maa(r) is not None), key=lambda r: -maa(r))
+            txt = ("Gamma_max at 0.5 s: paper 10k (MAGSAC) .. 250k (PyRANSAC); here "
+                   + ", ".join(f"{r} {v:,}" if v else f"{r} -" for r, v in g.items())
+                   + "; test mAA(10) order here: " + " > ".join(order))
+    elif f["id"] == 4:
+        r = {k: ((s.get("params") or {}).get("ratio")) for k, s in st.items() if s.get("ok")}
+        if r:
+            m["paper_comparison"] = {"paper": {"either": 0.65}, "ours": r, "what": "optimal r per strategy"}
+            txt = "optimal r: paper 'either' ~0.65; here " + ", ".join(f"{k} {v:.3f}" for k, v in r.items() if v)
+    return txt
+
+
 def _study_rows(f: dict) -> list[list[str]]:
     rows = []
     for role, s in (f["measured"].get("studies") or {}).items():
@@ -66,6 +102,9 @@ def _study_rows(f: dict) -> list[list[str]]:
             continue
         p = s.get("params") or {}
         ps = ", ".join(f"{k}={_num(v, 3) if isinstance(v, float) else v}" for k, v in p.items())
+        fx = s.get("fixed") or {}
+        if fx:
+            ps += "; fixed: " + ", ".join(f"{k}={v}" for k, v in fx.items())
         rows.append([role, s["study"], _num(s.get("mAA10")), _ci(s.get("mAA10_ci")), _num(s.get("mAA5")), ps,
                      f"Gamma_max {s.get('gamma_max') or '-'}; {s.get('trials', 0)} feasible trials; "
                      f"{s.get('pairs') or '-'} test pairs x {s.get('test_runs') or '-'} runs"])
@@ -96,7 +135,7 @@ def _difference_text(f: dict) -> str:
         return "; ".join(parts)
     rel = m.get("relative_difference")
     txt = (f"{m.get('key')}: difference {_num(f['difference'])} mAA(10), 95% CI {_ci(f['ci'])}, p = "
-           f"{_num(f['p_value'], 3)}" + (f" (relative {100 * rel:+.1f}%)" if rel is not None else ""))
+           f"{_num(f['p_value'], 3)}" + (f" ({100 * rel:+.1f}% relative to the latter)" if rel is not None else ""))
     rels = [r for r in m.get("relations") or [] if not m.get("key", "").startswith(f"{r['b']} vs {r['a']}")]
     for r in rels:
         txt += (f"; {r['b']} vs {r['a']}: {_num(r['difference'])} {_ci(r['ci'])}, p = {_num(r['p_value'], 3)}"
@@ -181,7 +220,9 @@ def write_report(out: dict, fs, seconds: float = 0.0) -> Path:
                f"Rule: {rule}.", ""]
         if d.notes:
             md += [f"Settings: {d.notes}", ""]
-        md += [f"Measured: {_difference_text(f)}", "", _md_table(STUDY_COLS, _study_rows(f)), ""]
+        versus = paper_comparison(f)
+        md += [f"Measured: {_difference_text(f)}", ""] + ([f"Paper vs here: {versus}", ""] if versus else [])
+        md += [_md_table(STUDY_COLS, _study_rows(f)), ""]
         fig = plot_finding(f)
         div = pio.to_html(fig, full_html=False, include_plotlyjs=first) if fig is not None else ""
         first = first and fig is None
@@ -195,6 +236,7 @@ def write_report(out: dict, fs, seconds: float = 0.0) -> Path:
             f"<p><b>Rule</b>: {html.escape(rule)}.</p>"
             + (f"<p><b>Settings</b>: {html.escape(d.notes)}</p>" if d.notes else "")
             + f"<p><b>Measured</b>: {html.escape(_difference_text(f))}</p>"
+            + (f"<p><b>Paper vs here</b>: {html.escape(versus)}</p>" if versus else "")
             + _html_table(STUDY_COLS, _study_rows(f))
             + div
             + (f"<p><b>Studies</b>: {links}</p>" if links else "") + "</section>")

@@ -297,6 +297,10 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
     sdir = Path(s.studies_dir)
     records_dir = sdir / "findings" / "records"
     study = optuna.load_study(study_name=name, storage=_storage(fs, sdir))
+    if out.test is None and spec.test:
+        # tune() leaves the test to the last worker while other workers still run trials of this study; a
+        # finding needs it now: test the current optimum (a later rerun re-tests if the optimum changes)
+        out.test = _test_now(study, out.frozen, s)
     out.attrs = dict(study.user_attrs)
     best = best_feasible(study)
     out.best = (dict(best.params), float(best.value)) if best is not None else None
@@ -314,6 +318,19 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
     out.ok = True
     out.seconds = time.perf_counter() - t0
     return out
+
+
+def _test_now(study, frozen: dict, s) -> dict:
+    """:func:`tuner.freeze.run_test_for_study` with the settings ``tune`` would use."""
+    import inspect
+
+    from pipeline.cache import H5Cache
+    from tuner.freeze import run_test_for_study
+    kw = dict(data_root=s.data_root, scenes=s.test_scenes, cache=H5Cache(s.cache_dir), runs=s.test_runs,
+              max_pairs=s.max_pairs, progress=s.progress, reuse=True, workers=s.workers)
+    if "jobs" in inspect.signature(run_test_for_study).parameters and getattr(s, "jobs", None) is not None:
+        kw["jobs"] = s.jobs
+    return run_test_for_study(study, frozen, s.studies_dir, **kw)
 
 
 def _storage(fs: FindingsSettings, sdir: Path):
