@@ -312,7 +312,8 @@ def frozen_table(f: dict) -> str:
 
 
 def _frozen_notes(f: dict) -> str:
-    """The selection rule, how flat the optimum is and the warnings of a frozen file, one line each."""
+    """The selection rule and how flat the optimum is, one line each (the frozen file's warnings were already
+    printed once on stderr by `tune` and are kept in frozen.yaml under ``warnings``)."""
     from tuner.select import flat_text
     lines = []
     sel = f.get("selection") or {}
@@ -322,7 +323,6 @@ def _frozen_notes(f: dict) -> str:
                      + f"): {sel.get('note', '')}")
     if "robustness" in f:
         lines.append(flat_text(f.get("robustness")))
-    lines += [f"warning: {w}" for w in f.get("warnings") or []]
     return ("\n" + "\n".join(lines)) if lines else ""
 
 
