@@ -37,7 +37,7 @@ from tuner.version import code_version  # noqa: F401  (re-exported)
 
 SAMPLERS = ("tpe", "random", "cmaes", "grid")
 PRUNERS = ("median", "sha", "hyperband", "none")
-DEFAULT_PRUNER = "median"  # the fastest to the same frozen optimum in benchmarks/study_wall_time.py (README)
+DEFAULT_PRUNER = "hyperband"  # the fastest to the same frozen optimum in benchmarks/study_wall_time.py (README)
 # mAA10: maximise mAA(10 deg) within the budget B; pareto: a two-objective study (maximise mAA(10 deg), minimise
 # the median estimator seconds per pair) whose Pareto front tuner.pareto draws and reads the best within B off
 OBJECTIVES = ("mAA10", "pareto")
