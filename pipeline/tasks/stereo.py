@@ -270,6 +270,7 @@ class StereoTask(Task):
         # records are the same for any number of jobs (each pair is evaluated alone, with the estimator's seed)
         self.jobs = resolve_jobs(jobs)
         self._data = None  # (data key, PairData): the scenes' features and k-NN tables, read once
+        self._costs_key, self._costs = None, {}  # seconds per pair of the last evaluation (the pool's order)
         self.min_covisibility = min_covisibility
         self.max_pairs = max_pairs
         self.step_pairs = step_pairs
@@ -343,8 +344,15 @@ class StereoTask(Task):
         kept = {}
         bar = tqdm(total=len(order), desc="stereo", disable=not self.progress, leave=False)
         pool = pair_pool(self.jobs, spec) if self.jobs > 1 and len(order) > 1 else None
-        results = pool.imap(order, conf, keep=self.keep_pairs) if pool is not None else \
-            ((k, self._inline_pair(data, scenes, all_pairs, order[k], conf, estimator)) for k in range(len(order)))
+        if pool is not None:
+            # submitted step by step, within a step the pairs that took longest in the previous evaluation of the
+            # same data first: the workers finish a trial together (a trial's last pairs are its cheap ones)
+            last = self._costs if self._costs_key == spec.key else {}
+            sub = sorted(range(len(order)), key=lambda k: (step_of[order[k]], -last.get(order[k], 0.0), k))
+            results = ((sub[j], r) for j, r in pool.imap([order[k] for k in sub], conf, keep=self.keep_pairs))
+        else:
+            results = ((k, self._inline_pair(data, scenes, all_pairs, order[k], conf, estimator))
+                       for k in range(len(order)))
         next_step = 0
         try:
             for k, out in results:
@@ -376,6 +384,9 @@ class StereoTask(Task):
             if hasattr(results, "close"):
                 results.close()  # a pruned trial: what has not started is cancelled
             bar.close()
+        self._costs_key = spec.key
+        self._costs = {sp: float(r.get("ransac_seconds", 0.0)) + float(r.get("filter_seconds", 0.0))
+                       for sp, r in done.items()}
         summary, per_scene, records = self._summaries(scenes, done, nf)
         if self.ci_resamples:  # the final summary only: never on a pruner's step
             add_intervals(summary, per_scene, maa_intervals(records, n_resamples=self.ci_resamples, seed=CI_SEED,
