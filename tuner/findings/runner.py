@@ -121,7 +121,7 @@ def tune_settings(spec: StudySpec, fs: FindingsSettings):
     if fs.jobs is not None and "jobs" in names:  # the pair pool (issue 10), where this tree has it
         kw["jobs"] = int(fs.jobs)
     mv = None
-    if spec.task == "multiview" and m["multiview_bags"]:
+    if m["multiview_bags"]:  # the multiview task's bags (a task that has no bags ignores this option)
         from pipeline.tasks.multiview import MultiviewConfig
         mv = MultiviewConfig(bags=tuple(m["multiview_bags"]))
     return TuneSettings(
