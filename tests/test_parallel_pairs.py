@@ -85,9 +85,9 @@ def test_a_worker_killed_mid_pair_is_a_recorded_failure(cache):
     from pipeline.tasks import pool as poolmod
     from pipeline.tasks.stereo import StereoTask
     scenes, h5 = _scenes(), H5Cache(cache)
-    # no ratio test, one direction, eta 0.05 px: DEGENSAC runs all 50k iterations (~0.5 s a pair), so a worker
+    # no ratio test, one direction, eta 0.05 px: DEGENSAC runs all 150k iterations (~1.5 s a pair), so a worker
     # found busy is still inside its pair when the signal lands
-    conf = _conf(max_iters=50_000, threshold=0.05, ratio=1.0, strategy="uni")
+    conf = _conf(max_iters=150_000, threshold=0.05, ratio=1.0, strategy="uni")
     clean = StereoTask(max_pairs=6, step_pairs=2, jobs=1).evaluate(scenes, conf, h5)
     killed = []
 
@@ -170,7 +170,10 @@ def test_ctrl_c_stops_the_pool_at_once(tmp_path, cache):
             os.killpg(p.pid, signal.SIGKILL)
             p.communicate()
     assert p.returncode == 130, err[-2000:]
-    assert "Traceback" not in err and len([ln for ln in err.splitlines() if ln.strip()]) <= 2, err[-2000:]
+    # known, not ours: after killed workers, multiprocessing's resource tracker may warn at exit about the executor's
+    # queue semaphores (two lines starting with its path); everything else must be the one interrupted line
+    lines = [ln for ln in err.splitlines() if ln.strip() and "resource_tracker" not in ln]
+    assert "Traceback" not in err and lines == ["tune: interrupted"], err[-2000:]
     deadline = time.time() + 30
     while time.time() < deadline and any(_alive(w) for w in workers):
         time.sleep(0.1)

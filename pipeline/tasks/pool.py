@@ -184,11 +184,23 @@ def load_pair_data(spec: PairSpec, cache=None, progress: bool = False) -> PairDa
 _W: dict = {}  # the worker's state: spec, data (loaded at its first pair), slot, status array, estimators
 
 
-def _init_pair_worker(spec: PairSpec, status, counter) -> None:
+def _claim_slot(slot_dir: str, n: int) -> int:
+    """A slot of the status array for this process: the first of ``slot_dir``/0..n-1 it creates (O_EXCL: atomic,
+    and no semaphore, so nothing is left for multiprocessing's resource tracker when the pool is killed)."""
+    for k in range(n):
+        try:
+            os.close(os.open(os.path.join(slot_dir, str(k)), os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
+            return k
+        except FileExistsError:
+            continue
+        except OSError:
+            break
+    return 1 << 30  # no slot: this worker's death cannot be attributed (it is retried, then an error)
+
+
+def _init_pair_worker(spec: PairSpec, status, slot_dir: str) -> None:
     _limit_threads_here()
-    with counter.get_lock():
-        slot = int(counter.value)
-        counter.value += 1
+    slot = _claim_slot(slot_dir, len(status) // 2)
     _W.clear()
     _W.update(spec=spec, data=None, slot=slot, status=status, estimators={})
     if 2 * slot + 1 < len(status):
@@ -243,11 +255,14 @@ class PairPool:
         import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor
         ctx = mp.get_context("spawn")
-        self._status = ctx.Array("q", [0] * (2 * self.jobs))
-        counter = ctx.Value("i", 0)
+        import tempfile
+        # the status array: (pid, item being evaluated or -1) per worker; written by one worker each, read by the
+        # parent after a break, so no lock (a lock is a semaphore the resource tracker reports when a pool is killed)
+        self._status = ctx.RawArray("q", 2 * self.jobs)
+        self._slot_dir = tempfile.mkdtemp(prefix="imtune-pool-")
         self._procs = {}
         self._ex = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx, initializer=_init_pair_worker,
-                                       initargs=(self.spec, self._status, counter))
+                                       initargs=(self.spec, self._status, self._slot_dir))
 
     def _submit(self, *args):
         if self._ex is None:
@@ -259,8 +274,12 @@ class PairPool:
 
     def _drop(self, kill: bool) -> None:
         """Forget the executor; ``kill``: kill its processes now (a broken pool, Ctrl-C, shutdown)."""
+        import shutil
         ex, procs = self._ex, list(self._procs.values())
         self._ex, self._procs = None, {}
+        if getattr(self, "_slot_dir", None):
+            shutil.rmtree(self._slot_dir, ignore_errors=True)
+            self._slot_dir = None
         if ex is None:
             return
         if kill:
