@@ -419,8 +419,9 @@ def run_test_cmd(args) -> int:
     except ImtuneError as e:
         no_storage = e
     from tuner.freeze import study_dir
-    if study is None and no_storage is not None and not (study_dir(sdir, args.study) / "frozen.yaml").is_file():
-        raise no_storage
+    frozen_file = study_dir(sdir, args.study) / "frozen.yaml"
+    if study is None and no_storage is not None and not frozen_file.is_file():
+        raise ImtuneError(f"no study {args.study!r}: no frozen settings at {frozen_file}, and {no_storage}")
     quiet = bool(args.quiet or args.json)
     root = resolve_data(args.data) if args.data else None
     kw = dict(scenes=_scenes(args.scenes), cache=H5Cache(args.cache), runs=args.runs, max_pairs=args.max_pairs,
