@@ -23,7 +23,6 @@ thread each), so wall time scales with cores.
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
 import math
@@ -43,6 +42,7 @@ from pipeline.data.scene import Scene
 from pipeline.errors import ImtuneError
 from pipeline.metrics.pose import accuracy_curve, mean_average_accuracy, pose_error_deg
 from pipeline.tasks.base import TASKS, Task, TaskResult
+from pipeline.tasks.pool import available_cpus, single_thread_env  # noqa: F401  (available_cpus re-exported)
 from pipeline.tasks.stereo import CI_KEYS, CI_RESAMPLES, CI_SEED, add_intervals
 
 BAG_STAGE_VERSION = "1"
@@ -202,14 +202,6 @@ def _score(rec: dict, model, job: BagJob) -> None:
 
 # ------------------------------------------------------------------------------------------ running
 
-def available_cpus() -> int:
-    """CPUs this process may run on."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:
-        return max(1, os.cpu_count() or 1)
-
-
 def _init_worker():
     from pipeline import colmap_db as cdb
     cdb.limit_threads(1)
@@ -258,23 +250,6 @@ def run_bags(jobs: list[BagJob], workers: int = 2, progress: bool = False, desc:
     return results  # type: ignore[return-value]
 
 
-@contextlib.contextmanager
-def _single_thread_env():
-    """Workers start with BLAS / OpenMP limited to one thread (they inherit the environment at spawn; set
-    it here because a worker imports numpy before its initializer runs). Restored afterwards."""
-    keys = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-    saved = {k: os.environ.get(k) for k in keys}
-    os.environ.update({k: "1" for k in keys})
-    try:
-        yield
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-
-
 def _init_worker_inline():
     from pipeline import colmap_db as cdb
     cdb.quiet(3)
@@ -288,7 +263,7 @@ def _pool_pass(jobs, indices, results, workers, bar, fn):
     ctx = mp.get_context("spawn")
     todo = list(indices)
     submitted: list[int] = []
-    with _single_thread_env(), \
+    with single_thread_env(), \
             ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker) as ex:
         inflight = {}
         try:

@@ -68,7 +68,7 @@ def resolve_jobs(jobs: int | None) -> int:
 def single_thread_env():
     """BLAS / OpenMP limited to one thread in processes started inside the block (a spawned worker inherits the
     environment and imports numpy before any initializer runs, so the variables must be set here). Restored
-    afterwards. (pipeline.tasks.multiview does the same for its bag workers.)"""
+    afterwards. (The multiview task's bag workers use it too.)"""
     saved = {k: os.environ.get(k) for k in _THREAD_VARS}
     os.environ.update({k: "1" for k in _THREAD_VARS})
     try:

@@ -8,25 +8,14 @@ benchmark method JSON. Python: :func:`tuner.compare.compare`.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
 
 from pipeline.errors import ImtuneError
 
 
-def _positive_int(s: str) -> int:
-    try:
-        v = int(s)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {s!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {s!r}")
-    return v
-
-
 def register(sub) -> None:
-    from tuner.argtypes import unit_float
+    from tuner.argtypes import positive_int, unit_float
     ap = sub.add_parser("compare", help="paired comparison of configurations on the same pairs (CI, p-value)",
                         description="Evaluate each configuration (study name, frozen.yaml, config YAML/JSON, IMC method "
                                     "JSON) on the same stereo pairs and compare each with the first: the mAA(10) "
@@ -41,7 +30,7 @@ def register(sub) -> None:
     d.add_argument("--cache", default=None, help="cache folder (else $IMTUNE_CACHE or ~/.cache/imtune)")
     d.add_argument("--studies-dir", default=None, help="where studies live (default $IMTUNE_STUDIES, else studies/)")
     s = ap.add_argument_group("statistics")
-    s.add_argument("--ci-resamples", type=_positive_int, default=2000, help="bootstrap / sign-flip resamples")
+    s.add_argument("--ci-resamples", type=positive_int, default=2000, help="bootstrap / sign-flip resamples")
     s.add_argument("--seed", type=int, default=0, help="seed of the resampling (estimator seeds come from each config)")
     o = ap.add_argument_group("output")
     o.add_argument("--json", action="store_true",
