@@ -236,8 +236,8 @@ def test_real_tiny_study_is_annotated_by_freeze(tmp_path_factory):
     sdir = tmp_path_factory.mktemp("studies")
     env = dict(os.environ, IMTUNE_CACHE=str(tmp_path_factory.mktemp("cache")))
     r = subprocess.run([sys.executable, "-m", "tuner", "--data", str(root), "--feature", "sift", "--num-features",
-                        "1024", "--ransac", "degensac", "--scenes", "fountain-P11", "--budget", "0.1",
-                        "--calibration-pairs", "4", "--n-trials", "2", "--no-test", "--json", "--studies-dir",
+                        "1024", "--ransac", "degensac", "--scenes", "fountain-P11", "--budget", "1.0",
+                        "--calibration-pairs", "4", "--n-trials", "3", "--no-test", "--json", "--studies-dir",
                         str(sdir), "--study", "tiny"], cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     out = json.loads(r.stdout)
@@ -246,7 +246,7 @@ def test_real_tiny_study_is_annotated_by_freeze(tmp_path_factory):
     frozen_no = out["frozen"]["trial"]
     study_note = get_note(st)
     assert f"frozen: trial {frozen_no}, mAA(10°) = {out['frozen']['value']:.3f}" in study_note
-    assert "budget B = 0.1 s median estimator time per pair" in study_note
+    assert "budget B = 1 s median estimator time per pair" in study_note
     for t in st.trials:
         note = get_note(optuna.Trial(st, t._trial_id))
         if t.number == frozen_no:

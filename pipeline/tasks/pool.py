@@ -84,15 +84,24 @@ def single_thread_env():
 TRACKER_WARNING = "ignore::UserWarning:multiprocessing.resource_tracker"
 
 
-def quiet_resource_tracker() -> None:
+@contextlib.contextmanager
+def quiet_resource_tracker():
     """Keep multiprocessing's resource-tracker process from printing "There appear to be N leaked semaphore
     objects to clean up at shutdown" after Ctrl-C has killed a pool: the semaphores are the executor's own queue
     locks, and the tracker unlinks them itself right after that message, so nothing leaks. The tracker is a
-    separate process started with the first semaphore, inheriting the environment: the filter must be in
-    PYTHONWARNINGS before the executor is built (Python's own warning filters do not reach it)."""
-    cur = os.environ.get("PYTHONWARNINGS", "")
-    if TRACKER_WARNING not in cur.split(","):
+    separate process started with the first semaphore (inside the block: the executor's queues), inheriting the
+    environment: the filter must be in PYTHONWARNINGS then (Python's own warning filters do not reach it).
+    The caller's environment is restored afterwards."""
+    cur = os.environ.get("PYTHONWARNINGS")
+    if TRACKER_WARNING not in (cur or "").split(","):
         os.environ["PYTHONWARNINGS"] = ",".join(x for x in (cur, TRACKER_WARNING) if x)
+    try:
+        yield
+    finally:
+        if cur is None:
+            os.environ.pop("PYTHONWARNINGS", None)
+        else:
+            os.environ["PYTHONWARNINGS"] = cur
 
 
 @contextlib.contextmanager
@@ -275,9 +284,9 @@ class PairPool:
         self._status = ctx.RawArray("q", 2 * self.jobs)
         self._slot_dir = tempfile.mkdtemp(prefix="imtune-pool-")
         self._procs = {}
-        quiet_resource_tracker()  # before the executor's queue locks start the tracker
-        self._ex = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx, initializer=_init_pair_worker,
-                                       initargs=(self.spec, self._status, self._slot_dir))
+        with quiet_resource_tracker():  # the executor's queue locks start the tracker
+            self._ex = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx, initializer=_init_pair_worker,
+                                           initargs=(self.spec, self._status, self._slot_dir))
 
     def _submit(self, *args):
         if self._ex is None:
@@ -456,8 +465,8 @@ class ConcurrentRunner:
         import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor
         ctx = mp.get_context("spawn")
-        quiet_resource_tracker()  # before the barrier's semaphores start the tracker
-        self._barrier = ctx.Barrier(self.jobs)
+        with quiet_resource_tracker():  # the barrier's semaphores start the tracker
+            self._barrier = ctx.Barrier(self.jobs)
         with single_thread_env(), _sigint_ignored():
             self._ex = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx, initializer=_init_concurrent,
                                            initargs=(self.payload, self._barrier))
