@@ -1,9 +1,7 @@
 """Several `tune` workers on one study in a real PostgreSQL server that this test starts on loopback."""
-import glob
 import json
 import os
 import shutil
-import socket
 import subprocess
 import sys
 import tempfile
@@ -20,18 +18,7 @@ pytestmark = [pytest.mark.postgres,
               pytest.mark.skipif(not STRECHA.is_dir(), reason=f"real data not found at {STRECHA}")]
 
 
-def _pg_bin() -> Path | None:
-    found = sorted(glob.glob("/usr/lib/postgresql/*/bin/initdb"), key=lambda p: int(p.split("/")[4]))
-    if found:
-        return Path(found[-1]).parent
-    w = shutil.which("initdb")
-    return Path(w).parent if w else None
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from tests.pgserver import free_port as _free_port, pg_bin as _pg_bin  # noqa: E402  (one copy of each)
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,6 @@ benchmark method JSON. Python: :func:`tuner.compare.compare`.
 from __future__ import annotations
 
 import json
-import math
 
 from pipeline.errors import ImtuneError
 
@@ -39,14 +38,7 @@ def register(sub) -> None:
     ap.set_defaults(func=run)
 
 
-def _jsonable(o):
-    if isinstance(o, float) and not math.isfinite(o):
-        return None if math.isnan(o) else ("inf" if o > 0 else "-inf")
-    if isinstance(o, dict):
-        return {k: _jsonable(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_jsonable(v) for v in o]
-    return o
+from tuner.commands.evaluate import _jsonable  # noqa: E402  (the same JSON rendering as tune evaluate)
 
 
 def run(args) -> int:
