@@ -75,7 +75,12 @@ def test_evaluate_pair_end_to_end_on_synthetic_matches(ransac, eta):
     tables = knn_tables(d, d, binary=False, k=2)  # identical descriptors: match i <-> i
     conf = PipelineConfig(matching=MatchConfig(ratio=1.0, strategy="both"),
                           geometry=GeometryConfig(ransac=ransac, threshold=eta, max_iters=5000))
-    pr = evaluate_pair(scene, scene.pairs[0], fa, fb, tables, 0.0, conf, get_estimator(ransac))
+    est = get_estimator(ransac)
+    # an unseedable backend (MAGSAC++) draws its own samples: its pose error has a rare tail (3.8 deg once in
+    # CI, against a 0.9 deg 90th percentile over 40 runs), so its error is the median of 5 independent runs
+    runs = [evaluate_pair(scene, scene.pairs[0], fa, fb, tables, 0.0, conf, est)
+            for _ in range(1 if est.seedable else 5)]
+    pr = sorted(runs, key=lambda r: r.record["err"])[len(runs) // 2]
     rec = pr.record
     # the PairResult carries what the record summarises: the inliers it counted, the pose it scored
     assert pr.F is not None and int(pr.inliers.sum()) == rec["NI"] and len(pr.matches) == rec["NM"]
