@@ -149,6 +149,27 @@ def test_gamma_max_interpolates_and_rounds_down():
     assert _round_down(12345) == 12000 and _round_down(999) == 990
 
 
+@pytest.mark.parametrize("per_iter,offset", [(2.5e-6, 0.0), (1e-6, 0.05), (4e-7, 0.2)])
+def test_calibration_brackets_the_budget_closely_on_a_known_cost_model(per_iter, offset):
+    """Known truth: median seconds = offset + per_iter x Gamma, so Gamma_max(B) = (B - offset) / per_iter. The cap
+    timed past the budget costs at most ~1.5 B per pair (not the 3x step of the far-below regime), and the
+    interpolated Gamma_max is within 15% of the truth, never above it by more than the rounding."""
+    from tuner.budget import GAMMA_CEILING, _measure
+    B = 0.5
+    timed = []
+
+    def time_cap(g):
+        timed.append(g)
+        return [offset + per_iter * g] * 8
+    curve = _measure("degensac", time_cap, B, GAMMA_CEILING, progress=False)
+    last = curve[-1]
+    assert last[1] > B and last[1] <= 1.6 * B, curve
+    truth = (B - offset) / per_iter
+    got = Calibration(estimator="degensac", feature={}, ratio=0.9, threshold=0.5, pairs=8,
+                      curve=[list(c) for c in curve]).gamma_max(B)
+    assert 0.85 * truth <= got <= truth * 1.01, (got, truth, curve)
+
+
 # -- storages ---------------------------------------------------------------------------------------
 
 def test_mask_url_never_shows_password():

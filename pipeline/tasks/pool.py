@@ -39,6 +39,8 @@ from pipeline.errors import ImtuneError
 
 #: the failure recorded for the item a dead worker was evaluating
 WORKER_DIED = "worker process died"
+#: what a worker returns for an item of an abandoned evaluation (a pruned trial) that had reached its queue
+SKIPPED = "skipped: its evaluation was abandoned"
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
                 "VECLIB_MAXIMUM_THREADS")
 
@@ -221,11 +223,11 @@ def _claim_slot(slot_dir: str, n: int) -> int:
     return 1 << 30  # no slot: this worker's death cannot be attributed (it is retried, then an error)
 
 
-def _init_pair_worker(spec: PairSpec, status, slot_dir: str) -> None:
+def _init_pair_worker(spec: PairSpec, status, slot_dir: str, abandoned=None) -> None:
     _limit_threads_here()
     slot = _claim_slot(slot_dir, len(status) // 2)
     _W.clear()
-    _W.update(spec=spec, data=None, slot=slot, status=status, estimators={})
+    _W.update(spec=spec, data=None, slot=slot, status=status, estimators={}, abandoned=abandoned)
     if 2 * slot + 1 < len(status):
         status[2 * slot] = os.getpid()
         status[2 * slot + 1] = -1
@@ -234,6 +236,9 @@ def _init_pair_worker(spec: PairSpec, status, slot_dir: str) -> None:
 def _pair_item(sub_id: int, si: int, pi: int, conf, keep: bool):
     """One pair in the worker: ``spec.evaluate`` (:func:`pipeline.tasks.stereo.evaluate_pair`) on the data in
     memory. Returns the PairResult (``keep``) or its record."""
+    abandoned = _W.get("abandoned")
+    if abandoned is not None and sub_id <= abandoned.value:
+        return SKIPPED  # a pruned trial's pair already in the executor's call queue: not evaluated
     status, slot = _W["status"], _W["slot"]
     mine = 2 * slot + 1 < len(status)
     if mine:
@@ -282,11 +287,15 @@ class PairPool:
         # the status array: (pid, item being evaluated or -1) per worker; written by one worker each, read by the
         # parent after a break, so no lock (a lock is a semaphore the resource tracker reports when a pool is killed)
         self._status = ctx.RawArray("q", 2 * self.jobs)
+        # the last submission id of an abandoned evaluation: Future.cancel() cannot take back an item the executor
+        # has already moved to its call queue (up to jobs + 1 of them), so a worker skips such items itself rather
+        # than spend a pruned trial's seconds (at a large Gamma, seconds per pair) before the next trial's pairs
+        self._abandoned = ctx.RawValue("q", 0)
         self._slot_dir = tempfile.mkdtemp(prefix="imtune-pool-")
         self._procs = {}
         with quiet_resource_tracker():  # the executor's queue locks start the tracker
             self._ex = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx, initializer=_init_pair_worker,
-                                           initargs=(self.spec, self._status, self._slot_dir))
+                                           initargs=(self.spec, self._status, self._slot_dir, self._abandoned))
 
     def _submit(self, *args):
         if self._ex is None:
@@ -390,6 +399,8 @@ class PairPool:
                         yield k, r
             clean = True
         except GeneratorExit:  # the consumer stopped (a pruned trial): keep the pool, drop what has not started
+            if getattr(self, "_abandoned", None) is not None:
+                self._abandoned.value = self._sub
             for f in inflight:
                 f.cancel()
             clean = True
