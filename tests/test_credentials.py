@@ -238,3 +238,43 @@ def test_paths_shown_as_given(tmp_path):
     assert storage_label(f"sqlite:///{tmp_path}/optuna.db") == f"sqlite:///{tmp_path}/optuna.db"
     assert storage_label(None, tmp_path) == f"sqlite:///{tmp_path.resolve()}/optuna.db"
     assert storage_label(f"journal:{tmp_path}/passwords.log") == f"journal:{tmp_path}/passwords.log"
+
+
+CRASHING_TASK = '''
+from pipeline.tasks import TASKS
+from pipeline.tasks.stereo import StereoTask
+
+
+@TASKS.register("crash", "a plugin task whose evaluation fails with a connection string in its message")
+class CrashTask(StereoTask):
+    name = "crash"
+
+    def evaluate(self, scenes, conf, cache=None, on_step=None):
+        raise RuntimeError("could not connect to postgresql://imtune:Pl8ginS3cret@127.0.0.1:1/results")
+'''
+
+
+@pytest.mark.parametrize("debug", [False, True])
+def test_an_unexpected_error_never_shows_a_password_not_even_with_imtune_debug(subset, tmp_path, debug):
+    """A bug outside our code (here a plugin's) whose message carries a URL with a password: one masked line, or
+    with IMTUNE_DEBUG=1 the whole traceback, every line masked."""
+    plugin = tmp_path / "crash_task.py"
+    plugin.write_text(CRASHING_TASK)
+    env = dict(os.environ, IMTUNE_CACHE=str(tmp_path / "c"), IMTUNE_PLUGINS=str(plugin))
+    env.pop("IMTUNE_DEBUG", None)
+    if debug:
+        env["IMTUNE_DEBUG"] = "1"
+    r = subprocess.run([sys.executable, "-m", "tuner", "evaluate", "--task", "crash", "--data", str(subset),
+                        "--feature", "sift", "--num-features", "512", "--ransac", "degensac", "--quiet"],
+                       cwd=ROOT, env=env, capture_output=True, text=True, timeout=300, stdin=subprocess.DEVNULL)
+    assert r.returncode == 1, (r.returncode, r.stderr[-2000:])
+    out = r.stdout + r.stderr
+    assert "Pl8ginS3cret" not in out, out[-2000:]
+    assert "postgresql://imtune:***@127.0.0.1:1/results" in out, out[-2000:]
+    if debug:
+        assert "Traceback (most recent call last)" in r.stderr and "CrashTask" not in r.stdout
+        assert "raise RuntimeError" in r.stderr  # the traceback's lines, each kept on its own line
+    else:
+        assert [ln for ln in r.stderr.splitlines() if ln.strip()] == [
+            "tune: internal error: RuntimeError: could not connect to postgresql://imtune:***@127.0.0.1:1/results "
+            "(set IMTUNE_DEBUG=1 for details)"]

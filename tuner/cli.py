@@ -185,8 +185,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"tune: interrupted{kept}", file=sys.stderr)
         return 130
     except Exception as e:  # never a traceback for users; IMTUNE_DEBUG=1 shows it
-        if os.environ.get("IMTUNE_DEBUG"):
-            raise
+        if os.environ.get("IMTUNE_DEBUG"):  # the traceback, with the storage's credentials masked like every line
+            import traceback
+            print("\n".join(scrub(line, url) if line.strip() else line
+                            for line in traceback.format_exc().rstrip().splitlines()), file=sys.stderr)
+            return 1
         # a storage that failed mid-run (full disk, server gone): the cause and what to do, exit 2
         fault = storage_fault(e, url, getattr(args, "studies_dir", None)) if hasattr(args, "storage") else None
         if fault:

@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 
 from pipeline.errors import ImtuneError
-from tuner.argtypes import positive_float, ratio_float
+from tuner.argtypes import positive_float, positive_int, ratio_float
 from tuner.formatting import render
 from tuner.commands.evaluate import add_ci_options, ci_resamples, with_ci
 from tuner.options import add_pipeline_options, build_config, resolve_data
@@ -39,16 +39,6 @@ def _storage_opts(ap) -> None:
                    help="frozen settings, test results, reports, budgets.json (default $IMTUNE_STUDIES, else "
                         "studies/ in the project checkout)")
 
-
-def _positive_int(s: str) -> int:
-    import argparse
-    try:
-        v = int(s)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {s!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
-    return v
 
 
 def _nonnegative_int(s: str) -> int:
@@ -103,7 +93,7 @@ def register(sub) -> None:
     t.add_argument("--space", default=None, help="search-space YAML replacing the default of the estimator family")
     t.add_argument("--fix", action="append", default=[], metavar="NAME=VALUE",
                    help="pin a parameter (ratio, threshold, max_iters, strategy); repeatable")
-    t.add_argument("--n-trials", type=_positive_int, default=None,
+    t.add_argument("--n-trials", type=positive_int, default=None,
                    help="finished trials (complete + pruned) the study should hold; a rerun runs the missing ones "
                         "(default 50; the whole grid with --sampler grid)")
     t.add_argument("--timeout", type=_positive_float, default=None, help="stop this worker after this many seconds")
@@ -115,24 +105,24 @@ def register(sub) -> None:
                    help="first trials: the frozen optimum and the 3 best feasible trials of STUDY (same storage), "
                         "projected into this study's space (clipped to its ranges, Gamma to its Gamma_max); "
                         "repeatable; only a study without trials")
-    t.add_argument("--startup-trials", type=_positive_int, default=None,
+    t.add_argument("--startup-trials", type=positive_int, default=None,
                    help="random trials before TPE models (default: n_trials / 5, between 3 and 10)")
     t.add_argument("--budget", type=_positive_float, default=0.5,
                    help="B: median estimator seconds per pair allowed on validation (default 0.5)")
     t.add_argument("--test-budget", type=_positive_float, default=1.0,
                    help="estimator seconds per pair allowed on test (default 1.0)")
     t.add_argument("--test-scenes", default=None, help="comma-separated test scenes (default: the data set's test split)")
-    t.add_argument("--max-pairs", type=_positive_int, default=None,
+    t.add_argument("--max-pairs", type=positive_int, default=None,
                    help="use at most N pairs per scene (evenly spread; quick runs)")
-    t.add_argument("--chunk-pairs", type=_positive_int, default=12,
+    t.add_argument("--chunk-pairs", type=positive_int, default=12,
                    help="pairs per pruning step (an intermediate value after each chunk)")
     t.add_argument("--heartbeat", type=_nonnegative_int, default=10,
                    help="seconds between heartbeats of a running trial (RDB storages; 0 = off); a trial silent "
                         "for 3 heartbeats is failed and retried once")
-    t.add_argument("--calibration-pairs", type=_positive_int, default=8, help="pairs timed by the automatic calibration")
+    t.add_argument("--calibration-pairs", type=positive_int, default=8, help="pairs timed by the automatic calibration")
     t.add_argument("--recalibrate", action="store_true", help="measure Gamma_max again even if stored")
     t.add_argument("--no-test", action="store_true", help="do not run the test scenes at the end")
-    t.add_argument("--test-runs", type=_positive_int, default=3)
+    t.add_argument("--test-runs", type=positive_int, default=3)
     t.add_argument("--retest", action="store_true", help="rerun the test even if test.json matches the frozen settings")
     t.add_argument("--verbose", action="store_true", help="Optuna's per-trial log lines")
     _select_opts(t)
@@ -152,8 +142,8 @@ def register(sub) -> None:
     _storage_opts(c)
     c.add_argument("--budget", type=_positive_float, action="append", default=None,
                    help="B in seconds per pair (repeatable; default 0.5 and 1.0)")
-    c.add_argument("--pairs", type=_positive_int, default=16, help="validation pairs timed per cap (default 16)")
-    c.add_argument("--max-pairs", type=_positive_int, default=None, help="pairs per scene considered")
+    c.add_argument("--pairs", type=positive_int, default=16, help="validation pairs timed per cap (default 16)")
+    c.add_argument("--max-pairs", type=positive_int, default=None, help="pairs per scene considered")
     c.add_argument("--space", default=None, help="search space whose 'calibration' section gives r and eta")
     c.add_argument("--calibration-ratio", type=ratio_float, default=None, help="ratio test r of the timed matches")
     c.add_argument("--calibration-threshold", type=positive_float, default=None, help="eta (px) used while timing")
@@ -168,12 +158,12 @@ def register(sub) -> None:
     _storage_opts(te)
     te.add_argument("--data", default=None, help="data folder (default: the study's, else the usual precedence)")
     te.add_argument("--scenes", default=None, help="comma-separated test scenes (default: the study's test split)")
-    te.add_argument("--runs", type=_positive_int, default=3)
-    te.add_argument("--max-pairs", type=_positive_int, default=None)
+    te.add_argument("--runs", type=positive_int, default=3)
+    te.add_argument("--max-pairs", type=positive_int, default=None)
     te.add_argument("--test-budget", type=_positive_float, default=None)
     te.add_argument("--cache", default=None)
     te.add_argument("--reuse", action="store_true", help="return test.json as is when it matches the frozen settings")
-    te.add_argument("--workers", type=_positive_int, default=None,
+    te.add_argument("--workers", type=positive_int, default=None,
                     help="multiview studies: bags in parallel (default: available CPUs)")
     te.add_argument("--json", action="store_true")
     te.add_argument("--quiet", action="store_true")
