@@ -43,7 +43,9 @@ def _ci(ci, d=4):
 def settings_lines(fs) -> list[str]:
     m = fs.mode()
     from tuner.storage import storage_label
-    mode = "--quick (a reduced but real version: not the protocol)" if fs.quick else "full protocol"
+    mode = ("--quick (a reduced but real version: not the protocol; with so few trials a study can freeze a poor "
+            "optimum, so a verdict may reflect one study's tuning rather than the method: rerun without --quick "
+            "before citing one)") if fs.quick else "full protocol"
     return [
         f"mode: {mode}",
         f"features per image: {m['num_features']} (finding 9 also runs 8000)",
