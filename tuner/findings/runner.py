@@ -113,6 +113,28 @@ def unavailable(spec: StudySpec) -> str | None:
     return None
 
 
+def findings_gt_dir(fs: FindingsSettings) -> Path:
+    """Where `tune findings` keeps the ground truth it builds for the multiview study: its own folder, so the stereo
+    studies (whose pairs a built ground truth would filter by co-visibility) see the data exactly as `tune` does."""
+    from tuner.storage import default_studies_dir
+    return Path(fs.studies_dir or default_studies_dir()) / "findings" / "gt"
+
+
+def ensure_multiview_ground_truth(spec: StudySpec, fs: FindingsSettings) -> None:
+    """The multiview task samples its bags from 3D points: build the validation scenes' ground truth (pycolmap:
+    triangulation with the known poses held fixed, or SfM without poses; what `tune data build-gt` does) into
+    :func:`findings_gt_dir` when it is missing. Reused on a rerun."""
+    if spec.task != "multiview":
+        return
+    from pipeline.data.ground_truth import GTConfig, build_ground_truth, gt_path
+    from tuner.evaluate import load_scenes
+    gt_dir = findings_gt_dir(fs)
+    for sc in load_scenes(Path(fs.data_root), fs.val_scenes, split="val", ground_truth=False):
+        if not gt_path(sc, gt_dir).is_file():
+            fs.say(f"{sc.name}: building the multiview ground truth (pycolmap) into {gt_dir}")
+        build_ground_truth(sc, gt_dir, GTConfig())
+
+
 def tune_settings(spec: StudySpec, fs: FindingsSettings):
     from tuner.study import TuneSettings
     m = fs.mode()
@@ -130,7 +152,8 @@ def tune_settings(spec: StudySpec, fs: FindingsSettings):
         fixes=[f"{k}={v}" for k, v in spec.fixes], n_trials=m["trials"], seed=fs.seed, budget=fs.budget,
         test_budget=fs.test_budget, val_scenes=fs.val_scenes, test_scenes=fs.test_scenes,
         max_pairs=m["max_pairs"], cache_dir=fs.cache_dir, progress=fs.progress, test=spec.test,
-        test_runs=m["test_runs"], multiview=mv, log=fs.log, **kw)
+        test_runs=m["test_runs"], multiview=mv, log=fs.log,
+        gt_dir=str(findings_gt_dir(fs)) if spec.task == "multiview" else None, **kw)
 
 
 # ------------------------------------------------------------------------------------------ records
@@ -286,6 +309,7 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
     t0 = time.perf_counter()
     s = tune_settings(spec, fs)
     try:
+        ensure_multiview_ground_truth(spec, fs)
         res = tune(s)
     except UnavailableError as e:
         out.reason = str(e)
