@@ -296,3 +296,26 @@ def test_two_workers_share_the_studies(subset, tmp_path):
         st = optuna.load_study(study_name=name, storage=storage)
         n = len(st.get_trials(deepcopy=False, states=(TrialState.COMPLETE, TrialState.PRUNED)))
         assert 3 <= n <= 4, (name, n)
+
+
+def test_finding_6_builds_its_multiview_ground_truth_apart_from_the_stereo_studies(subset, tmp_path, monkeypatch,
+                                                                                    capsys):
+    """The multiview study of finding 6 needs 3D points: `tune findings` builds them (pycolmap, the known poses held
+    fixed) into <studies>/findings/gt, not into $IMTUNE_CACHE/gt, so the stereo studies keep every pair (a built
+    ground truth would select pairs by co-visibility) and a plain `tune` on the data is unchanged."""
+    from pipeline.data.ground_truth import gt_path
+    from tuner.evaluate import load_scenes
+    monkeypatch.setenv("IMTUNE_CACHE", str(tmp_path / "cache"))
+    sdir = tmp_path / "studies"
+    rc, out, err = _cli(["findings", "--data", str(subset), "--studies-dir", str(sdir), "--quick", "--only", "6",
+                         "--trials", "2", "--max-pairs", "3", "--ci-resamples", "200", "--jobs", "1", "--json"], capsys)
+    assert rc == 0, err
+    f = json.loads(out)["findings"][0]
+    mv = f["measured"]["studies"]["multiview"]
+    assert mv["ok"], mv  # it ran: before, "no multiview bags and no 3D points ... run `tune data build-gt`"
+    assert "ratio" in mv["params"]
+    (val,) = load_scenes(subset, ["fountain-P11"], split="all", ground_truth=False)
+    assert gt_path(val, sdir / "findings" / "gt").is_file()
+    assert not (tmp_path / "cache" / "gt").exists()
+    groups = {g["group"]: g for g in f["measured"]["groups"]}
+    assert not groups["between tasks (SIFT stereo vs multiview)"]["missing"]
