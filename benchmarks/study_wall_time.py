@@ -167,7 +167,7 @@ def main(argv=None) -> int:
         print_report(json.loads(Path(a.from_json).read_text()))
         return 0
 
-    from pipeline.tasks.pool import available_cpus
+    from pipeline.cpus import available_cpus
     from tuner.study import DEFAULT_PRUNER
     cpus = available_cpus()
     tmp = Path(tempfile.mkdtemp(prefix="imtune-walltime-"))

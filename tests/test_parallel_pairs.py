@@ -229,7 +229,7 @@ def test_jobs_bad_input_and_note(data4, cache):
         r = tune("evaluate", "--data", data4, "--jobs", bad, cache=cache)
         lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
         assert r.returncode == 2 and len(lines) == 1 and "--jobs" in lines[0], r.stderr
-    from pipeline.tasks.pool import available_cpus
+    from pipeline.cpus import available_cpus
     n = available_cpus() + 1
     r = tune("evaluate", "--data", data4, "--scenes", "fountain-P11", "--num-features", "2048", "--jobs", n,
              "--json", cache=cache)

@@ -11,14 +11,12 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import DATA, ROOT
+from tests.pgserver import free_port as _free_port, pg_bin as _pg_bin  # one copy of each
 
 STRECHA = DATA / "strecha"
 PASSWORD = "pw-Secr3t-imtune"
 pytestmark = [pytest.mark.postgres,
               pytest.mark.skipif(not STRECHA.is_dir(), reason=f"real data not found at {STRECHA}")]
-
-
-from tests.pgserver import free_port as _free_port, pg_bin as _pg_bin  # noqa: E402  (one copy of each)
 
 
 @pytest.fixture(scope="module")

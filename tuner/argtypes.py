@@ -46,12 +46,21 @@ probability_float = _ranged(lambda v: 0.0 < v < 1.0, "in (0, 1)")
 probability_float.__name__ = "probability_float"
 
 
-def positive_int(s: str) -> int:
-    """An integer >= 1 (a count of processes, pairs, runs)."""
-    try:
-        v = int(s)
-    except (TypeError, ValueError):
-        raise argparse.ArgumentTypeError(f"expected an integer, got {s!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {s!r}")
-    return v
+def _int_at_least(lo: int, what: str):
+    def parse(s: str) -> int:
+        try:
+            v = int(s)
+        except (TypeError, ValueError):
+            raise argparse.ArgumentTypeError(f"expected an integer, got {s!r}") from None
+        if v < lo:
+            raise argparse.ArgumentTypeError(f"must be {what}, got {s!r}")
+        return v
+    return parse
+
+
+#: an integer >= 1 (a count of processes, pairs, runs)
+positive_int = _int_at_least(1, ">= 1")
+positive_int.__name__ = "positive_int"
+#: an integer >= 0 where 0 switches the thing off (e.g. --heartbeat)
+nonnegative_int = _int_at_least(0, ">= 0 (0 = off)")
+nonnegative_int.__name__ = "nonnegative_int"

@@ -250,7 +250,7 @@ def jobs_count(s: str) -> int:
     is allowed, with a one-line note (the estimators then share cores, and their measured seconds grow)."""
     import sys
 
-    from pipeline.tasks.pool import available_cpus
+    from pipeline.cpus import available_cpus
     n = positive_int(s)
     cpus = available_cpus()
     if n > cpus:

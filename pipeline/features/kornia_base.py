@@ -174,16 +174,11 @@ def cached_model(key: tuple, factory: Callable[[], Any], components: Iterable[st
 
 # -------------------------------------------------------------------------------------------- torch
 
-def available_cpus() -> int:
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):
-        return max(1, os.cpu_count() or 1)
-
-
 def torch_setup(threads: int = 0):
     """Import torch, set its intra-op threads (0 = the CPUs available to this process); returns torch."""
     import torch
+
+    from pipeline.cpus import available_cpus
     n = int(threads) or available_cpus()
     if torch.get_num_threads() != n:
         torch.set_num_threads(n)

@@ -42,7 +42,8 @@ from pipeline.data.scene import Scene
 from pipeline.errors import ImtuneError
 from pipeline.metrics.pose import accuracy_curve, mean_average_accuracy, pose_error_deg
 from pipeline.tasks.base import TASKS, Task, TaskResult
-from pipeline.tasks.pool import available_cpus, single_thread_env  # noqa: F401  (available_cpus re-exported)
+from pipeline.cpus import available_cpus
+from pipeline.tasks.pool import single_thread_env
 from pipeline.tasks.stereo import CI_KEYS, CI_RESAMPLES, CI_SEED, add_intervals
 
 BAG_STAGE_VERSION = "1"

@@ -35,6 +35,7 @@ import signal
 import threading
 from dataclasses import asdict, dataclass, field
 
+from pipeline.cpus import available_cpus
 from pipeline.errors import ImtuneError
 
 #: the failure recorded for the item a dead worker was evaluating
@@ -43,14 +44,6 @@ WORKER_DIED = "worker process died"
 SKIPPED = "skipped: its evaluation was abandoned"
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
                 "VECLIB_MAXIMUM_THREADS")
-
-
-def available_cpus() -> int:
-    """CPUs this process may run on (``os.sched_getaffinity``; ``os.cpu_count`` where unavailable)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not Linux
-        return max(1, os.cpu_count() or 1)
 
 
 def resolve_jobs(jobs: int | None) -> int:
@@ -275,6 +268,8 @@ class PairPool:
         self._ex = None
         self._procs: dict = {}
         self._status = None
+        self._abandoned = None  # shared: the last submission id of an abandoned evaluation (see _start)
+        self._slot_dir = None
         self._sub = 0
         self.restarts = 0  # fresh pools started after a worker died
 
@@ -282,8 +277,8 @@ class PairPool:
     def _start(self):
         import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor
-        ctx = mp.get_context("spawn")
         import tempfile
+        ctx = mp.get_context("spawn")
         # the status array: (pid, item being evaluated or -1) per worker; written by one worker each, read by the
         # parent after a break, so no lock (a lock is a semaphore the resource tracker reports when a pool is killed)
         self._status = ctx.RawArray("q", 2 * self.jobs)
@@ -310,7 +305,7 @@ class PairPool:
         import shutil
         ex, procs = self._ex, list(self._procs.values())
         self._ex, self._procs = None, {}
-        if getattr(self, "_slot_dir", None):
+        if self._slot_dir:
             shutil.rmtree(self._slot_dir, ignore_errors=True)
             self._slot_dir = None
         if ex is None:
@@ -399,7 +394,7 @@ class PairPool:
                         yield k, r
             clean = True
         except GeneratorExit:  # the consumer stopped (a pruned trial): keep the pool, drop what has not started
-            if getattr(self, "_abandoned", None) is not None:
+            if self._abandoned is not None:
                 self._abandoned.value = self._sub
             for f in inflight:
                 f.cancel()

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 
 from pipeline.errors import ImtuneError
+from tuner.commands.evaluate import _jsonable  # the same JSON rendering as tune evaluate
 
 
 def register(sub) -> None:
@@ -36,9 +37,6 @@ def register(sub) -> None:
                    help='one JSON object {"overall", "scenes"} (a list of them for more than two configurations)')
     o.add_argument("--quiet", action="store_true", help="no progress bars")
     ap.set_defaults(func=run)
-
-
-from tuner.commands.evaluate import _jsonable  # noqa: E402  (the same JSON rendering as tune evaluate)
 
 
 def run(args) -> int:

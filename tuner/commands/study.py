@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 
 from pipeline.errors import ImtuneError
-from tuner.argtypes import positive_float, positive_int, ratio_float
+from tuner.argtypes import nonnegative_int, positive_float, positive_int, ratio_float
 from tuner.formatting import render
 from tuner.commands.evaluate import add_ci_options, ci_resamples, with_ci
 from tuner.options import add_pipeline_options, build_config, resolve_data
@@ -38,21 +38,6 @@ def _storage_opts(ap) -> None:
     g.add_argument("--studies-dir", default=None,
                    help="frozen settings, test results, reports, budgets.json (default $IMTUNE_STUDIES, else "
                         "studies/ in the project checkout)")
-
-
-
-def _nonnegative_int(s: str) -> int:
-    import argparse
-    try:
-        v = int(s)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {s!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0 (0 = off), got {v}")
-    return v
-
-
-_positive_float = positive_float  # finite and > 0 (`--budget inf` used to pass)
 
 
 def resolve_reference(value: str | None, sdir):
@@ -96,7 +81,7 @@ def register(sub) -> None:
     t.add_argument("--n-trials", type=positive_int, default=None,
                    help="finished trials (complete + pruned) the study should hold; a rerun runs the missing ones "
                         "(default 50; the whole grid with --sampler grid)")
-    t.add_argument("--timeout", type=_positive_float, default=None, help="stop this worker after this many seconds")
+    t.add_argument("--timeout", type=positive_float, default=None, help="stop this worker after this many seconds")
     t.add_argument("--sampler", default="tpe", choices=list(SAMPLERS), help=f"{' | '.join(SAMPLERS)} (default tpe)")
     t.add_argument("--pruner", default=DEFAULT_PRUNER, choices=list(PRUNERS),
                    help=f"{' | '.join(PRUNERS)}: Optuna's median, successive-halving or Hyperband pruner over the "
@@ -107,16 +92,16 @@ def register(sub) -> None:
                         "repeatable; only a study without trials")
     t.add_argument("--startup-trials", type=positive_int, default=None,
                    help="random trials before TPE models (default: n_trials / 5, between 3 and 10)")
-    t.add_argument("--budget", type=_positive_float, default=0.5,
+    t.add_argument("--budget", type=positive_float, default=0.5,
                    help="B: median estimator seconds per pair allowed on validation (default 0.5)")
-    t.add_argument("--test-budget", type=_positive_float, default=1.0,
+    t.add_argument("--test-budget", type=positive_float, default=1.0,
                    help="estimator seconds per pair allowed on test (default 1.0)")
     t.add_argument("--test-scenes", default=None, help="comma-separated test scenes (default: the data set's test split)")
     t.add_argument("--max-pairs", type=positive_int, default=None,
                    help="use at most N pairs per scene (evenly spread; quick runs)")
     t.add_argument("--chunk-pairs", type=positive_int, default=12,
                    help="pairs per pruning step (an intermediate value after each chunk)")
-    t.add_argument("--heartbeat", type=_nonnegative_int, default=10,
+    t.add_argument("--heartbeat", type=nonnegative_int, default=10,
                    help="seconds between heartbeats of a running trial (RDB storages; 0 = off); a trial silent "
                         "for 3 heartbeats is failed and retried once")
     t.add_argument("--calibration-pairs", type=positive_int, default=8, help="pairs timed by the automatic calibration")
@@ -130,7 +115,7 @@ def register(sub) -> None:
                    help="mAA10: maximize mAA(10°) within the budget B; pareto: a two-objective study (maximize "
                         "mAA(10°), minimize median estimator seconds per pair; no pruning), named <default>-pareto; "
                         "`tune plot` draws its front, freeze takes its best trial within B")
-    t.add_argument("--pareto-span", type=_positive_float, default=4.0,
+    t.add_argument("--pareto-span", type=positive_float, default=4.0,
                    help="pareto: search Gamma up to Gamma_max(span x B), so that the front reaches past B")
     add_multiview_options(ap)
     add_ci_options(ap)
@@ -140,7 +125,7 @@ def register(sub) -> None:
     c = sub.add_parser("calibrate", help="measure estimator seconds per pair vs max-iters; store Gamma_max(B)")
     add_pipeline_options(c, tuning=True)
     _storage_opts(c)
-    c.add_argument("--budget", type=_positive_float, action="append", default=None,
+    c.add_argument("--budget", type=positive_float, action="append", default=None,
                    help="B in seconds per pair (repeatable; default 0.5 and 1.0)")
     c.add_argument("--pairs", type=positive_int, default=16, help="validation pairs timed per cap (default 16)")
     c.add_argument("--max-pairs", type=positive_int, default=None, help="pairs per scene considered")
@@ -160,7 +145,7 @@ def register(sub) -> None:
     te.add_argument("--scenes", default=None, help="comma-separated test scenes (default: the study's test split)")
     te.add_argument("--runs", type=positive_int, default=3)
     te.add_argument("--max-pairs", type=positive_int, default=None)
-    te.add_argument("--test-budget", type=_positive_float, default=None)
+    te.add_argument("--test-budget", type=positive_float, default=None)
     te.add_argument("--cache", default=None)
     te.add_argument("--reuse", action="store_true", help="return test.json as is when it matches the frozen settings")
     te.add_argument("--workers", type=positive_int, default=None,
