@@ -143,9 +143,31 @@ def test_table_names_are_consistent():
         for f in FINDINGS:
             for spec in f.studies.values():
                 n = study_name(spec, fs)
-                key = {k: v for k, v in spec.__dict__.items() if k != "label"}
+                key = {k: v for k, v in spec.__dict__.items() if k not in ("label", "owner", "variant")}
                 key["num_features"] = spec.n_features(fs.mode()["num_features"])
                 assert seen.setdefault(n, key) == key, n
+
+
+def test_one_configuration_is_one_study():
+    """The converse: no configuration is tuned twice under two names. With the full run's 8k default, finding 9's
+    8k side is finding 2's SIFT + DEGENSAC (it was a second, identical 50-trial study); with --quick (2k) its 2k
+    side is."""
+    for quick, expected in ((False, 20), (True, 20)):
+        fs = FindingsSettings(data_root=DATA, quick=quick)
+        m = fs.mode()["num_features"]
+        names = {}
+        for f in FINDINGS:
+            for spec in f.studies.values():
+                names.setdefault(spec.configuration(m), set()).add(study_name(spec, fs))
+        assert all(len(v) == 1 for v in names.values()), names
+        assert len(names) == expected
+    f9 = next(f for f in FINDINGS if f.id == 9)
+    full = FindingsSettings(data_root=DATA)
+    assert study_name(f9.studies["8k"], full) == "findings-2-tuned-sift-8000-degensac"
+    assert study_name(f9.studies["2k"], full) == "findings-2-tuned-sift-2048-degensac"
+    quick = FindingsSettings(data_root=DATA, quick=True)
+    assert study_name(f9.studies["2k"], quick) == "findings-2-tuned-sift-2048-degensac-p12"
+    assert study_name(f9.studies["8k"], quick) == "findings-9-tuned-sift-8000-degensac-p12"
 
 
 # ------------------------------------------------------------------------------------------ end to end

@@ -57,6 +57,13 @@ class StudySpec:
     def text(self) -> str:
         return self.label or f"{self.feature} {self.ransac} ({self.variant})"
 
+    def configuration(self, default_features: int) -> tuple:
+        """What the study runs, without its naming (owner, variant, label): two specs with the same configuration
+        are one study (e.g. finding 9's 8k side is finding 2's SIFT + DEGENSAC when the run's default is 8k)."""
+        d = {k: v for k, v in self.__dict__.items() if k not in ("owner", "variant", "label")}
+        d["num_features"] = self.n_features(default_features)
+        return tuple(sorted(d.items()))
+
 
 @dataclass(frozen=True)
 class Finding:

@@ -82,11 +82,23 @@ class StudyOutcome:
     seconds: float = 0.0
 
 
+def canonical_spec(spec: StudySpec, default_features: int) -> StudySpec:
+    """The first spec of the table (in finding order) with ``spec``'s configuration: it names the one study they
+    share, so no configuration is tuned twice under two names."""
+    from tuner.findings.definitions import FINDINGS
+    want = spec.configuration(default_features)
+    for f in FINDINGS:
+        for other in f.studies.values():
+            if other.configuration(default_features) == want:
+                return other
+    return spec
+
+
 def study_name(spec: StudySpec, fs: FindingsSettings) -> str:
-    """Deterministic: ``findings-<owner>-<variant>-<feature>-<n>-<ransac>``, plus ``-p<N>`` when the pairs per
-    scene are capped (a capped study is a different study: its task options differ)."""
+    """Deterministic: ``findings-<owner>-<variant>-<feature>-<n>-<ransac>`` of the :func:`canonical_spec`, plus
+    ``-p<N>`` when the pairs per scene are capped (a capped study is a different study: its task options differ)."""
     m = fs.mode()
-    name = spec.name(m["num_features"])
+    name = canonical_spec(spec, m["num_features"]).name(m["num_features"])
     return name + (f"-p{m['max_pairs']}" if m["max_pairs"] else "")
 
 
