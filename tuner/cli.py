@@ -9,8 +9,11 @@ and a non-zero exit (set IMTUNE_DEBUG=1 for a traceback).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
+import signal
 import sys
+import threading
 
 from pipeline.errors import ImtuneError
 
@@ -149,7 +152,38 @@ def route(argv: list[str], ap: argparse.ArgumentParser) -> list[str] | None:
     return argv
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (`kill PID`, a batch scheduler's time limit) stops a run the way Ctrl-C does: the pair pool is
+    killed, the running trial is marked failed, completed trials stay in the storage. A KeyboardInterrupt, so
+    every Ctrl-C path (the pool's, Optuna's) handles it."""
+
+
+def _raise_terminated(signum, frame):
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM, during the clean-up, kills at once
+    raise Terminated()
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt():
+    """SIGTERM raises :class:`Terminated` in the main thread while the command runs (a process started in the
+    background by a shell ignores SIGINT, so SIGTERM is how it is stopped; without this it dies at once, its
+    pair workers and its running trial left behind)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
 def main(argv: list[str] | None = None) -> int:
+    with _sigterm_as_interrupt():
+        return _main(argv)
+
+
+def _main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         ap = build_parser()  # imports the registries: a broken $IMTUNE_PLUGINS module is a one-line error
@@ -180,8 +214,11 @@ def main(argv: list[str] | None = None) -> int:
         except OSError:
             pass
         return 0
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as e:
         kept = "; completed trials are kept, rerun the same command to resume" if hasattr(args, "storage") else ""
+        if isinstance(e, Terminated):
+            print(f"tune: terminated (SIGTERM){kept}", file=sys.stderr)
+            return 128 + signal.SIGTERM
         print(f"tune: interrupted{kept}", file=sys.stderr)
         return 130
     except Exception as e:  # never a traceback for users; IMTUNE_DEBUG=1 shows it
