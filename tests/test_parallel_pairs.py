@@ -252,3 +252,25 @@ def test_calibration_times_as_many_estimators_as_jobs(tmp_path, data4, cache):
     assert cals[1]["jobs"] == 1 and cals[2]["jobs"] == 2
     store = json.loads((tmp_path / "budgets.json").read_text())
     assert len(store) == 2 and sum(k.endswith("|jobs=2") for k in store) == 1  # two calibrations, kept apart
+
+
+def test_slot_folders_of_dead_parents_are_removed(tmp_path):
+    """A parent killed with kill -9 leaves its pool's slot folder; the next pool removes it, and keeps the folders
+    of live processes (real processes: one that has exited, one still running)."""
+    from pipeline.tasks.pool import SLOT_PREFIX, remove_stale_slot_dirs
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    alive = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        dead_dir = tmp_path / f"{SLOT_PREFIX}{gone.pid}-abc"
+        live_dir = tmp_path / f"{SLOT_PREFIX}{alive.pid}-def"
+        other = tmp_path / "imtune-pool-notapid"
+        for d in (dead_dir, live_dir, other):
+            d.mkdir()
+            (d / "0").write_text("")
+        removed = remove_stale_slot_dirs(str(tmp_path))
+        assert removed == [dead_dir.name]
+        assert not dead_dir.exists() and live_dir.is_dir() and other.is_dir()
+    finally:
+        alive.kill()
+        alive.wait()

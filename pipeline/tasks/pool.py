@@ -257,6 +257,30 @@ def _pair_item(sub_id: int, si: int, pi: int, conf, keep: bool):
 
 # ------------------------------------------------------------------------------------- in the parent
 
+SLOT_PREFIX = "imtune-pool-"  # + the parent's pid + "-": the slot folder of one pool
+
+
+def remove_stale_slot_dirs(tmp: str) -> list[str]:
+    """Remove the slot folders left in ``tmp`` by parents that died without clean-up (kill -9, the OOM killer):
+    a folder whose parent pid is no longer alive. Returns the folders removed. (No library tracks a folder's
+    owner across a SIGKILL; a folder of a live process, or a reused pid, is kept.)"""
+    import shutil
+    out = []
+    try:
+        names = os.listdir(tmp)
+    except OSError:
+        return out
+    for name in names:
+        if not name.startswith(SLOT_PREFIX):
+            continue
+        pid = name[len(SLOT_PREFIX):].split("-", 1)[0]
+        if not pid.isdigit() or os.path.exists(f"/proc/{pid}") or not os.path.isdir("/proc/self"):
+            continue
+        shutil.rmtree(os.path.join(tmp, name), ignore_errors=True)
+        out.append(name)
+    return out
+
+
 class PairPool:
     """``jobs`` spawned worker processes evaluating the pairs of one :class:`PairSpec` (see the module
     docstring). Use :func:`pair_pool` to get the process's pool for some data."""
@@ -286,7 +310,8 @@ class PairPool:
         # has already moved to its call queue (up to jobs + 1 of them), so a worker skips such items itself rather
         # than spend a pruned trial's seconds (at a large Gamma, seconds per pair) before the next trial's pairs
         self._abandoned = ctx.RawValue("q", 0)
-        self._slot_dir = tempfile.mkdtemp(prefix="imtune-pool-")
+        remove_stale_slot_dirs(tempfile.gettempdir())
+        self._slot_dir = tempfile.mkdtemp(prefix=f"{SLOT_PREFIX}{os.getpid()}-")
         self._procs = {}
         with quiet_resource_tracker():  # the executor's queue locks start the tracker
             self._ex = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx, initializer=_init_pair_worker,
