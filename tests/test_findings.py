@@ -286,6 +286,11 @@ def test_too_few_scenes_lists_every_finding_with_reason(subset, tmp_path, monkey
     for f in res["findings"]:
         assert set(f) == KEYS and f["verdict"] == "not run" and f["studies"] == []
         assert "too few scenes" in f["measured"]["reason"] and "test scene" in f["measured"]["reason"]
+    # the terminal summary says why too, on the finding's line
+    rc, out, err = _cli(["findings", "--data", str(root), "--studies-dir", str(tmp_path / "s"), "--only", "1"], capsys)
+    assert rc == 0, err
+    line = next(ln for ln in out.splitlines() if ln.lstrip().startswith("1 "))
+    assert "not run" in line and "has no test scene to measure on" in line, out
 
 
 def test_bad_only_is_one_line(capsys):

@@ -69,6 +69,7 @@ def run(args) -> int:
     for f in out["findings"]:
         ci = f"[{f['ci'][0]:+.4f}, {f['ci'][1]:+.4f}]" if f.get("ci") else ""
         d = f"{f['difference']:+.4f} {ci}" if isinstance(f.get("difference"), (int, float)) else ""
-        print(f"{f['id']:>2}  {f['verdict']:<14} {d}")
+        why = (f.get("measured") or {}).get("reason") if not d else None
+        print(f"{f['id']:>2}  {f['verdict']:<14} {d}{why or ''}".rstrip())
     print(f"report: {out['report']}")
     return 0
