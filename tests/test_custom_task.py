@@ -59,6 +59,10 @@ def test_study_of_a_plugin_task(plugin, data, tmp_path):
              "--test-runs", "1", "--studies-dir", str(sd), "--budget", "0.5", "--calibration-pairs", "2",
              "--json", "--quiet", env=env)
     assert r.returncode == 0, r.stderr
+    # validation and test on one scene: allowed, with one warning line (even with --quiet)
+    assert [ln for ln in r.stderr.splitlines() if "also a validation scene" in ln] == [
+        "warning: test scene fountain-P11 is also a validation scene: its test numbers are not held out (tuned on "
+        "the scene they measure); choose other --test-scenes for a fair test"], r.stderr
     out = json.loads(r.stdout)
     assert out["study"] == "sift-1024-degensac-rotation"
     assert out["frozen"]["task"] == "rotation" and 0.0 <= out["test"]["mean"]["mAA10"] <= 1.0

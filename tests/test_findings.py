@@ -293,6 +293,30 @@ def test_too_few_scenes_lists_every_finding_with_reason(subset, tmp_path, monkey
     assert "not run" in line and "has no test scene to measure on" in line, out
 
 
+@pytest.mark.parametrize("what,args,said", [
+    ("unknown validation scene", ["--val-scenes", "nosuch"], ["--val-scenes", "unknown scene 'nosuch'", "available"]),
+    ("unknown test scene", ["--test-scenes", "nosuch"], ["--test-scenes", "unknown scene 'nosuch'", "available"]),
+    ("scene in both splits", ["--val-scenes", "entry-P10", "--test-scenes", "entry-P10"],
+     ["entry-P10 is both a validation and a test scene", "disjoint"]),
+    ("studies folder not creatable", ["--studies-dir", "/proc/imtune-x"], ["/proc/imtune-x", "--studies-dir"]),
+    ("storage unreachable", ["--storage", "postgresql://u:s3cret@127.0.0.1:1/db"],
+     ["cannot open storage", "127.0.0.1:1", "--storage"]),
+    ("storage scheme unknown", ["--storage", "foo://bar"], ["unsupported storage", "foo"]),
+])
+def test_user_errors_fail_before_any_study(subset, tmp_path, capsys, what, args, said):
+    """A mistake that would stop every study is one line and exit 2 before any study starts (not twelve findings
+    "not run" and exit 0), with no credential in it; nothing is written to the storage."""
+    a = ["findings", "--data", str(subset), "--quick", "--only", "1,2"]
+    if "--studies-dir" not in args:
+        a += ["--studies-dir", str(tmp_path / "s")]
+    rc, out, err = _cli(a + args, capsys)
+    assert rc == 2 and out == "" and err.count("\n") == 1 and err.startswith("tune: error: "), (what, err)
+    for s in said:
+        assert s in err, (what, s, err)
+    assert "s3cret" not in err
+    assert not (tmp_path / "s" / "findings").exists()
+
+
 def test_bad_only_is_one_line(capsys):
     rc, out, err = _cli(["findings", "--only", "1,13"], capsys)
     assert rc == 2 and err.count("\n") == 1 and "no finding 13" in err

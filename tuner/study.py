@@ -483,7 +483,11 @@ def setup_study(s: TuneSettings) -> StudyContext:
     created = not stored.get("imtune")
     if not created:
         check_compatible(name, stored, mine)
-    preflight(s, task, stored)  # fail fast: nothing after tuning may stop the study (before any calibration)
+    test_names = preflight(s, task, stored)  # fail fast, before any calibration: nothing after tuning may stop it
+    held_in = [n for n in test_names if n in vs.scene_names]
+    if held_in:
+        s.warn(f"test scene {', '.join(held_in)} is also a validation scene: its test numbers are not held out "
+               "(tuned on the scene they measure); choose other --test-scenes for a fair test")
     s.say(f"validation: {', '.join(vs.scene_names)} ({vs.n_pairs} pairs) from {s.data_root}")
     vs.prepare(base, cache, progress=s.progress)
     if created:

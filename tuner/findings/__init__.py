@@ -62,6 +62,42 @@ def check_scenes(fs: FindingsSettings) -> str | None:
     return None
 
 
+def preflight(fs: FindingsSettings) -> None:
+    """Fail fast, before any study, on what would stop every one of them (a user's error, not a limit of the data:
+    a one-line ImtuneError naming the culprit and the fix): the studies folder cannot be created, the storage
+    cannot be opened, a ``--val-scenes`` / ``--test-scenes`` name is unknown, or a scene is both a validation and
+    a test scene (tuning on the scenes a finding is measured on would overstate every tuned number)."""
+    import os
+    from pipeline.data import default_splits
+    from tuner.evaluate import load_scenes
+    from tuner.storage import open_storage
+    d = Path(fs.studies_dir)
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+        if not os.access(d, os.W_OK):
+            raise PermissionError(13, "Permission denied")
+    except OSError as e:
+        raise ImtuneError(f"cannot create the studies folder {d}: {e.strerror or e}; choose another with "
+                          "--studies-dir (or $IMTUNE_STUDIES)") from None
+    st = open_storage(fs.storage, heartbeat=None, studies_dir=d)  # ImtuneError: unreachable, malformed, ...
+    engine = getattr(st, "engine", None)
+    if engine is not None:
+        engine.dispose()
+    for flag, split, names in (("--val-scenes", "val", fs.val_scenes), ("--test-scenes", "test", fs.test_scenes)):
+        if names:
+            try:
+                load_scenes(Path(fs.data_root), list(names), split=split, ground_truth=False)
+            except ImtuneError as e:
+                raise ImtuneError(f"{flag}: {e}") from None
+    splits = default_splits(fs.data_root)
+    val = list(fs.val_scenes or splits.get("val") or [])
+    both = [n for n in (fs.test_scenes or splits.get("test") or []) if n in val]
+    if both:
+        raise ImtuneError(f"scene {', '.join(both)} is both a validation and a test scene: the findings tune on the "
+                          "validation scenes and measure on the test scenes; choose disjoint --val-scenes and "
+                          "--test-scenes")
+
+
 def run_findings(fs: FindingsSettings, write: bool = True) -> dict:
     """Run (or resume) the studies of the selected findings, analyse them and write the report. Returns
     ``{"findings": [{"id", "claim", "paper", "measured", "difference", "ci", "p_value", "verdict",
@@ -72,6 +108,8 @@ def run_findings(fs: FindingsSettings, write: bool = True) -> dict:
     fs.studies_dir = Path(fs.studies_dir) if fs.studies_dir else default_studies_dir()
     selected = [BY_ID[i] for i in (fs.only or [f.id for f in FINDINGS])]
     no_data = check_scenes(fs)
+    if no_data is None:
+        preflight(fs)
     cache = H5Cache(fs.cache_dir)
     done: dict[str, StudyOutcome] = {}  # study name -> outcome (studies shared between findings run once)
     results = []
