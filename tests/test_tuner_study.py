@@ -146,6 +146,16 @@ def test_tune_test_command(study_run, tuner_cache):
              cache=tuner_cache, check=True)
     t = json.loads(r.stdout)
     assert len(t["runs"]) == 2 and t["study"] == study_run["name"]
+    assert t["reference"] is not None  # the paper defaults, by default
+    # asked again without a reference: the result above (same runs, plus its reference) is reused, not re-measured
+    r = tune("test", "--study", study_run["name"], "--studies-dir", str(study_run["dir"]), "--runs", "2", "--json",
+             "--reference", "none", "--reuse", cache=tuner_cache, check=True)
+    assert json.loads(r.stdout) == t
+    # ... but with other runs it is not
+    r = tune("test", "--study", study_run["name"], "--studies-dir", str(study_run["dir"]), "--runs", "1", "--json",
+             "--reference", "none", "--reuse", cache=tuner_cache, check=True)
+    again = json.loads(r.stdout)
+    assert len(again["runs"]) == 1 and again["reference"] is None
     r = tune("test", "--study", study_run["name"], "--studies-dir", str(study_run["dir"]), "--quiet",
              cache=tuner_cache, check=True)
     assert "Herz-Jesus-P8" in r.stdout and "mAA10" in r.stdout

@@ -37,14 +37,21 @@ def study_dir(studies_dir: Path | str, name: str) -> Path:
 
 
 def _previous_result(out_path: Path | None, ident: dict) -> dict | None:
-    """The test.json already written for exactly this identity (trial, config, data, runs), if any."""
+    """The test.json already written for exactly this identity (trial, config, data, runs), if any. Asked with no
+    reference (``--reference none``), a result that also compared a reference serves too: its own runs are the
+    same."""
     if out_path is None or not out_path.is_file():
         return None
     try:
         old = json.loads(out_path.read_text())
     except (OSError, ValueError):
         return None  # unreadable: rerun the test rather than trust it
-    return old if old.get("identity") == _plain(ident) else None
+    have, want = old.get("identity"), _plain(ident)
+    if have == want:
+        return old
+    if isinstance(have, dict) and want.get("reference") is None and "reference" in have:
+        return old if {**have, "reference": None} == want else None
+    return None
 
 
 def _plain(o):

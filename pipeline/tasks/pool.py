@@ -100,17 +100,26 @@ def quiet_resource_tracker():
 
 
 @contextlib.contextmanager
-def _sigint_ignored():
-    """SIGINT ignored while workers are started: an ignored signal stays ignored across exec, so a spawned
-    worker never sees the terminal's Ctrl-C (the parent stops it). Only the main thread may set handlers."""
+def _sigint_held():
+    """SIGINT held back (blocked, not ignored) in the main thread while workers are started. A process spawned here
+    inherits the blocked mask across exec, and its initializer ignores SIGINT before unblocking it
+    (:func:`_ignore_sigint_here`), so a worker never sees the terminal's Ctrl-C (the parent stops it). The parent
+    loses no Ctrl-C: another thread's handler or the unblock delivers it (ignoring SIGINT here dropped a Ctrl-C that
+    arrived during a submit, and the study ran on). Only the main thread runs Python's handlers."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, old)
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def _ignore_sigint_here() -> None:
+    """In a worker, first thing: SIGINT ignored, then unblocked (a Ctrl-C pending since the spawn is discarded)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
 
 def _limit_threads_here() -> None:
@@ -217,6 +226,7 @@ def _claim_slot(slot_dir: str, n: int) -> int:
 
 
 def _init_pair_worker(spec: PairSpec, status, slot_dir: str, abandoned=None) -> None:
+    _ignore_sigint_here()
     _limit_threads_here()
     slot = _claim_slot(slot_dir, len(status) // 2)
     _W.clear()
@@ -320,7 +330,7 @@ class PairPool:
     def _submit(self, *args):
         if self._ex is None:
             self._start()
-        with single_thread_env(), _sigint_ignored():  # a worker spawned here inherits both
+        with single_thread_env(), _sigint_held():  # a worker spawned here inherits both
             f = self._ex.submit(_pair_item, *args)
         self._procs.update(getattr(self._ex, "_processes", None) or {})
         return f
@@ -469,6 +479,7 @@ _C: dict = {}
 
 
 def _init_concurrent(payload, barrier) -> None:
+    _ignore_sigint_here()
     _limit_threads_here()
     _C.clear()
     _C.update(payload=payload, barrier=barrier)
@@ -498,13 +509,13 @@ class ConcurrentRunner:
         ctx = mp.get_context("spawn")
         with quiet_resource_tracker():  # the barrier's semaphores start the tracker
             self._barrier = ctx.Barrier(self.jobs)
-        with single_thread_env(), _sigint_ignored():
+        with single_thread_env(), _sigint_held():
             self._ex = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx, initializer=_init_concurrent,
                                            initargs=(self.payload, self._barrier))
         return self
 
     def __call__(self, fn, *args) -> list:
-        with single_thread_env(), _sigint_ignored():
+        with single_thread_env(), _sigint_held():
             futs = [self._ex.submit(_concurrent_item, fn, args) for _ in range(self.jobs)]
         out = [f.result() for f in futs]
         pids = {pid for pid, _ in out}

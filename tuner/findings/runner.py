@@ -165,6 +165,7 @@ def tune_settings(spec: StudySpec, fs: FindingsSettings):
         test_budget=fs.test_budget, val_scenes=fs.val_scenes, test_scenes=fs.test_scenes,
         max_pairs=m["max_pairs"], cache_dir=fs.cache_dir, progress=fs.progress, test=spec.test,
         test_runs=m["test_runs"], multiview=mv, log=fs.log,
+        reference="none",  # the findings compare their own studies: no paper-defaults rerun of every test
         gt_dir=str(findings_gt_dir(fs)) if spec.task == "multiview" else None, **kw)
 
 
