@@ -222,6 +222,13 @@ def test_findings_1_and_4_end_to_end(subset, tmp_path, monkeypatch, capsys):
     html = (sdir / "findings" / "report.html").read_text()
     md = (sdir / "findings" / "report.md").read_text()
     assert "--quick" in html and "trials per study: 2" in md and "pairs per scene: 3" in md
+    assert "features per image: 2048 (finding 9 also runs 8000)" in md
+    # the summary table says what each difference is a difference of (B - A, the finding's key roles)
+    assert "| difference of | difference |" in md
+    for f in res["findings"]:
+        a, b = BY_ID[f["id"]].key or BY_ID[f["id"]].relations[0]
+        row = next(ln for ln in md.splitlines() if ln.startswith(f"| {f['id']} | "))
+        assert f"| {b} - {a} | {f['difference']:.4f} |" in row, row
     storage = f"sqlite:///{sdir / 'optuna.db'}"
     names = set(optuna.get_all_study_names(storage))
     for f in res["findings"]:

@@ -51,7 +51,7 @@ def _scenes(v):
 
 def run(args) -> int:
     from tuner.findings import FindingsSettings, parse_only, run_findings
-    from tuner.findings.report import _jsonable
+    from tuner.findings.report import _compared, _jsonable
     from tuner.options import resolve_data
     from tuner.storage import default_studies_dir
     only = parse_only(args.only)
@@ -70,6 +70,7 @@ def run(args) -> int:
         ci = f"[{f['ci'][0]:+.4f}, {f['ci'][1]:+.4f}]" if f.get("ci") else ""
         d = f"{f['difference']:+.4f} {ci}" if isinstance(f.get("difference"), (int, float)) else ""
         why = (f.get("measured") or {}).get("reason") if not d else None
-        print(f"{f['id']:>2}  {f['verdict']:<14} {d}{why or ''}".rstrip())
+        of = f"  ({_compared(f)})" if d else ""
+        print(f"{f['id']:>2}  {f['verdict']:<14} {d}{of}{why or ''}".rstrip())
     print(f"report: {out['report']}")
     return 0

@@ -48,7 +48,7 @@ def settings_lines(fs) -> list[str]:
             "before citing one)") if fs.quick else "full protocol"
     return [
         f"mode: {mode}",
-        f"features per image: {m['num_features']} (finding 9 also runs 8000)",
+        f"features per image: {m['num_features']} (finding 9 also runs {2048 if m['num_features'] == 8000 else 8000})",
         f"trials per study: {m['trials_effective']}; pairs per scene: {m['max_pairs'] or 'all'}; "
         f"test runs: {m['test_runs']}" + (f"; multiview bags: {m['multiview_bags']}" if m.get("multiview_bags") else ""),
         f"budget: {fs.budget:g} s per pair on validation (median estimator time), {fs.test_budget:g} s on test",
@@ -128,6 +128,14 @@ def _md_table(cols, rows) -> str:
     out = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     out += ["| " + " | ".join(str(c).replace("|", "/") for c in r) + " |" for r in rows]
     return "\n".join(out)
+
+
+def _compared(f: dict) -> str:
+    """What the headline difference is a difference of: "B - A" (test mAA(10)), or the parameter of a regions rule."""
+    key = (f.get("measured") or {}).get("key")
+    if f.get("difference") is None or not key:
+        return "-"
+    return key.replace(" vs ", " - ", 1) if " vs " in key else key
 
 
 def _difference_text(f: dict) -> str:
@@ -216,9 +224,9 @@ def write_report(out: dict, fs, seconds: float = 0.0) -> Path:
     out["report"] = str(report)
     when = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
     head = settings_lines(fs) + [f"wall time of this run: {seconds / 60:.1f} min; written {when}"]
-    verdict_rows = [[f["id"], BY_ID[f["id"]].title, f["verdict"], _num(f["difference"]), _ci(f["ci"]),
+    verdict_rows = [[f["id"], BY_ID[f["id"]].title, f["verdict"], _compared(f), _num(f["difference"]), _ci(f["ci"]),
                      _num(f["p_value"], 3)] for f in out["findings"]]
-    vcols = ["#", "finding", "verdict", "difference", "95% CI", "p"]
+    vcols = ["#", "finding", "verdict", "difference of", "difference", "95% CI", "p"]
     md = ["# imtune: the paper's findings on this data", "", *[f"- {h}" for h in head], "",
           _md_table(vcols, verdict_rows), ""]
     body = [f"<h1>imtune: the paper's findings on this data</h1><ul>{''.join(f'<li>{html.escape(h)}</li>' for h in head)}</ul>",
