@@ -11,7 +11,7 @@ import shutil
 import numpy as np
 import pytest
 
-from tests.conftest import DATA
+from tests.conftest import DATA, ROOT
 from tuner.findings import analysis as A
 from tuner.findings.definitions import BY_ID, FINDINGS, StudySpec
 from tuner.findings.runner import FindingsSettings, StudyOutcome, study_name
@@ -377,3 +377,11 @@ def test_finding_6_builds_its_multiview_ground_truth_apart_from_the_stereo_studi
     assert not (tmp_path / "cache" / "gt").exists()
     groups = {g["group"]: g for g in f["measured"]["groups"]}
     assert not groups["between tasks (SIFT stereo vs multiview)"]["missing"]
+    # the multiview study sweeps its r grid (search_spaces/multiview.yaml), not TPE
+    import optuna
+    import yaml
+    grid = yaml.safe_load((ROOT / "search_spaces" / "multiview.yaml").read_text())["params"]["ratio"]["grid"]
+    st = optuna.load_study(study_name=mv["study"], storage=f"sqlite:///{sdir / 'optuna.db'}")
+    assert st.user_attrs["sampler"] == "grid"
+    rs = [t.params["ratio"] for t in st.trials]
+    assert len(rs) == 2 and len(set(rs)) == 2 and set(rs) <= set(grid), rs

@@ -49,7 +49,7 @@ def settings_lines(fs) -> list[str]:
     return [
         f"mode: {mode}",
         f"features per image: {m['num_features']} (finding 9 also runs {2048 if m['num_features'] == 8000 else 8000})",
-        f"trials per study: {m['trials_effective']}; pairs per scene: {m['max_pairs'] or 'all'}; "
+        f"trials per study: {m['trials_effective']} (the multiview study: its r grid, at most as many); pairs per scene: {m['max_pairs'] or 'all'}; "
         f"test runs: {m['test_runs']}" + (f"; multiview bags: {m['multiview_bags']}" if m.get("multiview_bags") else ""),
         f"budget: {fs.budget:g} s per pair on validation (median estimator time), {fs.test_budget:g} s on test",
         f"data: {fs.data_root}; validation scenes: {', '.join(fs.val_scenes) if fs.val_scenes else 'the data set split'}"
