@@ -264,6 +264,15 @@ def test_findings_1_and_4_end_to_end(subset, tmp_path, monkeypatch, capsys):
         pb = paired_bootstrap(recs(studies[a]["study"]), recs(studies[b]["study"]), n_resamples=300)
         assert pb["difference"] == pytest.approx(f["difference"], abs=1e-12)
         assert pb["ci"] == pytest.approx(f["ci"], abs=1e-12)
+    # each optimum warning (on a bound, Gamma_max at the ceiling, ...) names its study: twenty studies share stderr
+    from tuner.freeze import frozen_from_study
+    from tuner.diagnostics import optimum_warnings
+    expected = []
+    for n in sorted({n for f in res["findings"] for n in f["studies"]}):
+        st = optuna.load_study(study_name=n, storage=storage)
+        expected += [f"warning: {n}: {w}" for w in optimum_warnings(st, frozen_from_study(st))]
+    printed = [ln for ln in err.splitlines() if ln.startswith("warning:") and "is also a validation" not in ln]
+    assert sorted(printed) == sorted(expected), (printed, expected)
     f1, f4 = res["findings"]
     assert any("defaults" in n for n in f1["studies"]) and any("tuned" in n for n in f1["studies"])
     assert len(set(f4["measured"]["studies"][r]["study"] for r in ("both", "uni", "either"))) == 3

@@ -123,6 +123,7 @@ class TuneSettings:
     warm_start: list = field(default_factory=list)  # studies (same storage) whose optimum + best trials go first
     gt_dir: str | None = None  # built ground truth (default $IMTUNE_GT, $IMTUNE_CACHE/gt, ~/.cache/imtune/gt)
     log: object = None  # callable(str) for status lines; None = stderr unless progress is off
+    name_warnings: bool = False  # prefix the optimum's warnings with the study's name (runs of many studies)
     verbose: bool = False  # Optuna's own INFO log lines
     objective: str = "mAA10"  # "mAA10" | "pareto" (OBJECTIVES)
     pareto_span: float = PARETO_SPAN  # pareto: Gamma searched up to Gamma_max(span x B), the front crosses B
@@ -644,7 +645,7 @@ def tune(s: TuneSettings) -> dict:
     from tuner.diagnostics import optimum_warnings  # on a bound, Gamma_max at the ceiling, every trial 0
     out["warnings"] = list(frozen["warnings"]) if "warnings" in frozen else optimum_warnings(ctx.study, frozen)
     for w in out["warnings"]:
-        s.warn(w)
+        s.warn(f"{ctx.name}: {w}" if s.name_warnings else w)
     from tuner.storage import fail_stale_trials
     fail_stale_trials(ctx.study)
     others = [t for t in ctx.study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))]

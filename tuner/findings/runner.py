@@ -169,6 +169,7 @@ def tune_settings(spec: StudySpec, fs: FindingsSettings):
         # the multiview study searches r alone: its space's grid (8 values, as the paper swept r), not 50 TPE trials
         # of ~110 COLMAP reconstructions each (hours on 2 cores for one 1-D curve)
         sampler="grid" if spec.task == "multiview" else "tpe",
+        name_warnings=True,  # twenty studies in one run: a warning says whose optimum it is about
         gt_dir=str(findings_gt_dir(fs)) if spec.task == "multiview" else None, **kw)
 
 
