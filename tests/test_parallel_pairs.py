@@ -281,10 +281,10 @@ def test_a_ctrl_c_while_workers_start_is_not_lost():
     inherit the terminal's Ctrl-C) still interrupts the parent. It used to be ignored there, and lost: a study sent
     Ctrl-C right after a trial, as its next pairs were submitted, ran on."""
     import threading
-    from pipeline.tasks.pool import _sigint_held
+    from pipeline.tasks.pool import sigint_held
     assert threading.current_thread() is threading.main_thread()
     with pytest.raises(KeyboardInterrupt):
-        with _sigint_held():
+        with sigint_held():
             os.kill(os.getpid(), signal.SIGINT)  # the real signal, to this process
             time.sleep(0.2)
         time.sleep(2.0)  # delivered at the latest when the mask is restored

@@ -86,3 +86,55 @@ def test_multiview_test_table_and_plot(mv_study, capsys):
     assert rc == 0
     html = (studies / STUDY / "report.html").read_text()
     assert "Accuracy vs angular threshold" in html and "fountain-P11 - test" in html
+
+
+@pytest.mark.parametrize("how", ["sigint", "sigterm"])
+def test_interrupting_a_multiview_study_stops_its_colmap_workers_at_once(mv_study, tmp_path, how):
+    """Ctrl-C (SIGINT to the process group, as a terminal sends it) or `kill PID` (SIGTERM to the parent alone)
+    during a multiview trial: one line, exit 130 / 143, the COLMAP worker processes gone at once (no wait for the
+    bags in flight or queued, no traceback per worker), the study resumable."""
+    import signal
+    import subprocess
+    import sys
+    import time
+    from tests.conftest import ROOT
+    from tests.test_parallel_pairs import _alive, _children
+    root, _ = mv_study
+    studies = tmp_path / "studies"
+    env = dict(os.environ)  # the fixture's IMTUNE_CACHE: the built ground truth and the features
+    args = ["--data", str(root), "--feature", "sift", "--num-features", "1024", "--ransac", "degensac",
+            "--task", "multiview", "--bags", "5:40", "--workers", "2", "--n-trials", "20", "--scenes", "fountain-P11",
+            "--no-test", "--studies-dir", str(studies), "--quiet"]
+    p = subprocess.Popen([sys.executable, "-m", "tuner", *args], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        deadline = time.time() + 300
+        workers = []
+        while time.time() < deadline and p.poll() is None and len(workers) < 2:
+            time.sleep(0.2)
+            workers = _children(p.pid)
+        assert len(workers) == 2, ("the COLMAP pool never started", p.poll(), p.stderr.read() if p.poll() else "")
+        time.sleep(3.0)  # inside their bags
+        t0 = time.time()
+        if how == "sigint":
+            os.killpg(p.pid, signal.SIGINT)
+        else:
+            p.send_signal(signal.SIGTERM)
+        _, err = p.communicate(timeout=60)
+        stopped = time.time() - t0
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.communicate()
+    assert p.returncode == {"sigint": 130, "sigterm": 143}[how], err[-2000:]
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    said = {"sigint": "interrupted", "sigterm": "terminated (SIGTERM)"}[how]
+    assert lines == [f"tune: {said}; completed trials are kept, rerun the same command to resume"], err[-3000:]
+    deadline = time.time() + 10
+    while time.time() < deadline and any(_alive(w) for w in workers):
+        time.sleep(0.1)
+    assert not any(_alive(w) for w in workers), "COLMAP workers outlived the run"
+    import optuna
+    st = optuna.load_study(study_name=STUDY, storage=f"sqlite:///{studies / 'optuna.db'}")
+    assert st.trials and not [t for t in st.trials if t.state.name == "RUNNING"]  # the interrupted trial: FAIL
+    print(f"MULTIVIEW {how.upper()}: exit {p.returncode} after {stopped:.1f} s, workers {workers} gone")

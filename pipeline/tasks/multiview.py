@@ -43,7 +43,8 @@ from pipeline.errors import ImtuneError
 from pipeline.metrics.pose import accuracy_curve, mean_average_accuracy, pose_error_deg
 from pipeline.tasks.base import TASKS, Task, TaskResult
 from pipeline.cpus import available_cpus
-from pipeline.tasks.pool import single_thread_env
+from pipeline.tasks.pool import (ignore_sigint_here, kill_processes, quiet_resource_tracker, sigint_held,
+                                 single_thread_env)
 from pipeline.tasks.stereo import CI_KEYS, CI_RESAMPLES, CI_SEED, add_intervals
 
 BAG_STAGE_VERSION = "1"
@@ -204,6 +205,7 @@ def _score(rec: dict, model, job: BagJob) -> None:
 # ------------------------------------------------------------------------------------------ running
 
 def _init_worker():
+    ignore_sigint_here()  # the parent stops its workers on Ctrl-C: no traceback per worker
     from pipeline import colmap_db as cdb
     cdb.limit_threads(1)
     try:
@@ -264,28 +266,32 @@ def _pool_pass(jobs, indices, results, workers, bar, fn):
     ctx = mp.get_context("spawn")
     todo = list(indices)
     submitted: list[int] = []
-    with single_thread_env(), \
-            ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker) as ex:
-        inflight = {}
-        try:
-            while todo or inflight:
-                while todo and len(inflight) < 2 * workers:
-                    k = todo.pop(0)
+    with quiet_resource_tracker():  # the executor's queue locks start the tracker (quiet after a Ctrl-C)
+        ex = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker)
+    procs = {}
+    inflight = {}
+    try:
+        while todo or inflight:
+            while todo and len(inflight) < 2 * workers:
+                k = todo.pop(0)
+                with single_thread_env(), sigint_held():  # a worker spawned here inherits both
                     inflight[ex.submit(fn, jobs[k])] = k
-                    submitted.append(k)
-                done, _ = wait(list(inflight), return_when=FIRST_COMPLETED)
-                for f in done:
-                    k = inflight.pop(f)
-                    results[k] = f.result()
-                    bar.update(1)
-        except BrokenProcessPool:
-            # Python 3.11's executor then joins the surviving workers, which may sit idle on the call
-            # queue forever (it is only fixed in 3.12, where broken pools kill their workers): kill them.
-            for proc in list((getattr(ex, "_processes", None) or {}).values()):
-                try:
-                    proc.kill()
-                except Exception:
-                    pass
+                procs.update(getattr(ex, "_processes", None) or {})
+                submitted.append(k)
+            done, _ = wait(list(inflight), return_when=FIRST_COMPLETED)
+            for f in done:
+                k = inflight.pop(f)
+                results[k] = f.result()
+                bar.update(1)
+    except BrokenProcessPool:
+        # Python 3.11's executor then joins the surviving workers, which may sit idle on the call
+        # queue forever (it is only fixed in 3.12, where broken pools kill their workers): kill them.
+        kill_processes(list((getattr(ex, "_processes", None) or procs).values()))
+    except KeyboardInterrupt:  # Ctrl-C / SIGTERM: the workers stop now, not after the bags in flight and queued
+        kill_processes(list(procs.values()))
+        ex.shutdown(wait=False, cancel_futures=True)
+        raise
+    ex.shutdown(wait=True)
     return todo, [k for k in submitted if results[k] is None]
 
 

@@ -100,10 +100,10 @@ def quiet_resource_tracker():
 
 
 @contextlib.contextmanager
-def _sigint_held():
+def sigint_held():
     """SIGINT held back (blocked, not ignored) in the main thread while workers are started. A process spawned here
     inherits the blocked mask across exec, and its initializer ignores SIGINT before unblocking it
-    (:func:`_ignore_sigint_here`), so a worker never sees the terminal's Ctrl-C (the parent stops it). The parent
+    (:func:`ignore_sigint_here`), so a worker never sees the terminal's Ctrl-C (the parent stops it). The parent
     loses no Ctrl-C: another thread's handler or the unblock delivers it (ignoring SIGINT here dropped a Ctrl-C that
     arrived during a submit, and the study ran on). Only the main thread runs Python's handlers."""
     if threading.current_thread() is not threading.main_thread():
@@ -116,7 +116,7 @@ def _sigint_held():
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
-def _ignore_sigint_here() -> None:
+def ignore_sigint_here() -> None:
     """In a worker, first thing: SIGINT ignored, then unblocked (a Ctrl-C pending since the spawn is discarded)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
@@ -130,7 +130,7 @@ def _limit_threads_here() -> None:
         pass
 
 
-def _kill(procs) -> None:
+def kill_processes(procs) -> None:
     for p in list(procs):
         try:
             p.kill()
@@ -226,7 +226,7 @@ def _claim_slot(slot_dir: str, n: int) -> int:
 
 
 def _init_pair_worker(spec: PairSpec, status, slot_dir: str, abandoned=None) -> None:
-    _ignore_sigint_here()
+    ignore_sigint_here()
     _limit_threads_here()
     slot = _claim_slot(slot_dir, len(status) // 2)
     _W.clear()
@@ -330,7 +330,7 @@ class PairPool:
     def _submit(self, *args):
         if self._ex is None:
             self._start()
-        with single_thread_env(), _sigint_held():  # a worker spawned here inherits both
+        with single_thread_env(), sigint_held():  # a worker spawned here inherits both
             f = self._ex.submit(_pair_item, *args)
         self._procs.update(getattr(self._ex, "_processes", None) or {})
         return f
@@ -346,7 +346,7 @@ class PairPool:
         if ex is None:
             return
         if kill:
-            _kill(procs)  # Python 3.11's broken executor joins its workers: they must be gone
+            kill_processes(procs)  # Python 3.11's broken executor joins its workers: they must be gone
         try:
             ex.shutdown(wait=not kill, cancel_futures=True)
         except Exception:  # noqa: BLE001 - a broken executor
@@ -479,7 +479,7 @@ _C: dict = {}
 
 
 def _init_concurrent(payload, barrier) -> None:
-    _ignore_sigint_here()
+    ignore_sigint_here()
     _limit_threads_here()
     _C.clear()
     _C.update(payload=payload, barrier=barrier)
@@ -509,13 +509,13 @@ class ConcurrentRunner:
         ctx = mp.get_context("spawn")
         with quiet_resource_tracker():  # the barrier's semaphores start the tracker
             self._barrier = ctx.Barrier(self.jobs)
-        with single_thread_env(), _sigint_held():
+        with single_thread_env(), sigint_held():
             self._ex = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx, initializer=_init_concurrent,
                                            initargs=(self.payload, self._barrier))
         return self
 
     def __call__(self, fn, *args) -> list:
-        with single_thread_env(), _sigint_held():
+        with single_thread_env(), sigint_held():
             futs = [self._ex.submit(_concurrent_item, fn, args) for _ in range(self.jobs)]
         out = [f.result() for f in futs]
         pids = {pid for pid, _ in out}
@@ -528,6 +528,6 @@ class ConcurrentRunner:
         if ex is None:
             return False
         if exc_type is not None:
-            _kill(list((getattr(ex, "_processes", None) or {}).values()))
+            kill_processes(list((getattr(ex, "_processes", None) or {}).values()))
         ex.shutdown(wait=exc_type is None, cancel_futures=True)
         return False
