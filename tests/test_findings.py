@@ -81,6 +81,27 @@ def _outcome(name, errs_by_run, ok=True):
                         test_runs=runs, attrs={"budget": {"gamma_max": 1000}})
 
 
+def test_compute_total_counts_each_study_and_each_calibration_once():
+    """Known seconds: a study named by two findings counts once, a calibration two studies share counts once, a
+    test without a recorded time is listed, not counted as 0."""
+    from tuner.findings.report import _compute_line, compute_total
+
+    def st(name, cal, created, trials, test):
+        return {"study": name, "ok": True, "compute": {"calibration_seconds": cal, "calibration_created": created,
+                                                       "trial_seconds": trials, "trials": 5, "test_seconds": test}}
+    a = st("A", 40.0, "t1", 600.0, 90.0)
+    b = st("B", 40.0, "t1", 300.0, None)  # the same calibration as A (one estimator), its test not timed
+    c = st("C", 10.0, "t2", 100.0, 30.0)
+    out = {"findings": [{"measured": {"studies": {"x": a, "y": b}}}, {"measured": {"studies": {"z": a, "w": c}}},
+                        {"measured": {"studies": {"v": {"study": "D", "ok": False, "reason": "weights"}}}}]}
+    t = compute_total(out)
+    assert t["studies"] == 3 and t["calibration_seconds"] == 50.0 and t["trial_seconds"] == 1000.0
+    assert t["test_seconds"] == 120.0 and t["total_seconds"] == 1170.0 and t["tests_not_timed"] == ["B"]
+    line = _compute_line(t)
+    assert "3 studies: 0.33 h" in line and "test 2.0 min" in line and "1 test(s) written before" in line
+    assert compute_total({"findings": [{"measured": {}}]}) is None
+
+
 def test_analysis_on_synthetic_records():
     """Finding 1's analysis on records with a known answer: B better on every pair -> holds; the same errors ->
     difference exactly 0, CI [0, 0], inconclusive; B worse on every pair -> does not hold."""
@@ -264,6 +285,17 @@ def test_findings_1_and_4_end_to_end(subset, tmp_path, monkeypatch, capsys):
         pb = paired_bootstrap(recs(studies[a]["study"]), recs(studies[b]["study"]), n_resamples=300)
         assert pb["difference"] == pytest.approx(f["difference"], abs=1e-12)
         assert pb["ci"] == pytest.approx(f["ci"], abs=1e-12)
+    # each study's compute, from its own records: trials = its COMPLETE + PRUNED trials, a timed test
+    for f in res["findings"]:
+        for s in f["measured"]["studies"].values():
+            if s["ok"]:
+                st = optuna.load_study(study_name=s["study"], storage=storage)
+                c = s["compute"]
+                assert c["trials"] == len([t for t in st.trials if t.state.name in ("COMPLETE", "PRUNED")])
+                assert c["trial_seconds"] > 0 and c["test_seconds"] > 0
+                test = json.loads((sdir / s["study"] / "test.json").read_text())
+                assert c["test_seconds"] == test["wall_seconds"]
+    assert "compute recorded by the" in md
     # each optimum warning (on a bound, Gamma_max at the ceiling, ...) names its study: twenty studies share stderr
     from tuner.freeze import frozen_from_study
     from tuner.diagnostics import optimum_warnings

@@ -20,6 +20,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import math
+import time
 from pathlib import Path
 
 import numpy as np
@@ -208,6 +209,7 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
     if old is not None:
         return old
     cache = cache if cache is not None else H5Cache()
+    t_start = time.perf_counter()
     vs.prepare(conf, cache, progress=progress)
     results, errors = [], []
     it = range(int(runs))
@@ -259,6 +261,7 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
         "validation": frozen.get("validation"),
         "code_version": code_version(),
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "wall_seconds": time.perf_counter() - t_start,  # features, the runs and the reference's runs
         "identity": ident,
     })
     if out_path is not None:

@@ -118,7 +118,7 @@ def study_figures(o, n_resamples: int) -> dict:
     budget = (o.attrs.get("budget") or {})
     d.update(params=(o.frozen or {}).get("params"), fixed=(o.frozen or {}).get("fixed"),
              gamma_max=budget.get("gamma_max"), validation_mAA10=(o.frozen or {}).get("value"),
-             trials=len(o.trials))
+             trials=len(o.trials), compute=dict(o.compute or {}))
     if o.test is not None and o.test_runs:
         ci = combine_runs_interval(o.test_runs, taus=(5, 10), n_resamples=n_resamples)
         mean = o.test.get("mean") or {}

@@ -115,9 +115,15 @@ def _study_rows(f: dict) -> list[list[str]]:
         fx = s.get("fixed") or {}
         if fx:
             ps += "; fixed: " + ", ".join(f"{k}={v}" for k, v in fx.items())
+        c = s.get("compute") or {}
+        cost = ""
+        if c:
+            tun = (c.get("calibration_seconds") or 0.0) + (c.get("trial_seconds") or 0.0)
+            cost = f"; tuning {tun / 60:.1f} min" + (f", test {c['test_seconds'] / 60:.1f} min"
+                                                       if c.get("test_seconds") is not None else "")
         rows.append([role, s["study"], _num(s.get("mAA10")), _ci(s.get("mAA10_ci")), _num(s.get("mAA5")), ps,
                      f"Gamma_max {s.get('gamma_max') or '-'}; {s.get('trials', 0)} feasible trials; "
-                     f"{s.get('pairs') or '-'} test pairs x {s.get('test_runs') or '-'} runs"])
+                     f"{s.get('pairs') or '-'} test pairs x {s.get('test_runs') or '-'} runs{cost}"])
     return rows
 
 
@@ -212,6 +218,40 @@ def study_reports(out: dict, fs) -> dict:
     return done
 
 
+def compute_total(out: dict) -> dict | None:
+    """The compute the report's studies recorded, each study once (a shared calibration once): calibration,
+    trials (COMPLETE and PRUNED) and test seconds, summed; what a run resumed across sessions cost in all, less
+    the feature extraction, k-NN tables and ground truth that the cache holds. None without studies."""
+    seen = {}
+    for f in out["findings"]:
+        for st in ((f.get("measured") or {}).get("studies") or {}).values():
+            if st.get("ok") and st.get("compute"):
+                seen[st["study"]] = st["compute"]
+    if not seen:
+        return None
+    cals = {}
+    for name, c in seen.items():
+        if c.get("calibration_seconds") is not None:
+            cals[c.get("calibration_created") or name] = float(c["calibration_seconds"])
+    trial = sum(float(c.get("trial_seconds") or 0.0) for c in seen.values())
+    test = sum(float(c["test_seconds"]) for c in seen.values() if c.get("test_seconds") is not None)
+    missing = sorted(n for n, c in seen.items() if c.get("test_seconds") is None)
+    cal = sum(cals.values())
+    return {"studies": len(seen), "calibration_seconds": cal, "trial_seconds": trial, "test_seconds": test,
+            "total_seconds": cal + trial + test, "tests_not_timed": missing}
+
+
+def _compute_line(c: dict) -> str:
+    untimed = len(c["tests_not_timed"])
+    test = "test not recorded" if untimed == c["studies"] else f"test {c['test_seconds'] / 60:.1f} min"
+    line = (f"compute recorded by the {c['studies']} studies: {c['total_seconds'] / 3600:.2f} h (calibration "
+            f"{c['calibration_seconds'] / 60:.1f} min, trials {c['trial_seconds'] / 3600:.2f} h, {test}; features, "
+            "k-NN tables and ground truth come from the cache and are not counted)")
+    if 0 < untimed < c["studies"]:
+        line += f"; {len(c['tests_not_timed'])} test(s) written before test time was recorded: not counted"
+    return line
+
+
 def write_report(out: dict, fs, seconds: float = 0.0) -> Path:
     """Write report.md, report.html and findings.json under ``<studies dir>/findings``; returns report.html."""
     from tuner.freeze import atomic_write
@@ -224,6 +264,9 @@ def write_report(out: dict, fs, seconds: float = 0.0) -> Path:
     out["report"] = str(report)
     when = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
     head = settings_lines(fs) + [f"wall time of this run: {seconds / 60:.1f} min; written {when}"]
+    total = compute_total(out)
+    if total is not None:  # the header only: findings.json keeps its two keys
+        head.append(_compute_line(total))
     verdict_rows = [[f["id"], BY_ID[f["id"]].title, f["verdict"], _compared(f), _num(f["difference"]), _ci(f["ci"]),
                      _num(f["p_value"], 3)] for f in out["findings"]]
     vcols = ["#", "finding", "verdict", "difference of", "difference", "95% CI", "p"]

@@ -80,6 +80,7 @@ class StudyOutcome:
     best: tuple | None = None  # (params, value) of the best feasible trial
     val_ci: list | None = None  # 95% interval of the best trial's validation mAA(10)
     seconds: float = 0.0
+    compute: dict = field(default_factory=dict)  # the study's own seconds: calibration, trials, test (see below)
 
 
 def canonical_spec(spec: StudySpec, default_features: int) -> StudySpec:
@@ -356,9 +357,25 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
             return out
     if need_regions and best is not None:
         out.val_ci = validation_interval(study, out.frozen, best, records_dir, cache, fs.n_resamples)
+    out.compute = study_compute(study, out.test)
     out.ok = True
     out.seconds = time.perf_counter() - t0
     return out
+
+
+def study_compute(study, test: dict | None) -> dict:
+    """What the study cost, from its own records (so a run resumed across sessions still adds up): the budget
+    calibration's seconds (``calibration_created`` identifies it: studies of one estimator share one), the summed
+    durations of its COMPLETE and PRUNED trials (a FAIL trial is one a killed run left, its span the downtime), and
+    the test's wall seconds (test.json's ``wall_seconds``; None for a test written before it was recorded)."""
+    from optuna.trial import TrialState
+    cal = ((study.user_attrs.get("budget") or {}).get("calibration") or {})
+    trials = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE, TrialState.PRUNED))
+    secs = [(t.datetime_complete - t.datetime_start).total_seconds() for t in trials
+            if t.datetime_start is not None and t.datetime_complete is not None]
+    return {"calibration_seconds": cal.get("seconds"), "calibration_created": cal.get("created"),
+            "trial_seconds": float(sum(secs)), "trials": len(secs),
+            "test_seconds": (test or {}).get("wall_seconds")}
 
 
 def _test_now(study, frozen: dict, s) -> dict:
