@@ -175,7 +175,7 @@ def _sigterm_as_interrupt():
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, old)
+        signal.signal(signal.SIGTERM, old if old is not None else signal.SIG_DFL)  # None: a handler set from C
 
 
 def main(argv: list[str] | None = None) -> int:
