@@ -146,6 +146,16 @@ def _children(pid):
     return out
 
 
+def wait_for_workers(p, n: int, timeout: float = 300.0) -> list:
+    """The pids of the ``n`` spawned worker processes of ``p`` once all run (fewer: ``p`` exited or time ran out)."""
+    deadline = time.time() + timeout
+    workers = []
+    while time.time() < deadline and p.poll() is None and len(workers) < n:
+        time.sleep(0.2)
+        workers = _children(p.pid)
+    return workers
+
+
 def _alive(pid):
     try:
         state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
@@ -161,11 +171,7 @@ def test_ctrl_c_stops_the_pool_at_once(tmp_path, cache):
     p = subprocess.Popen([sys.executable, "-m", "tuner", *map(str, args)], cwd=ROOT, env=_env(cache),
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
-        deadline = time.time() + 300
-        workers = []
-        while time.time() < deadline and p.poll() is None and len(workers) < 2:
-            time.sleep(0.2)
-            workers = _children(p.pid)
+        workers = wait_for_workers(p, 2)
         assert len(workers) == 2, "the pool never started"
         time.sleep(2.0)  # the workers are inside their pairs (1e6 iterations each)
         os.killpg(p.pid, signal.SIGINT)  # what a terminal's Ctrl-C does: the whole foreground group
@@ -289,3 +295,31 @@ def test_a_ctrl_c_while_workers_start_is_not_lost():
             time.sleep(0.2)
         time.sleep(2.0)  # delivered at the latest when the mask is restored
     assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, set())  # the mask is restored
+
+
+def test_a_parent_killed_with_kill_9_leaves_no_pair_workers(tmp_path, cache):
+    """kill -9 of `tune` (or the OOM killer) mid-evaluation: its pair workers exit within seconds on their own.
+    They used to wait forever on their call queue, orphaned (every worker holds the queue's write end, so its pipe
+    never reaches EOF), each holding the scene's data."""
+    data = copy_strecha_subset(tmp_path / "data", ["0003.jpg", "0004.jpg", "0005.jpg", "0006.jpg"])
+    args = ["evaluate", "--data", data, "--scenes", "fountain-P11", "--num-features", "2048", "--jobs", "2",
+            "--ratio", "1", "--strategy", "uni", "--max-iters", "1000000", "--threshold", "0.05", "--json"]
+    p = subprocess.Popen([sys.executable, "-m", "tuner", *map(str, args)], cwd=ROOT, env=_env(cache),
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        workers = wait_for_workers(p, 2)
+        assert len(workers) == 2, "the pool never started"
+        time.sleep(2.0)  # inside their pairs
+        os.kill(p.pid, signal.SIGKILL)  # the parent alone
+        p.communicate(timeout=60)
+        deadline = time.time() + 30  # a pair in flight finishes first (the estimator cannot be interrupted)
+        while time.time() < deadline and any(_alive(w) for w in workers):
+            time.sleep(0.2)
+        left = [w for w in workers if _alive(w)]
+    finally:
+        for w in _children(p.pid) + workers:
+            try:
+                os.kill(w, signal.SIGKILL)
+            except OSError:
+                pass
+    assert not left, f"pair workers {left} outlived their parent"

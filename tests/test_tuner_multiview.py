@@ -98,7 +98,7 @@ def test_interrupting_a_multiview_study_stops_its_colmap_workers_at_once(mv_stud
     import sys
     import time
     from tests.conftest import ROOT
-    from tests.test_parallel_pairs import _alive, _children
+    from tests.test_parallel_pairs import _alive, wait_for_workers
     root, _ = mv_study
     studies = tmp_path / "studies"
     env = dict(os.environ)  # the fixture's IMTUNE_CACHE: the built ground truth and the features
@@ -108,11 +108,7 @@ def test_interrupting_a_multiview_study_stops_its_colmap_workers_at_once(mv_stud
     p = subprocess.Popen([sys.executable, "-m", "tuner", *args], cwd=ROOT, env=env, stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
-        deadline = time.time() + 300
-        workers = []
-        while time.time() < deadline and p.poll() is None and len(workers) < 2:
-            time.sleep(0.2)
-            workers = _children(p.pid)
+        workers = wait_for_workers(p, 2)
         assert len(workers) == 2, ("the COLMAP pool never started", p.poll(), p.stderr.read() if p.poll() else "")
         time.sleep(3.0)  # inside their bags
         t0 = time.time()

@@ -43,8 +43,8 @@ from pipeline.errors import ImtuneError
 from pipeline.metrics.pose import accuracy_curve, mean_average_accuracy, pose_error_deg
 from pipeline.tasks.base import TASKS, Task, TaskResult
 from pipeline.cpus import available_cpus
-from pipeline.tasks.pool import (ignore_sigint_here, kill_processes, quiet_resource_tracker, sigint_held,
-                                 single_thread_env)
+from pipeline.tasks.pool import (exit_with_parent, ignore_sigint_here, kill_processes, quiet_resource_tracker,
+                                 sigint_held, single_thread_env)
 from pipeline.tasks.stereo import CI_KEYS, CI_RESAMPLES, CI_SEED, add_intervals
 
 BAG_STAGE_VERSION = "1"
@@ -206,6 +206,7 @@ def _score(rec: dict, model, job: BagJob) -> None:
 
 def _init_worker():
     ignore_sigint_here()  # the parent stops its workers on Ctrl-C: no traceback per worker
+    exit_with_parent()  # ... and a parent killed with kill -9 leaves no COLMAP worker behind
     from pipeline import colmap_db as cdb
     cdb.limit_threads(1)
     try:

@@ -122,6 +122,22 @@ def ignore_sigint_here() -> None:
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
 
+def exit_with_parent(period: float = 1.0) -> None:
+    """In a worker: exit within ``period`` seconds of its parent's death (kill -9, the OOM killer). Its call
+    queue's pipe never reaches EOF, since every worker holds the queue's write end too, so it would otherwise wait
+    there forever, orphaned, holding the scene's data in memory. (A thread polling the parent pid: portable and
+    bound to the process, where Linux's PR_SET_PDEATHSIG is bound to the spawning thread.)"""
+    import time
+    parent = os.getppid()
+
+    def watch():
+        while True:
+            time.sleep(period)
+            if os.getppid() != parent:
+                os._exit(1)
+    threading.Thread(target=watch, name="imtune-parent-watch", daemon=True).start()
+
+
 def _limit_threads_here() -> None:
     try:
         import cv2
@@ -227,6 +243,7 @@ def _claim_slot(slot_dir: str, n: int) -> int:
 
 def _init_pair_worker(spec: PairSpec, status, slot_dir: str, abandoned=None) -> None:
     ignore_sigint_here()
+    exit_with_parent()
     _limit_threads_here()
     slot = _claim_slot(slot_dir, len(status) // 2)
     _W.clear()
@@ -480,6 +497,7 @@ _C: dict = {}
 
 def _init_concurrent(payload, barrier) -> None:
     ignore_sigint_here()
+    exit_with_parent()
     _limit_threads_here()
     _C.clear()
     _C.update(payload=payload, barrier=barrier)
