@@ -27,9 +27,25 @@ PIXEL_OFFSET = 0.5
 INTRINSICS_MODES = ("colmap", "prior", "fixed")
 
 
+def import_pycolmap():
+    """``import pycolmap``, keeping this process's SIGTERM handler. pycolmap's glog installs its failure handler
+    for SIGTERM when the module loads (it prints a stack trace, then the process dies), which bypassed tune's
+    graceful stop (pool killed, trial failed, one line, exit 143) in any process that had used COLMAP, and left
+    the pool's workers behind. Python still records its own handler, so setting it again restores it (main thread
+    only, as Python requires)."""
+    import signal
+    import threading
+
+    import pycolmap
+    if threading.current_thread() is threading.main_thread():
+        h = signal.getsignal(signal.SIGTERM)
+        signal.signal(signal.SIGTERM, h if h is not None else signal.SIG_DFL)
+    return pycolmap
+
+
 def quiet(level: int = 2) -> None:
     """Silence COLMAP's glog output below ``level`` (0 info, 1 warning, 2 error, 3 fatal)."""
-    import pycolmap
+    pycolmap = import_pycolmap()
     try:
         pycolmap.logging.minloglevel = level
         pycolmap.logging.stderrthreshold = max(level, 2)
@@ -43,7 +59,7 @@ def make_camera(width: int, height: int, K: np.ndarray | None = None, mode: str 
 
     mode "colmap": SIMPLE_RADIAL with the EXIF focal length of ``image_path`` (read at ``file_size`` and
     rescaled) or 1.2 x max(width, height); "prior" / "fixed": PINHOLE from K (pixel-centre convention)."""
-    import pycolmap
+    pycolmap = import_pycolmap()
     if mode not in INTRINSICS_MODES:
         raise ImtuneError(f"unknown intrinsics mode {mode!r} (choose {', '.join(INTRINSICS_MODES)})")
     if mode == "colmap":
@@ -98,7 +114,7 @@ def check_database(path: Path | str) -> None:
 
 def open_database(path: Path | str, create: bool = False):
     """pycolmap.Database at ``path`` (created if ``create``); ImtuneError naming the file if unreadable."""
-    import pycolmap
+    pycolmap = import_pycolmap()
     path = Path(path)
     if not create:
         check_database(path)
@@ -115,7 +131,7 @@ def write_database(path: Path | str, images: list[tuple[str, object, np.ndarray]
     images: [(name, pycolmap.Camera, keypoints (n, 2) px, pixel-centre convention)];
     matches: {(name_i, name_j): (M, 2) indices into the two keypoint arrays}. Returns name -> image_id.
     An existing file at ``path`` is replaced."""
-    import pycolmap
+    pycolmap = import_pycolmap()
     path = Path(path)
     if path.exists():
         path.unlink()
@@ -141,7 +157,7 @@ def write_database(path: Path | str, images: list[tuple[str, object, np.ndarray]
 def verification_options(max_error: float = 4.0, confidence: float = 0.999, max_num_trials: int = 10000,
                          min_inlier_ratio: float = 0.25, min_num_inliers: int = 15, seed: int = 0):
     """COLMAP's two-view geometry options (defaults = COLMAP's, as the official benchmark ran them)."""
-    import pycolmap
+    pycolmap = import_pycolmap()
     o = pycolmap.TwoViewGeometryOptions()
     o.min_num_inliers = int(min_num_inliers)
     o.ransac.max_error = float(max_error)
@@ -155,7 +171,7 @@ def verification_options(max_error: float = 4.0, confidence: float = 0.999, max_
 
 def verify(path: Path | str, options=None, num_threads: int = 1) -> None:
     """COLMAP geometric verification of every matched pair in the database (its own RANSAC)."""
-    import pycolmap
+    pycolmap = import_pycolmap()
     vo = pycolmap.GeometricVerifierOptions()
     vo.num_threads = int(num_threads)
     pycolmap.geometric_verification(str(path), vo, pycolmap.ExistingMatchedPairingOptions(),
@@ -165,7 +181,7 @@ def verify(path: Path | str, options=None, num_threads: int = 1) -> None:
 def mapper_options(min_model_size: int = 3, num_threads: int = 1, seed: int = 0, fixed_intrinsics: bool = False,
                    max_runtime_seconds: float | None = None):
     """IncrementalPipelineOptions for a bag: single-threaded, seeded, no colours (no image reads)."""
-    import pycolmap
+    pycolmap = import_pycolmap()
     o = pycolmap.IncrementalPipelineOptions()
     o.min_model_size = int(min_model_size)
     o.num_threads = int(num_threads)
@@ -195,7 +211,7 @@ def incremental_mapping(db_path: Path | str, out_dir: Path | str, options) -> tu
 
     Never raises for a reconstruction that fails: no initial pair, nothing registered or an exception
     inside COLMAP are returned as a reason (the official benchmark's issue 49 is a recorded failure here)."""
-    import pycolmap
+    pycolmap = import_pycolmap()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     try:
@@ -240,7 +256,7 @@ def model_stats(rec) -> dict:
 
 def read_model(path: Path | str):
     """A COLMAP sparse model (cameras/images/points3D .bin or .txt); ImtuneError naming the folder."""
-    import pycolmap
+    pycolmap = import_pycolmap()
     path = Path(path)
     if not path.is_dir():
         raise ImtuneError(f"COLMAP model folder not found: {path}")

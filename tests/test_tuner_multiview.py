@@ -134,3 +134,42 @@ def test_interrupting_a_multiview_study_stops_its_colmap_workers_at_once(mv_stud
     st = optuna.load_study(study_name=STUDY, storage=f"sqlite:///{studies / 'optuna.db'}")
     assert st.trials and not [t for t in st.trials if t.state.name == "RUNNING"]  # the interrupted trial: FAIL
     print(f"MULTIVIEW {how.upper()}: exit {p.returncode} after {stopped:.1f} s, workers {workers} gone")
+
+
+@pytest.mark.parametrize("how", ["import_pycolmap", "require", "build_gt"])
+def test_using_colmap_keeps_the_sigterm_handler(how, mv_study, tmp_path):
+    """pycolmap's glog takes SIGTERM over when it loads (a stack trace, then death), which bypassed tune's graceful
+    stop in any process that had used COLMAP (the full findings run died so after its multiview study, leaving its
+    pool workers). Through the adapter the process keeps its own handler: a real SIGTERM reaches it."""
+    import signal
+    import subprocess
+    import sys
+    import time
+    from tests.conftest import ROOT
+    root, _ = mv_study
+    call = {"import_pycolmap": "from pipeline.colmap_db import import_pycolmap; import_pycolmap()",
+            "require": "from pipeline.geometry.base import require; require('pycolmap', 'pycolmap')",
+            # what `tune findings` does in its own process before the multiview study: COLMAP triangulation
+            "build_gt": ("from pathlib import Path; from tuner.evaluate import load_scenes; "
+                         "from pipeline.data.ground_truth import GTConfig, build_ground_truth; "
+                         f"(sc,) = load_scenes(Path({str(root)!r}), ['fountain-P11'], ground_truth=False); "
+                         f"build_ground_truth(sc, {str(tmp_path / 'gt')!r}, GTConfig(num_features=1024), force=True)"),
+            }[how]
+    code = ("import signal, sys, time\n"
+            "signal.signal(signal.SIGTERM, lambda s, f: sys.exit(7))\n"
+            f"{call}\n"
+            "import pycolmap; assert pycolmap.__version__\n"
+            "print('ready', flush=True)\n"
+            "time.sleep(60)\n")
+    p = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True)
+    try:
+        assert p.stdout.readline().strip() == "ready", p.stderr.read()[-3000:]
+        time.sleep(0.2)
+        p.send_signal(signal.SIGTERM)
+        _, err = p.communicate(timeout=30)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.communicate()
+    assert p.returncode == 7 and "Aborted" not in err, (p.returncode, err[-2000:])

@@ -59,7 +59,8 @@ def list_scenes(root: Path) -> list[str]:
 
 def read_model(path: Path):
     """pycolmap.Reconstruction from a model folder; ImtuneError naming it if missing or unreadable."""
-    import pycolmap
+    from pipeline.colmap_db import import_pycolmap
+    pycolmap = import_pycolmap()
 
     path = Path(path)
     if not is_model_dir(path):

@@ -133,7 +133,8 @@ def _image_root(scene) -> tuple[Path, dict[str, str]]:
 
 
 def _extract_and_match(scene, conf: GTConfig, work: Path, known_K: bool, progress) -> tuple[Path, dict[str, int], Path, dict]:
-    import pycolmap
+    from pipeline.colmap_db import import_pycolmap
+    pycolmap = import_pycolmap()
 
     from pipeline.colmap_db import PIXEL_OFFSET
     img_root, rel = _image_root(scene)
@@ -228,7 +229,8 @@ def _reproj_stats(e: np.ndarray) -> dict:
 
 def build_from_poses(scene, conf: GTConfig = GTConfig(), work: Path | None = None, progress=None) -> GroundTruth:
     """Triangulate 3D points of a scene with known K, R, t (held fixed); see the module docstring."""
-    import pycolmap
+    from pipeline.colmap_db import import_pycolmap
+    pycolmap = import_pycolmap()
 
     from pipeline.colmap_db import quiet
     progress = progress or (lambda msg: None)
@@ -284,7 +286,8 @@ def build_from_poses(scene, conf: GTConfig = GTConfig(), work: Path | None = Non
 
 def build_from_images(scene, conf: GTConfig = GTConfig(), work: Path | None = None, progress=None) -> GroundTruth:
     """Pseudo ground truth by SfM on the scene's images (exhaustive matching); see the module docstring."""
-    import pycolmap
+    from pipeline.colmap_db import import_pycolmap
+    pycolmap = import_pycolmap()
 
     from pipeline.colmap_db import K_from_camera, largest_model, quiet
     progress = progress or (lambda msg: None)

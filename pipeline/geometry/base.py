@@ -230,7 +230,11 @@ def require(module: str, package: str) -> None:
     """Import ``module`` or raise a one-line ``UnavailableError`` naming the pip ``package``."""
     from pipeline.errors import UnavailableError
     try:
-        __import__(module)
+        if module == "pycolmap":  # its import takes SIGTERM over: the adapter gives it back
+            from pipeline.colmap_db import import_pycolmap
+            import_pycolmap()
+        else:
+            __import__(module)
     except Exception as e:  # ImportError, or a broken binary wheel (OSError, ...)
         raise UnavailableError(f"{module} is not importable ({type(e).__name__}); "
                                f"install it with `pip install {package}`") from None

@@ -30,7 +30,8 @@ class ColmapFundamental(Estimator):
 
     def _solve(self, pts1: np.ndarray, pts2: np.ndarray, threshold: float, confidence: float,
                max_iters: int, seed: int, sizes: Sizes) -> RawSolution:
-        import pycolmap
+        from pipeline.colmap_db import import_pycolmap
+        pycolmap = import_pycolmap()
         max_iters = max(int(max_iters), 1)
         opt = pycolmap.RANSACOptions()
         opt.max_error = float(threshold)
