@@ -164,12 +164,18 @@ def _alive(pid):
     return state != "Z"
 
 
-def test_ctrl_c_stops_the_pool_at_once(tmp_path, cache):
+def _start_slow_evaluation(tmp_path, cache):
+    """`tune evaluate --jobs 2` on 4 fountain images with pairs of 1e6 iterations each (seconds per pair), in its
+    own session: a pool busy long enough to be signalled mid-pair."""
     data = copy_strecha_subset(tmp_path / "data", ["0003.jpg", "0004.jpg", "0005.jpg", "0006.jpg"])
     args = ["evaluate", "--data", data, "--scenes", "fountain-P11", "--num-features", "2048", "--jobs", "2",
             "--ratio", "1", "--strategy", "uni", "--max-iters", "1000000", "--threshold", "0.05", "--json"]
-    p = subprocess.Popen([sys.executable, "-m", "tuner", *map(str, args)], cwd=ROOT, env=_env(cache),
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    return subprocess.Popen([sys.executable, "-m", "tuner", *map(str, args)], cwd=ROOT, env=_env(cache),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+
+
+def test_ctrl_c_stops_the_pool_at_once(tmp_path, cache):
+    p = _start_slow_evaluation(tmp_path, cache)
     try:
         workers = wait_for_workers(p, 2)
         assert len(workers) == 2, "the pool never started"
@@ -301,11 +307,7 @@ def test_a_parent_killed_with_kill_9_leaves_no_pair_workers(tmp_path, cache):
     """kill -9 of `tune` (or the OOM killer) mid-evaluation: its pair workers exit within seconds on their own.
     They used to wait forever on their call queue, orphaned (every worker holds the queue's write end, so its pipe
     never reaches EOF), each holding the scene's data."""
-    data = copy_strecha_subset(tmp_path / "data", ["0003.jpg", "0004.jpg", "0005.jpg", "0006.jpg"])
-    args = ["evaluate", "--data", data, "--scenes", "fountain-P11", "--num-features", "2048", "--jobs", "2",
-            "--ratio", "1", "--strategy", "uni", "--max-iters", "1000000", "--threshold", "0.05", "--json"]
-    p = subprocess.Popen([sys.executable, "-m", "tuner", *map(str, args)], cwd=ROOT, env=_env(cache),
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    p = _start_slow_evaluation(tmp_path, cache)
     try:
         workers = wait_for_workers(p, 2)
         assert len(workers) == 2, "the pool never started"
