@@ -12,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -79,7 +78,6 @@ class StudyOutcome:
     trials: list = field(default_factory=list)  # (params, value) of feasible COMPLETE trials
     best: tuple | None = None  # (params, value) of the best feasible trial
     val_ci: list | None = None  # 95% interval of the best trial's validation mAA(10)
-    seconds: float = 0.0
     compute: dict = field(default_factory=dict)  # the study's own seconds: calibration, trials, test (see below)
 
 
@@ -324,7 +322,6 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
     if why:
         out.reason = why
         return out
-    t0 = time.perf_counter()
     s = tune_settings(spec, fs)
     try:
         ensure_multiview_ground_truth(spec, fs)
@@ -359,7 +356,6 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
         out.val_ci = validation_interval(study, out.frozen, best, records_dir, cache, fs.n_resamples)
     out.compute = study_compute(study, out.test)
     out.ok = True
-    out.seconds = time.perf_counter() - t0
     return out
 
 
