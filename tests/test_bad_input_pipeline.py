@@ -133,6 +133,15 @@ CASES = {
     "calibrate-threshold-nan": _parse("calibrate", "--calibration-threshold", "nan", needle="--calibration-threshold"),
     "calibrate-ratio-inf": _parse("calibrate", "--calibration-ratio", "inf", needle="--calibration-ratio"),
     "calibrate-budget-nan": _parse("calibrate", "--budget", "nan", needle="--budget"),
+    # seeds feed numpy's generators, which take no negative seed ("internal error" before); counts are >= 0
+    "evaluate-seed-negative": _parse("evaluate", "--seed=-1", needle="--seed"),
+    "run-seed-negative": _parse("run", "--seed=-3", needle="--seed"),
+    "bag-seed-negative": _parse("evaluate", "--bag-seed=-1", needle="--bag-seed"),
+    "viz-sample-seed-negative": _parse("viz", "--sample-seed=-1", needle="--sample-seed"),
+    "viz-max-lines-negative": _parse("viz", "--max-lines=-1", needle="--max-lines"),
+    "viz-worst-negative": _parse("viz", "--worst=-2", needle="--worst"),
+    "max-side-negative": _parse("evaluate", "--max-side=-3", needle="--max-side"),
+    "bag-min-points-negative": _parse("evaluate", "--bag-min-points=-1", needle="--bag-min-points"),
     # item 2: integer values out of range reach the config dataclasses
     "max-iters-zero": _evaluate("--max-iters", "0", needle="max-iters"),
     "num-features-zero": _evaluate("--num-features", "0", needle="num_features"),

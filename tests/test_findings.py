@@ -365,6 +365,27 @@ def test_user_errors_fail_before_any_study(subset, tmp_path, capsys, what, args,
     assert not (tmp_path / "s" / "findings").exists()
 
 
+def test_a_negative_seed_is_refused_by_the_parser(subset, tmp_path, capsys):
+    """numpy's generators (the bootstrap) take no negative seed: ``--seed -1`` was an "internal error" after every
+    study had run. It is now the parser's one-line error, exit 2, before anything is written."""
+    with pytest.raises(SystemExit) as e:
+        _cli(["findings", "--data", str(subset), "--studies-dir", str(tmp_path / "s"), "--quick", "--only", "1",
+              "--seed", "-1"], capsys)
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err == "tune: error: argument --seed: must be >= 0, got '-1'\n", err
+    assert not (tmp_path / "s").exists()
+
+
+def test_a_negative_seed_from_python_fails_before_any_study(subset, tmp_path):
+    """The Python call checks what the CLI's parser checks: a negative seed is refused before the first study."""
+    from pipeline.errors import ImtuneError
+    from tuner.findings import FindingsSettings, run_findings
+    fs = FindingsSettings(data_root=subset, studies_dir=tmp_path / "s", quick=True, only=[1], seed=-1, progress=False)
+    with pytest.raises(ImtuneError, match=r"seed must be an integer >= 0, got -1"):
+        run_findings(fs)
+    assert not (tmp_path / "s" / "optuna.db").exists()
+
+
 def test_bad_only_is_one_line(capsys):
     rc, out, err = _cli(["findings", "--only", "1,13"], capsys)
     assert rc == 2 and err.count("\n") == 1 and "no finding 13" in err

@@ -12,7 +12,8 @@ import math
 
 from pipeline.config import FeatureConfig, GeometryConfig, MatchConfig, PipelineConfig
 from pipeline.errors import ImtuneError
-from tuner.argtypes import nonnegative_float, positive_float, positive_int, probability_float, ratio_float, unit_float
+from tuner.argtypes import (count_int, nonnegative_float, positive_float, positive_int, probability_float, ratio_float,
+                            seed_int, unit_float)
 
 # The data folder rule lives in the pipeline (one rule for every command; the main job may download):
 from pipeline.data.locate import resolve_data  # noqa: E402,F401
@@ -28,7 +29,8 @@ def add_pipeline_options(ap: argparse.ArgumentParser, tuning: bool = False) -> N
     g.add_argument("--upright-plus", action="store_true", help="upright, refilled to the budget (upright++)")
     g.add_argument("--clahe", default="none", choices=["none", "detector", "descriptor", "both"])
     g.add_argument("--mr-size", type=positive_float, default=None, help="descriptor support scale (SIFT mrSize)")
-    g.add_argument("--max-side", type=int, default=1024, help="resize so the long side is at most this (px)")
+    g.add_argument("--max-side", type=count_int, default=1024,
+                   help="resize so the long side is at most this (px; 0 = keep the original size)")
     g.add_argument("--feature-option", action="append", type=feature_option, default=[], metavar="KEY=VALUE",
                    help="an extractor option, e.g. edge_threshold=10 or contrast_threshold=0.04 for sift (an unknown "
                         "KEY lists the extractor's options); repeatable")
@@ -46,7 +48,7 @@ def add_pipeline_options(ap: argparse.ArgumentParser, tuning: bool = False) -> N
         g.add_argument("--ratio", type=ratio_float, default=0.85, help="ratio test r in (0, 1]; 1 = off")
         g.add_argument("--threshold", type=positive_float, default=0.5, help="inlier threshold eta, px")
         g.add_argument("--max-iters", type=int, default=50000, help="RANSAC iteration cap Gamma")
-    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--seed", type=seed_int, default=0, help="random seed (>= 0)")
     d = ap.add_argument_group("data")
     d.add_argument("--data", default=None, help="data folder (else $IMTUNE_DATA, imtune.yaml, the download location $IMTUNE_DATA_HOME, "
                         "then ../shared/data beside the project; `tune data scenes` says which was found)")
@@ -219,8 +221,8 @@ def add_multiview_options(ap: argparse.ArgumentParser) -> None:
     g = ap.add_argument_group("multiview")
     g.add_argument("--bags", default=None,
                    help="bag sizes[:counts], e.g. 5,10,25 or 5:100,10:50,25:25 (default: the protocol's 100/50/25)")
-    g.add_argument("--bag-min-points", type=int, default=100, help="each image must see this many of the bag's 3D points")
-    g.add_argument("--bag-seed", type=int, default=0, help="seed of the bag sampling")
+    g.add_argument("--bag-min-points", type=count_int, default=100, help="each image must see this many of the bag's 3D points")
+    g.add_argument("--bag-seed", type=seed_int, default=0, help="seed of the bag sampling")
     g.add_argument("--mv-intrinsics", default="colmap", choices=["colmap", "prior", "fixed"],
                    help="colmap: COLMAP estimates them (official); prior: known K, refined; fixed: known K")
     g.add_argument("--workers", type=positive_int, default=None, help="bags in parallel (default: available CPUs)")

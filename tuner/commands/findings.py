@@ -14,7 +14,7 @@ from pathlib import Path
 
 
 def register(sub) -> None:
-    from tuner.argtypes import positive_int
+    from tuner.argtypes import positive_int, seed_int
     ap = sub.add_parser("findings", help="check the paper's findings on this data (studies + verdicts + report)",
                         description="Run the comparisons behind the paper's findings as ordinary, resumable studies "
                                     "(tuned on the validation scenes, measured on the test scenes) and write "
@@ -30,7 +30,7 @@ def register(sub) -> None:
     ap.add_argument("--val-scenes", default=None, help="comma-separated validation scenes (default: the data split)")
     ap.add_argument("--test-scenes", default=None, help="comma-separated test scenes (default: the data split)")
     ap.add_argument("--cache", default=None, help="cache folder (else $IMTUNE_CACHE or ~/.cache/imtune)")
-    ap.add_argument("--seed", type=int, default=0, help="study and resampling seed")
+    ap.add_argument("--seed", type=seed_int, default=0, help="study and resampling seed")
     ap.add_argument("--storage", default=None,
                     help="sqlite:///PATH, postgresql://..., journal:PATH (default sqlite:///<studies dir>/optuna.db)")
     ap.add_argument("--studies-dir", default=None,

@@ -28,6 +28,7 @@ import sys
 from pathlib import Path
 
 from pipeline.errors import ImtuneError
+from tuner.argtypes import count_int, seed_int
 from tuner.options import add_multiview_options, add_pipeline_options, build_config, multiview_config, resolve_data, task_choices
 
 
@@ -55,11 +56,11 @@ def register(sub) -> None:
                                                  "(quote them: '|' is the shell's pipe)")
     s.add_argument("--pair", nargs=2, action="append", default=None, metavar=("IMAGE1", "IMAGE2"),
                    help="one pair (repeatable); SCENE:IMAGE1 selects the scene")
-    s.add_argument("--worst", type=int, default=2, help="pairs with the largest pose error (default 2)")
-    s.add_argument("--best", type=int, default=2, help="pairs with the smallest pose error (default 2)")
-    s.add_argument("--random", type=int, default=2, help="a random sample of the other pairs (default 2)")
-    s.add_argument("--sample-seed", type=int, default=0, help="seed of the random sample of pairs")
-    s.add_argument("--num", type=int, default=3, help="--compare: the pairs on which A and B differ most (default 3)")
+    s.add_argument("--worst", type=count_int, default=2, help="pairs with the largest pose error (default 2)")
+    s.add_argument("--best", type=count_int, default=2, help="pairs with the smallest pose error (default 2)")
+    s.add_argument("--random", type=count_int, default=2, help="a random sample of the other pairs (default 2)")
+    s.add_argument("--sample-seed", type=seed_int, default=0, help="seed of the random sample of pairs")
+    s.add_argument("--num", type=count_int, default=3, help="--compare: the pairs on which A and B differ most (default 3)")
     s.add_argument("--bag", action="append", default=None, metavar="SIZE:INDEX",
                    help="multiview: this bag (repeatable; default the first bag of each size)")
     f = ap.add_argument_group("figures")
@@ -68,7 +69,7 @@ def register(sub) -> None:
                                                    "studies/<study>/gallery.html for a study)")
     f.add_argument("--no-gallery", action="store_true", help="write the PNGs only")
     f.add_argument("--width", type=int, default=1600, help="figure width in px (default 1600)")
-    f.add_argument("--max-lines", type=int, default=200, help="at most this many match lines per figure (default 200)")
+    f.add_argument("--max-lines", type=count_int, default=200, help="at most this many match lines per figure (default 200)")
     f.add_argument("--layout", default="horizontal", choices=["horizontal", "vertical"],
                    help="images side by side (default) or one above the other")
     f.add_argument("--no-depth", action="store_true", help="epipolar distance even where depth maps exist")

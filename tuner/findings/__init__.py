@@ -71,6 +71,9 @@ def preflight(fs: FindingsSettings) -> None:
     from pipeline.data import default_splits
     from tuner.evaluate import load_scenes
     from tuner.storage import open_storage
+    if isinstance(fs.seed, bool) or not isinstance(fs.seed, int) or fs.seed < 0:
+        # numpy's generators (the bootstrap) take no negative seed: found only after every study had run
+        raise ImtuneError(f"seed must be an integer >= 0, got {fs.seed!r}")
     d = Path(fs.studies_dir)
     try:
         d.mkdir(parents=True, exist_ok=True)
