@@ -365,6 +365,24 @@ def test_user_errors_fail_before_any_study(subset, tmp_path, capsys, what, args,
     assert not (tmp_path / "s" / "findings").exists()
 
 
+@pytest.mark.parametrize("what", ["invalid splits.yaml", "no data set in the folder"])
+def test_unreadable_data_folder_fails_before_any_study(subset, tmp_path, capsys, what):
+    """An invalid splits.yaml, or a --data folder that holds no data set, is the user's error: one line naming the
+    file or folder, exit 2, nothing written (it was twelve findings "not run", a report, and exit 0)."""
+    root = tmp_path / "data"
+    if what == "invalid splits.yaml":
+        shutil.copytree(subset, root)
+        (root / "splits.yaml").write_text("val: [fountain-P11\ntest: x\n")
+        needle = str(root / "splits.yaml")
+    else:
+        (root / "empty-scene" / "images").mkdir(parents=True)
+        needle = f"no dataset recognised in {root}"
+    rc, out, err = _cli(["findings", "--data", str(root), "--studies-dir", str(tmp_path / "s"), "--quick"], capsys)
+    assert rc == 2 and out == "" and err.count("\n") == 1 and err.startswith("tune: error: "), err
+    assert needle in err, err
+    assert not (tmp_path / "s").exists()
+
+
 def test_a_negative_seed_is_refused_by_the_parser(subset, tmp_path, capsys):
     """numpy's generators (the bootstrap) take no negative seed: ``--seed -1`` was an "internal error" after every
     study had run. It is now the parser's one-line error, exit 2, before anything is written."""

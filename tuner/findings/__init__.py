@@ -46,12 +46,11 @@ def parse_only(text: str | None) -> list[int] | None:
 
 
 def check_scenes(fs: FindingsSettings) -> str | None:
-    """Why no finding can run on this data (no validation or no test scene), else None."""
+    """Why no finding can run on this data (no validation or no test scene), else None. A folder that holds no
+    data set, or an unreadable ``splits.yaml``, is the user's error: its ImtuneError propagates (one line, exit 2),
+    it is not twelve findings "not run"."""
     from pipeline.data import default_splits
-    try:
-        splits = default_splits(fs.data_root)
-    except ImtuneError as e:
-        return str(e)
+    splits = default_splits(fs.data_root)
     val = list(fs.val_scenes or splits.get("val") or [])
     test = list(fs.test_scenes or splits.get("test") or [])
     if not val:
@@ -71,9 +70,6 @@ def preflight(fs: FindingsSettings) -> None:
     from pipeline.data import default_splits
     from tuner.evaluate import load_scenes
     from tuner.storage import open_storage
-    if isinstance(fs.seed, bool) or not isinstance(fs.seed, int) or fs.seed < 0:
-        # numpy's generators (the bootstrap) take no negative seed: found only after every study had run
-        raise ImtuneError(f"seed must be an integer >= 0, got {fs.seed!r}")
     d = Path(fs.studies_dir)
     try:
         d.mkdir(parents=True, exist_ok=True)
@@ -110,6 +106,9 @@ def run_findings(fs: FindingsSettings, write: bool = True) -> dict:
     t0 = time.perf_counter()
     fs.studies_dir = Path(fs.studies_dir) if fs.studies_dir else default_studies_dir()
     selected = [BY_ID[i] for i in (fs.only or [f.id for f in FINDINGS])]
+    if isinstance(fs.seed, bool) or not isinstance(fs.seed, int) or fs.seed < 0:
+        # numpy's generators (the bootstrap) take no negative seed: found only after every study had run
+        raise ImtuneError(f"seed must be an integer >= 0, got {fs.seed!r}")
     no_data = check_scenes(fs)
     if no_data is None:
         preflight(fs)
