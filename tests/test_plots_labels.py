@@ -139,3 +139,45 @@ def test_single_trial_hint_names_the_command(tmp_path):
     secs = {s.title: s for s in report_sections(storage, "one", tmp_path)}
     imp = secs["Parameter importances"]
     assert imp.fig is None and "--study one and a larger --n-trials" in imp.note
+
+
+def test_importances_say_their_method_and_follow_a_known_dependence(tmp_path):
+    """mAA = 0.6 r' + 0.3 eta' + 0 Gamma' (each primed parameter uniform on [0, 1] over 200 random trials): r must
+    matter most, Gamma not at all. The figure names its method (PED-ANOVA, optuna-dashboard's; it said fANOVA and
+    'fraction of variance' while Optuna computed PED-ANOVA) and, when every trial has the same value, says the
+    importances are equal by construction (Optuna's UserWarning used to reach stderr)."""
+    import warnings
+
+    import numpy as np
+    import optuna
+    from optuna.distributions import FloatDistribution, IntDistribution
+    from optuna.trial import create_trial
+
+    from tuner.plots import fig_importances
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    rng = np.random.default_rng(3)
+    dist = {"ratio": FloatDistribution(0.6, 1.0), "threshold": FloatDistribution(0.1, 2.0),
+            "max_iters": IntDistribution(1000, 100000)}
+    st = optuna.create_study(direction="maximize")
+    for _ in range(200):
+        u = rng.uniform(size=3)
+        st.add_trial(create_trial(value=float(0.6 * u[0] + 0.3 * u[1]), distributions=dist,
+                                  params={"ratio": 0.6 + 0.4 * u[0], "threshold": 0.1 + 1.9 * u[1],
+                                          "max_iters": int(1000 + 99000 * u[2])}))
+    fig = fig_importances(st)
+    imp = dict(zip(fig.data[0].y, fig.data[0].x))
+    assert set(imp) == {"r", "eta (px)", "Gamma (iterations)"}
+    assert imp["r"] > imp["eta (px)"] > imp["Gamma (iterations)"], imp
+    assert imp["Gamma (iterations)"] < 0.05 and sum(imp.values()) == pytest.approx(1.0, abs=0.01), imp
+    assert "PED-ANOVA" in fig.layout.title.text and "fANOVA" not in fig.layout.title.text
+    assert "best 10% of trials" in fig.layout.xaxis.title.text
+    assert not fig.layout.annotations
+
+    same = optuna.create_study(direction="maximize")  # every trial at mAA 1.0 (an easy scene): nothing to tell apart
+    for k in range(6):
+        same.add_trial(create_trial(value=1.0, distributions=dist,
+                                    params={"ratio": 0.7 + 0.05 * k, "threshold": 0.5, "max_iters": 2000 + k}))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)  # nothing escapes to stderr
+        fig = fig_importances(same)
+    assert any("equal by construction" in (a.text or "") for a in fig.layout.annotations)
