@@ -80,6 +80,23 @@ def test_same_records_and_steps_for_jobs_1_and_2(cache):
     print(f"POOL jobs 1 vs 2: {len(r1.records)} records identical (timings aside), steps {s1}")
 
 
+def test_no_more_workers_than_pairs(cache):
+    """--jobs above the pair count starts one worker per pair (each holds the scenes' data in memory; --jobs 64 on
+    6 pairs started 64), with the records of a serial run."""
+    from pipeline.cache import H5Cache
+    from pipeline.tasks import pool as pool_mod
+    from pipeline.tasks.stereo import StereoTask
+    scenes, conf, h5 = _scenes(), _conf(), H5Cache(cache)
+    serial = StereoTask(max_pairs=3, jobs=1).evaluate(scenes, conf, h5)
+    wide = StereoTask(max_pairs=3, jobs=8).evaluate(scenes, conf, h5)
+    try:
+        p = pool_mod._POOLS["stereo"]
+        assert p.jobs == 3 and len(p._procs) == 3, (p.jobs, len(p._procs))
+    finally:
+        pool_mod.shutdown_pools()
+    assert len(wide.records) == 3 and _untimed(wide.records) == _untimed(serial.records)
+
+
 def test_a_worker_killed_mid_pair_is_a_recorded_failure(cache):
     from pipeline.cache import H5Cache
     from pipeline.tasks import pool as poolmod
