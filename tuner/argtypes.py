@@ -64,9 +64,7 @@ positive_int.__name__ = "positive_int"
 #: an integer >= 0 where 0 switches the thing off (e.g. --heartbeat)
 nonnegative_int = _int_at_least(0, ">= 0 (0 = off)")
 nonnegative_int.__name__ = "nonnegative_int"
-#: a random seed: an integer >= 0 (numpy's generators, used by the bootstrap and the samplers, take no negative seed)
-seed_int = _int_at_least(0, ">= 0")
-seed_int.__name__ = "seed_int"
-#: how many of something to show (0 = none)
-count_int = _int_at_least(0, ">= 0")
-count_int.__name__ = "count_int"
+#: an integer >= 0: a random seed (numpy's generators, used by the bootstrap and the samplers, take no negative
+#: seed) or how many of something to show (0 = none); two names for one rule
+seed_int = count_int = _int_at_least(0, ">= 0")
+seed_int.__name__ = "nonnegative_integer"

@@ -175,6 +175,7 @@ def analyse(f: Finding, outcomes: dict, n_resamples: int = 2000, seed: int = 0) 
                         c["status"] = s
                 st = combine(statuses, f.combine)
         measured["relative_difference"] = key["relative"]
+        measured["relative_to"] = key["a"]  # the role the relative difference divides by (A of "B vs A")
         extra = _extras(f, outcomes)
         if extra:
             measured.update(extra)

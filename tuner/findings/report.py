@@ -158,9 +158,10 @@ def _difference_text(f: dict) -> str:
             parts.append(f"{g['group']}: {g['status']}" + (f" (missing: {', '.join(g['missing'])})" if g["missing"] else ""))
         return "; ".join(parts)
     rel = m.get("relative_difference")
-    base = str(m.get("key") or "").rsplit(" vs ", 1)[-1]  # the key reads "B vs A": relative to A's mAA(10)
     txt = (f"{m.get('key')}: difference {_num(f['difference'])} mAA(10), 95% CI {_ci(f['ci'])}, p = "
-           f"{_num(f['p_value'], 3)}" + (f" ({100 * rel:+.1f}% relative to {base})" if rel is not None else ""))
+           f"{_num(f['p_value'], 3)}")
+    if rel is not None:
+        txt += f" ({100 * rel:+.1f}% relative to {m.get('relative_to')})"
     rels = [r for r in m.get("relations") or [] if not m.get("key", "").startswith(f"{r['b']} vs {r['a']}")]
     for r in rels:
         txt += (f"; {r['b']} vs {r['a']}: {_num(r['difference'])} {_ci(r['ci'])}, p = {_num(r['p_value'], 3)}"
