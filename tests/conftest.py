@@ -5,6 +5,7 @@ import os
 from pathlib import Path
 
 import shutil
+import signal
 
 import numpy as np
 import pytest
@@ -14,6 +15,14 @@ SHARED = Path(os.environ.get("IMTUNE_SHARED", ROOT.parent / "shared"))
 DATA = SHARED / "data"
 
 os.environ.setdefault("TORCH_HOME", str((SHARED / "weights" / "torch").resolve()))
+
+# A test run started in the background by a non-interactive shell (`bash .ci/run &`, nohup, a CI runner's job)
+# inherits SIGINT ignored, and so would every `tune` the tests start and this process itself: the Ctrl-C tests
+# (SIGINT -> exit 130) would see their signal ignored, as a background `tune` rightly ignores it. A terminal's
+# Ctrl-C reaches a foreground process with the default disposition: give the tests that one (a handled signal is
+# reset to the default in a child at exec, so every `tune` started here installs Python's KeyboardInterrupt).
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def require(path: Path) -> Path:
