@@ -320,18 +320,30 @@ def test_a_ctrl_c_while_workers_start_is_not_lost():
     assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, set())  # the mask is restored
 
 
-def test_a_parent_killed_with_kill_9_leaves_no_pair_workers(tmp_path, cache):
+@pytest.mark.parametrize("when", ["mid-pair", "while-workers-start"])
+def test_a_parent_killed_with_kill_9_leaves_no_pair_workers(tmp_path, cache, when):
     """kill -9 of `tune` (or the OOM killer) mid-evaluation: its pair workers exit within seconds on their own.
     They used to wait forever on their call queue, orphaned (every worker holds the queue's write end, so its pipe
-    never reaches EOF), each holding the scene's data."""
+    never reaches EOF), each holding the scene's data. "while-workers-start": killed as soon as the worker
+    processes exist, before they have imported anything; they used to read their parent's pid themselves, got
+    init's, and stayed forever."""
     p = _start_slow_evaluation(tmp_path, cache)
     try:
-        workers = wait_for_workers(p, 2)
-        assert len(workers) == 2, "the pool never started"
-        time.sleep(2.0)  # inside their pairs
+        if when == "mid-pair":
+            workers = wait_for_workers(p, 2)
+            assert len(workers) == 2, "the pool never started"
+            time.sleep(2.0)  # inside their pairs
+        else:
+            deadline = time.time() + 300
+            workers = []
+            while time.time() < deadline and p.poll() is None and len(workers) < 2:
+                workers = _children(p.pid)  # no sleep: as soon as they exist
+            assert len(workers) == 2, "the pool never started"
         os.kill(p.pid, signal.SIGKILL)  # the parent alone
-        p.communicate(timeout=60)
-        deadline = time.time() + 30  # a pair in flight finishes first (the estimator cannot be interrupted)
+        p.wait(timeout=60)  # (not communicate: its pipes stay open in the workers until they exit)
+        # a pair in flight finishes first (the estimator holds the GIL; alone ~2.5 s a pair, minutes on a loaded
+        # machine): the bound is generous, a worker that never leaves is what fails
+        deadline = time.time() + 180
         while time.time() < deadline and any(_alive(w) for w in workers):
             time.sleep(0.2)
         left = [w for w in workers if _alive(w)]
@@ -341,4 +353,28 @@ def test_a_parent_killed_with_kill_9_leaves_no_pair_workers(tmp_path, cache):
                 os.kill(w, signal.SIGKILL)
             except OSError:
                 pass
+        p.communicate()
     assert not left, f"pair workers {left} outlived their parent"
+
+
+def test_a_worker_whose_parent_died_before_it_started_leaves_at_once():
+    """``exit_with_parent`` is told its parent's pid: a process whose parent is already gone when it starts
+    watching (reparented to init) exits at once instead of watching init. A starts B and exits; B, a second later,
+    watches A."""
+    code_b = ("import sys, time; time.sleep(1.0); from pipeline.tasks.pool import exit_with_parent; "
+              "exit_with_parent(int(sys.argv[1])); time.sleep(60)")
+    code_a = ("import os, subprocess, sys; "
+              f"b = subprocess.Popen([sys.executable, '-c', {code_b!r}, str(os.getpid())]); print(b.pid)")
+    a = subprocess.run([sys.executable, "-c", code_a], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert a.returncode == 0, a.stderr
+    b = int(a.stdout.strip())
+    try:
+        deadline = time.time() + 30  # B sleeps 1 s, imports, and must leave; the bug kept it 60 s
+        while time.time() < deadline and _alive(b):
+            time.sleep(0.1)
+        assert not _alive(b), "an orphan took init for its parent and stayed"
+    finally:
+        try:
+            os.kill(b, signal.SIGKILL)
+        except OSError:
+            pass

@@ -204,9 +204,9 @@ def _score(rec: dict, model, job: BagJob) -> None:
 
 # ------------------------------------------------------------------------------------------ running
 
-def _init_worker():
+def _init_worker(parent: int):
     ignore_sigint_here()  # the parent stops its workers on Ctrl-C: no traceback per worker
-    exit_with_parent()  # ... and a parent killed with kill -9 leaves no COLMAP worker behind
+    exit_with_parent(parent)  # ... and a parent killed with kill -9 leaves no COLMAP worker behind
     from pipeline import colmap_db as cdb
     cdb.limit_threads(1)
     try:
@@ -268,7 +268,8 @@ def _pool_pass(jobs, indices, results, workers, bar, fn):
     todo = list(indices)
     submitted: list[int] = []
     with quiet_resource_tracker():  # the executor's queue locks start the tracker (quiet after a Ctrl-C)
-        ex = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker)
+        ex = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
+                                 initargs=(os.getpid(),))
     procs = {}
     inflight = {}
     try:

@@ -122,13 +122,17 @@ def ignore_sigint_here() -> None:
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
 
-def exit_with_parent(period: float = 1.0) -> None:
-    """In a worker: exit within ``period`` seconds of its parent's death (kill -9, the OOM killer). Its call
-    queue's pipe never reaches EOF, since every worker holds the queue's write end too, so it would otherwise wait
-    there forever, orphaned, holding the scene's data in memory. (A thread polling the parent pid: portable and
-    bound to the process, where Linux's PR_SET_PDEATHSIG is bound to the spawning thread.)"""
+def exit_with_parent(parent: int, period: float = 1.0) -> None:
+    """In a worker: exit within ``period`` seconds of the death of ``parent`` (the pid of the process that started
+    the pool, passed by it: kill -9, the OOM killer). Its call queue's pipe never reaches EOF, since every worker
+    holds the queue's write end too, so it would otherwise wait there forever, orphaned, holding the scene's data
+    in memory. The pid comes from the parent, not from ``os.getppid()`` here: a parent killed while its workers
+    were still starting (importing) has already left them to init, and a worker that read its parent then took
+    init for it and never left. (A thread polling the parent pid: portable and bound to the process, where Linux's
+    PR_SET_PDEATHSIG is bound to the spawning thread. It runs between the estimator's calls, which hold the GIL.)"""
     import time
-    parent = os.getppid()
+    if os.getppid() != parent:
+        os._exit(1)
 
     def watch():
         while True:
@@ -241,9 +245,9 @@ def _claim_slot(slot_dir: str, n: int) -> int:
     return 1 << 30  # no slot: this worker's death cannot be attributed (it is retried, then an error)
 
 
-def _init_pair_worker(spec: PairSpec, status, slot_dir: str, abandoned=None) -> None:
+def _init_pair_worker(spec: PairSpec, status, slot_dir: str, abandoned, parent: int) -> None:
     ignore_sigint_here()
-    exit_with_parent()
+    exit_with_parent(parent)
     _limit_threads_here()
     slot = _claim_slot(slot_dir, len(status) // 2)
     _W.clear()
@@ -342,7 +346,7 @@ class PairPool:
         self._procs = {}
         with quiet_resource_tracker():  # the executor's queue locks start the tracker
             self._ex = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx, initializer=_init_pair_worker,
-                                           initargs=(self.spec, self._status, self._slot_dir, self._abandoned))
+                                           initargs=(self.spec, self._status, self._slot_dir, self._abandoned, os.getpid()))
 
     def _submit(self, *args):
         if self._ex is None:
@@ -495,9 +499,9 @@ atexit.register(shutdown_pools)
 _C: dict = {}
 
 
-def _init_concurrent(payload, barrier) -> None:
+def _init_concurrent(payload, barrier, parent: int) -> None:
     ignore_sigint_here()
-    exit_with_parent()
+    exit_with_parent(parent)
     _limit_threads_here()
     _C.clear()
     _C.update(payload=payload, barrier=barrier)
@@ -529,7 +533,7 @@ class ConcurrentRunner:
             self._barrier = ctx.Barrier(self.jobs)
         with single_thread_env(), sigint_held():
             self._ex = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx, initializer=_init_concurrent,
-                                           initargs=(self.payload, self._barrier))
+                                           initargs=(self.payload, self._barrier, os.getpid()))
         return self
 
     def __call__(self, fn, *args) -> list:
