@@ -163,12 +163,13 @@ def _children(pid):
     return out
 
 
-def wait_for_workers(p, n: int, timeout: float = 300.0) -> list:
-    """The pids of the ``n`` spawned worker processes of ``p`` once all run (fewer: ``p`` exited or time ran out)."""
+def wait_for_workers(p, n: int, timeout: float = 300.0, interval: float = 0.2) -> list:
+    """The pids of the ``n`` spawned worker processes of ``p`` once all run (fewer: ``p`` exited or time ran out),
+    looking every ``interval`` s (0: as soon as they exist)."""
     deadline = time.time() + timeout
     workers = []
     while time.time() < deadline and p.poll() is None and len(workers) < n:
-        time.sleep(0.2)
+        time.sleep(interval)
         workers = _children(p.pid)
     return workers
 
@@ -329,16 +330,10 @@ def test_a_parent_killed_with_kill_9_leaves_no_pair_workers(tmp_path, cache, whe
     init's, and stayed forever."""
     p = _start_slow_evaluation(tmp_path, cache)
     try:
+        workers = wait_for_workers(p, 2, interval=0.2 if when == "mid-pair" else 0.0)  # 0: as soon as they exist
+        assert len(workers) == 2, "the pool never started"
         if when == "mid-pair":
-            workers = wait_for_workers(p, 2)
-            assert len(workers) == 2, "the pool never started"
             time.sleep(2.0)  # inside their pairs
-        else:
-            deadline = time.time() + 300
-            workers = []
-            while time.time() < deadline and p.poll() is None and len(workers) < 2:
-                workers = _children(p.pid)  # no sleep: as soon as they exist
-            assert len(workers) == 2, "the pool never started"
         os.kill(p.pid, signal.SIGKILL)  # the parent alone
         p.wait(timeout=60)  # (not communicate: its pipes stay open in the workers until they exit)
         # a pair in flight finishes first (the estimator holds the GIL; alone ~2.5 s a pair, minutes on a loaded

@@ -43,7 +43,7 @@ from pipeline.errors import ImtuneError
 from pipeline.metrics.pose import accuracy_curve, mean_average_accuracy, pose_error_deg
 from pipeline.tasks.base import TASKS, Task, TaskResult
 from pipeline.cpus import available_cpus
-from pipeline.tasks.pool import (exit_with_parent, ignore_sigint_here, join_manager, kill_processes,
+from pipeline.tasks.pool import (exit_with_parent, ignore_sigint_here, kill_executor, kill_processes,
                                  quiet_resource_tracker, sigint_held, single_thread_env)
 from pipeline.tasks.stereo import CI_KEYS, CI_RESAMPLES, CI_SEED, add_intervals
 
@@ -290,9 +290,7 @@ def _pool_pass(jobs, indices, results, workers, bar, fn):
         # queue forever (it is only fixed in 3.12, where broken pools kill their workers): kill them.
         kill_processes(list((getattr(ex, "_processes", None) or procs).values()))
     except KeyboardInterrupt:  # Ctrl-C / SIGTERM: the workers stop now, not after the bags in flight and queued
-        kill_processes(list(procs.values()))
-        ex.shutdown(wait=False, cancel_futures=True)
-        join_manager(ex)
+        kill_executor(ex, list(procs.values()))
         raise
     ex.shutdown(wait=True)
     return todo, [k for k in submitted if results[k] is None]

@@ -163,15 +163,21 @@ def kill_processes(procs) -> None:
             pass
 
 
-def join_manager(ex, timeout: float = 5.0) -> None:
-    """After ``ex.shutdown(wait=False)`` of a killed executor: wait (at most ``timeout`` s) for its manager thread.
-    Python 3.11's exit hook wakes every live manager thread through a pipe that the thread closes as it ends,
-    without a lock between the two (3.12 added one): a Ctrl-C that exits while the thread is ending printed
+def kill_executor(ex, procs=None) -> None:
+    """Stop a ProcessPoolExecutor now (Ctrl-C, a broken pool): kill its processes (``procs``, default the
+    executor's own), shut it down without waiting for its items, and wait (at most 5 s) for its manager thread.
+    That wait: Python 3.11's exit hook wakes every live manager thread through a pipe that the thread closes as it
+    ends, without a lock between the two (3.12 added one), so a Ctrl-C that exits while the thread is ending printed
     "Exception ignored in: <module 'threading'> ... OSError: [Errno 9] Bad file descriptor" after
     "tune: interrupted". Once the thread has ended, its wake-up is closed and the hook skips it."""
+    kill_processes(list((getattr(ex, "_processes", None) or {}).values()) if procs is None else procs)
+    try:
+        ex.shutdown(wait=False, cancel_futures=True)
+    except Exception:  # noqa: BLE001 - a broken executor
+        pass
     t = getattr(ex, "_executor_manager_thread", None)  # a private attribute: absent in another Python, no wait
     if t is not None and t.is_alive():
-        t.join(timeout)
+        t.join(5.0)
 
 
 # ------------------------------------------------------------------------------------- the pair data
@@ -357,7 +363,8 @@ class PairPool:
         self._procs = {}
         with quiet_resource_tracker():  # the executor's queue locks start the tracker
             self._ex = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx, initializer=_init_pair_worker,
-                                           initargs=(self.spec, self._status, self._slot_dir, self._abandoned, os.getpid()))
+                                           initargs=(self.spec, self._status, self._slot_dir, self._abandoned,
+                                                     os.getpid()))
 
     def _submit(self, *args):
         if self._ex is None:
@@ -378,13 +385,12 @@ class PairPool:
         if ex is None:
             return
         if kill:
-            kill_processes(procs)  # Python 3.11's broken executor joins its workers: they must be gone
+            kill_executor(ex, procs)  # Python 3.11's broken executor joins its workers: they must be gone
+            return
         try:
-            ex.shutdown(wait=not kill, cancel_futures=True)
+            ex.shutdown(wait=True, cancel_futures=True)
         except Exception:  # noqa: BLE001 - a broken executor
             pass
-        if kill:
-            join_manager(ex)
 
     def shutdown(self) -> None:
         """Stop the workers (idle ones exit at once; the call queue is closed)."""
@@ -563,8 +569,7 @@ class ConcurrentRunner:
         if ex is None:
             return False
         if exc_type is not None:
-            kill_processes(list((getattr(ex, "_processes", None) or {}).values()))
-        ex.shutdown(wait=exc_type is None, cancel_futures=True)
-        if exc_type is not None:
-            join_manager(ex)
+            kill_executor(ex)
+        else:
+            ex.shutdown(wait=True, cancel_futures=True)
         return False
