@@ -244,6 +244,12 @@ def test_findings_1_and_4_end_to_end(subset, tmp_path, monkeypatch, capsys):
     md = (sdir / "findings" / "report.md").read_text()
     assert "--quick" in html and "trials per study: 2" in md and "pairs per scene: 3" in md
     assert "features per image: 2048 (finding 9 also runs 8000)" in md
+    # the scenes the numbers come from, by name (the subset has no splits.yaml: Strecha's default split)
+    assert "validation scenes: fountain-P11; test scenes: entry-P10 (from the default split)" in md
+    # the rules are prose for a reader, not the module's Sphinx markup
+    rules = md.split("## How the verdicts are decided", 1)[1]
+    assert ":func:" not in rules and ":data:" not in rules and "``" not in rules and "SMALL_GAIN" not in rules
+    assert "<= 0.02 mAA(10)" in rules
     # the summary table says what each difference is a difference of (B - A, the finding's key roles)
     assert "| difference of | difference |" in md
     for f in res["findings"]:
@@ -323,6 +329,23 @@ def test_findings_1_and_4_end_to_end(subset, tmp_path, monkeypatch, capsys):
     for x, y in zip(res["findings"], res2["findings"]):
         assert (x["verdict"], x["difference"], x["ci"], x["studies"]) == (y["verdict"], y["difference"], y["ci"],
                                                                          y["studies"])
+
+
+def test_the_report_header_names_the_scenes_and_where_they_come_from(subset, tmp_path):
+    from tuner.findings.report import settings_lines
+    data = tmp_path / "data"
+    shutil.copytree(subset, data)
+
+    def header(**kw):
+        fs = FindingsSettings(data_root=data, studies_dir=tmp_path / "studies", **kw)
+        return next(ln for ln in settings_lines(fs) if ln.startswith("data: "))
+    assert header().endswith("validation scenes: fountain-P11; test scenes: entry-P10 (from the default split)")
+    assert header(val_scenes=["entry-P10"], test_scenes=["fountain-P11"]).endswith(
+        "validation scenes: entry-P10; test scenes: fountain-P11 (from --val-scenes and --test-scenes)")
+    (data / "splits.yaml").write_text("val: [entry-P10]\ntest: [fountain-P11]\n")
+    assert header().endswith("validation scenes: entry-P10; test scenes: fountain-P11 (from splits.yaml)")
+    assert header(test_scenes=["entry-P10"]).endswith(
+        "validation scenes: entry-P10; test scenes: entry-P10 (from --test-scenes, else splits.yaml)")
 
 
 def test_too_few_scenes_lists_every_finding_with_reason(subset, tmp_path, monkeypatch, capsys):

@@ -45,14 +45,25 @@ def parse_only(text: str | None) -> list[int] | None:
     return out
 
 
+def resolved_splits(fs: FindingsSettings) -> tuple[list, list, str]:
+    """(validation scenes, test scenes, where they come from) as the studies will use them: --val-scenes /
+    --test-scenes, else the data folder's split (``splits.yaml``, or the default one: see
+    :func:`pipeline.data.default_splits`)."""
+    from pipeline.data import SPLITS_FILE, default_splits
+    splits = default_splits(fs.data_root)
+    val = list(fs.val_scenes or splits.get("val") or [])
+    test = list(fs.test_scenes or splits.get("test") or [])
+    split = SPLITS_FILE if (Path(fs.data_root) / SPLITS_FILE).is_file() else "the default split"
+    given = [f for f, v in (("--val-scenes", fs.val_scenes), ("--test-scenes", fs.test_scenes)) if v]
+    source = " and ".join(given) + (f", else {split}" if len(given) == 1 else "") if given else split
+    return val, test, source
+
+
 def check_scenes(fs: FindingsSettings) -> str | None:
     """Why no finding can run on this data (no validation or no test scene), else None. A folder that holds no
     data set, or an unreadable ``splits.yaml``, is the user's error: its ImtuneError propagates (one line, exit 2),
     it is not twelve findings "not run"."""
-    from pipeline.data import default_splits
-    splits = default_splits(fs.data_root)
-    val = list(fs.val_scenes or splits.get("val") or [])
-    test = list(fs.test_scenes or splits.get("test") or [])
+    val, test, _ = resolved_splits(fs)
     if not val:
         return f"too few scenes: {fs.data_root} has no validation scene to tune on"
     if not test:
@@ -67,7 +78,6 @@ def preflight(fs: FindingsSettings) -> None:
     cannot be opened, a ``--val-scenes`` / ``--test-scenes`` name is unknown, or a scene is both a validation and
     a test scene (tuning on the scenes a finding is measured on would overstate every tuned number)."""
     import os
-    from pipeline.data import default_splits
     from tuner.evaluate import load_scenes
     from tuner.storage import open_storage
     d = Path(fs.studies_dir)
@@ -88,9 +98,8 @@ def preflight(fs: FindingsSettings) -> None:
                 load_scenes(Path(fs.data_root), list(names), split=split, ground_truth=False)
             except ImtuneError as e:
                 raise ImtuneError(f"{flag}: {e}") from None
-    splits = default_splits(fs.data_root)
-    val = list(fs.val_scenes or splits.get("val") or [])
-    both = [n for n in (fs.test_scenes or splits.get("test") or []) if n in val]
+    val, test, _ = resolved_splits(fs)
+    both = [n for n in test if n in val]
     if both:
         raise ImtuneError(f"scene {', '.join(both)} is both a validation and a test scene: the findings tune on the "
                           "validation scenes and measure on the test scenes; choose disjoint --val-scenes and "

@@ -10,7 +10,7 @@ Rules (the report states the one each finding uses):
   verdict is inconclusive. A finding with several such relations combines them ("all": holds when every
   one holds, does not hold when any is reversed; "any": holds when one holds and none is reversed).
 - ``small_gain`` — the claim "B adds at most a little over A": holds when the upper end of the CI of B - A is
-  <= SMALL_GAIN (mAA(10) points / 100), does not hold when its lower end is above SMALL_GAIN, inconclusive
+  <= SMALL_GAIN (in mAA(10), 0..1), does not hold when its lower end is above SMALL_GAIN, inconclusive
   otherwise (a CI containing 0 but reaching past the margin says nothing either way).
 - ``regions`` — "the optimal value of a parameter differs": each study's *flat region* is the range of the
   parameter over its feasible completed trials whose validation mAA(10) lies within the 95% interval of the

@@ -26,6 +26,15 @@ RULE_TEXT = {
 }
 
 
+def rules_text(code: str = "`") -> str:
+    """The analysis module's account of the rules, for a reader of the report: Sphinx roles dropped, literals
+    marked with ``code`` (a backtick in Markdown, nothing in HTML), the named margin given its value."""
+    import re
+    text = re.sub(r":(?:func|data|mod|class):`~?([^`]+)`", code + r"\1" + code, RULES_DOC.strip())
+    text = re.sub(r"``([^`]+)``", code + r"\1" + code, text)
+    return text.replace("SMALL_GAIN (in mAA(10), 0..1)", f"{SMALL_GAIN:g} mAA(10)").replace("SMALL_GAIN", f"{SMALL_GAIN:g}")
+
+
 def _num(v, d=4):
     if v is None:
         return "-"
@@ -42,7 +51,9 @@ def _ci(ci, d=4):
 
 def settings_lines(fs) -> list[str]:
     m = fs.mode()
+    from tuner.findings import resolved_splits
     from tuner.storage import storage_label
+    val, test, split_source = resolved_splits(fs)
     mode = ("--quick (a reduced but real version: not the protocol; with so few trials a study can freeze a poor "
             "optimum, so a verdict may reflect one study's tuning rather than the method: rerun without --quick "
             "before citing one)") if fs.quick else "full protocol"
@@ -52,8 +63,8 @@ def settings_lines(fs) -> list[str]:
         f"trials per study: {m['trials_effective']} (the multiview study: its r grid, at most as many); pairs per scene: {m['max_pairs'] or 'all'}; "
         f"test runs: {m['test_runs']}" + (f"; multiview bags: {m['multiview_bags']}" if m.get("multiview_bags") else ""),
         f"budget: {fs.budget:g} s per pair on validation (median estimator time), {fs.test_budget:g} s on test",
-        f"data: {fs.data_root}; validation scenes: {', '.join(fs.val_scenes) if fs.val_scenes else 'the data set split'}"
-        f"; test scenes: {', '.join(fs.test_scenes) if fs.test_scenes else 'the data set split'}",
+        f"data: {fs.data_root}; validation scenes: {', '.join(val) or 'none'}; test scenes: {', '.join(test) or 'none'} "
+        f"(from {split_source})",
         f"storage: {storage_label(fs.storage, fs.studies_dir)}; studies dir: {fs.studies_dir}",
         f"intervals: 95%, stratified bootstrap over test pairs ({fs.n_resamples} resamples, seed {fs.seed}); "
         "paired differences on the same pairs; p: two-sided paired sign-flip test",
@@ -304,8 +315,8 @@ def write_report(out: dict, fs, seconds: float = 0.0) -> Path:
             + div
             + (f"<p><b>Studies</b>: {links}</p>" if links else "") + "</section>")
         md += [f"Studies: {', '.join(f['studies']) or 'none'} (their reports: ../<study>/report.html)", ""]
-    md += ["## How the verdicts are decided", "", RULES_DOC.strip(), ""]
-    body.append(f"<h2>How the verdicts are decided</h2><pre>{html.escape(RULES_DOC.strip())}</pre>")
+    md += ["## How the verdicts are decided", "", rules_text(), ""]
+    body.append(f"<h2>How the verdicts are decided</h2><pre>{html.escape(rules_text(''))}</pre>")
     style = ("body{font-family:sans-serif;max-width:70em;margin:1em auto;line-height:1.4}table{border-collapse:collapse}"
              "td,th{border:1px solid #ccc;padding:2px 6px;font-size:90%}.v{padding:0 4px}.holds{background:#cfc}"
              ".does-not-hold{background:#fcc}.inconclusive{background:#eee}.not-run{background:#ffd}")
