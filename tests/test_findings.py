@@ -491,3 +491,24 @@ def test_finding_6_builds_its_multiview_ground_truth_apart_from_the_stereo_studi
     assert st.user_attrs["sampler"] == "grid"
     rs = [t.params["ratio"] for t in st.trials]
     assert len(rs) == 2 and len(set(rs)) == 2 and set(rs) <= set(grid), rs
+
+
+def test_finding_2_sets_the_papers_optimal_gamma_beside_ours_both_ways():
+    """The paper's Table 14 Gamma is the best Gamma within the budget: the report shows our calibrated Gamma_max
+    and the Gamma each tuned study froze (a pinned Gamma counts as frozen), and orders the estimators by test mAA."""
+    from tuner.findings.report import paper_comparison
+
+    def study(gmax, maa, params=None, fixed=None):
+        return {"ok": True, "gamma_max": gmax, "mAA10": maa, "params": params or {}, "fixed": fixed or {}}
+    f = {"id": 2, "measured": {"studies": {
+        "magsac": study(120000, 0.61, {"max_iters": 2364, "ratio": 0.8}),
+        "degensac": study(250000, 0.55, {"max_iters": 152981}),
+        "cv-ransac": study(None, 0.40, fixed={"max_iters": 1000}),
+        "gcransac": {"ok": False, "reason": "no feasible trial"}}}}
+    txt = paper_comparison(f)
+    assert "here Gamma_max magsac 120,000, degensac 250,000, cv-ransac -" in txt
+    assert "frozen Gamma magsac 2,364, degensac 152,981, cv-ransac 1,000" in txt
+    assert txt.endswith("test mAA(10) order here: magsac > degensac > cv-ransac")
+    pc = f["measured"]["paper_comparison"]
+    assert pc["ours_frozen"] == {"magsac": 2364, "degensac": 152981, "cv-ransac": 1000}
+    assert pc["paper"]["magsac"] == 10000 and pc["paper"]["pyransac"] == 250000
