@@ -359,12 +359,21 @@ def test_too_few_scenes_lists_every_finding_with_reason(subset, tmp_path, monkey
     assert [f["id"] for f in res["findings"]] == [1, 12]
     for f in res["findings"]:
         assert set(f) == KEYS and f["verdict"] == "not run" and f["studies"] == []
-        assert "too few scenes" in f["measured"]["reason"] and "test scene" in f["measured"]["reason"]
+        # one scene in all: a split cannot help, the reason says what can
+        assert "too few scenes" in f["measured"]["reason"] and "holds one scene (fountain-P11)" in f["measured"]["reason"]
+        assert "add a second scene folder" in f["measured"]["reason"]
     # the terminal summary says why too, on the finding's line
     rc, out, err = _cli(["findings", "--data", str(root), "--studies-dir", str(tmp_path / "s"), "--only", "1"], capsys)
     assert rc == 0, err
     line = next(ln for ln in out.splitlines() if ln.lstrip().startswith("1 "))
-    assert "not run" in line and "has no test scene to measure on" in line, out
+    assert "not run" in line and "holds one scene" in line, out
+    # two scenes, both validation: the split is what to change
+    shutil.copytree(subset / "entry-P10", root / "entry-P10")
+    (root / "splits.yaml").write_text("val: [fountain-P11, entry-P10]\n")
+    rc, out, err = _cli(["findings", "--data", str(root), "--studies-dir", str(tmp_path / "s"), "--only", "1"], capsys)
+    assert rc == 0, err
+    line = next(ln for ln in out.splitlines() if ln.lstrip().startswith("1 "))
+    assert "not run" in line and "has no test scene to measure on" in line and "--test-scenes" in line, out
 
 
 @pytest.mark.parametrize("what,args,said", [

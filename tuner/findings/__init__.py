@@ -67,8 +67,14 @@ def check_scenes(fs: FindingsSettings) -> str | None:
     if not val:
         return f"too few scenes: {fs.data_root} has no validation scene to tune on"
     if not test:
+        from pipeline.data import default_splits
+        every = {n for names in default_splits(fs.data_root).values() for n in names}
+        if len(every) <= 1:  # a split cannot help: nothing is left to test on
+            return (f"too few scenes: {fs.data_root} holds one scene ({', '.join(val)}); the findings tune on one "
+                    "scene and measure on another: add a second scene folder beside it (for pairs lists, a second "
+                    "folder with its own pairs file), or point --data at a folder of several scenes")
         return (f"too few scenes: {fs.data_root} has no test scene to measure on (validation: {', '.join(val)}); "
-                "add a splits.yaml with 'test'")
+                "add a splits.yaml with 'test', or --test-scenes NAME[,...]")
     return None
 
 
