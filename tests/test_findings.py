@@ -100,6 +100,11 @@ def test_compute_total_counts_each_study_and_each_calibration_once():
     line = _compute_line(t)
     assert "3 studies: 0.33 h" in line and "test 2.0 min" in line and "1 test(s) written before" in line
     assert compute_total({"findings": [{"measured": {}}]}) is None
+    # a study that runs no test (finding 6's multiview study) is not a test "written before test time was recorded"
+    m = st("M", 10.0, "t2", 50.0, None)
+    m["compute"]["tested"] = False
+    t = compute_total({"findings": [{"measured": {"studies": {"x": a, "m": m}}}]})
+    assert t["tests_not_timed"] == [] and "written before" not in _compute_line(t) and "test 1.5 min" in _compute_line(t)
 
 
 def test_analysis_on_synthetic_records():

@@ -32,9 +32,21 @@ from pipeline.errors import ImtuneError
 from pipeline.fileio import atomic_write  # noqa: E402  (re-exported: budget.py and the reports use it)
 
 
+#: longest study name used as a folder name as it is (file systems allow 255 bytes per name)
+MAX_DIR_NAME = 120
+
+
 def study_dir(studies_dir: Path | str, name: str) -> Path:
-    safe = "".join(c if (c.isalnum() or c in "-_.+") else "_" for c in name)
-    return Path(studies_dir) / safe
+    """``<studies_dir>/<name>``: the study's folder (frozen.yaml, test.json, report.html). A name that is not a safe
+    folder name as it is (a path separator, a character outside ``[A-Za-z0-9-_.+]``, ".", "..", an empty or an
+    over-long name) is made one and given a hash of the whole name, so two studies never share a folder and no
+    study writes outside ``studies_dir`` ("a/b" and "a_b" once both wrote to ``a_b``; ".." wrote beside it)."""
+    safe = "".join(c if (c.isascii() and (c.isalnum() or c in "-_.+")) else "_" for c in name)
+    if safe == name and safe not in ("", ".", "..") and len(safe) <= MAX_DIR_NAME:
+        return Path(studies_dir) / safe
+    import hashlib
+    tag = hashlib.sha256(name.encode("utf-8", "surrogatepass")).hexdigest()[:10]
+    return Path(studies_dir) / f"{safe.strip('.')[:MAX_DIR_NAME - 11] or 'study'}-{tag}"
 
 
 def _previous_result(out_path: Path | None, ident: dict) -> dict | None:
@@ -157,6 +169,10 @@ def load_frozen(studies_dir: Path | str, name: str) -> dict:
         raise ImtuneError(f"{path}: invalid YAML ({str(e).splitlines()[0]})") from None
     if not isinstance(d, dict) or "config" not in d:
         raise ImtuneError(f"{path}: not a frozen-settings file (no 'config')")
+    if d.get("study") != name:  # its test.json would go to that study's folder, and its numbers pass for it
+        raise ImtuneError(f"{path} holds the frozen settings of study {d.get('study')!r}, not {name!r} (copied from "
+                          f"another study?): test that study (`tune test --study {d.get('study')}`), or evaluate the "
+                          f"file itself (`tune evaluate --config {path}`)")
     return d
 
 
@@ -292,15 +308,28 @@ def _reference_summary(ref: dict | None) -> dict | None:
             **{k: c.get(k) for k in ("difference", "ci", "p_value", "significant", "pairs") if k in c}}
 
 
+def study_data_root(frozen: dict, given=None) -> Path:
+    """The data folder a study's test runs on: ``given`` (--data), else the one the study was tuned on. A recorded
+    folder that is gone is an error naming it, never a silent switch to whatever data ``tune`` would find now
+    (another data set with other scenes would give numbers that look like this study's)."""
+    if given:
+        return Path(given)
+    recorded = (frozen.get("data") or {}).get("root")
+    if recorded and Path(recorded).is_dir():
+        return Path(recorded)
+    from tuner.options import resolve_data
+    if not recorded:  # a frozen file that does not say: the data `tune` finds, as for any command
+        return resolve_data(None)
+    raise ImtuneError(f"the data folder study {frozen.get('study')!r} was tuned on, {recorded}, does not exist (moved "
+                      "or deleted?): give --data DIR, the folder that holds its scenes now")
+
+
 def run_test_for_study(study, frozen: dict, studies_dir, *, data_root=None, scenes=None, cache=None, runs: int = 3,
                        max_pairs=None, test_budget=None, progress: bool = False, reuse: bool = True,
                        workers: int | None = None, reference: str | None = None,
                        ci_resamples: int | None = None, jobs: int | None = None, gt_dir=None) -> dict:
     """:func:`run_test` and store its summary in the study's user attribute ``test``."""
-    root = data_root or frozen.get("data", {}).get("root")
-    if root is None or not Path(root).is_dir():
-        from tuner.options import resolve_data
-        root = resolve_data(None)
+    root = study_data_root(frozen, data_root)
     result = run_test(frozen, root, studies_dir, scenes=scenes, cache=cache, runs=runs, max_pairs=max_pairs,
                       test_budget=test_budget, progress=progress, reuse=reuse, workers=workers, reference=reference,
                       jobs=jobs, ci_resamples=ci_resamples, gt_dir=gt_dir)

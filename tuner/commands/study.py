@@ -380,7 +380,7 @@ def run_calibrate(args) -> int:
 def run_test_cmd(args) -> int:
     import optuna
     from pipeline.cache import H5Cache
-    from tuner.freeze import freeze, load_frozen, run_test, run_test_for_study
+    from tuner.freeze import freeze, load_frozen, run_test, run_test_for_study, study_data_root
     from tuner.storage import open_storage
     from tuner.study import _quiet_optuna
     _quiet_optuna()
@@ -408,14 +408,11 @@ def run_test_cmd(args) -> int:
         result = run_test_for_study(study, frozen, sdir, data_root=root, **kw)
     else:
         frozen = load_frozen(sdir, args.study)  # no such study in this storage: the frozen file alone
-        root = root or (Path(frozen.get("data", {}).get("root", "")) if frozen.get("data", {}).get("root") else None)
-        if root is None or not Path(root).is_dir():
-            root = resolve_data(None)
-        result = run_test(frozen, root, sdir, **kw)
+        result = run_test(frozen, study_data_root(frozen, root), sdir, **kw)
     if args.json:
         print(json.dumps(_jsonable(result), indent=2))
     else:
-        print(f"study {args.study}: frozen trial #{frozen['trial']} -> {Path(sdir) / args.study / 'test.json'}")
+        print(f"study {args.study}: frozen trial #{frozen['trial']} -> {study_dir(sdir, args.study) / 'test.json'}")
         print(test_table(result))
     return 0
 

@@ -254,7 +254,7 @@ def compute_total(out: dict) -> dict | None:
             cals[c.get("calibration_created") or name] = float(c["calibration_seconds"])
     trial = sum(float(c.get("trial_seconds") or 0.0) for c in seen.values())
     test = sum(float(c["test_seconds"]) for c in seen.values() if c.get("test_seconds") is not None)
-    missing = sorted(n for n, c in seen.items() if c.get("test_seconds") is None)
+    missing = sorted(n for n, c in seen.items() if c.get("test_seconds") is None and c.get("tested", True))
     cal = sum(cals.values())
     return {"studies": len(seen), "calibration_seconds": cal, "trial_seconds": trial, "test_seconds": test,
             "total_seconds": cal + trial + test, "tests_not_timed": missing}
@@ -262,7 +262,7 @@ def compute_total(out: dict) -> dict | None:
 
 def _compute_line(c: dict) -> str:
     untimed = len(c["tests_not_timed"])
-    test = "test not recorded" if untimed == c["studies"] else f"test {c['test_seconds'] / 60:.1f} min"
+    test = "test not recorded" if untimed and untimed == c["studies"] else f"test {c['test_seconds'] / 60:.1f} min"
     line = (f"compute recorded by the {c['studies']} studies: {c['total_seconds'] / 3600:.2f} h (calibration "
             f"{c['calibration_seconds'] / 60:.1f} min, trials {c['trial_seconds'] / 3600:.2f} h, {test}; features, "
             "k-NN tables and ground truth come from the cache and are not counted)")

@@ -363,7 +363,8 @@ def study_compute(study, test: dict | None) -> dict:
     """What the study cost, from its own records (so a run resumed across sessions still adds up): the budget
     calibration's seconds (``calibration_created`` identifies it: studies of one estimator share one), the summed
     durations of its COMPLETE and PRUNED trials (a FAIL trial is one a killed run left, its span the downtime), and
-    the test's wall seconds (test.json's ``wall_seconds``; None for a test written before it was recorded)."""
+    the test's wall seconds (test.json's ``wall_seconds``; None for a test written before it was recorded, or for
+    a study that runs no test, ``tested`` False: finding 6's multiview study)."""
     from optuna.trial import TrialState
     cal = ((study.user_attrs.get("budget") or {}).get("calibration") or {})
     trials = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE, TrialState.PRUNED))
@@ -371,7 +372,7 @@ def study_compute(study, test: dict | None) -> dict:
             if t.datetime_start is not None and t.datetime_complete is not None]
     return {"calibration_seconds": cal.get("seconds"), "calibration_created": cal.get("created"),
             "trial_seconds": float(sum(secs)), "trials": len(secs),
-            "test_seconds": (test or {}).get("wall_seconds")}
+            "tested": test is not None, "test_seconds": (test or {}).get("wall_seconds")}
 
 
 def _test_now(study, frozen: dict, s) -> dict:
