@@ -86,6 +86,9 @@ def test_named_folder_that_does_not_exist_is_an_error_not_a_fall_through(env, mo
     monkeypatch.setenv(lc.ENV_DATA_HOME, str(env / "dh"))
     with pytest.raises(ImtuneError, match=r"data folder .*nope \(from --data\) does not exist"):
         lc.locate(str(env / "nope"))
+    (env / "a-file.txt").write_text("x")  # a file where a folder is named: said so, not "does not exist"
+    with pytest.raises(ImtuneError, match=r"a-file.txt \(from --data\) is a file, not a folder"):
+        lc.locate(str(env / "a-file.txt"))
     monkeypatch.setenv(lc.ENV_DATA, str(env / "gone"))
     with pytest.raises(ImtuneError, match=r"gone \(from IMTUNE_DATA\) does not exist"):
         lc.locate()

@@ -2,6 +2,7 @@
 test.json, tables, the HTML report, two SQLite workers, kill -9 and resume, journal storage."""
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -159,6 +160,20 @@ def test_tune_test_command(study_run, tuner_cache):
     r = tune("test", "--study", study_run["name"], "--studies-dir", str(study_run["dir"]), "--quiet",
              cache=tuner_cache, check=True)
     assert "Herz-Jesus-P8" in r.stdout and "mAA10" in r.stdout
+    assert f"-> {study_run['dir'] / study_run['name'] / 'test.json'}" in r.stdout  # where it wrote, truly
+
+
+
+def test_a_test_on_the_validation_scene_says_it_is_not_held_out(study_run, tuner_cache, tmp_path):
+    """Allowed, and said (as `tune run` says it for --test-scenes); on a copy of the frozen file in another studies
+    folder, so the study's own test.json stays as the other tests read it."""
+    src = study_run["dir"] / study_run["name"] / "frozen.yaml"
+    (tmp_path / study_run["name"]).mkdir()
+    shutil.copy(src, tmp_path / study_run["name"] / "frozen.yaml")
+    r = tune("test", "--study", study_run["name"], "--studies-dir", str(tmp_path), "--quiet", "--runs", "1",
+             "--reference", "none", "--scenes", "fountain-P11", "--max-pairs", "2", cache=tuner_cache, check=True)
+    assert "warning: test scene fountain-P11 is also a validation scene" in r.stderr and "not held out" in r.stderr
+    assert (tmp_path / study_run["name"] / "test.json").is_file()
 
 
 @pytest.fixture(scope="module")

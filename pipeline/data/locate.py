@@ -115,7 +115,8 @@ def locate(cli_value: str | os.PathLike | None = None, name: str = DEFAULT_SET) 
     if exp is not None:
         if not exp.path.is_dir():
             where = f" in {exp.detail}" if exp.detail else ""
-            raise ImtuneError(f"data folder {exp.path} (from {exp.rule}{where}) does not exist")
+            what = "is a file, not a folder" if exp.path.exists() else "does not exist"
+            raise ImtuneError(f"data folder {exp.path} (from {exp.rule}{where}) {what}")
         return exp
     roots = fallback_roots()
     for r in roots:

@@ -409,6 +409,10 @@ def run_test_cmd(args) -> int:
     else:
         frozen = load_frozen(sdir, args.study)  # no such study in this storage: the frozen file alone
         result = run_test(frozen, study_data_root(frozen, root), sdir, **kw)
+    held_in = [n for n in (_scenes(args.scenes) or []) if n in ((frozen.get("data") or {}).get("val_scenes") or [])]
+    if held_in:  # as `tune run` warns for --test-scenes
+        print(f"warning: test scene {', '.join(held_in)} is also a validation scene of study {args.study}: its test "
+              "numbers are not held out (tuned on the scene they measure)", file=sys.stderr, flush=True)
     if args.json:
         print(json.dumps(_jsonable(result), indent=2))
     else:
