@@ -68,6 +68,16 @@ def test_real_scannet_sample():
             assert abs(im.K[0, 2] - 1296 / 2) < 0.05 * 1296
 
 
+def test_multiview_on_a_pairs_list_says_it_cannot_not_to_build_ground_truth(tmp_path):
+    """A pairs list has relative poses only: no bags can be built for it, and the error says so (it said to run
+    `tune data build-gt`, which then failed for want of poses)."""
+    from pipeline.data.bags import scene_bags
+    _write_list(tmp_path / "mylist", 3)
+    scene = load_scene(tmp_path / "mylist")
+    with pytest.raises(ImtuneError, match=r"no absolute poses .*pairs_with_gt gives a relative pose per pair.*stereo"):
+        scene_bags(scene)
+
+
 def test_synthetic_list_round_trips(tmp_path):
     truth = _write_list(tmp_path / "mylist", 3)
     scene = load_pairs_with_gt(tmp_path / "mylist")

@@ -167,6 +167,12 @@ def scene_bags(scene, bags: dict[int, int] | None = None, min_points: int = MIN_
     pts = scene_point_sets(scene)
     if pts is None:
         if min_points > 0:
+            if any(im.R is None for im in scene.images.values()):  # e.g. a pairs list: relative poses only
+                raise ImtuneError(f"scene {scene.name}: no multiview bags, and its images have no absolute poses to "
+                                  f"build them from ({scene.source or 'this format'} gives a relative pose per pair): "
+                                  "the multiview task needs a data set with camera poses (Strecha, IMC-PT, COLMAP) "
+                                  "or a folder of images SfM can reconstruct (`tune data build-gt`); use the stereo "
+                                  "task on this one")
             raise ImtuneError(f"scene {scene.name}: no multiview bags and no 3D points to sample them from; "
                               f"run `tune data build-gt` for it first")
     return sample_bags(list(scene.images), pts, spec, min_points=min_points, seed=seed)
