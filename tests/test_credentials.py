@@ -278,3 +278,19 @@ def test_an_unexpected_error_never_shows_a_password_not_even_with_imtune_debug(s
         assert [ln for ln in r.stderr.splitlines() if ln.strip()] == [
             "tune: internal error: RuntimeError: could not connect to postgresql://imtune:***@127.0.0.1:1/results "
             "(set IMTUNE_DEBUG=1 for details)"]
+
+
+def test_a_password_from_pgpassword_keeps_it_out_of_the_command_line(pg, tmp_path):
+    """The README's advice: leave the password out of the URL and set PGPASSWORD, which the driver reads."""
+    import optuna
+    optuna.create_study(study_name="pgpassword-probe", storage=pg.url.replace("postgresql://", "postgresql+psycopg2://"))
+    url = pg.url.replace(f":{SECRET}@", "@")
+    assert SECRET not in url
+    env = dict(os.environ, IMTUNE_CACHE=str(tmp_path / "cache"))
+    env.pop("PGPASSWORD", None)
+    args = [sys.executable, "-m", "tuner", "studies", "--storage", url, "--studies-dir", str(tmp_path)]
+    r = subprocess.run(args, cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "no password supplied" in r.stderr, r.stderr
+    r = subprocess.run(args, cwd=ROOT, env={**env, "PGPASSWORD": SECRET}, capture_output=True, text=True, timeout=120)
+    assert "password" not in r.stderr and SECRET not in r.stdout + r.stderr, r.stderr
+    assert r.returncode in (0, 2) and "cannot open storage" not in r.stderr, r.stderr
