@@ -19,6 +19,10 @@ from tuner.argtypes import (count_int, nonnegative_float, positive_float, positi
 from pipeline.data.locate import resolve_data  # noqa: E402,F401
 
 
+#: --data's help, the same on every command that reads data (the rules of pipeline.data.locate)
+DATA_HELP = ("data folder (else $IMTUNE_DATA, imtune.yaml, the download location $IMTUNE_DATA_HOME, then "
+             "../shared/data beside the project; `tune data scenes` says which was found)")
+
 def add_pipeline_options(ap: argparse.ArgumentParser, tuning: bool = False) -> None:
     """Options that define one pipeline configuration (and, for `tune`, the fixed part of a study)."""
     g = ap.add_argument_group("pipeline")
@@ -50,8 +54,7 @@ def add_pipeline_options(ap: argparse.ArgumentParser, tuning: bool = False) -> N
         g.add_argument("--max-iters", type=int, default=50000, help="RANSAC iteration cap Gamma")
     g.add_argument("--seed", type=seed_int, default=0, help="random seed (>= 0)")
     d = ap.add_argument_group("data")
-    d.add_argument("--data", default=None, help="data folder (else $IMTUNE_DATA, imtune.yaml, the download location $IMTUNE_DATA_HOME, "
-                        "then ../shared/data beside the project; `tune data scenes` says which was found)")
+    d.add_argument("--data", default=None, help=DATA_HELP)
     d.add_argument("--scenes", default=None, help="comma-separated scene names")
     d.add_argument("--covisibility", type=unit_float, default=0.1, help="minimum pair co-visibility where known")
     d.add_argument("--cache", default=None, help="cache folder (else $IMTUNE_CACHE or ~/.cache/imtune)")

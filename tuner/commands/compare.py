@@ -12,6 +12,7 @@ import json
 
 from pipeline.errors import ImtuneError
 from tuner.commands.evaluate import _jsonable  # the same JSON rendering as tune evaluate
+from tuner.options import DATA_HELP
 
 
 def register(sub) -> None:
@@ -24,7 +25,7 @@ def register(sub) -> None:
     ap.add_argument("sources", nargs="+", metavar="SOURCE",
                     help="A B [C ...]: study names or configuration files; each after the first is compared with A")
     d = ap.add_argument_group("data")
-    d.add_argument("--data", default=None, help="data folder (else $IMTUNE_DATA, imtune.yaml, ../shared/data/strecha)")
+    d.add_argument("--data", default=None, help=DATA_HELP)
     d.add_argument("--scenes", default=None, help="comma-separated scene names (default: every scene of the data)")
     d.add_argument("--covisibility", type=unit_float, default=0.1, help="minimum pair co-visibility where known")
     d.add_argument("--cache", default=None, help="cache folder (else $IMTUNE_CACHE or ~/.cache/imtune)")

@@ -12,6 +12,8 @@ import argparse
 import json
 from pathlib import Path
 
+from tuner.options import DATA_HELP
+
 
 def register(sub) -> None:
     from tuner.argtypes import positive_int, seed_int
@@ -21,7 +23,7 @@ def register(sub) -> None:
                                     "<studies dir>/findings/report.html, report.md and findings.json: per finding "
                                     "the paper's claim, the measured numbers with 95% intervals, the paired test "
                                     "of the key difference and a verdict (holds / does not hold / inconclusive).")
-    ap.add_argument("--data", default=None, help="data folder (else $IMTUNE_DATA, imtune.yaml, ../shared/data/strecha)")
+    ap.add_argument("--data", default=None, help=DATA_HELP)
     ap.add_argument("--quick", action="store_true",
                     help="reduced but real: 2048 features, 10 trials per study, 12 pairs per scene, 1 test run")
     ap.add_argument("--only", default=None, metavar="ID,...", help="only these findings (ids 1-12)")
