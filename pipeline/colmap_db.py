@@ -44,9 +44,15 @@ def import_pycolmap():
 
 
 def quiet(level: int = 2) -> None:
-    """Silence COLMAP's glog output below ``level`` (0 info, 1 warning, 2 error, 3 fatal)."""
+    """Silence COLMAP's glog output below ``level`` (0 info, 1 warning, 2 error, 3 fatal), and keep it on stderr:
+    glog otherwise also writes log files (``/tmp/<host>.<user>.log.*``) that nobody asked for. ``IMTUNE_DEBUG=1``
+    keeps COLMAP's errors: its own message of why a reconstruction failed."""
+    import os
     pycolmap = import_pycolmap()
+    if os.environ.get("IMTUNE_DEBUG"):
+        level = min(level, 2)
     try:
+        pycolmap.logging.logtostderr = True
         pycolmap.logging.minloglevel = level
         pycolmap.logging.stderrthreshold = max(level, 2)
     except Exception:  # older bindings without these attributes

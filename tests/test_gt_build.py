@@ -105,3 +105,31 @@ def test_sfm_ground_truth_from_an_image_folder(sacre_coeur, tmp_path):
     R = fresh.images[gt.names[0]].R
     assert np.allclose(R @ R.T, np.eye(3), atol=1e-6)
     json.dumps(gt.meta)  # metadata is plain JSON
+
+
+def test_a_failed_sfm_is_one_line_and_leaves_no_colmap_logs(tmp_path):
+    """Two images of different scenes cannot be reconstructed: `tune data build-gt` says so in one line of its own,
+    with none of COLMAP's glog lines on stderr and none of glog's log files in the temporary folder."""
+    import glob
+    import os
+    import shutil
+    import subprocess
+    import sys
+    import tempfile
+    from tests.conftest import DATA, ROOT
+    if not (DATA / "strecha").exists():
+        pytest.skip(f"real data not found at {DATA / 'strecha'} (expected ../shared beside the project)")
+    folder = tmp_path / "mixed" / "images"
+    folder.mkdir(parents=True)
+    shutil.copy(DATA / "strecha" / "fountain-P11" / "images" / "0000.jpg", folder / "a.jpg")
+    shutil.copy(DATA / "strecha" / "entry-P10" / "images" / "0009.jpg", folder / "b.jpg")
+    logs = set(glob.glob(os.path.join(tempfile.gettempdir(), "*.log.*")))
+    env = dict(os.environ, IMTUNE_CACHE=str(tmp_path / "cache"), IMTUNE_GT=str(tmp_path / "gt"))
+    env.pop("IMTUNE_DEBUG", None)
+    r = subprocess.run([sys.executable, "-m", "tuner", "data", "build-gt", "--data", str(tmp_path / "mixed"),
+                        "--num-features", "512"], cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2, r.stderr
+    errors = [ln for ln in r.stderr.splitlines() if ln.startswith("tune: error: ")]
+    assert len(errors) == 1 and "SfM registered fewer than 2 images" in errors[0], r.stderr
+    assert not [ln for ln in r.stderr.splitlines() if ".cc:" in ln or ln[:1] in "EWF" and ln[1:9].isdigit()], r.stderr
+    assert set(glob.glob(os.path.join(tempfile.gettempdir(), "*.log.*"))) <= logs

@@ -240,7 +240,7 @@ def build_from_poses(scene, conf: GTConfig = GTConfig(), work: Path | None = Non
                           f"(use method 'sfm' to reconstruct from the images)")
     if len(scene.images) < 2:
         raise ImtuneError(f"scene {scene.name}: needs at least 2 images, has {len(scene.images)}")
-    quiet(2)
+    quiet(3)  # our own one-line errors say why a build failed
     own = work is None
     work = Path(tempfile.mkdtemp(prefix="imtune-gt-")) if own else Path(work)
     try:
@@ -293,7 +293,7 @@ def build_from_images(scene, conf: GTConfig = GTConfig(), work: Path | None = No
     progress = progress or (lambda msg: None)
     if len(scene.images) < 2:
         raise ImtuneError(f"scene {scene.name}: needs at least 2 usable images for SfM, has {len(scene.images)}")
-    quiet(2)
+    quiet(3)  # our own one-line errors say why a build failed
     own = work is None
     work = Path(tempfile.mkdtemp(prefix="imtune-gt-")) if own else Path(work)
     try:
