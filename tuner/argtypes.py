@@ -21,6 +21,9 @@ def finite_float(s: str) -> float:
     return v
 
 
+finite_float.numeric = True
+
+
 def _ranged(check, what: str):
     def parse(s: str) -> float:
         v = finite_float(s)
@@ -28,6 +31,7 @@ def _ranged(check, what: str):
             raise argparse.ArgumentTypeError(f"must be {what}, got {s!r}")
         return v
     parse.__doc__ = f"A finite number {what}."
+    parse.numeric = True
     return parse
 
 
@@ -55,6 +59,7 @@ def _int_at_least(lo: int, what: str):
         if v < lo:
             raise argparse.ArgumentTypeError(f"must be {what}, got {s!r}")
         return v
+    parse.numeric = True
     return parse
 
 
@@ -68,3 +73,45 @@ nonnegative_int.__name__ = "nonnegative_int"
 #: seed) or how many of something to show (0 = none); two names for one rule
 seed_int = count_int = _int_at_least(0, ">= 0")
 seed_int.__name__ = "nonnegative_integer"
+
+
+# -- a value typed empty (`--only ""`, `--data=`): an error naming the option, never "the default" ---------------
+
+#: what to give instead of an empty value, by argparse dest (string options; numeric ones say "a number")
+EMPTY_HINTS = {
+    "only": "ids such as 1,2,4",
+    "scenes": "scene names such as fountain-P11,entry-P10",
+    "val_scenes": "scene names such as fountain-P11",
+    "test_scenes": "scene names such as Herz-Jesus-P8,entry-P10",
+    "data": "a data folder",
+    "cache": "a folder", "studies_dir": "a folder", "gt_dir": "a folder", "keep_models": "a folder", "dest": "a folder",
+    "out": "a path", "gallery": "an HTML file",
+    "config": "a configuration file or a study name",
+    "reference": "a configuration file, a study name or none",
+    "sources": "study names or configuration files", "compare": "study names or configuration files",
+    "study": "a study name", "warm_start": "a study name", "pareto": "study names",
+    "pairs": "pairs such as '0000.jpg|0004.jpg'",
+    "pair": "two image names",
+    "bags": "bag sizes such as 5,10,25 or 5:100,10:50,25:25",
+    "bag": "SIZE:INDEX such as 5:0",
+    "storage": "a storage URL such as sqlite:///studies/optuna.db",
+    "host": "an address such as 127.0.0.1 (this machine only) or 0.0.0.0 (every interface)",
+    "space": "a search-space YAML file",
+    "feature": "a feature name (see `tune list`)", "ransac": "an estimator name (see `tune list`)",
+    "fix": "NAME=VALUE such as max_iters=20000", "feature_option": "KEY=VALUE such as edge_threshold=10",
+    "prefilter": "a pre-filter name (none, gms, adalam)", "matches": "custom:DIR",
+    "base_url": "a URL", "jobs": "a number of processes", "ci_resamples": "a number",
+}
+
+
+def empty_value_message(action: argparse.Action) -> str:
+    """The one line for an option given an empty (or blank) value: which option, and what to give instead."""
+    if action.option_strings:
+        name = max(action.option_strings, key=len)
+    else:
+        name = str(action.metavar or action.dest).upper()
+    numeric = action.type in (int, float) or getattr(action.type, "numeric", False)
+    hint = "a number" if numeric else EMPTY_HINTS.get(action.dest, "a value")
+    tail = ", or leave the option out" if action.option_strings and not action.required else ""
+    return f"{name} is empty: give {hint}{tail}"
+

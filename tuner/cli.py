@@ -87,6 +87,17 @@ class _Parser(argparse.ArgumentParser):
         sys.stderr.write(f"tune: error: {message}\n")
         raise SystemExit(2)
 
+    def _get_values(self, action, arg_strings):
+        # a value typed empty or blank (`--only ""`, `--data=`) is an error naming the option: left to the commands,
+        # "" reads as "not given" and silently means the default (`--only ""` ran all twelve findings). Here, once,
+        # for every option of every command; environment variables set to "" still mean unset.
+        if not isinstance(action, argparse._SubParsersAction) and action.nargs != argparse.REMAINDER:
+            for s in arg_strings:
+                if isinstance(s, str) and not s.strip():
+                    from tuner.argtypes import empty_value_message
+                    self.error(empty_value_message(action))
+        return super()._get_values(action, arg_strings)
+
     def _check_value(self, action, value):
         # argparse's own check, plus "did you mean ...?" for a misspelt command or choice
         if action.choices is None or value in action.choices:

@@ -26,6 +26,19 @@ def check_port(host: str, port: int) -> None:
             raise ImtuneError(f"cannot serve the dashboard on {host}:{port}: {e.strerror or e}") from None
 
 
+LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1")
+
+
+def exposure_warning(host: str) -> str | None:
+    """The warning printed when the dashboard binds beyond this machine (None for a loopback address): the
+    address, what it means (every interface for 0.0.0.0 / ::), and how to keep it local."""
+    if host in LOCAL_HOSTS:
+        return None
+    where = (f"every network interface ({host})" if host in ("0.0.0.0", "::") else f"the address {host}")
+    return (f"warning: the dashboard listens on {where}: other machines that can reach it can read every study, "
+            "with no password; use --host 127.0.0.1 to keep it on this machine")
+
+
 def serve(storage_url: str | None = None, host: str = "127.0.0.1", port: int = 8080, studies_dir=None,
           quiet: bool = False) -> None:
     """Serve optuna-dashboard for the storage (default: the studies folder's SQLite file)."""
@@ -34,6 +47,9 @@ def serve(storage_url: str | None = None, host: str = "127.0.0.1", port: int = 8
     except ImportError:
         raise ImtuneError("optuna-dashboard is not installed: pip install optuna-dashboard") from None
     from tuner.storage import classify, default_storage_url, open_storage, storage_label
+    if not str(host or "").strip():  # "" binds every interface: never by accident
+        raise ImtuneError("--host is empty: give an address such as 127.0.0.1 (this machine only) or 0.0.0.0 "
+                          "(every interface), or leave the option out")
     if not (0 < int(port) < 65536):
         raise ImtuneError(f"invalid port {port}")
     classify(storage_url or default_storage_url(studies_dir))  # a malformed URL first: nothing else to try
@@ -44,6 +60,7 @@ def serve(storage_url: str | None = None, host: str = "127.0.0.1", port: int = 8
         shown = f"[{host}]" if ":" in host else host
         print(f"optuna-dashboard: http://{shown}:{port}/  (storage {storage_label(storage_url, studies_dir)}; "
               "Ctrl-C to stop)", file=sys.stderr, flush=True)
-    if host not in ("127.0.0.1", "localhost", "::1") and not quiet:
-        print(f"warning: the dashboard is reachable from other machines on {host}", file=sys.stderr, flush=True)
+    warning = exposure_warning(host)
+    if warning and not quiet:
+        print(warning, file=sys.stderr, flush=True)
     run_server(storage, host=host, port=int(port))

@@ -1,0 +1,114 @@
+"""Bad option values that used to be accepted and then gave wrong numbers or ran the wrong thing (the bad-input
+sweep of the options): each is now one line on stderr naming the culprit, exit 2 — or, for data files, a loaded
+Scene that says so. Every case calls the CLI's ``main([...])`` in-process on tiny inputs; where the old code
+would have gone on to real work, the command line also carries a cheap mistake further down (an unknown feature,
+a folder with no data) so that it fails fast there with a message that does not name the culprit under test."""
+from __future__ import annotations
+
+import pytest
+
+from tests.conftest import DATA
+
+
+def _cli(args, capsys):
+    from tuner.cli import main
+    capsys.readouterr()
+    try:
+        rc = main([str(a) for a in args])
+    except SystemExit as e:  # argparse's errors exit as the console script would (tuner.cli._Parser.error)
+        rc = e.code
+    out = capsys.readouterr()
+    return rc, out.out, out.err
+
+
+def _one_line_error(rc, err, *needles):
+    assert rc == 2, err
+    assert "Traceback" not in err and "internal error" not in err, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("tune: error:"), err
+    for n in needles:
+        assert n in lines[0], (n, lines[0])
+    return lines[0]
+
+
+@pytest.fixture
+def isolated(tmp_path, monkeypatch):
+    """Caches, studies and a folder holding no data set, all under tmp_path (the old code may get that far)."""
+    monkeypatch.setenv("IMTUNE_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("IMTUNE_STUDIES", str(tmp_path / "studies"))
+    (tmp_path / "nodata").mkdir()
+    return tmp_path
+
+
+# ------------------------------------------------------------------------------ 1. explicitly empty values
+
+NOSUCH = ["--feature", "no-such-feature"]  # the old code stops here (before any data is read) when "" got through
+EMPTY_CASES = [
+    (["findings", "--quick", "--only", "", "--data", "{nodata}"], "--only", "ids such as 1,2,4"),
+    (["findings", "--quick", "--only=", "--data", "{nodata}"], "--only", "ids such as 1,2,4"),
+    (["findings", "--data", "", "--only", "99"], "--data", "data folder"),
+    (["findings", "--val-scenes", "", "--only", "99"], "--val-scenes", "scene names"),
+    (["findings", "--test-scenes", " ", "--only", "99"], "--test-scenes", "scene names"),
+    (["evaluate", "--data", "", *NOSUCH], "--data", "data folder"),
+    (["evaluate", "--config", "", *NOSUCH], "--config", "configuration file"),
+    (["evaluate", "--scenes", "", *NOSUCH], "--scenes", "scene names"),
+    (["evaluate", "--bags", "", *NOSUCH], "--bags", "bag sizes"),
+    (["run", "--reference", "", *NOSUCH], "--reference", "study name or none"),
+    (["run", "--study", "", *NOSUCH], "--study", "study name"),
+    (["run", "--scenes", "", *NOSUCH], "--scenes", "scene names"),
+    (["run", "--test-scenes", "", *NOSUCH], "--test-scenes", "scene names"),
+    (["--data", "", *NOSUCH], "--data", "data folder"),  # the main job (= run)
+    (["viz", "--pairs", "", *NOSUCH], "--pairs", "pairs such as"),
+    (["viz", "--out", "", *NOSUCH], "--out", "path"),
+    (["plot", "--out", "", "--study", "x", "--studies-dir", "{nodata}"], "--out", "path"),
+    (["compare", "--scenes", "", "no-such-a", "no-such-b"], "--scenes", "scene names"),
+    (["test", "--scenes", "", "--study", "no-such", "--studies-dir", "{nodata}"], "--scenes", "scene names"),
+]
+
+
+@pytest.mark.parametrize("argv, option, hint", EMPTY_CASES, ids=[" ".join(c[0][:2]) + f" {c[1]}" for c in EMPTY_CASES])
+def test_an_empty_value_is_an_error_naming_the_option(argv, option, hint, isolated, capsys):
+    argv = [a.format(nodata=isolated / "nodata") for a in argv]
+    rc, out, err = _cli(argv, capsys)
+    line = _one_line_error(rc, err, f"{option} is empty", hint)
+    assert "leave the option out" in line
+    assert not (isolated / "studies").exists() and not (isolated / "cache").exists()  # nothing started
+
+
+def test_an_empty_value_of_a_required_option_does_not_say_leave_it_out(isolated, capsys):
+    rc, out, err = _cli(["test", "--study", "", "--studies-dir", isolated / "nodata"], capsys)
+    line = _one_line_error(rc, err, "--study is empty")
+    assert "leave the option out" not in line
+
+
+def test_an_empty_environment_variable_still_means_unset(isolated, monkeypatch, capsys):
+    import json
+    if not (DATA / "strecha").is_dir():
+        pytest.skip(f"real data not found at {DATA}")
+    monkeypatch.setenv("IMTUNE_DATA", "")  # the usual convention: as if not set, the next rule finds the data
+    monkeypatch.setenv("IMTUNE_DATA_HOME", str(isolated / "nodata"))
+    rc, out, err = _cli(["data", "scenes", "--json"], capsys)
+    assert rc == 0, err
+    assert "fountain-P11" in [s["scene"] for s in json.loads(out)["scenes"]]
+
+
+# ------------------------------------------------------------------------------ 7. dashboard --host
+
+def test_dashboard_refuses_an_empty_host(isolated, capsys):
+    rc, out, err = _cli(["dashboard", "--host", "", "--studies-dir", isolated / "nodata"], capsys)
+    _one_line_error(rc, err, "--host is empty", "127.0.0.1")
+    from pipeline.errors import ImtuneError
+    from tuner.dashboard import serve
+    with pytest.raises(ImtuneError, match="--host is empty"):  # the Python call too: "" would bind every interface
+        serve(None, host=" ", port=8080, studies_dir=isolated / "nodata", quiet=True)
+
+
+def test_dashboard_exposure_warning_is_complete():
+    from tuner.dashboard import exposure_warning
+    for local in ("127.0.0.1", "localhost", "::1"):
+        assert exposure_warning(local) is None
+    w = exposure_warning("0.0.0.0")
+    assert w.startswith("warning:") and "every network interface (0.0.0.0)" in w and "--host 127.0.0.1" in w
+    assert "every network interface (::)" in exposure_warning("::")
+    w = exposure_warning("192.168.1.7")
+    assert "192.168.1.7" in w and not w.rstrip().endswith(" on")
