@@ -112,3 +112,51 @@ def test_dashboard_exposure_warning_is_complete():
     assert "every network interface (::)" in exposure_warning("::")
     w = exposure_warning("192.168.1.7")
     assert "192.168.1.7" in w and not w.rstrip().endswith(" on")
+
+
+# ------------------------------------------------------------------------------ 2. a scene named twice
+
+TWICE_CASES = [
+    (["evaluate", "--scenes", "fountain-P11,fountain-P11", *NOSUCH], "--scenes"),
+    (["evaluate", "--scenes", "fountain-P11, entry-P10 ,fountain-P11", *NOSUCH], "--scenes"),
+    (["run", "--test-scenes", "entry-P10,entry-P10", *NOSUCH], "--test-scenes"),
+    (["findings", "--val-scenes", "fountain-P11,fountain-P11", "--only", "99"], "--val-scenes"),
+    (["findings", "--test-scenes", "entry-P10,entry-P10", "--only", "99"], "--test-scenes"),
+    (["compare", "--scenes", "fountain-P11,fountain-P11", "no-such-a", "no-such-b"], "--scenes"),
+    (["test", "--scenes", "entry-P10,entry-P10", "--study", "no-such", "--studies-dir", "{nodata}"], "--scenes"),
+]
+
+
+@pytest.mark.parametrize("argv, option", TWICE_CASES, ids=[" ".join(c[0][:3]) for c in TWICE_CASES])
+def test_a_scene_named_twice_is_an_error(argv, option, isolated, capsys):
+    argv = [a.format(nodata=isolated / "nodata") for a in argv]
+    rc, out, err = _cli(argv, capsys)
+    _one_line_error(rc, err, f"argument {option}", "is named twice")
+
+
+def test_a_scene_list_naming_no_scene_is_an_error(isolated, capsys):
+    rc, out, err = _cli(["evaluate", "--scenes", ",", *NOSUCH], capsys)
+    _one_line_error(rc, err, "argument --scenes", "names no scene")
+
+
+@pytest.fixture
+def two_images(tmp_path):
+    from tests.conftest import copy_strecha_subset
+    return copy_strecha_subset(tmp_path / "data", ["0004.jpg", "0005.jpg"])
+
+
+def test_load_scenes_refuses_a_scene_named_twice(two_images):
+    from pipeline.errors import ImtuneError
+    from tuner.evaluate import load_scenes
+    with pytest.raises(ImtuneError, match="'fountain-P11' is named twice"):
+        load_scenes(two_images, ["fountain-P11", "fountain-P11"], ground_truth=False)
+    with pytest.raises(ImtuneError, match="named twice"):
+        load_scenes(two_images, "fountain-P11,fountain-P11", ground_truth=False)
+    assert [s.name for s in load_scenes(two_images, "fountain-P11", ground_truth=False)] == ["fountain-P11"]
+
+
+def test_a_scene_listed_twice_in_splits_yaml_is_an_error(two_images, isolated, capsys):
+    splits = two_images / "splits.yaml"
+    splits.write_text("val: [fountain-P11, fountain-P11]\ntest: []\n")
+    rc, out, err = _cli(["data", "scenes", "--data", two_images], capsys)
+    _one_line_error(rc, err, str(splits), "'fountain-P11' is listed twice in 'val'")

@@ -115,3 +115,19 @@ def empty_value_message(action: argparse.Action) -> str:
     tail = ", or leave the option out" if action.option_strings and not action.required else ""
     return f"{name} is empty: give {hint}{tail}"
 
+
+
+def scene_list(s: str) -> str:
+    """``--scenes`` / ``--val-scenes`` / ``--test-scenes``: comma-separated scene names, at least one, each once
+    (a scene named twice would have its pairs evaluated twice and its interval narrowed). Returns the names
+    joined by commas, blanks removed."""
+    names = [n.strip() for n in str(s).split(",")]
+    names = [n for n in names if n]
+    if not names:
+        raise argparse.ArgumentTypeError(f"{s!r} names no scene (give comma-separated names such as fountain-P11)")
+    seen = set()
+    for n in names:
+        if n in seen:
+            raise argparse.ArgumentTypeError(f"scene {n!r} is named twice in {s!r}: name each scene once")
+        seen.add(n)
+    return ",".join(names)

@@ -12,6 +12,16 @@ from pipeline.config import PipelineConfig
 from pipeline.errors import ImtuneError
 
 
+def check_unique_scenes(names, where: str = "") -> None:
+    """One-line ImtuneError when a scene is named twice: its pairs would be evaluated twice, counted twice in
+    every mAA and narrow its interval as if they were independent pairs."""
+    seen = set()
+    for n in names:
+        if n in seen:
+            raise ImtuneError(f"{where}scene {n!r} is named twice ({', '.join(names)}): name each scene once")
+        seen.add(n)
+
+
 def load_scenes(data_root: Path, names: list[str] | str | None, split: str = "val", gt_dir=None,
                 ground_truth: bool = True):
     """Scenes by name (a list or a comma-separated string), or the data set's default split.
@@ -23,6 +33,7 @@ def load_scenes(data_root: Path, names: list[str] | str | None, split: str = "va
     from pipeline.data.ground_truth import prepare_scene_ground_truth
     if isinstance(names, str):
         names = [n.strip() for n in names.split(",") if n.strip()]
+    check_unique_scenes(names or [])
     if not names:
         names = list_scenes(data_root) if split == "all" else default_splits(data_root)[split]
     scenes = [load_scene(data_root, n) for n in names]

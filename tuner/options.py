@@ -13,7 +13,7 @@ import math
 from pipeline.config import FeatureConfig, GeometryConfig, MatchConfig, PipelineConfig
 from pipeline.errors import ImtuneError
 from tuner.argtypes import (count_int, nonnegative_float, positive_float, positive_int, probability_float, ratio_float,
-                            seed_int, unit_float)
+                            scene_list, seed_int, unit_float)
 
 # The data folder rule lives in the pipeline (one rule for every command; the main job may download):
 from pipeline.data.locate import resolve_data  # noqa: E402,F401
@@ -55,7 +55,7 @@ def add_pipeline_options(ap: argparse.ArgumentParser, tuning: bool = False) -> N
     g.add_argument("--seed", type=seed_int, default=0, help="random seed (>= 0)")
     d = ap.add_argument_group("data")
     d.add_argument("--data", default=None, help=DATA_HELP)
-    d.add_argument("--scenes", default=None, help="comma-separated scene names")
+    d.add_argument("--scenes", type=scene_list, default=None, help="comma-separated scene names, each once")
     d.add_argument("--covisibility", type=unit_float, default=0.1, help="minimum pair co-visibility where known")
     d.add_argument("--cache", default=None, help="cache folder (else $IMTUNE_CACHE or ~/.cache/imtune)")
     o = ap.add_argument_group("output")

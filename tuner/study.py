@@ -382,6 +382,8 @@ def preflight(s: TuneSettings, task, stored: dict | None = None) -> list[str]:
     from tuner.evaluate import load_scenes
     skip = "or tune without the test run: --no-test"
     names = list(s.test_scenes or ((stored or {}).get("data") or {}).get("test_scenes") or test_scene_names(s))
+    from tuner.evaluate import check_unique_scenes
+    check_unique_scenes(names, "test scenes: ")
     if not names:
         raise ImtuneError(f"no test scenes: {s.data_root} has no test split; name them with --test-scenes A,B "
                           f"(or add a splits.yaml with 'test' to the data folder), {skip}")

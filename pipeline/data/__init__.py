@@ -110,6 +110,9 @@ def _read_splits(path: Path, scenes: list[str]) -> dict[str, list[str]]:
             value = [value]
         if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
             raise ImtuneError(f"{path}: '{key}' must be a list of scene names")
+        twice = [v for i, v in enumerate(value) if v in value[:i]]
+        if twice:  # its pairs would count twice in every mAA (and narrow the interval)
+            raise ImtuneError(f"{path}: scene {twice[0]!r} is listed twice in '{key}': list each scene once")
         unknown = [v for v in value if v not in scenes]
         if unknown:
             raise ImtuneError(f"{path}: unknown scene {unknown[0]!r} in '{key}' (available: {', '.join(scenes)})")

@@ -16,7 +16,7 @@ from tuner.options import DATA_HELP
 
 
 def register(sub) -> None:
-    from tuner.argtypes import positive_int, seed_int, unit_float
+    from tuner.argtypes import positive_int, scene_list, seed_int, unit_float
     ap = sub.add_parser("compare", help="paired comparison of configurations on the same pairs (CI, p-value)",
                         description="Evaluate each configuration (study name, frozen.yaml, config YAML/JSON, IMC method "
                                     "JSON) on the same stereo pairs and compare each with the first: the mAA(10) "
@@ -26,7 +26,7 @@ def register(sub) -> None:
                     help="A B [C ...]: study names or configuration files; each after the first is compared with A")
     d = ap.add_argument_group("data")
     d.add_argument("--data", default=None, help=DATA_HELP)
-    d.add_argument("--scenes", default=None, help="comma-separated scene names (default: every scene of the data)")
+    d.add_argument("--scenes", type=scene_list, default=None, help="comma-separated scene names (default: every scene of the data)")
     d.add_argument("--covisibility", type=unit_float, default=0.1, help="minimum pair co-visibility where known")
     d.add_argument("--cache", default=None, help="cache folder (else $IMTUNE_CACHE or ~/.cache/imtune)")
     d.add_argument("--studies-dir", default=None, help="where studies live (default $IMTUNE_STUDIES, else studies/)")

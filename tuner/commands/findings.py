@@ -16,7 +16,7 @@ from tuner.options import DATA_HELP
 
 
 def register(sub) -> None:
-    from tuner.argtypes import positive_int, seed_int
+    from tuner.argtypes import positive_int, scene_list, seed_int
     ap = sub.add_parser("findings", help="check the paper's findings on this data (studies + verdicts + report)",
                         description="Run the comparisons behind the paper's findings as ordinary, resumable studies "
                                     "(tuned on the validation scenes, measured on the test scenes) and write "
@@ -29,8 +29,8 @@ def register(sub) -> None:
     ap.add_argument("--only", default=None, metavar="ID,...", help="only these findings (ids 1-12)")
     ap.add_argument("--jobs", type=positive_int, default=None,
                     help="pair processes per trial (where the tree has the pair pool; default: the study's)")
-    ap.add_argument("--val-scenes", default=None, help="comma-separated validation scenes (default: the data split)")
-    ap.add_argument("--test-scenes", default=None, help="comma-separated test scenes (default: the data split)")
+    ap.add_argument("--val-scenes", type=scene_list, default=None, help="comma-separated validation scenes (default: the data split)")
+    ap.add_argument("--test-scenes", type=scene_list, default=None, help="comma-separated test scenes (default: the data split)")
     ap.add_argument("--cache", default=None, help="cache folder (else $IMTUNE_CACHE or ~/.cache/imtune)")
     ap.add_argument("--seed", type=seed_int, default=0, help="study and resampling seed")
     ap.add_argument("--storage", default=None,

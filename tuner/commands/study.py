@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 
 from pipeline.errors import ImtuneError
-from tuner.argtypes import nonnegative_int, positive_float, positive_int, ratio_float
+from tuner.argtypes import nonnegative_int, positive_float, positive_int, ratio_float, scene_list
 from tuner.formatting import render
 from tuner.commands.evaluate import add_ci_options, ci_resamples, with_ci
 from tuner.options import add_pipeline_options, build_config, resolve_data
@@ -96,7 +96,7 @@ def register(sub) -> None:
                    help="B: median estimator seconds per pair allowed on validation (default 0.5)")
     t.add_argument("--test-budget", type=positive_float, default=1.0,
                    help="estimator seconds per pair allowed on test (default 1.0)")
-    t.add_argument("--test-scenes", default=None, help="comma-separated test scenes (default: the data set's test split)")
+    t.add_argument("--test-scenes", type=scene_list, default=None, help="comma-separated test scenes (default: the data set's test split)")
     t.add_argument("--max-pairs", type=positive_int, default=None,
                    help="use at most N pairs per scene (evenly spread; quick runs)")
     t.add_argument("--chunk-pairs", type=positive_int, default=12,
@@ -142,7 +142,7 @@ def register(sub) -> None:
     te.add_argument("--study", required=True)
     _storage_opts(te)
     te.add_argument("--data", default=None, help="data folder (default: the study's, else the usual precedence)")
-    te.add_argument("--scenes", default=None, help="comma-separated test scenes (default: the study's test split)")
+    te.add_argument("--scenes", type=scene_list, default=None, help="comma-separated test scenes (default: the study's test split)")
     te.add_argument("--runs", type=positive_int, default=3)
     te.add_argument("--max-pairs", type=positive_int, default=None)
     te.add_argument("--test-budget", type=positive_float, default=None)
