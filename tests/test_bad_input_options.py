@@ -160,3 +160,57 @@ def test_a_scene_listed_twice_in_splits_yaml_is_an_error(two_images, isolated, c
     splits.write_text("val: [fountain-P11, fountain-P11]\ntest: []\n")
     rc, out, err = _cli(["data", "scenes", "--data", two_images], capsys)
     _one_line_error(rc, err, str(splits), "'fountain-P11' is listed twice in 'val'")
+
+
+# ------------------------------------------------------------------------------ 3. pairs_with_gt.txt: duplicates, self-pairs
+
+SCANNET = DATA / "scannet_sample"
+
+
+@pytest.fixture
+def scannet_lines():
+    if not (SCANNET / "pairs_with_gt.txt").is_file():
+        pytest.skip(f"real data not found at {SCANNET}")
+    return (SCANNET / "pairs_with_gt.txt").read_text().splitlines()
+
+
+def _load_list(tmp_path, lines):
+    from pipeline.data.pairs_with_gt import load_pairs_with_gt
+    f = tmp_path / "pairs_with_gt.txt"
+    f.write_text("\n".join(lines) + "\n")
+    return f, load_pairs_with_gt(SCANNET, pairs_file=f, verify=False)  # images: the real sample's
+
+
+def test_the_real_pairs_list_loads_every_pair_once(scannet_lines, tmp_path):
+    _, scene = _load_list(tmp_path, scannet_lines)
+    assert len(scene.pairs) == 15 and len({frozenset((p.i, p.j)) for p in scene.pairs}) == 15
+
+
+def test_a_pair_listed_twice_names_both_lines(scannet_lines, tmp_path):
+    from pipeline.errors import ImtuneError
+    n = len(scannet_lines)
+    with pytest.raises(ImtuneError) as e:
+        _load_list(tmp_path, scannet_lines + ["# a comment", scannet_lines[2]])  # line 3 again, as line n + 2
+    msg = str(e.value)
+    assert str(tmp_path / "pairs_with_gt.txt") in msg and f"lines 3 and {n + 2}" in msg and "listed twice" in msg
+    assert "\n" not in msg
+
+
+def test_a_pair_listed_in_both_orders_is_the_same_pair(scannet_lines, tmp_path):
+    from pipeline.errors import ImtuneError
+    a, b, *rest = scannet_lines[4].split()
+    # b a with the inverse pose: a well-formed line, the same pair of images
+    import numpy as np
+    T = np.linalg.inv(np.array(rest[20:36], float).reshape(4, 4))
+    swapped = " ".join([b, a, rest[0], rest[1], *rest[11:20], *rest[2:11], *(f"{x:.10g}" for x in T.ravel())])
+    with pytest.raises(ImtuneError, match=r"lines 5 and 16: the pair .* listed twice"):
+        _load_list(tmp_path, scannet_lines + [swapped])
+
+
+def test_a_line_pairing_an_image_with_itself_is_malformed(scannet_lines, tmp_path):
+    from pipeline.errors import ImtuneError
+    a, b, *rest = scannet_lines[0].split()
+    with pytest.raises(ImtuneError) as e:
+        _load_list(tmp_path, [" ".join([a, a, *rest])] + scannet_lines[1:])
+    msg = str(e.value)
+    assert f"{tmp_path / 'pairs_with_gt.txt'}, line 1" in msg and f"pairs image {a} with itself" in msg

@@ -45,13 +45,16 @@ def list_scenes(root: Path) -> list[str]:
 
 def read_pairs_file(path: Path) -> list[tuple[str, str, np.ndarray, np.ndarray, np.ndarray]]:
     """Parse the list: [(name0, name1, K0, K1, T_0to1 4x4)]. Blank lines and ``#`` comments are skipped;
-    a malformed line raises ImtuneError naming the file and the line number."""
+    a malformed line raises ImtuneError naming the file and the line number. A pair listed twice (also as
+    ``b a`` after ``a b``) would count twice in every mAA, and a line pairing an image with itself has no
+    relative pose to estimate: both make the list malformed (the error names the line numbers)."""
     path = Path(path)
     try:
         lines = path.read_text().splitlines()
     except (OSError, UnicodeDecodeError) as e:
         raise ImtuneError(f"cannot read pairs file {path}: {e}") from None
     out = []
+    first_line: dict[frozenset, int] = {}  # {name0, name1} -> the line that listed the pair first
     for lineno, line in enumerate(lines, 1):
         line = line.strip()
         if not line or line.startswith("#"):
@@ -60,6 +63,14 @@ def read_pairs_file(path: Path) -> list[tuple[str, str, np.ndarray, np.ndarray, 
         tokens = line.split()
         if len(tokens) != 2 + _NUMS:
             raise ImtuneError(f"{where}: expected 2 names and {_NUMS} numbers, found {len(tokens)} fields")
+        if tokens[0] == tokens[1]:
+            raise ImtuneError(f"{where}: pairs image {tokens[0]} with itself (a pair needs two images): remove the "
+                              "line")
+        key = frozenset(tokens[:2])
+        if key in first_line:
+            raise ImtuneError(f"{path}, lines {first_line[key]} and {lineno}: the pair {tokens[0]} {tokens[1]} is "
+                              "listed twice (in either order): keep one of the lines")
+        first_line[key] = lineno
         v = parse_floats(" ".join(tokens[2:]), _NUMS, where)
         if v[0] != 0 or v[1] != 0:
             raise ImtuneError(f"{where}: EXIF rotation codes {v[0]:g} {v[1]:g} are not supported (only 0)")
