@@ -11,6 +11,26 @@ from pipeline.errors import ImtuneError
 
 STRATEGIES = ("both", "either", "uni")
 
+#: the largest random seed: the seeded estimators take 31 bits (pydegensac, OpenCV's RNG and COLMAP's
+#: ``random_seed`` are masked to 0x7FFFFFFF or are a C int), so every seed in [0, SEED_MAX] reaches them
+#: unchanged and two different seeds are two different runs; a larger one would alias a smaller one
+SEED_MAX = 2**31 - 1
+
+
+def check_seed(what: str, v) -> int:
+    """A random seed: an integer in [0, SEED_MAX] (one-line ImtuneError naming ``what`` and the range)."""
+    f = _number(what, v, integer=True)
+    if not 0 <= f <= SEED_MAX or int(v) > SEED_MAX:
+        raise ImtuneError(f"{what} must be an integer from 0 to {SEED_MAX} (the estimators take 31-bit seeds: a "
+                          f"larger one would repeat a smaller one's run), got {v!r}")
+    return int(v)
+
+
+def run_seed(seed: int, k: int) -> int:
+    """The seed of the ``k``-th repeated run (k = 0, 1, ...): ``seed + k``, wrapping past SEED_MAX to 0 (which the
+    31-bit estimators did anyway), so every run's seed stays in range."""
+    return (int(seed) + int(k)) % (SEED_MAX + 1)
+
 
 def _number(what: str, v, integer: bool = False) -> float:
     """``v`` as a finite float (ImtuneError naming ``what`` for nan, inf, bools, non-numbers, non-integers)."""
@@ -141,6 +161,7 @@ class GeometryConfig:
             raise ImtuneError(f"confidence must be in (0, 1), got {self.confidence}")
         if _number("max-iters", self.max_iters, integer=True) < 1:
             raise ImtuneError(f"max-iters must be >= 1, got {self.max_iters}")
+        check_seed("seed", self.seed)
 
 
 @dataclass(frozen=True)

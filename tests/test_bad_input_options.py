@@ -214,3 +214,47 @@ def test_a_line_pairing_an_image_with_itself_is_malformed(scannet_lines, tmp_pat
         _load_list(tmp_path, [" ".join([a, a, *rest])] + scannet_lines[1:])
     msg = str(e.value)
     assert f"{tmp_path / 'pairs_with_gt.txt'}, line 1" in msg and f"pairs image {a} with itself" in msg
+
+
+# ------------------------------------------------------------------------------ 4. seeds beyond 31 bits
+
+@pytest.mark.parametrize("argv", [
+    ["evaluate", *NOSUCH, "--seed"], ["run", *NOSUCH, "--seed"], ["calibrate", *NOSUCH, "--seed"],
+    ["findings", "--only", "99", "--seed"], ["compare", "no-such-a", "no-such-b", "--seed"],
+    ["evaluate", *NOSUCH, "--bag-seed"],
+], ids=lambda a: f"{a[0]} {a[-1]}")
+@pytest.mark.parametrize("seed", [2**31, 2**32, 2**32 + 1, 2**64])
+def test_a_seed_above_31_bits_is_refused(argv, seed, isolated, capsys):
+    rc, out, err = _cli([*argv, seed], capsys)  # 2**31 ran as 0, 2**32 + 1 as 1: silently another seed's results
+    _one_line_error(rc, err, f"argument {argv[-1]}", "at most 2147483647", f"'{seed}'")
+
+
+def test_the_seed_range_in_configurations_and_repeated_runs():
+    from pipeline.config import SEED_MAX, GeometryConfig, run_seed
+    from pipeline.errors import ImtuneError
+    from pipeline.tasks import make_task
+    from tuner.freeze import pipeline_from_dict
+    assert SEED_MAX == 2**31 - 1 and GeometryConfig(seed=SEED_MAX).seed == SEED_MAX
+    for bad in (2**31, 2**32 + 1, -1):
+        with pytest.raises(ImtuneError, match="seed must be an integer from 0 to 2147483647"):
+            GeometryConfig(seed=bad)
+    with pytest.raises(ImtuneError, match="seed must be an integer from 0 to 2147483647"):  # a configuration file
+        pipeline_from_dict({"feature": {"name": "sift"}, "geometry": {"ransac": "degensac", "seed": 2**32}})
+    # the k-th test run uses seed + k, as before, and wraps inside the range instead of leaving it
+    task = make_task("stereo")
+    conf = pipeline_from_dict({"feature": {"name": "sift"}, "geometry": {"ransac": "degensac", "seed": 7}})
+    assert [task.for_run(conf, k)[1].geometry.seed for k in range(3)] == [7, 8, 9]
+    top = pipeline_from_dict({"feature": {"name": "sift"}, "geometry": {"ransac": "degensac", "seed": SEED_MAX}})
+    assert [task.for_run(top, k)[1].geometry.seed for k in range(3)] == [SEED_MAX, 0, 1]
+    assert run_seed(5, 2) == 7
+    from pipeline.tasks.multiview import MultiviewConfig
+    with pytest.raises(ImtuneError, match="multiview seed must be"):
+        MultiviewConfig(seed=2**31)
+
+
+def test_findings_refuses_a_seed_above_31_bits_from_python(tmp_path):
+    from pipeline.errors import ImtuneError
+    from tuner.findings import FindingsSettings, run_findings
+    with pytest.raises(ImtuneError, match="seed must be an integer from 0 to 2147483647"):
+        run_findings(FindingsSettings(data_root=tmp_path, studies_dir=tmp_path / "studies", seed=2**32, only=[1]),
+                     write=False)

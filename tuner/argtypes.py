@@ -9,6 +9,8 @@ from __future__ import annotations
 import argparse
 import math
 
+from pipeline.config import SEED_MAX
+
 
 def finite_float(s: str) -> float:
     """A finite number (rejects nan, inf and anything that is not a number)."""
@@ -50,7 +52,8 @@ probability_float = _ranged(lambda v: 0.0 < v < 1.0, "in (0, 1)")
 probability_float.__name__ = "probability_float"
 
 
-def _int_at_least(lo: int, what: str):
+def _int_at_least(lo: int, what: str, hi: int | None = None, why_hi: str = ""):
+    """An integer >= ``lo`` ("must be {what}" otherwise) and, with ``hi``, <= ``hi`` ("must be at most hi{why_hi}")."""
     def parse(s: str) -> int:
         try:
             v = int(s)
@@ -58,6 +61,8 @@ def _int_at_least(lo: int, what: str):
             raise argparse.ArgumentTypeError(f"expected an integer, got {s!r}") from None
         if v < lo:
             raise argparse.ArgumentTypeError(f"must be {what}, got {s!r}")
+        if hi is not None and v > hi:
+            raise argparse.ArgumentTypeError(f"must be at most {hi}{why_hi}, got {s!r}")
         return v
     parse.numeric = True
     return parse
@@ -69,10 +74,16 @@ positive_int.__name__ = "positive_int"
 #: an integer >= 0 where 0 switches the thing off (e.g. --heartbeat)
 nonnegative_int = _int_at_least(0, ">= 0 (0 = off)")
 nonnegative_int.__name__ = "nonnegative_int"
-#: an integer >= 0: a random seed (numpy's generators, used by the bootstrap and the samplers, take no negative
-#: seed) or how many of something to show (0 = none); two names for one rule
-seed_int = count_int = _int_at_least(0, ">= 0")
-seed_int.__name__ = "nonnegative_integer"
+#: an integer >= 0: how many of something to show (0 = none)
+count_int = _int_at_least(0, ">= 0")
+count_int.__name__ = "nonnegative_integer"
+#: a random seed: an integer in [0, 2**31 - 1] (``pipeline.config.SEED_MAX``). numpy's generators (the bootstrap,
+#: the samplers) take no negative seed, and the seeded estimators take 31 bits: a larger seed would silently give
+#: the run of a smaller one (2**31 that of 0); one range for every seed option
+seed_int = _int_at_least(0, ">= 0", hi=SEED_MAX,
+                         why_hi=f" (seeds are 0 to {SEED_MAX}: the estimators take 31 bits, a larger seed would repeat "
+                                "a smaller one's run)")
+seed_int.__name__ = "seed"
 
 
 # -- a value typed empty (`--only ""`, `--data=`): an error naming the option, never "the default" ---------------

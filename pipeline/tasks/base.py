@@ -127,10 +127,12 @@ class Task(abc.ABC):
 
     def for_run(self, conf: PipelineConfig, k: int) -> tuple["Task", PipelineConfig]:
         """The task and configuration of the ``k``-th repeated run (k = 0, 1, ...): the paper repeats test
-        runs with different random seeds. Default: the estimator seed ``seed + k``."""
+        runs with different random seeds. Default: the estimator seed ``seed + k`` (``pipeline.config.run_seed``)."""
         import dataclasses
+
+        from pipeline.config import run_seed
         g = conf.geometry
-        return self, dataclasses.replace(conf, geometry=dataclasses.replace(g, seed=int(g.seed) + int(k)))
+        return self, dataclasses.replace(conf, geometry=dataclasses.replace(g, seed=run_seed(g.seed, k)))
 
     def budget_seconds(self, summary: dict) -> float | None:
         """The statistic a time budget bounds (median estimator seconds per pair), or None when the task

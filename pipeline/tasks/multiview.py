@@ -85,6 +85,8 @@ class MultiviewConfig:
             raise ImtuneError(f"unknown intrinsics mode {self.intrinsics!r} (choose {', '.join(INTRINSICS_MODES)})")
         if self.min_model_size < 2:
             raise ImtuneError(f"min_model_size must be >= 2, got {self.min_model_size}")
+        from pipeline.config import check_seed
+        check_seed("multiview seed", self.seed)
         if self.verify_max_error <= 0:
             raise ImtuneError(f"verify_max_error must be > 0 px, got {self.verify_max_error}")
         try:
@@ -478,7 +480,8 @@ class MultiviewTask(Task):
 
     def for_run(self, conf: PipelineConfig, k: int):
         """COLMAP's seed varies across repeated runs (the bags stay the same)."""
-        t = MultiviewTask(dataclasses.replace(self.mv, seed=int(self.mv.seed) + int(k)), workers=self.workers,
+        from pipeline.config import run_seed
+        t = MultiviewTask(dataclasses.replace(self.mv, seed=run_seed(self.mv.seed, k)), workers=self.workers,
                           use_cache=self.use_cache, keep_models=self.keep_models, progress=self.progress,
                           ci_resamples=self.ci_resamples)
         return t, conf

@@ -124,6 +124,8 @@ def run_findings(fs: FindingsSettings, write: bool = True) -> dict:
     if isinstance(fs.seed, bool) or not isinstance(fs.seed, int) or fs.seed < 0:
         # numpy's generators (the bootstrap) take no negative seed: found only after every study had run
         raise ImtuneError(f"seed must be an integer >= 0, got {fs.seed!r}")
+    from pipeline.config import check_seed
+    check_seed("seed", fs.seed)  # <= SEED_MAX: a larger one repeats a smaller one's runs
     no_data = check_scenes(fs)
     if no_data is None:
         preflight(fs)
