@@ -15,6 +15,8 @@ STRATEGIES = ("both", "either", "uni")
 #: ``random_seed`` are masked to 0x7FFFFFFF or are a C int), so every seed in [0, SEED_MAX] reaches them
 #: unchanged and two different seeds are two different runs; a larger one would alias a smaller one
 SEED_MAX = 2**31 - 1
+#: the largest iteration cap Gamma: the estimators take a C int (``GeometryEstimator.estimate`` clamps to it)
+MAX_ITERS = 2**31 - 1
 
 
 def check_seed(what: str, v) -> int:
@@ -161,6 +163,8 @@ class GeometryConfig:
             raise ImtuneError(f"confidence must be in (0, 1), got {self.confidence}")
         if _number("max-iters", self.max_iters, integer=True) < 1:
             raise ImtuneError(f"max-iters must be >= 1, got {self.max_iters}")
+        if int(self.max_iters) > MAX_ITERS:
+            raise ImtuneError(f"max-iters must be at most {MAX_ITERS} (what the estimators take), got {self.max_iters}")
         check_seed("seed", self.seed)
 
 

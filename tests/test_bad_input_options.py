@@ -258,3 +258,63 @@ def test_findings_refuses_a_seed_above_31_bits_from_python(tmp_path):
     with pytest.raises(ImtuneError, match="seed must be an integer from 0 to 2147483647"):
         run_findings(FindingsSettings(data_root=tmp_path, studies_dir=tmp_path / "studies", seed=2**32, only=[1]),
                      write=False)
+
+
+# ------------------------------------------------------------------------------ 5. Gamma beyond what the estimators take
+
+@pytest.mark.parametrize("value", ["2147483648", "99999999999999999999999"])
+def test_max_iters_above_the_estimators_limit_is_refused(value, isolated, capsys):
+    rc, out, err = _cli(["evaluate", *NOSUCH, "--max-iters", value], capsys)  # was printed as given, clamped to 2**31-1
+    _one_line_error(rc, err, "argument --max-iters", "at most 2147483647", value)
+    from pipeline.config import GeometryConfig
+    from pipeline.errors import ImtuneError
+    with pytest.raises(ImtuneError, match="max-iters must be at most 2147483647"):
+        GeometryConfig(max_iters=int(value))
+    assert GeometryConfig(max_iters=2**31 - 1).max_iters == 2**31 - 1
+
+
+def test_fix_max_iters_above_the_estimators_limit_is_refused():
+    from pipeline.errors import ImtuneError
+    from tuner.space import load_space
+    with pytest.raises(ImtuneError, match=r"--fix max_iters: .* must be at most 2147483647"):
+        load_space(None, feature="sift", estimator="degensac", fixes=["max_iters=1e30"])
+
+
+@pytest.fixture
+def tiny(tmp_path, monkeypatch):
+    """Two real fountain-P11 images, caches and studies under tmp_path."""
+    from tests.conftest import copy_strecha_subset
+    monkeypatch.setenv("IMTUNE_CACHE", str(tmp_path / "cache"))
+    return copy_strecha_subset(tmp_path / "data", ["0004.jpg", "0005.jpg"])
+
+
+FAST = ["--num-features", "256", "--jobs", "1", "--quiet"]
+
+
+def test_a_pinned_gamma_above_any_gamma_max_warns_before_the_study(tiny, tmp_path, capsys):
+    # --test-scenes nosuch stops the run at its preflight, after the warning and before any calibration or trial
+    rc, out, err = _cli(["run", "--data", tiny, *FAST, "--studies-dir", tmp_path / "st", "--fix", "max_iters=99999999",
+                         "--test-scenes", "nosuch"], capsys)
+    lines = err.strip().splitlines()
+    assert rc == 2 and len(lines) == 2, err
+    assert lines[0].startswith("warning: --fix max_iters=99999999 is above") and "1,000,000" in lines[0], err
+    assert "will exceed the 0.5 s per pair budget on most pairs" in lines[0]
+    assert lines[1].startswith("tune: error: test scene 'nosuch'")
+
+
+def test_a_pinned_gamma_above_the_calibrated_gamma_max_warns(tiny, tmp_path, capsys):
+    st = tmp_path / "st"
+    rc, out, err = _cli(["calibrate", "--data", tiny, *FAST, "--studies-dir", st, "--pairs", "1", "--budget", "0.005",
+                         "--json"], capsys)
+    assert rc == 0, err
+    import json
+    gmax = json.loads(out)["gamma_max"]["0.005"]
+    assert gmax < 900_000
+    run = ["run", "--data", tiny, *FAST, "--studies-dir", st, "--budget", "0.005", "--test-scenes", "nosuch"]
+    rc, out, err = _cli([*run, "--fix", "max_iters=900000"], capsys)
+    lines = err.strip().splitlines()
+    assert rc == 2 and len(lines) == 2, err
+    assert lines[0].startswith(f"warning: --fix max_iters=900000 is above Gamma_max(0.005 s) = {gmax:,} calibrated "
+                               "for degensac on this machine"), err
+    rc, out, err = _cli([*run, "--fix", f"max_iters={gmax}"], capsys)  # at Gamma_max: no warning
+    assert rc == 2 and "warning" not in err and len(err.strip().splitlines()) == 1, err

@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import math
 
-from pipeline.config import SEED_MAX
+from pipeline.config import MAX_ITERS, SEED_MAX
 
 
 def finite_float(s: str) -> float:
@@ -84,6 +84,10 @@ seed_int = _int_at_least(0, ">= 0", hi=SEED_MAX,
                          why_hi=f" (seeds are 0 to {SEED_MAX}: the estimators take 31 bits, a larger seed would repeat "
                                 "a smaller one's run)")
 seed_int.__name__ = "seed"
+#: an iteration cap Gamma: an integer in [1, 2**31 - 1] (``pipeline.config.MAX_ITERS``, what the estimators take;
+#: a larger one was printed as given and clamped)
+iters_int = _int_at_least(1, ">= 1", hi=MAX_ITERS, why_hi=" (the largest iteration cap the estimators take)")
+iters_int.__name__ = "iterations"
 
 
 # -- a value typed empty (`--only ""`, `--data=`): an error naming the option, never "the default" ---------------

@@ -13,7 +13,7 @@ import math
 from pipeline.config import SEED_MAX, FeatureConfig, GeometryConfig, MatchConfig, PipelineConfig
 from pipeline.errors import ImtuneError
 from tuner.argtypes import (count_int, nonnegative_float, positive_float, positive_int, probability_float, ratio_float,
-                            scene_list, seed_int, unit_float)
+                            iters_int, scene_list, seed_int, unit_float)
 
 # The data folder rule lives in the pipeline (one rule for every command; the main job may download):
 from pipeline.data.locate import resolve_data  # noqa: E402,F401
@@ -51,7 +51,7 @@ def add_pipeline_options(ap: argparse.ArgumentParser, tuning: bool = False) -> N
     if not tuning:
         g.add_argument("--ratio", type=ratio_float, default=0.85, help="ratio test r in (0, 1]; 1 = off")
         g.add_argument("--threshold", type=positive_float, default=0.5, help="inlier threshold eta, px")
-        g.add_argument("--max-iters", type=int, default=50000, help="RANSAC iteration cap Gamma")
+        g.add_argument("--max-iters", type=iters_int, default=50000, help="RANSAC iteration cap Gamma")
     g.add_argument("--seed", type=seed_int, default=0, help=f"random seed, 0 to {SEED_MAX}")
     d = ap.add_argument_group("data")
     d.add_argument("--data", default=None, help=DATA_HELP)

@@ -23,7 +23,7 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
-from pipeline.config import STRATEGIES, PipelineConfig
+from pipeline.config import MAX_ITERS, STRATEGIES, PipelineConfig
 from pipeline.errors import ImtuneError
 
 BUDGET_CONSTRAINT = "budget"
@@ -68,8 +68,10 @@ class Leaf:
             lo_ok = self.low is None or (value > self.low if self.low_open else value >= self.low)
             hi_ok = self.high is None or value <= self.high
             if not (lo_ok and hi_ok):
-                if self.type == "int" and self.high is None and not self.low_open:
+                if self.type == "int" and not lo_ok and not self.low_open:
                     raise ValueError(f"must be an integer >= {self.low:g}")
+                if self.type == "int" and not hi_ok:
+                    raise ValueError(f"must be at most {int(self.high)}" + (f" {self.unit}" if self.unit else ""))
                 raise ValueError(f"must be in {self.range_text()}")
             return value
         except (TypeError, ValueError) as e:
@@ -80,7 +82,7 @@ class Leaf:
         if self.type == "categorical":
             return "{" + ", ".join(self.choices) + "}"
         lo = "(" if self.low_open else "["
-        hi = f"{self.high:g}]" if self.high is not None else "inf)"
+        hi = (f"{int(self.high)}]" if self.type == "int" else f"{self.high:g}]") if self.high is not None else "inf)"
         return f"{lo}{self.low if self.low is None else format(self.low, 'g')}, {hi}" + (f" {self.unit}" if self.unit else "")
 
 
@@ -91,7 +93,8 @@ LEAVES: dict[str, Leaf] = {
                      label="strategy"),
     "threshold": Leaf("threshold", "geometry", "threshold", "float", 0.0, None, low_open=True, unit="px",
                       symbol=r"$\eta$", label="eta"),
-    "max_iters": Leaf("max_iters", "geometry", "max_iters", "int", 1, None, unit="iterations",
+    # Gamma up to what the estimators take (pipeline.config.MAX_ITERS; a larger value was clamped to it silently)
+    "max_iters": Leaf("max_iters", "geometry", "max_iters", "int", 1, MAX_ITERS, unit="iterations",
                       symbol=r"$\Gamma$", label="Gamma"),
 }
 PARAMS: tuple[str, ...] = tuple(LEAVES)

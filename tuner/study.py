@@ -401,6 +401,40 @@ def preflight(s: TuneSettings, task, stored: dict | None = None) -> list[str]:
     return names
 
 
+def pinned_gamma_warning(s: TuneSettings, space, fingerprint: str | None = None) -> str | None:
+    """The warning for ``--fix max_iters=G`` above Gamma_max(B), else None. Gamma_max is the search space's ceiling,
+    not a hard cap (a trial is feasible when its measured median estimator seconds per pair are within B, whatever
+    its Gamma), so a pinned Gamma above it is allowed; but it will exceed the budget on most pairs, and every trial
+    is then infeasible. A pinned Gamma calibrates nothing: Gamma_max(B) is the one stored for this configuration in
+    budgets.json when there is one, else the largest any calibration gives (``tuner.budget.GAMMA_CEILING``)."""
+    g = space.fixed.get("max_iters")
+    if isinstance(g, bool) or not isinstance(g, int):
+        return None
+    from pipeline.geometry import ESTIMATORS
+    ransac = s.base.geometry.ransac
+    if not getattr(ESTIMATORS.get(ransac), "uses_iterations", True):
+        return None
+    from tuner.budget import GAMMA_CEILING, calibration_key, stored_calibration
+    cal = None
+    if fingerprint is not None and s.studies_dir is not None:
+        from pipeline.tasks.pool import resolve_jobs
+        cal_conf = space.calibration or {}
+        key = calibration_key(ransac, s.base.feature, float(cal_conf.get("ratio", 0.9)),
+                              float(cal_conf.get("threshold", 0.5)), fingerprint, jobs=resolve_jobs(s.jobs))
+        cal = stored_calibration(Path(s.studies_dir), key)
+    if cal is not None and cal.covers(s.budget):
+        gmax = cal.gamma_max(s.budget)
+        basis = f"Gamma_max({s.budget:g} s) = {gmax:,} calibrated for {ransac} on this machine"
+    else:
+        gmax = GAMMA_CEILING
+        basis = f"the largest Gamma_max any calibration gives ({GAMMA_CEILING:,})"
+    if g <= gmax:
+        return None
+    return (f"--fix max_iters={g} is above {basis}: a pinned Gamma above Gamma_max(B) will exceed the "
+            f"{s.budget:g} s per pair budget on most pairs (their trials are infeasible and cannot be frozen); pin a "
+            "smaller Gamma, or let it be searched")
+
+
 def load_study_space(s: TuneSettings, task):
     """The study's search space: ``--space``, else the task's own file (``Task.space_file``), else the estimator
     family's; then ``--fix`` pins; then every parameter the task does not use dropped (never searched, never
@@ -456,6 +490,9 @@ def setup_study(s: TuneSettings) -> StudyContext:
     storage = open_storage(s.storage, heartbeat=s.heartbeat, studies_dir=s.studies_dir)
     cache = H5Cache(s.cache_dir)
     vs = open_validation(s, task)
+    pinned = pinned_gamma_warning(s, space, vs.fingerprint)  # before any calibration or trial
+    if pinned:
+        s.warn(pinned)
     base = dataclasses.replace(s.base, geometry=dataclasses.replace(s.base.geometry, seed=int(s.seed or 0)))
     mine = {
         "imtune": SCHEMA, "task": task.name, "task_options": task.options(),

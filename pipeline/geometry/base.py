@@ -26,6 +26,8 @@ from typing import Iterator
 
 import numpy as np
 
+from pipeline.config import MAX_ITERS
+
 Sizes = tuple[tuple[float, float], tuple[float, float]]
 """((w1, h1), (w2, h2)): image widths and heights in px at the working resolution."""
 
@@ -165,7 +167,7 @@ class Estimator(ABC):
         if sizes is None:
             sizes = sizes_from_points(p1, p2)
         try:
-            max_iters = min(max(int(max_iters), 1), 2**31 - 1)
+            max_iters = min(max(int(max_iters), 1), MAX_ITERS)
             raw = self._solve(p1, p2, float(threshold), float(confidence), max_iters, int(seed), sizes)
         except Exception:  # noqa: BLE001 - a library error is a recorded failure, never a crash
             return self._failure(m)
