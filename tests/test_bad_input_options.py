@@ -318,3 +318,15 @@ def test_a_pinned_gamma_above_the_calibrated_gamma_max_warns(tiny, tmp_path, cap
                                "for degensac on this machine"), err
     rc, out, err = _cli([*run, "--fix", f"max_iters={gmax}"], capsys)  # at Gamma_max: no warning
     assert rc == 2 and "warning" not in err and len(err.strip().splitlines()) == 1, err
+
+
+# ------------------------------------------------------------------------------ 8. --warm-start checked before the study exists
+
+def test_an_unknown_warm_start_source_leaves_no_study(tiny, tmp_path, capsys):
+    import optuna
+    st = tmp_path / "st"
+    rc, out, err = _cli(["run", "--data", tiny, *FAST, "--studies-dir", st, "--fix", "max_iters=1000", "--no-test",
+                         "--n-trials", "1", "--study", "ws1", "--warm-start", "nosuch"], capsys)
+    _one_line_error(rc, err, "--warm-start nosuch", "no study 'nosuch'")
+    db = st / "optuna.db"
+    assert not db.exists() or optuna.get_all_study_names(f"sqlite:///{db}") == []

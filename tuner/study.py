@@ -287,11 +287,7 @@ def warm_start(study, storage, space, sources: list, best: int = WARM_START_BEST
     enqueued ([{"study", "trial", "params"}]), also recorded in the study's user attribute ``warm_start``."""
     if not sources:
         return []
-    srcs = []
-    for name in dict.fromkeys(sources):
-        if name == study.study_name:
-            raise ImtuneError(f"--warm-start {name}: a study cannot warm-start itself")
-        srcs.append(load_study(storage, name))  # unknown -> one line listing the studies
+    srcs = check_warm_start_sources(storage, study.study_name, sources)
     if study.get_trials(deepcopy=False):
         if say is not None:
             say(f"warm start skipped: study {study.study_name} already has trials")
@@ -311,6 +307,20 @@ def warm_start(study, storage, space, sources: list, best: int = WARM_START_BEST
     if say is not None:
         say(f"warm start: {len(done)} trial(s) enqueued from {', '.join(s.study_name for s in srcs)}")
     return done
+
+
+def check_warm_start_sources(storage, study_name: str, sources) -> list:
+    """The ``--warm-start`` source studies, loaded; a one-line ImtuneError for the study itself or a study not in the
+    storage (naming the studies there). ``tuner.study.setup_study`` calls it before it creates the study."""
+    srcs = []
+    for name in dict.fromkeys(sources or ()):
+        if name == study_name:
+            raise ImtuneError(f"--warm-start {name}: a study cannot warm-start itself")
+        try:
+            srcs.append(load_study(storage, name))
+        except ImtuneError as e:
+            raise ImtuneError(f"--warm-start {name}: {e}") from None
+    return srcs
 
 
 def load_study(storage, name: str):
@@ -488,6 +498,7 @@ def setup_study(s: TuneSettings) -> StudyContext:
     space = load_study_space(s, task)
     name = s.study_name or default_study_name(s.base, task.name) + (PARETO_SUFFIX if pareto else "")
     storage = open_storage(s.storage, heartbeat=s.heartbeat, studies_dir=s.studies_dir)
+    check_warm_start_sources(storage, name, s.warm_start)  # before the study is created: a typo leaves no empty study
     cache = H5Cache(s.cache_dir)
     vs = open_validation(s, task)
     pinned = pinned_gamma_warning(s, space, vs.fingerprint)  # before any calibration or trial
