@@ -143,6 +143,26 @@ class H5Cache:
             raise ImtuneError(f"cache folder {self.root} is not a folder (a file is in the way): give a usable "
                               "folder with --cache DIR or the IMTUNE_CACHE environment variable")
 
+    def check_writable(self) -> None:
+        """Create the cache folder if needed and write (then remove) a small file in it: a one-line ImtuneError
+        naming the folder when it cannot be created or written (a file where it or a parent should be, no
+        permission, a read-only or full disk). For commands that would otherwise find out only at their first
+        entry, after the work before it (`tune findings` checks it before any study)."""
+        fix = "give a usable folder with --cache DIR or the IMTUNE_CACHE environment variable"
+        probe = self.root / f".write-check-{os.getpid()}-{threading.get_ident()}"
+        try:
+            self.root.mkdir(parents=True, exist_ok=True)
+            with open(probe, "wb") as fh:
+                fh.write(b"imtune")
+            probe.unlink()
+        except OSError as e:
+            if e.errno in (errno.ENOTDIR, errno.EEXIST):
+                blocker = next((p for p in [self.root, *self.root.parents] if p.exists() and not p.is_dir()), None)
+                if blocker is not None:
+                    raise ImtuneError(f"cannot create the cache folder {self.root}: {blocker} is a file, not a folder; "
+                                      f"{fix}") from None
+            raise self._folder_error(e, probe) from None
+
     # -- reading
 
     def _read(self, p: Path, stage: str, key: str, ident: list) -> dict[str, np.ndarray]:

@@ -330,3 +330,27 @@ def test_an_unknown_warm_start_source_leaves_no_study(tiny, tmp_path, capsys):
     _one_line_error(rc, err, "--warm-start nosuch", "no study 'nosuch'")
     db = st / "optuna.db"
     assert not db.exists() or optuna.get_all_study_names(f"sqlite:///{db}") == []
+
+
+# ------------------------------------------------------------------------------ 6. findings: an unusable cache folder
+
+def test_findings_preflight_refuses_a_cache_folder_that_cannot_be_created(tmp_path, capsys, monkeypatch):
+    import optuna
+
+    from tests.conftest import copy_strecha_subset
+    data = copy_strecha_subset(tmp_path / "data", ["0004.jpg", "0005.jpg"])
+    copy_strecha_subset(data, ["0000.jpg", "0001.jpg"], scene="entry-P10")  # a validation and a test scene
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("a regular file where the cache's parent should be\n")  # tests run as root: no chmod
+    cache = blocker / "cache"
+    st = tmp_path / "studies"
+    rc, out, err = _cli(["findings", "--quick", "--only", "1", "--data", data, "--cache", cache, "--studies-dir", st,
+                         "--quiet"], capsys)
+    _one_line_error(rc, err, f"cannot create the cache folder {cache}", f"{blocker} is a file", "--cache")
+    assert optuna.get_all_study_names(f"sqlite:///{st / 'optuna.db'}") == []  # before any study
+    from pipeline.cache import H5Cache
+    from pipeline.errors import ImtuneError
+    with pytest.raises(ImtuneError, match="is a file, not a folder"):
+        H5Cache(blocker).check_writable()  # the folder itself a file
+    H5Cache(tmp_path / "fresh" / "cache").check_writable()  # created, written, left empty
+    assert list((tmp_path / "fresh" / "cache").iterdir()) == []

@@ -81,8 +81,9 @@ def check_scenes(fs: FindingsSettings) -> str | None:
 def preflight(fs: FindingsSettings) -> None:
     """Fail fast, before any study, on what would stop every one of them (a user's error, not a limit of the data:
     a one-line ImtuneError naming the culprit and the fix): the studies folder cannot be created, the storage
-    cannot be opened, a ``--val-scenes`` / ``--test-scenes`` name is unknown, or a scene is both a validation and
-    a test scene (tuning on the scenes a finding is measured on would overstate every tuned number)."""
+    cannot be opened, the cache folder cannot be created or written (every study would be "not run"), a
+    ``--val-scenes`` / ``--test-scenes`` name is unknown, or a scene is both a validation and a test scene (tuning
+    on the scenes a finding is measured on would overstate every tuned number)."""
     import os
     from tuner.evaluate import load_scenes
     from tuner.storage import open_storage
@@ -98,6 +99,8 @@ def preflight(fs: FindingsSettings) -> None:
     engine = getattr(st, "engine", None)
     if engine is not None:
         engine.dispose()
+    from pipeline.cache import H5Cache
+    H5Cache(fs.cache_dir).check_writable()  # ImtuneError naming the folder: a file in the way, no permission, ...
     for flag, split, names in (("--val-scenes", "val", fs.val_scenes), ("--test-scenes", "test", fs.test_scenes)):
         if names:
             try:
