@@ -354,3 +354,14 @@ def test_findings_preflight_refuses_a_cache_folder_that_cannot_be_created(tmp_pa
         H5Cache(blocker).check_writable()  # the folder itself a file
     H5Cache(tmp_path / "fresh" / "cache").check_writable()  # created, written, left empty
     assert list((tmp_path / "fresh" / "cache").iterdir()) == []
+
+
+# ------------------------------------------------------------------------------ 9. results / table --task: the task registry
+
+@pytest.mark.parametrize("command", ["results", "table"])
+def test_an_unknown_task_lists_the_tasks(command, tmp_path, capsys):
+    import optuna
+    optuna.create_study(study_name="other", storage=f"sqlite:///{tmp_path / 'optuna.db'}")  # a storage to read
+    rc, out, err = _cli([command, "--task", "bogus", "--studies-dir", tmp_path], capsys)
+    line = _one_line_error(rc, err, "--task", "unknown task 'bogus'", "stereo", "multiview")
+    assert "no tested" not in line

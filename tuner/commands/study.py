@@ -440,12 +440,13 @@ def run_table(args) -> int:
     that column alone)."""
     from tuner.reports import render_table, settings_rows
     task = args.task
+    if task not in (None, "both", "all"):
+        _check_task(task)  # unknown -> one line listing the tasks, before the storage is read
     args.task = None
     studies = _collect(args)
     args.task = task
     from pipeline.tasks import TASKS
     if task not in (None, "both", "all"):
-        TASKS.get(task)  # unknown -> one line listing the tasks
         studies = [s for s in studies if s.task == task]
     # the estimator settings (eta, Gamma, B) come from the studies whose task tunes them; the others (COLMAP's
     # multiview task) contribute their own ratio-test column
@@ -459,8 +460,19 @@ def run_table(args) -> int:
     return 0
 
 
+def _check_task(task: str) -> None:
+    """``--task`` of table / results names a registered task: one line listing them otherwise (a typo used to read
+    as "no tested bogus study in the storage")."""
+    from pipeline.tasks import TASKS
+    try:
+        TASKS.get(task)
+    except ImtuneError as e:
+        raise ImtuneError(f"--task: {e}") from None
+
+
 def run_results(args) -> int:
     from tuner.reports import render_table, results_rows
+    _check_task(args.task)
     studies = _collect(args)
     rows, cols = results_rows(studies, args.format, studies_dir=_studies_dir(args))
     if not rows:
