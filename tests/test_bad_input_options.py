@@ -365,3 +365,46 @@ def test_an_unknown_task_lists_the_tasks(command, tmp_path, capsys):
     rc, out, err = _cli([command, "--task", "bogus", "--studies-dir", tmp_path], capsys)
     line = _one_line_error(rc, err, "--task", "unknown task 'bogus'", "stereo", "multiview")
     assert "no tested" not in line
+
+
+# ------------------------------------------------------------------------------ 10. compare: the verdict rule of findings
+
+def test_compare_verdict_needs_the_interval_and_the_sign_flip_test():
+    from tuner.compare import verdict
+    from tuner.findings.analysis import directional
+    # the interval excludes 0 but the exact sign-flip test does not confirm it: not "A better"
+    assert verdict({"ci": [-0.12, -0.004], "difference": -0.05, "p_value": 0.242}) == "no significant difference"
+    assert verdict({"ci": [-0.12, -0.004], "difference": -0.05, "p_value": 0.01}) == "A better"
+    assert verdict({"ci": [0.01, 0.2], "difference": 0.1, "p_value": 0.003}) == "B better"
+    assert verdict({"ci": [-0.01, 0.2], "difference": 0.1, "p_value": 0.003}) == "no significant difference"
+    # one rule for both commands
+    words = {"B better": "holds", "A better": "does not hold", "no significant difference": "inconclusive"}
+    for ci in ([-0.2, -0.01], [-0.01, 0.01], [0.01, 0.2], [0.0, 0.1]):
+        for p in (0.001, 0.049, 0.05, 0.242, 1.0):
+            assert words[verdict({"ci": ci, "difference": sum(ci) / 2, "p_value": p})] == directional(ci, p), (ci, p)
+
+
+def test_test_reports_compare_with_the_reference_by_the_same_rule():
+    from tuner.select import comparison_text
+    c = {"difference": 0.05, "ci": [0.004, 0.1], "p_value": 0.242, "significant": True, "pairs": 24}
+    line = comparison_text({"label": "paper defaults", "mAA10": 0.4, "comparison": c})
+    assert line.endswith("no significant difference"), line
+
+
+def test_compare_states_its_verdict_rule(tiny, tmp_path, capsys):
+    import json
+
+    import yaml
+    conf = tmp_path / "a.yaml"
+    conf.write_text(yaml.safe_dump({"config": {"feature": {"name": "sift", "num_features": 256},
+                                               "geometry": {"ransac": "degensac", "max_iters": 1000}}}))
+    common = [conf, conf, "--data", tiny, "--cache", tmp_path / "cache", "--studies-dir", tmp_path, "--quiet",
+              "--ci-resamples", "200"]
+    rc, out, err = _cli(["compare", *common], capsys)
+    assert rc == 0, err
+    assert "| no significant difference |" in out
+    assert ("verdict: B or A is better only when the 95% CI of B - A excludes 0 and the paired sign-flip test agrees "
+            "(p < 0.05); otherwise no significant difference (the rule of tune findings)") in out
+    rc, out, err = _cli(["compare", *common, "--json"], capsys)
+    res = json.loads(out)
+    assert rc == 0 and res["overall"]["verdict"] == "no significant difference" and "sign-flip" in res["verdict_rule"]

@@ -12,15 +12,17 @@ scenes and pairs (identical configurations once: their records are shared, so a 
 with itself gives difference 0 and p = 1 exactly, whether or not its estimator is seeded). Then each
 source after the first is compared with the first by
 :func:`pipeline.metrics.uncertainty.paired_bootstrap`: ``difference`` = mAA10(B) - mAA10(A) over the pairs
-both evaluated, its stratified bootstrap CI, a two-sided sign-flip p-value, overall and per scene. "No
-significant difference" means the CI contains 0.
+both evaluated, its stratified bootstrap CI, a two-sided sign-flip p-value, overall and per scene, and a verdict
+by the rule of `tune findings` (:func:`pipeline.metrics.uncertainty.paired_direction`): "B better" / "A better"
+only when the CI excludes 0 and the sign-flip test agrees (p < 0.05), else "no significant difference".
 """
 from __future__ import annotations
 
 from pathlib import Path
 
 from pipeline.errors import ImtuneError
-from pipeline.metrics.uncertainty import DEFAULT_LEVEL, DEFAULT_RESAMPLES, maa_intervals, paired_bootstrap
+from pipeline.metrics.uncertainty import (DEFAULT_LEVEL, DEFAULT_RESAMPLES, DIRECTION_RULE, maa_intervals,
+                                          paired_bootstrap, paired_direction)
 
 COMPARISON_KEYS = ("mAA10_a", "mAA10_b", "difference", "ci", "p_value", "significant", "pairs", "dropped_a",
                    "dropped_b")
@@ -101,18 +103,24 @@ def compare(sources: list, data_root: Path | str, scenes=None, *, cache_dir=None
         pb = paired_bootstrap(recs_a, _records(res["stereo"]), tau=10, n_resamples=n_resamples, seed=seed,
                               level=level)
         comparisons.append({"a": sources[0].label, "b": src.label,
-                            "overall": {k: pb[k] for k in COMPARISON_KEYS},
-                            "scenes": {n: {k: s[k] for k in COMPARISON_KEYS} for n, s in pb["scenes"].items()}})
+                            "overall": _with_verdict({k: pb[k] for k in COMPARISON_KEYS}, level),
+                            "scenes": {n: _with_verdict({k: s[k] for k in COMPARISON_KEYS}, level)
+                                       for n, s in pb["scenes"].items()}})
     return {"data": str(data_root), "scenes": evaluated[0]["scenes"], "level": level, "n_resamples": n_resamples,
-            "seed": seed, "sources": out_sources, "comparisons": comparisons}
+            "seed": seed, "sources": out_sources, "comparisons": comparisons, "verdict_rule": DIRECTION_RULE}
+
+
+def _with_verdict(c: dict, level: float) -> dict:
+    c["verdict"] = verdict(c, level)
+    return c
 
 
 def verdict(c: dict, level: float = DEFAULT_LEVEL) -> str:
-    """'B better' / 'A better' / 'no significant difference' from a comparison's CI."""
-    lo, hi = c["ci"]
-    if lo <= 0.0 <= hi:
-        return "no significant difference"
-    return "B better" if c["difference"] > 0 else "A better"
+    """'B better' / 'A better' / 'no significant difference' from a comparison's CI and p-value: the rule of
+    `tune findings` (:func:`pipeline.metrics.uncertainty.paired_direction`; DIRECTION_RULE in words). The CI
+    alone called 'A better' at p = 0.24."""
+    return {1: "B better", -1: "A better", 0: "no significant difference"}[
+        paired_direction(c["ci"], c.get("p_value"), level)]
 
 
 def comparison_rows(comp: dict, level: float = DEFAULT_LEVEL) -> list[dict]:

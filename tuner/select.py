@@ -319,8 +319,9 @@ def comparison_text(ref: dict | None) -> str:
     if not c:
         return head + f" ({ref.get('note') or 'no paired comparison'})"
     lo, hi = c["ci"]
-    verdict = ("no significant difference" if not c["significant"] else
-               ("frozen settings significantly better" if c["difference"] > 0 else
-                "frozen settings significantly WORSE: tuning did not generalise"))
+    from pipeline.metrics.uncertainty import paired_direction  # the rule of tune findings and tune compare
+    verdict = {0: "no significant difference", 1: "frozen settings significantly better",
+               -1: "frozen settings significantly WORSE: tuning did not generalise"}[
+        paired_direction(c["ci"], c.get("p_value"))]
     return (f"{head}; frozen - reference {c['difference']:+.3f} [{lo:+.3f}, {hi:+.3f}], p = {c['p_value']:.3g} "
             f"over {c['pairs']} paired pairs: {verdict}")

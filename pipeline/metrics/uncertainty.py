@@ -36,7 +36,8 @@ from scipy import stats
 
 from pipeline.metrics.pose import mean_average_accuracy
 
-__all__ = ["pair_scores", "maa_from_errors", "maa_intervals", "bag_intervals", "paired_bootstrap",
+__all__ = ["pair_scores", "maa_from_errors", "maa_intervals", "bag_intervals", "paired_bootstrap", "paired_direction",
+           "DIRECTION_RULE",
            "rank_with_ties", "rank_by_intervals", "combine_runs_interval", "stratified_interval",
            "DEFAULT_RESAMPLES", "DEFAULT_LEVEL"]
 
@@ -291,6 +292,26 @@ def paired_bootstrap(records_a: Sequence[Mapping], records_b: Sequence[Mapping],
                                 sum(1 for k in sa if k[0] == n and k not in sb),
                                 sum(1 for k in sb if k[0] == n and k not in sa))
     return out
+
+
+#: the rule of :func:`paired_direction` in words (`tune compare` prints it; the findings report states its own)
+DIRECTION_RULE = ("B or A is better only when the 95% CI of B - A excludes 0 and the paired sign-flip test agrees "
+                  "(p < 0.05); otherwise no significant difference")
+
+
+def paired_direction(ci, p_value: float | None = None, level: float = DEFAULT_LEVEL) -> int:
+    """Which of two configurations is better from a paired comparison of B - A (:func:`paired_bootstrap`): +1 B,
+    -1 A, 0 neither. The CI containing 0 is 0; otherwise the paired sign-flip test must agree (p < 1 - level),
+    else 0 too: on a few dozen pairs the percentile bootstrap is too narrow, the sign-flip test is exact (the
+    two come from different resamplings and can disagree at the margin). One rule for `tune findings`' verdicts
+    (``tuner.findings.analysis.directional``), `tune compare` and the test reports' comparison with a reference;
+    ``p_value`` None: the CI alone."""
+    lo, hi = float(ci[0]), float(ci[1])
+    if lo <= 0.0 <= hi:
+        return 0
+    if p_value is not None and not float(p_value) < 1.0 - level:
+        return 0  # the exact sign-flip test does not confirm the bootstrap interval
+    return 1 if lo > 0 else -1
 
 
 # ------------------------------------------------------------------------------------------ ranking

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 
 from pipeline.errors import ImtuneError
+from pipeline.metrics.uncertainty import DIRECTION_RULE
 from tuner.commands.evaluate import _jsonable  # the same JSON rendering as tune evaluate
 from tuner.options import DATA_HELP
 
@@ -55,7 +56,8 @@ def run(args) -> int:
     res = compare(sources, data, args.scenes, cache_dir=args.cache, min_covisibility=args.covisibility,
                   progress=not (args.quiet or args.json), n_resamples=args.ci_resamples, seed=args.seed)
     if args.json:
-        objs = [{"a": c["a"], "b": c["b"], "overall": c["overall"], "scenes": c["scenes"]} for c in res["comparisons"]]
+        objs = [{"a": c["a"], "b": c["b"], "overall": c["overall"], "scenes": c["scenes"],
+                 "verdict_rule": res["verdict_rule"]} for c in res["comparisons"]]
         print(json.dumps(_jsonable(objs[0] if len(objs) == 1 else objs), indent=2))
         return 0
     print(f"data {res['data']} | scenes {', '.join(res['scenes'])} | {args.ci_resamples} resamples, seed {args.seed}")
@@ -67,4 +69,5 @@ def run(args) -> int:
         tag = "B" if len(res["comparisons"]) == 1 else f"B{i}"
         print(f"\n{tag} vs A: mAA(10) difference B - A (> 0: B better), 95% bootstrap CI, paired sign-flip p")
         print(render(comparison_rows(c), "markdown"))
+    print(f"verdict: {DIRECTION_RULE} (the rule of tune findings)")
     return 0

@@ -23,7 +23,7 @@ Rules (the report states the one each finding uses):
 """
 from __future__ import annotations
 
-from pipeline.metrics.uncertainty import DEFAULT_LEVEL, combine_runs_interval, paired_bootstrap
+from pipeline.metrics.uncertainty import DEFAULT_LEVEL, combine_runs_interval, paired_bootstrap, paired_direction
 from tuner.findings.definitions import SMALL_GAIN, Finding
 
 HOLDS, FAILS, UNSURE, NOT_RUN = "holds", "does not hold", "inconclusive", "not run"
@@ -32,13 +32,9 @@ SAME_BAND = {"ratio": ("abs", 0.05), "threshold": ("ratio", 1.5)}
 
 
 def directional(ci, p_value: float | None = None, level: float = DEFAULT_LEVEL) -> str:
-    """The ``better`` rule on the CI of B - A (and the paired test's p-value, when given)."""
-    lo, hi = float(ci[0]), float(ci[1])
-    if lo <= 0.0 <= hi:
-        return UNSURE
-    if p_value is not None and not float(p_value) < 1.0 - level:
-        return UNSURE  # the exact sign-flip test does not confirm the bootstrap interval
-    return HOLDS if lo > 0 else FAILS
+    """The ``better`` rule on the CI of B - A (and the paired test's p-value, when given): the verdict of
+    :func:`pipeline.metrics.uncertainty.paired_direction`, the rule `tune compare` uses too."""
+    return {1: HOLDS, -1: FAILS, 0: UNSURE}[paired_direction(ci, p_value, level)]
 
 
 def small_gain(ci, margin: float = SMALL_GAIN) -> str:
