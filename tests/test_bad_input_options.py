@@ -408,3 +408,56 @@ def test_compare_states_its_verdict_rule(tiny, tmp_path, capsys):
     rc, out, err = _cli(["compare", *common, "--json"], capsys)
     res = json.loads(out)
     assert rc == 0 and res["overall"]["verdict"] == "no significant difference" and "sign-flip" in res["verdict_rule"]
+
+
+# ------------------------------------------------------------------------------ 11. what an interrupted command says
+
+def test_each_command_says_what_an_interruption_leaves():
+    from tuner.cli import RESUME_NOTE, build_parser
+    ap = build_parser()
+
+    def note(*argv):
+        return getattr(ap.parse_args(list(argv)), "on_interrupt", None)
+    assert note("run") == RESUME_NOTE and note("findings") == RESUME_NOTE  # studies resume
+    assert "resume" not in note("test", "--study", "x") and "written only when it finishes" in note("test", "--study", "x")
+    assert "resume" not in note("calibrate")
+    for cmd in (["evaluate"], ["table"], ["results"], ["dashboard"], ["plot"], ["studies"]):  # nothing to keep
+        assert note(*cmd) is None, cmd
+
+
+def test_a_terminated_test_run_does_not_promise_a_resume(tiny, tmp_path, capsys):
+    """SIGTERM (a scheduler's time limit) in the middle of `tune test`'s runs, in this very process: the message
+    says the test run is not written and to rerun it, not that completed trials are kept and it resumes."""
+    import os
+    import signal
+    import threading
+    import time
+
+    from tuner import cli
+    st = tmp_path / "st"
+    rc, out, err = _cli(["run", "--data", tiny, *FAST, "--studies-dir", st, "--n-trials", "1", "--no-test",
+                         "--fix", "max_iters=1000", "--study", "s"], capsys)
+    assert rc == 0, err
+    caught = []
+    previous = signal.signal(signal.SIGTERM, lambda *a: caught.append(a))  # a late signal must not end pytest
+
+    def terminate_while_running():
+        deadline = time.time() + 60
+        while time.time() < deadline and signal.getsignal(signal.SIGTERM) is not cli._raise_terminated:
+            time.sleep(0.01)
+        time.sleep(1.0)  # inside the 2000 runs (about 20 ms each here)
+        if signal.getsignal(signal.SIGTERM) is cli._raise_terminated:
+            os.kill(os.getpid(), signal.SIGTERM)
+    killer = threading.Thread(target=terminate_while_running, daemon=True)
+    killer.start()
+    try:
+        rc, out, err = _cli(["test", "--study", "s", "--studies-dir", st, "--scenes", "fountain-P11", "--runs", "2000",
+                             "--reference", "none", "--ci", "none", "--jobs", "1", "--quiet"], capsys)
+    finally:
+        killer.join(timeout=70)
+        signal.signal(signal.SIGTERM, previous)
+    assert rc == 128 + signal.SIGTERM, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert lines[-1] == ("tune: terminated (SIGTERM); a test run is written only when it finishes (test.json keeps "
+                         "the last finished one); rerun the command"), err
+    assert "resume" not in err and not (st / "s" / "test.json").exists()

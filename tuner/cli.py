@@ -163,6 +163,10 @@ def route(argv: list[str], ap: argparse.ArgumentParser) -> list[str] | None:
     return argv
 
 
+#: ``on_interrupt`` of the commands that tune studies (run, findings): rerunning them resumes
+RESUME_NOTE = "completed trials are kept, rerun the same command to resume"
+
+
 class Terminated(KeyboardInterrupt):
     """SIGTERM (`kill PID`, a batch scheduler's time limit) stops a run the way Ctrl-C does: the pair pool is
     killed, the running trial is marked failed, completed trials stay in the storage. A KeyboardInterrupt, so
@@ -226,7 +230,10 @@ def _main(argv: list[str] | None = None) -> int:
             pass
         return 0
     except KeyboardInterrupt as e:
-        kept = "; completed trials are kept, rerun the same command to resume" if hasattr(args, "storage") else ""
+        # what an interruption leaves, as the command says it (``on_interrupt`` in its parser's defaults): a study's
+        # completed trials are kept and it resumes; a test run or a calibration is written only when it finishes
+        note = getattr(args, "on_interrupt", None)
+        kept = f"; {note}" if note else ""
         if isinstance(e, Terminated):
             print(f"tune: terminated (SIGTERM){kept}", file=sys.stderr)
             return 128 + signal.SIGTERM

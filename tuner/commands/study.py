@@ -120,7 +120,8 @@ def register(sub) -> None:
     add_multiview_options(ap)
     add_ci_options(ap)
     add_jobs_option(t)
-    ap.set_defaults(func=run)
+    from tuner.cli import RESUME_NOTE
+    ap.set_defaults(func=run, on_interrupt=RESUME_NOTE)
 
     c = sub.add_parser("calibrate", help="measure estimator seconds per pair vs max-iters; store Gamma_max(B)")
     add_pipeline_options(c, tuning=True)
@@ -136,7 +137,7 @@ def register(sub) -> None:
     c.add_argument("--task", default="stereo", choices=[t for t in task_choices() if t != "both"],
                    help="the task whose pairs are timed")
     add_jobs_option(c)
-    c.set_defaults(func=run_calibrate)
+    c.set_defaults(func=run_calibrate, on_interrupt="a calibration is stored only when it finishes; rerun the command")
 
     te = sub.add_parser("test", help="run a study's frozen settings on the test scenes (3 runs, averaged)")
     te.add_argument("--study", required=True)
@@ -155,7 +156,9 @@ def register(sub) -> None:
     _select_opts(te)
     add_ci_options(te)
     add_jobs_option(te)
-    te.set_defaults(func=run_test_cmd)
+    # a test run has no trials and does not resume: test.json is written (atomically) when all its runs are done
+    te.set_defaults(func=run_test_cmd, on_interrupt="a test run is written only when it finishes (test.json keeps the "
+                                                    "last finished one); rerun the command")
 
     for name, helptext, fn in (("table", "optimal-settings table over all studies in the storage", run_table),
                                ("results", "test-results table (NF, NI and mAA(10) per estimator, rank)", run_results)):
