@@ -278,3 +278,21 @@ def test_bca_option_is_close_to_the_percentile_interval_and_survives_degenerate_
     assert all(math.isfinite(v) for v in maa_intervals(flat, method="BCa")["mAA10_ci"])
     with pytest.raises(ValueError, match="unknown bootstrap method"):
         maa_intervals(recs, method="studentized")
+
+
+def test_a_difference_the_sign_flip_test_does_not_confirm_is_no_significant_difference():
+    """Five pairs, B better on each: every bootstrap resample of the difference is > 0 (the CI excludes 0), but the
+    exact sign-flip p of five signs is 2 / 2**5 = 0.0625 >= 0.05. One rule (paired_direction) for verdicts, shared
+    ranks and "significant": not significant, the rank shared. Six such pairs: p = 2 / 64 = 0.031, significant."""
+    from pipeline.metrics.uncertainty import paired_bootstrap, rank_with_ties
+
+    def recs(errs):
+        return [{"scene": "s", "pair": f"{i:04d}|{i + 1:04d}", "err": float(e)} for i, e in enumerate(errs)]
+    for n, significant in ((5, False), (6, True)):
+        a, b = recs([8.0] * n), recs([2.0] * n)  # B: 2 deg on every pair, A: 8 deg
+        cmp = paired_bootstrap(a, b, n_resamples=4000)
+        assert cmp["ci"][0] > 0 and cmp["p_value"] == pytest.approx(2 / 2 ** n, abs=0.015), cmp
+        assert cmp["significant"] is significant
+        ranked = rank_with_ties([("A", a), ("B", b)], n_resamples=4000)
+        assert [r["name"] for r in ranked] == ["B", "A"]
+        assert ranked[1]["shared"] is (not significant) and ranked[1]["rank"] == (1 if not significant else 2)

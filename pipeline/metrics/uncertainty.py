@@ -244,7 +244,7 @@ def _paired_stats(groups_a, groups_b, n_resamples, seed, level, method) -> dict:
     if not np.any(d):  # identical scores: exactly 0, whatever the rounding of maa_b - maa_a
         diff, ci = 0.0, [0.0, 0.0]
     return {"a": maa_a, "b": maa_b, "difference": diff, "ci": ci, "p_value": p,
-            "significant": not (ci[0] <= 0.0 <= ci[1]), "pairs": int(d.size)}
+            "significant": paired_direction(ci, p, level) != 0, "pairs": int(d.size)}
 
 
 def paired_bootstrap(records_a: Sequence[Mapping], records_b: Sequence[Mapping], tau: int = 10,
@@ -258,9 +258,9 @@ def paired_bootstrap(records_a: Sequence[Mapping], records_b: Sequence[Mapping],
     over scenes. ``ci``: stratified percentile bootstrap of the difference, resampling the *same* pair
     indices for A and B (i.e. resampling per-pair score differences) within each scene. ``p_value``:
     two-sided paired sign-flip randomisation test (see ``_sign_flip_p``: exact size under "A and B are
-    exchangeable on each pair"), with the same resample count and seed. "significant" means the CI
-    excludes 0 (the rule for shared ranks and "no significant difference"); p and the CI come from
-    different resamplings and can disagree at the margin (p close to 1 - level).
+    exchangeable on each pair"), with the same resample count and seed. "significant": the CI excludes 0 and
+    the sign-flip test agrees (:func:`paired_direction`, the one rule for verdicts, shared ranks and "no
+    significant difference"; p and the CI come from different resamplings and can disagree at the margin).
 
     Returns ``{"mAA<tau>_a", "mAA<tau>_b", "difference", "ci": [lo, hi], "p_value", "significant",
     "pairs" (common), "dropped_a", "dropped_b" (pairs only in A / only in B), "tau", "level",
@@ -331,7 +331,8 @@ def rank_with_ties(items, tau: int = 10, n_resamples: int = DEFAULT_RESAMPLES, s
     :func:`paired_bootstrap` (several runs' records may be concatenated: they are averaged per pair).
     The methods are ordered by mAA(tau) (highest first; ties keep the given order); each one is compared
     with the one directly above it by :func:`paired_bootstrap` (that one as A, this one as B) and shares
-    its rank when the difference's CI contains 0. Ranks are competition ranks (1, 1, 3): a method that
+    its rank when the difference is not significant (its CI contains 0, or the sign-flip test does not confirm it:
+    ``significant``). Ranks are competition ranks (1, 1, 3): a method that
     differs significantly from the one above gets its position. Sharing is chained: C can share rank 1
     with B, which shares it with A, even if A and C differ significantly (the note says whom each row
     ties with). Two methods without a common pair are not compared (no shared rank; the note says so).
@@ -365,7 +366,7 @@ def rank_with_ties(items, tau: int = 10, n_resamples: int = DEFAULT_RESAMPLES, s
             cmp = {k: v for k, v in cmp.items() if k != "scenes"}
             row["comparison"] = cmp
             lo, hi = cmp["ci"]
-            if lo <= 0.0 <= hi:
+            if not cmp["significant"]:
                 row["rank"], row["shared"] = above["rank"], True
                 row["note"] = (f"rank shared with {above['name']}: difference {cmp['difference']:+.4f} "
                                f"[{lo:+.4f}, {hi:+.4f}] not significant (p={cmp['p_value']:.3g})")
