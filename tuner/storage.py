@@ -84,6 +84,40 @@ _KV_RE = re.compile(r"(?<![A-Za-z0-9_.\-])(?P<k>password|passwd|pwd|pass|sslpass
 _SCHEME_ONLY_RE = re.compile(r"^(?P<scheme>[A-Za-z][A-Za-z0-9+.\-]*):(?!//)")
 
 
+#: the start of a URL that lost its "//" or ":" (``postgresql:/u:pw@h``, ``postgresql//u:pw@h``, ``postgresql:u:pw@h``)
+_LOOSE_PREFIX_RE = re.compile(r"^[A-Za-z][A-Za-z0-9+.\-]*(?::/*|/+)")
+
+
+def _loose_password_span(s: str) -> tuple[int, int] | None:
+    """Where the password of a malformed URL without ``://`` is: ``(start, end)`` in ``s``, or None.
+
+    ``postgresql:/user:pw@host/db``, ``postgresql//user:pw@host/db``, ``postgresql:user:pw@host/db`` and
+    ``user:pw@host/db`` are typos of a URL whose userinfo still carries the password: everything from the first
+    ``:`` of the userinfo to the last ``@`` is masked (an ``@`` in a password is not always encoded). A
+    journal path or a plain path (no ``:`` before its last ``@``) has none."""
+    if s.startswith("journal:") or "@" not in s:
+        return None
+    at = s.rfind("@")
+    head = s[:at]
+    start = 0
+    m = _LOOSE_PREFIX_RE.match(head)
+    if m and (":" in head[m.end():] or "/" in m.group(0)):  # a scheme before the userinfo ("user:" alone is none)
+        start = m.end()
+    colon = head.find(":", start)
+    if colon < 0 or colon + 1 >= at or head[colon + 1:] in ("PASS", "PASSWORD", MASK):
+        return None
+    return colon + 1, at
+
+
+def _loose_mask(s: str) -> str:
+    """A malformed URL without ``://`` with its password (:func:`_loose_password_span`) and secret query
+    parameters masked; other strings unchanged."""
+    span = _loose_password_span(s)
+    if span is None:
+        return s
+    return _mask_query(s[:span[0]] + MASK + s[span[1]:])
+
+
 def _regex_mask(text: str) -> str:
     """Fallback for text SQLAlchemy cannot parse: URL userinfo passwords and secret key=value pairs."""
     text = _URL_PW_RE.sub(lambda m: m.group(0) if m.group("pw") in ("PASS", "PASSWORD", MASK)  # placeholders
@@ -159,7 +193,7 @@ def mask_url(url: str | None) -> str:
         return ""
     s = str(url).strip()
     if "://" not in s:
-        return s
+        return _loose_mask(s)
     u = _parse(s)
     if u is None:
         return _regex_mask(s)
@@ -168,19 +202,23 @@ def mask_url(url: str | None) -> str:
 
 def _secrets(url: str | None) -> list[str]:
     """Every secret value the URL carries, raw and in its percent-encoded forms (longest first)."""
-    if not url or "://" not in str(url):
+    if not url:
         return []
     from urllib.parse import quote, quote_plus
-    u = _parse(str(url))
+    s = str(url).strip()
     vals = []
-    if u is not None:
+    if "://" not in s:  # a malformed URL (a typo of one) still carries its password
+        span = _loose_password_span(s)
+        if span is not None:
+            vals.append(s[span[0]:span[1]])
+    elif (u := _parse(s)) is not None:
         if u.password:
             vals.append(str(u.password))
         for k, v in u.query.items():
             if SECRET_KEY_RE.search(k):
                 vals.extend([v] if isinstance(v, str) else list(v))
     else:  # unparseable: what the regex would mask
-        m = _URL_PW_RE.search(str(url))
+        m = _URL_PW_RE.search(s)
         if m and m.group("pw"):
             vals.append(m.group("pw"))
     out = set()
