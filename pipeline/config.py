@@ -5,6 +5,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import re
 from dataclasses import dataclass, field
 
 from pipeline.errors import ImtuneError
@@ -34,6 +35,29 @@ def run_seed(seed: int, k: int) -> int:
     return (int(seed) + int(k)) % (SEED_MAX + 1)
 
 
+_EXPONENT_RE = re.compile(r"^\s*(?P<m>[-+]?(?:\d+\.?\d*|\.\d+))[eE](?P<e>[-+]?\d+)\s*$")
+
+
+def yaml_number_hint(v) -> str:
+    """For a string that YAML read from a number in exponent notation (YAML 1.1, PyYAML's, reads ``1e5`` and
+    ``1.0e5`` as strings: a float needs a dot and a signed exponent), `` (YAML reads 1e5 as a string: write 1.0e+5
+    or 100000)``; "" for anything else. Appended to the "must be a number" messages of YAML values."""
+    m = _EXPONENT_RE.match(v) if isinstance(v, str) else None
+    if m is None:
+        return ""
+    mant, exp = m.group("m"), m.group("e")
+    if "." not in mant:
+        mant += ".0"
+    elif mant.endswith("."):
+        mant += "0"
+    sci = f"{mant}e{exp if exp[0] in '+-' else '+' + exp}"
+    if sci.lower() == v.strip().lower():  # already a YAML float: not why it failed
+        return ""
+    f = float(v)
+    plain = str(int(f)) if f.is_integer() and abs(f) < 1e15 else ("" if "e" in repr(f) else repr(f))
+    return f" (YAML reads {v.strip()} as a string: write {sci}" + (f" or {plain}" if plain else "") + ")"
+
+
 def _number(what: str, v, integer: bool = False) -> float:
     """``v`` as a finite float (ImtuneError naming ``what`` for nan, inf, bools, non-numbers, non-integers)."""
     try:
@@ -41,7 +65,7 @@ def _number(what: str, v, integer: bool = False) -> float:
             raise TypeError
         f = float(v)
     except (TypeError, ValueError):
-        raise ImtuneError(f"{what} must be a number, got {v!r}") from None
+        raise ImtuneError(f"{what} must be a number, got {v!r}{yaml_number_hint(v)}") from None
     if not math.isfinite(f):
         raise ImtuneError(f"{what} must be a finite number, got {v!r}")
     if integer and f != int(f):

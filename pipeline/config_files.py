@@ -94,6 +94,8 @@ def pipeline_from_dict(d: dict, base: PipelineConfig | None = None, where: str =
             kw[sec] = dataclasses.replace(getattr(base, sec), **vals)
         except (TypeError, ValueError) as e:
             raise ImtuneError(f"{where}: invalid {sec} section ({e})") from None
+        except ImtuneError as e:  # a value the stage rejects: the message names the file too
+            raise ImtuneError(f"{where}: {e}") from None
     return PipelineConfig(**kw)
 
 
@@ -136,11 +138,10 @@ def config_from_imc(method: dict, where: str = "IMC method") -> PipelineConfig:
 def read_mapping(path: str | Path):
     """The parsed file (JSON by suffix, else YAML with safe_load); one-line ImtuneError if unreadable."""
     import yaml
+
+    from pipeline.fileio import read_text
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as e:
-        raise ImtuneError(f"cannot read config file {path}: {e.strerror or e}") from None
+    text = read_text(path, "config file")
     is_json = path.suffix.lower() == ".json"
     try:
         return json.loads(text) if is_json else yaml.safe_load(text)

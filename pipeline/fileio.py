@@ -28,6 +28,28 @@ class FileWriteError(ImtuneError):
         return self.errno in (_errno.ENOSPC, _errno.EDQUOT)
 
 
+def read_text(path: Path | str, what: str = "file") -> str:
+    """The text of a file the user gave (a configuration, search space, frozen.yaml, imtune.yaml, splits.yaml, ...),
+    decoded as UTF-8 (a BOM is dropped). One-line ImtuneError naming ``what`` and the file when it is not a regular
+    file (a folder, a device, a FIFO: never read, so /dev/zero cannot fill the memory), cannot be read, or is not
+    UTF-8 text (a binary file, a file in another encoding): the one reader of every such file."""
+    import stat
+    path = Path(path)
+    try:
+        st = os.stat(path)
+        if not stat.S_ISREG(st.st_mode):
+            kind = "a folder" if stat.S_ISDIR(st.st_mode) else "not a regular file"
+            raise ImtuneError(f"{what} {path} is {kind}; give a text file")
+        data = path.read_bytes()
+    except OSError as e:
+        raise ImtuneError(f"cannot read {what} {path}: {e.strerror or e}") from None
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise ImtuneError(f"{what} {path} is not a UTF-8 text file (byte 0x{data[e.start]:02x} at offset {e.start} "
+                          "cannot be decoded); is it the right file? save it as UTF-8 text") from None
+
+
 def atomic_write(path: Path | str, text: str) -> None:
     """Write text atomically: temp name in the same folder, fsync, rename (readers never see a partial
     file; an interrupted write leaves the old file). One-line ImtuneError when the folder is not writable."""

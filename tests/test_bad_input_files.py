@@ -25,10 +25,11 @@ BINARY = bytes(range(128, 256)) * 4 + b"\n\xff\xfe\x00"  # no valid UTF-8 sequen
 
 
 def tune(*args, env: dict | None = None, cwd: Path | str = ROOT, timeout: float = 120, **kw):
-    """`python -m tuner ARGS` in a real process (no IMTUNE_DEBUG; extra environment ``env``)."""
+    """`python -m tuner ARGS` in a real process (no IMTUNE_DEBUG; extra environment ``env``, None: unset)."""
     e = dict(os.environ, PYTHONPATH=str(ROOT))
     e.pop("IMTUNE_DEBUG", None)
     e.update(env or {})
+    e = {k: v for k, v in e.items() if v is not None}
     return subprocess.run([sys.executable, "-m", "tuner", *map(str, args)], cwd=cwd, env=e, capture_output=True,
                           text=True, timeout=timeout, stdin=subprocess.DEVNULL, **kw)
 
@@ -62,3 +63,80 @@ def test_malformed_storage_url_masks_the_password(url, tmp_path):
     from tuner.storage import mask_url, scrub
     assert SECRET not in mask_url(url) and SECRET not in scrub(f"error in {url}", url)
     assert not (tmp_path / "studies").exists()
+
+
+# -- 2. binary files where text is expected; YAML's string 1e5 -----------------------------------------------
+
+def _binary(tmp: Path, name: str = "bin.yaml") -> Path:
+    f = tmp / name
+    f.parent.mkdir(parents=True, exist_ok=True)
+    f.write_bytes(BINARY)
+    return f
+
+
+def _frozen_study(tmp: Path, content: bytes | str) -> Path:
+    """A studies folder holding study X whose frozen.yaml is ``content``; returns the folder."""
+    sdir = tmp / "studies"
+    (sdir / "X").mkdir(parents=True)
+    f = sdir / "X" / "frozen.yaml"
+    f.write_bytes(content) if isinstance(content, bytes) else f.write_text(content)
+    return sdir
+
+
+NOT_UTF8 = {  # setup(tmp, data) -> (argv, culprit, cwd or None)
+    "evaluate-config": lambda t, d: (["evaluate", "--config", _binary(t), "--data", d], _binary(t), None),
+    "run-space": lambda t, d: (["run", "--space", _binary(t), "--data", d, "--studies-dir", t / "studies",
+                                "--storage", f"sqlite:///{t}/optuna.db"], _binary(t), None),
+    "run-reference": lambda t, d: (["run", "--reference", _binary(t), "--data", d, "--studies-dir", t / "studies",
+                                    "--storage", f"sqlite:///{t}/optuna.db"], _binary(t), None),
+    "compare-source": lambda t, d: (["compare", _binary(t, "a.yaml"), _binary(t, "b.yaml"), "--data", d],
+                                    _binary(t, "a.yaml"), None),
+    "viz-config": lambda t, d: (["viz", "--config", _binary(t), "--data", d, "--out", t / "viz"], _binary(t), None),
+    "viz-compare": lambda t, d: (["viz", "--compare", _binary(t, "a.yaml"), _binary(t, "b.yaml"), "--data", d,
+                                  "--out", t / "viz"], _binary(t, "a.yaml"), None),
+    "test-frozen": lambda t, d: (["test", "--study", "X", "--studies-dir", _frozen_study(t, BINARY), "--data", d],
+                                 t / "studies" / "X" / "frozen.yaml", None),
+    "imtune-yaml": lambda t, d: (["data", "scenes"], _binary(t / "cwd", "imtune.yaml"), t / "cwd"),
+    "splits-yaml": lambda t, d: (["data", "scenes", "--data", t / "data"],
+                                 _splits(t, d), None),
+}
+
+
+def _splits(tmp: Path, data: Path) -> Path:
+    import shutil
+    shutil.copytree(data, tmp / "data")
+    return _binary(tmp / "data", "splits.yaml")
+
+
+@pytest.mark.parametrize("case", list(NOT_UTF8))
+def test_binary_file_is_named_as_not_utf8_text(case, tmp_path, data3):
+    argv, culprit, cwd = NOT_UTF8[case](tmp_path, data3)
+    env = {"IMTUNE_STUDIES": str(tmp_path / "studies"), "IMTUNE_CACHE": str(tmp_path / "cache")}
+    env["IMTUNE_DATA"] = None  # imtune.yaml is rule 3
+    r = tune(*argv, env=env, cwd=cwd or ROOT)
+    one_line_error(r, str(culprit), "is not a UTF-8 text file")
+    assert not (tmp_path / "optuna.db").exists()
+
+
+def test_a_device_or_folder_as_config_file_is_never_read(tmp_path):
+    # /dev/zero would be read forever; a folder was "does not exist"
+    one_line_error(tune("evaluate", "--config", "/dev/zero"), "/dev/zero", "not a regular file")
+    one_line_error(tune("evaluate", "--config", tmp_path), str(tmp_path), "is a folder")
+
+
+@pytest.mark.parametrize("text,needle,hint", [
+    ("feature: sift\nmax_iters: 1e5\n", "max-iters must be a number, got '1e5'", "write 1.0e+5 or 100000"),
+    ("geometry: {ransac: degensac, threshold: 5e-1}\n", "got '5e-1'", "write 5.0e-1 or 0.5"),
+])
+def test_yaml_exponent_without_dot_says_how_to_write_it(text, needle, hint, tmp_path, data3):
+    f = tmp_path / "c.yaml"
+    f.write_text(text)
+    one_line_error(tune("evaluate", "--config", f, "--data", data3), str(f), needle, hint)
+
+
+def test_search_space_exponent_without_dot_says_how_to_write_it(tmp_path, data3):
+    f = tmp_path / "space.yaml"
+    f.write_text("params:\n  max_iters: {low: 1e3, high: 100000, log: true}\n")
+    r = tune("run", "--space", f, "--data", data3, "--studies-dir", tmp_path / "studies",
+             "--storage", f"sqlite:///{tmp_path}/optuna.db")
+    one_line_error(r, str(f), "params.max_iters", "got '1e3'", "write 1.0e+3 or 1000")

@@ -53,6 +53,8 @@ def resolve_source(spec: str, sdir: Path) -> Source:
     if p.is_file():
         return load_config_source(p)
     if p.suffix.lower() in (".yaml", ".yml", ".json") or "/" in spec:
+        if p.exists():  # a folder, a device, a FIFO: the reader says which, and never reads it
+            return load_config_source(p)
         raise ImtuneError(f"config file {p} does not exist")
     from tuner.freeze import study_dir
     if not (study_dir(sdir, spec) / "frozen.yaml").is_file():

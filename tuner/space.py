@@ -181,8 +181,9 @@ def _num(where: str, key: str, v, allow_calibrated: bool = False):
     if allow_calibrated and v == CALIBRATED:
         return v
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+        from pipeline.config import yaml_number_hint
         extra = " or 'calibrated'" if allow_calibrated else ""
-        raise _err(where, f"{key} must be a number{extra}, got {v!r}")
+        raise _err(where, f"{key} must be a number{extra}, got {v!r}{yaml_number_hint(v)}")
     return v
 
 
@@ -275,11 +276,9 @@ def _check_param(name: str, d, where: str):
 
 def read_yaml(path: Path) -> dict:
     """Parse one search-space file (yaml.safe_load) and check its top-level shape."""
+    from pipeline.fileio import read_text
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as e:
-        raise ImtuneError(f"search space {path}: cannot read ({e.strerror or e})") from None
+    text = read_text(path, "search space")
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as e:

@@ -93,9 +93,11 @@ def load_scene(data_root: str | Path, scene_name: str | None = None, **kwargs) -
 def _read_splits(path: Path, scenes: list[str]) -> dict[str, list[str]]:
     import yaml
 
+    from pipeline.fileio import read_text
+    text = read_text(path, "splits file")
     try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as e:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
         raise ImtuneError(f"cannot read {path}: {' '.join(str(e).split())}") from None
     if not isinstance(data, dict):
         raise ImtuneError(f"{path}: expected a mapping with keys 'val' and 'test'")

@@ -66,8 +66,10 @@ def project_config() -> tuple[dict, Path | None]:
     """The first ``imtune.yaml`` found (cwd, then project root), parsed with yaml.safe_load, and its path."""
     for p in (Path.cwd() / CONFIG_FILE, PROJECT_ROOT / CONFIG_FILE):
         if p.is_file():
+            from pipeline.fileio import read_text
+            text = read_text(p, "project configuration")
             try:
-                d = yaml.safe_load(p.read_text()) or {}
+                d = yaml.safe_load(text) or {}
             except yaml.YAMLError as e:
                 raise ImtuneError(f"{p}: invalid YAML ({str(e).splitlines()[0]})") from None
             if not isinstance(d, dict):

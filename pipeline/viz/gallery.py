@@ -145,7 +145,7 @@ def link_gallery(report_path: str | Path, href: str = "gallery.html",
         return False
     try:
         text = p.read_text()
-    except OSError:
+    except (OSError, ValueError):  # unreadable, or not UTF-8 text: not our report, left alone
         return False
     if LINK_MARKER in text:
         return True
