@@ -140,3 +140,74 @@ def test_search_space_exponent_without_dot_says_how_to_write_it(tmp_path, data3)
     r = tune("run", "--space", f, "--data", data3, "--studies-dir", tmp_path / "studies",
              "--storage", f"sqlite:///{tmp_path}/optuna.db")
     one_line_error(r, str(f), "params.max_iters", "got '1e3'", "write 1.0e+3 or 1000")
+
+
+# -- 3. a journal storage that is not an Optuna journal ------------------------------------------------------
+
+JOURNALS = {  # name -> content
+    "binary": BINARY,
+    "text": b"hello world\nsecond line\n",
+    "text-one-line": b"hello world\n",  # Optuna skips a bad last line: it passed for an empty journal
+    "unknown-op-code": b'{"op_code": 99, "worker_id": "w"}\n',
+    "no-op-code": b'{"a": 1}\n',
+    "json-list": b"[1, 2]\n",
+}
+
+
+@pytest.mark.parametrize("cmd", ["studies", "run"])
+@pytest.mark.parametrize("content", list(JOURNALS))
+def test_corrupt_journal_is_one_line(content, cmd, tmp_path, data3):
+    j = tmp_path / "optuna.log"
+    j.write_bytes(JOURNALS[content])
+    extra = ["--data", data3, "--num-features", "512", "--n-trials", "1", "--no-test", "--quiet"] if cmd == "run" else []
+    r = tune(cmd, "--storage", f"journal:{j}", "--studies-dir", tmp_path / "studies", *extra,
+             env={"IMTUNE_CACHE": str(tmp_path / "cache")})
+    one_line_error(r, str(j), "is not an Optuna journal file")
+    assert j.read_bytes() == JOURNALS[content]  # left as it was
+
+
+def test_a_real_journal_still_opens(tmp_path):
+    import optuna
+    from optuna.storages import JournalStorage
+    from optuna.storages.journal import JournalFileBackend
+    j = tmp_path / "good.log"
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    optuna.create_study(study_name="s", storage=JournalStorage(JournalFileBackend(str(j)))).optimize(
+        lambda t: t.suggest_float("x", 0, 1), n_trials=1)
+    r = tune("studies", "--storage", f"journal:{j}", "--studies-dir", tmp_path / "studies")
+    assert r.returncode == 0 and "| s " in r.stdout, r.stderr
+
+
+def _fifo(tmp: Path) -> Path:
+    p = tmp / "fifo.log"
+    os.mkfifo(p)
+    return p
+
+
+@pytest.mark.parametrize("cmd", ["studies", "run"])
+@pytest.mark.parametrize("what,path,kind", [
+    ("dev-null", lambda t: Path("/dev/null"), "is a device"),
+    ("folder", lambda t: t, "is a folder"),
+    ("fifo", _fifo, "is a FIFO"),  # opened for reading it blocks until a writer comes
+])
+def test_journal_path_that_is_not_a_regular_file_is_refused_unopened(what, path, kind, cmd, tmp_path, data3):
+    p = path(tmp_path)
+    extra = ["--data", data3, "--num-features", "512", "--n-trials", "1", "--no-test", "--quiet"] if cmd == "run" else []
+    r = tune(cmd, "--storage", f"journal:{p}", "--studies-dir", tmp_path / "studies", *extra,
+             env={"IMTUNE_CACHE": str(tmp_path / "cache")}, timeout=30)
+    one_line_error(r, f"journal storage {p} {kind}")
+    assert not Path(f"{p}.lock").exists() and not (tmp_path / "studies").exists()
+
+
+def test_dev_full_as_journal_is_refused_before_reading(tmp_path, data3):
+    # /dev/full reads endless zeros with no line end: Optuna read it until the OOM killer came; the address-space
+    # limit makes an unfixed build fail within seconds with MemoryError instead (exit 1), never the machine
+    import resource
+    lim = 4 << 30
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_AS, (lim, lim))
+    r = tune("run", "--storage", "journal:/dev/full", "--data", data3, "--studies-dir", tmp_path / "studies",
+             "--num-features", "512", "--n-trials", "1", "--no-test", "--quiet", timeout=60, preexec_fn=limit,
+             env={"IMTUNE_CACHE": str(tmp_path / "cache")})
+    one_line_error(r, "journal storage /dev/full is a device")

@@ -445,6 +445,7 @@ def open_storage(url: str | None = None, *, heartbeat: int | None = DEFAULT_HEAR
         from optuna.storages import JournalStorage
         from optuna.storages.journal import JournalFileBackend
         p = Path(norm)
+        _check_journal_path(p)
         if must_exist and not p.is_file():
             raise ImtuneError(f"no journal storage at {p} (no such file); pass the --storage the studies were run "
                               "with, or run `tune` first")
@@ -454,6 +455,10 @@ def open_storage(url: str | None = None, *, heartbeat: int | None = DEFAULT_HEAR
             return JournalStorage(JournalFileBackend(str(p)))
         except OSError as e:
             raise ImtuneError(f"cannot open journal storage {p}: {e.strerror or e}") from None
+        except Exception as e:  # noqa: BLE001 - replaying the file failed: its content is no Optuna journal
+            raise ImtuneError(f"journal storage {p} is not an Optuna journal file, or is corrupt "
+                              f"({_journal_fault(e)}); pass the journal:PATH the studies were run with, or a new "
+                              "file name") from None
     if heartbeat is not None and int(heartbeat) < 0:
         raise ImtuneError(f"heartbeat must be >= 0 seconds (0 = off), got {heartbeat}")
     hb = int(heartbeat) if heartbeat else None
@@ -495,6 +500,67 @@ def open_storage(url: str | None = None, *, heartbeat: int | None = DEFAULT_HEAR
             raise
         except Exception as e:  # noqa: BLE001 - a storage that cannot be opened is a one-line error
             raise ImtuneError(f"cannot open storage {mask_url(url)}: {scrub(_root_text(e), url)}") from None
+
+
+def _check_journal_path(p: Path) -> None:
+    """A journal path that exists must be a regular file: a device (/dev/null, /dev/full: endless zeros read until
+    memory runs out), a folder or a FIFO is refused before Optuna opens it."""
+    import stat
+    try:
+        mode = os.stat(p).st_mode
+    except FileNotFoundError:
+        return
+    except OSError as e:  # e.g. a file where a folder of the path should be
+        raise ImtuneError(f"cannot open journal storage {p}: {e.strerror or e}") from None
+    if not stat.S_ISREG(mode):
+        kind = ("a folder" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode) else
+                "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "a socket" if stat.S_ISSOCK(mode) else
+                "not a regular file")
+        raise ImtuneError(f"journal storage {p} is {kind}, not a file; give journal: the path of a journal file "
+                          "(a new name creates one)")
+    # Optuna skips a last line that is no JSON (a record another worker is still writing), so a one-line text file
+    # would pass for an empty journal and then be appended to: its first complete line must be a log record
+    import json
+    try:
+        with open(p, "rb") as f:
+            first = f.readline(1 << 24)
+    except OSError as e:
+        raise ImtuneError(f"cannot open journal storage {p}: {e.strerror or e}") from None
+    if not first:
+        return  # empty: a new journal
+    rec: object = None
+    if not first.lstrip().startswith(b"{"):  # every record is a JSON object; binary or text is not
+        ok = False
+        try:
+            first.decode("utf-8")
+        except UnicodeDecodeError as e:
+            rec = e
+    elif not first.endswith(b"\n"):
+        return  # the first record, still being written by another worker
+    else:
+        try:
+            rec = json.loads(first)
+            ok = isinstance(rec, dict) and "op_code" in rec
+        except ValueError as e:  # UnicodeDecodeError too
+            ok, rec = False, e
+    if not ok:
+        why = _journal_fault(rec) if isinstance(rec, Exception) else "its first line is no Optuna log record"
+        raise ImtuneError(f"journal storage {p} is not an Optuna journal file, or is corrupt ({why}); pass the "
+                          "journal:PATH the studies were run with, or a new file name")
+
+
+def _journal_fault(e: BaseException) -> str:
+    """What is wrong with a journal's content, in a few words (Optuna says "Should not reach." for an unknown
+    operation code, a KeyError for a missing field)."""
+    if isinstance(e, UnicodeDecodeError):
+        return "binary data, not JSON lines"
+    if isinstance(e, ValueError):  # json.JSONDecodeError, Optuna's "Invalid log format."
+        return f"a line that is not an Optuna log record: {' '.join(str(e).split())[:120]}"
+    if isinstance(e, AssertionError):
+        return "an unknown operation code"
+    if isinstance(e, KeyError):
+        return f"a log record without {' '.join(str(e).split())[:60]}"
+    return f"{type(e).__name__}: {' '.join(str(e).split())[:120]}"
 
 
 def _root_text(exc: BaseException) -> str:
