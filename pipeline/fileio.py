@@ -50,6 +50,40 @@ def read_text(path: Path | str, what: str = "file") -> str:
                           "cannot be decoded); is it the right file? save it as UTF-8 text") from None
 
 
+def folder_error(path: Path | str, err: OSError, what: str, fix: str) -> ImtuneError:
+    """One line for a folder that cannot be created or written: ``<what> <path> is not writable / is full / is not
+    a folder (a file is in the way)...: <fix>``. A read-only file system (EROFS), a folder without permission
+    (EACCES, EPERM) and a file in the way (ENOTDIR, EEXIST) are told apart by the errno, not by the OS's words."""
+    path = Path(path)
+    reason = err.strerror or str(err)
+    if err.errno in (_errno.ENOSPC, _errno.EDQUOT):
+        return ImtuneError(f"{what} {path} is full ({reason}): free some space there, or {fix}")
+    if err.errno in (_errno.EACCES, _errno.EPERM, _errno.EROFS):
+        return ImtuneError(f"{what} {path} is not writable ({reason}): {fix}")
+    if err.errno in (_errno.ENOTDIR, _errno.EEXIST):
+        return ImtuneError(f"{what} {path} is not a folder (a file is in the way: {reason}): {fix}")
+    return ImtuneError(f"{what} {path} cannot be written ({reason}): {fix}")
+
+
+def check_writable_folder(path: Path | str, what: str, fix: str) -> Path:
+    """Fail fast, creating nothing: ``path`` is a folder this process can write, or can be created as one. The
+    nearest existing folder on its way (``path`` itself, else its deepest existing ancestor) is probed by making
+    and removing a temporary folder in it, so a read-only file system or folder, a file in the way or a full disk
+    is a one-line ImtuneError (:func:`folder_error`) before any work, whoever runs (root writes through
+    permission bits, not through a read-only mount). Returns ``path``."""
+    path = Path(path)
+    p = path
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    if not p.is_dir():
+        raise folder_error(path, NotADirectoryError(_errno.ENOTDIR, f"{p} is a file"), what, fix)
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".imtune-write-test-", dir=p))
+    except OSError as e:
+        raise folder_error(path, e, what, fix) from None
+    return path
+
+
 def atomic_write(path: Path | str, text: str) -> None:
     """Write text atomically: temp name in the same folder, fsync, rename (readers never see a partial
     file; an interrupted write leaves the old file). One-line ImtuneError when the folder is not writable."""

@@ -211,3 +211,61 @@ def test_dev_full_as_journal_is_refused_before_reading(tmp_path, data3):
              "--num-features", "512", "--n-trials", "1", "--no-test", "--quiet", timeout=60, preexec_fn=limit,
              env={"IMTUNE_CACHE": str(tmp_path / "cache")})
     one_line_error(r, "journal storage /dev/full is a device")
+
+
+# -- 4. a studies folder that cannot be written ---------------------------------------------------------------
+
+def _study_cmd(cmd: str, data: Path) -> list:
+    if cmd == "run":
+        return ["run", "--data", data, "--num-features", "512", "--n-trials", "1", "--no-test", "--quiet"]
+    return ["calibrate", "--data", data, "--num-features", "512", "--quiet"]
+
+
+@pytest.mark.parametrize("cmd", ["run", "calibrate"])
+@pytest.mark.parametrize("how", ["under-a-file", "is-a-file", "env-under-a-file"])
+def test_studies_folder_that_cannot_be_written_is_one_line(cmd, how, tmp_path, data3):
+    f = tmp_path / "a-file"
+    f.write_text("a file where a folder should be\n")
+    folder = f if how == "is-a-file" else f / "studies"
+    args, env = _study_cmd(cmd, data3), {"IMTUNE_CACHE": str(tmp_path / "cache")}
+    if how.startswith("env"):
+        env["IMTUNE_STUDIES"] = str(folder)  # ENOTDIR, as EROFS and EACCES: the folder cannot be made
+    else:
+        args += ["--studies-dir", folder]
+    r = tune(*args, env=env)
+    one_line_error(r, f"studies folder {folder}", "--studies-dir", "IMTUNE_STUDIES")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a-file"]  # nothing made, not even the cache
+
+
+def test_budget_lock_in_a_folder_that_cannot_be_made_is_one_line(tmp_path):
+    # the Python API's own guard (tune run / calibrate check the folder before): budgets.json.lock under a file
+    from pipeline.errors import ImtuneError
+    from tuner.budget import BUDGETS_FILE, _locked
+    f = tmp_path / "a-file"
+    f.write_text("x\n")
+    with pytest.raises(ImtuneError, match=r"studies folder .*a-file/studies is not a folder.*--studies-dir"):
+        with _locked(f / "studies" / BUDGETS_FILE):
+            pass
+
+
+def _can_mount() -> str | None:
+    import shutil
+    if os.geteuid() != 0 or not shutil.which("unshare"):
+        return "needs root and unshare(1) to mount a private read-only tmpfs"
+    r = subprocess.run(["unshare", "-m", "sh", "-c", "mount -t tmpfs -o ro,size=64k tmpfs /mnt"], capture_output=True)
+    return None if r.returncode == 0 else f"cannot mount a tmpfs in a private namespace: {r.stderr.decode().strip()}"
+
+
+@pytest.mark.parametrize("cmd", ["run", "calibrate"])
+def test_studies_folder_on_a_read_only_file_system_is_one_line(cmd, tmp_path, data3):
+    why = _can_mount()
+    if why:
+        pytest.skip(why)
+    mnt = tmp_path / "ro"
+    mnt.mkdir()
+    tune_cmd = " ".join(f"'{a}'" for a in [sys.executable, "-m", "tuner", *_study_cmd(cmd, data3),
+                                           "--studies-dir", mnt / "studies"])
+    r = subprocess.run(["unshare", "-m", "sh", "-c", f"mount -t tmpfs -o ro,size=64k tmpfs '{mnt}' || exit 99; "
+                        f"exec {tune_cmd}"], capture_output=True, text=True, cwd=ROOT, timeout=120,
+                       env=dict(os.environ, PYTHONPATH=str(ROOT), IMTUNE_CACHE=str(tmp_path / "cache")))
+    one_line_error(r, f"studies folder {mnt / 'studies'} is not writable (Read-only file system)", "--studies-dir")

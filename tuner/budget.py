@@ -126,8 +126,14 @@ def calibration_key(estimator: str, feature_conf, ratio: float, threshold: float
 
 @contextmanager
 def _locked(path: Path):
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(str(path) + ".lock", "a+") as fh:
+    from pipeline.fileio import folder_error
+    from tuner.storage import STUDIES_DIR_FIX
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fh = open(str(path) + ".lock", "a+")
+    except OSError as e:  # read-only, a file in the way, full: one line naming the folder
+        raise folder_error(path.parent, e, "studies folder", STUDIES_DIR_FIX) from None
+    with fh:
         fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
         try:
             yield

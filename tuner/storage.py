@@ -57,6 +57,18 @@ def default_studies_dir() -> Path:
     return (root / "studies") if root is not None else (Path.cwd() / "studies").resolve()
 
 
+STUDIES_DIR_FIX = "give a writable folder with --studies-dir DIR (or the IMTUNE_STUDIES environment variable)"
+
+
+def check_studies_dir(studies_dir: Path | str | None = None) -> Path:
+    """The studies folder (default :func:`default_studies_dir`) if it can be written (or created): commands that
+    write there (`tune run`, `tune calibrate`) call this first. One-line ImtuneError naming the folder and
+    suggesting --studies-dir otherwise (read-only, a file in the way, full); nothing is created."""
+    from pipeline.fileio import check_writable_folder
+    d = Path(studies_dir) if studies_dir is not None else default_studies_dir()
+    return check_writable_folder(d, "studies folder", STUDIES_DIR_FIX)
+
+
 def default_storage_url(studies_dir: Path | str | None = None) -> str:
     """``sqlite:///<studies dir>/optuna.db`` (absolute path)."""
     d = Path(studies_dir) if studies_dir is not None else default_studies_dir()

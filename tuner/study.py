@@ -472,7 +472,7 @@ def setup_study(s: TuneSettings) -> StudyContext:
     from tuner.objective import Objective
     from tuner.protocol import blank_searched
     from tuner.space import SearchSpace
-    from tuner.storage import default_studies_dir, open_storage
+    from tuner.storage import check_studies_dir, default_studies_dir, open_storage
     _quiet_optuna(s.verbose)
     if s.sampler not in SAMPLERS:
         raise ImtuneError(f"unknown sampler {s.sampler!r} (choose from {', '.join(SAMPLERS)})")
@@ -495,6 +495,7 @@ def setup_study(s: TuneSettings) -> StudyContext:
                           "(accuracy against estimator time); use --objective mAA10")
     get_estimator(s.base.geometry.ransac)  # unknown / unavailable estimator: one line, now
     s.studies_dir = Path(s.studies_dir) if s.studies_dir else default_studies_dir()
+    check_studies_dir(s.studies_dir)  # budgets.json, frozen.yaml, reports: read-only or a file in the way -> now
     space = load_study_space(s, task)
     name = s.study_name or default_study_name(s.base, task.name) + (PARETO_SUFFIX if pareto else "")
     storage = open_storage(s.storage, heartbeat=s.heartbeat, studies_dir=s.studies_dir)

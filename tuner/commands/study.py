@@ -343,6 +343,8 @@ def run_calibrate(args) -> int:
     from tuner.space import load_space
     from tuner.study import _quiet_optuna
     _quiet_optuna()
+    from tuner.storage import check_studies_dir
+    check_studies_dir(_studies_dir(args))  # budgets.json goes there: read-only or a file in the way -> now
     conf = build_config(args, ratio=1.0, threshold=0.5, max_iters=1000)
     from pipeline.geometry import get_estimator
     est = get_estimator(conf.geometry.ransac)
