@@ -269,3 +269,40 @@ def test_studies_folder_on_a_read_only_file_system_is_one_line(cmd, tmp_path, da
                         f"exec {tune_cmd}"], capture_output=True, text=True, cwd=ROOT, timeout=120,
                        env=dict(os.environ, PYTHONPATH=str(ROOT), IMTUNE_CACHE=str(tmp_path / "cache")))
     one_line_error(r, f"studies folder {mnt / 'studies'} is not writable (Read-only file system)", "--studies-dir")
+
+
+# -- 5. tune viz --out on a file, or where nothing can be written ---------------------------------------------
+
+VIZ = ["viz", "--num-features", "512", "--scenes", "fountain-P11", "--worst", "1", "--best", "0", "--random", "0",
+       "--quiet"]
+
+
+@pytest.mark.parametrize("how", ["existing-file", "under-a-file"])
+def test_viz_out_that_is_no_writable_folder_is_one_line(how, tmp_path, data3):
+    f = tmp_path / "a-file"
+    f.write_text("x\n")
+    out = f if how == "existing-file" else f / "viz"
+    r = tune(*VIZ, "--data", data3, "--out", out, env={"IMTUNE_CACHE": str(tmp_path / "cache")})
+    one_line_error(r, f"--out folder {out} is not a folder", "give --out a folder")
+    assert f.read_text() == "x\n" and sorted(p.name for p in tmp_path.iterdir()) == ["a-file"]
+
+
+def test_viz_gallery_in_a_folder_that_cannot_be_made_is_one_line(tmp_path, data3):
+    f = tmp_path / "a-file"
+    f.write_text("x\n")
+    r = tune(*VIZ, "--data", data3, "--out", tmp_path / "viz", "--gallery", f / "g.html",
+             env={"IMTUNE_CACHE": str(tmp_path / "cache")})
+    one_line_error(r, f"gallery folder {f} is not a folder", "--no-gallery")
+
+
+def test_viz_out_on_a_read_only_file_system_is_one_line(tmp_path, data3):
+    why = _can_mount()
+    if why:
+        pytest.skip(why)
+    mnt = tmp_path / "ro"
+    mnt.mkdir()
+    cmd = " ".join(f"'{a}'" for a in [sys.executable, "-m", "tuner", *VIZ, "--data", data3, "--out", mnt / "viz"])
+    r = subprocess.run(["unshare", "-m", "sh", "-c", f"mount -t tmpfs -o ro,size=64k tmpfs '{mnt}' || exit 99; "
+                        f"exec {cmd}"], capture_output=True, text=True, cwd=ROOT, timeout=120,
+                       env=dict(os.environ, PYTHONPATH=str(ROOT), IMTUNE_CACHE=str(tmp_path / "cache")))
+    one_line_error(r, f"--out folder {mnt / 'viz'} is not writable (Read-only file system)")

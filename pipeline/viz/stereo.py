@@ -90,12 +90,12 @@ def save_png(image: np.ndarray, path: str | Path) -> Path:
 
     import cv2
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 6])
     if not ok:
         raise ImtuneError(f"cannot encode PNG for {path}")
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)  # a file in the way, a read-only disk: the line below
         tmp.write_bytes(buf.tobytes())
         os.replace(tmp, path)
     except OSError as e:

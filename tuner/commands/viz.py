@@ -126,6 +126,21 @@ def _scenes_for(args, src: Source | None) -> tuple[Path, list[str] | None, float
     return root, names, min_cov
 
 
+def _check_outputs(args: argparse.Namespace, out_dir: Path, gallery: Path | None) -> None:
+    """The PNG folder and the gallery's folder can be written (or created): a file in the way (``--out`` naming
+    an existing file), a read-only or full disk is one line naming the folder, before any work; nothing is
+    created."""
+    from pipeline.fileio import check_writable_folder
+    fix = "give --out a folder that can be written (new or existing)" if args.out else \
+        "choose a writable folder with --out DIR"
+    check_writable_folder(out_dir, "--out folder" if args.out else "figures folder", fix)
+    if gallery is not None and gallery.parent != out_dir:
+        check_writable_folder(gallery.parent, "gallery folder",
+                              "give --gallery a file in a writable folder, or --no-gallery")
+        if gallery.is_dir():
+            raise ImtuneError(f"--gallery {gallery} is a folder; give the path of an HTML file")
+
+
 def viz(args: argparse.Namespace) -> dict:
     """The whole `tune viz` command as one call on parsed options; returns {"figures": [...], "gallery": path,
     "out": folder, "failures": [...]}."""
@@ -152,8 +167,6 @@ def viz(args: argparse.Namespace) -> dict:
         from pipeline.config_files import config_label
         sources = [Source(conf, config_label(conf))]
     primary = sources[0]
-    root, names, min_cov = _scenes_for(args, primary)
-    scenes = load_scenes(root, names, split="all", gt_dir=args.gt_dir)
     study = next((s.study for s in sources if s.study), None)  # a comparison goes to its study's gallery
     if args.out:
         out_dir = Path(args.out).expanduser().resolve()
@@ -164,6 +177,9 @@ def viz(args: argparse.Namespace) -> dict:
     else:
         out_dir = (Path.cwd() / "imtune-viz").resolve()
         gallery = Path(args.gallery).expanduser().resolve() if args.gallery else out_dir / "gallery.html"
+    _check_outputs(args, out_dir, None if args.no_gallery else gallery)  # before any feature is computed
+    root, names, min_cov = _scenes_for(args, primary)
+    scenes = load_scenes(root, names, split="all", gt_dir=args.gt_dir)
     opts = VizOptions(width=int(args.width), max_lines=int(args.max_lines), layout=args.layout,
                       use_depth=not args.no_depth, seed=int(args.sample_seed))
     cache = H5Cache(args.cache)
