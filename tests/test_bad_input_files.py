@@ -306,3 +306,22 @@ def test_viz_out_on_a_read_only_file_system_is_one_line(tmp_path, data3):
                         f"exec {cmd}"], capture_output=True, text=True, cwd=ROOT, timeout=120,
                        env=dict(os.environ, PYTHONPATH=str(ROOT), IMTUNE_CACHE=str(tmp_path / "cache")))
     one_line_error(r, f"--out folder {mnt / 'viz'} is not writable (Read-only file system)")
+
+
+# -- 6. --ci-resamples has an upper bound ------------------------------------------------------------------------
+
+@pytest.mark.parametrize("cmd", [["evaluate", "--num-features", "512"], ["compare", "A", "B"], ["test", "--study", "X"],
+                                 ["run", "--num-features", "512", "--n-trials", "1", "--no-test"]])
+def test_ci_resamples_beyond_the_bound_is_refused_while_parsing(cmd, tmp_path, data3):
+    # 99,999,999,999 resamples asked scipy's bootstrap for 2 TiB: MemoryError after the whole evaluation
+    r = tune(*cmd, "--data", data3, "--scenes", "fountain-P11", "--quiet", "--ci-resamples", "99999999999",
+             env={"IMTUNE_CACHE": str(tmp_path / "cache"), "IMTUNE_STUDIES": str(tmp_path / "studies")})
+    one_line_error(r, "argument --ci-resamples: must be at most 100,000", "99999999999")
+
+
+def test_ci_resamples_at_the_bound_parses():
+    from tuner.argtypes import MAX_RESAMPLES
+    from tuner.cli import build_parser
+    ap = build_parser()
+    for argv in (["evaluate"], ["compare", "A", "B"], ["test", "--study", "X"], ["run"]):
+        assert ap.parse_args([*argv, "--ci-resamples", str(MAX_RESAMPLES)]).ci_resamples == MAX_RESAMPLES

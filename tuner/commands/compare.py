@@ -17,7 +17,7 @@ from tuner.options import DATA_HELP
 
 
 def register(sub) -> None:
-    from tuner.argtypes import positive_int, scene_list, seed_int, unit_float
+    from tuner.argtypes import resamples_int, scene_list, seed_int, unit_float
     ap = sub.add_parser("compare", help="paired comparison of configurations on the same pairs (CI, p-value)",
                         description="Evaluate each configuration (study name, frozen.yaml, config YAML/JSON, IMC method "
                                     "JSON) on the same stereo pairs and compare each with the first: the mAA(10) "
@@ -32,7 +32,7 @@ def register(sub) -> None:
     d.add_argument("--cache", default=None, help="cache folder (else $IMTUNE_CACHE or ~/.cache/imtune)")
     d.add_argument("--studies-dir", default=None, help="where studies live (default $IMTUNE_STUDIES, else studies/)")
     s = ap.add_argument_group("statistics")
-    s.add_argument("--ci-resamples", type=positive_int, default=2000, help="bootstrap / sign-flip resamples")
+    s.add_argument("--ci-resamples", type=resamples_int, default=2000, help="bootstrap / sign-flip resamples")
     s.add_argument("--seed", type=seed_int, default=0, help="seed of the resampling (estimator seeds come from each config)")
     o = ap.add_argument_group("output")
     o.add_argument("--json", action="store_true",

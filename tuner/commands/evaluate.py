@@ -49,6 +49,9 @@ def _resamples(s: str) -> int:
         raise argparse.ArgumentTypeError(f"expected an integer, got {s!r}") from None
     if v < 100:
         raise argparse.ArgumentTypeError(f"must be >= 100 for a 95% interval, got {v} (use --ci none to skip)")
+    from tuner.argtypes import MAX_RESAMPLES, RESAMPLES_WHY
+    if v > MAX_RESAMPLES:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_RESAMPLES:,} ({RESAMPLES_WHY}), got {v}")
     return v
 
 

@@ -16,7 +16,7 @@ from tuner.options import DATA_HELP
 
 
 def register(sub) -> None:
-    from tuner.argtypes import positive_int, scene_list, seed_int
+    from tuner.argtypes import positive_int, resamples_int, scene_list, seed_int
     ap = sub.add_parser("findings", help="check the paper's findings on this data (studies + verdicts + report)",
                         description="Run the comparisons behind the paper's findings as ordinary, resumable studies "
                                     "(tuned on the validation scenes, measured on the test scenes) and write "
@@ -43,9 +43,7 @@ def register(sub) -> None:
     ap.add_argument("--trials", type=positive_int, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--max-pairs", type=positive_int, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--test-runs", type=positive_int, default=None, help=argparse.SUPPRESS)
-    ap.add_argument("--ci-resamples", type=positive_int, default=2000, help=argparse.SUPPRESS)
-    from tuner.cli import RESUME_NOTE
-    ap.set_defaults(func=run, on_interrupt=RESUME_NOTE)  # finished studies are reused, an unfinished one resumes
+    from tuner.argtypes import positive_int, resamples_int, scene_list, seed_int
 
 
 def _scenes(v):
