@@ -325,3 +325,27 @@ def test_ci_resamples_at_the_bound_parses():
     ap = build_parser()
     for argv in (["evaluate"], ["compare", "A", "B"], ["test", "--study", "X"], ["run"]):
         assert ap.parse_args([*argv, "--ci-resamples", str(MAX_RESAMPLES)]).ci_resamples == MAX_RESAMPLES
+
+
+# -- 7. a download base URL that is no URL ---------------------------------------------------------------------
+
+@pytest.mark.parametrize("base", ["not a url", "ftp//mirror/x", "/srv/mirror", f"htp://u:{SECRET}@mirror/x",
+                                  "http://mirror:port/x", "http://"])
+@pytest.mark.parametrize("how", ["option", "env"])
+def test_download_base_url_that_is_no_url_is_one_line(base, how, tmp_path):
+    dest = tmp_path / "dest"
+    if how == "option":
+        r = tune("data", "download", "strecha", "--dest", dest, "--base-url", base, "--quiet")
+        where = "--base-url"
+    else:
+        r = tune("data", "download", "strecha", "--dest", dest, "--quiet", env={"IMTUNE_DOWNLOAD_BASE": base})
+        where = "$IMTUNE_DOWNLOAD_BASE"
+    line = one_line_error(r, f"{where} '", "is not a download URL", "http://HOST/PATH", "file:///PATH")
+    assert SECRET not in r.stdout + r.stderr, line
+    assert not dest.exists()
+
+
+def test_download_progress_line_never_shows_a_mirror_password():
+    from pipeline.data.download import describe_source
+    shown = describe_source("strecha", f"http://u:{SECRET}@127.0.0.1:8/mirror")
+    assert shown.endswith("from 127.0.0.1:8") and SECRET not in shown, shown

@@ -157,6 +157,34 @@ def download_home() -> tuple[Path, str]:
     return Path.home() / ".local" / "share" / "imtune" / "data", "~/.local/share/imtune/data"
 
 
+def _shown(url: str) -> str:
+    """``url`` as shown in messages: a password in its userinfo masked."""
+    import re
+    return re.sub(r"(//[^/@\s]*?:)[^/\s]*@", r"\1***@", url)
+
+
+def base_url_of(base_url: str | None = None) -> str | None:
+    """The mirror every URL is redirected to: ``base_url`` (``--base-url``), else $IMTUNE_DOWNLOAD_BASE, else None
+    (the original homes). It must be an http(s)://HOST[/PATH] or file:///PATH URL: anything else (a typo, a bare
+    path, words) is a one-line ImtuneError naming where it came from, before anything is fetched or created."""
+    where = "--base-url"
+    if base_url is None:
+        base_url, where = os.environ.get(ENV_BASE) or None, f"${ENV_BASE}"
+    if base_url is None:
+        return None
+    try:
+        u = urllib.parse.urlsplit(str(base_url).strip())
+        u.port  # noqa: B018 - raises ValueError for a port that is no number
+        ok = not any(c.isspace() for c in str(base_url).strip()) and (
+            (u.scheme in ("http", "https") and bool(u.hostname)) or (u.scheme == "file" and bool(u.path)))
+    except ValueError:
+        ok = False
+    if not ok:
+        raise ImtuneError(f"{where} {_shown(str(base_url))!r} is not a download URL: give the http://HOST/PATH, "
+                          "https://... or file:///PATH of a mirror with the same paths as the original home")
+    return str(base_url).strip()
+
+
 def resolve_url(url: str, base_url: str | None) -> str:
     """``url`` with scheme and host replaced by ``base_url`` (its path prefix kept), or ``url`` unchanged."""
     if not base_url:
@@ -245,10 +273,18 @@ def describe_source(name: str, base_url: str | None = None) -> str:
     """'58 files from raw.githubusercontent.com' — what ``download(name)`` will fetch, for a progress line."""
     if name not in SOURCES:
         raise ImtuneError(f"unknown data set {name!r}{_suggest(name)} (available: {', '.join(SOURCES)})")
-    base = base_url if base_url is not None else os.environ.get(ENV_BASE) or None
-    hosts = sorted({urllib.parse.urlsplit(resolve_url(s.url, base)).netloc for s in SOURCES[name]})
+    base = base_url_of(base_url)
+    hosts = sorted({_host(resolve_url(s.url, base)) for s in SOURCES[name]})
     n = len(SOURCES[name])
     return f"{n} file{'s' if n != 1 else ''} from {', '.join(hosts)}"
+
+
+def _host(url: str) -> str:
+    """HOST[:PORT] of a URL (never its user name or password); "local files" for file://."""
+    u = urllib.parse.urlsplit(url)
+    if u.scheme == "file":
+        return "local files"
+    return (u.hostname or "") + (f":{u.port}" if u.port else "")
 
 
 def _suggest(name: str) -> str:
@@ -289,9 +325,9 @@ def download(name: str, dest: str | Path | None = None, base_url: str | None = N
         dest = download_home()[0]
     dest = Path(dest).expanduser()
     final = dest / name
+    base = base_url_of(base_url)  # a mistyped mirror: one line, before anything is created
     if final.exists() and not force:
         return final
-    base = base_url if base_url is not None else os.environ.get(ENV_BASE) or None
     created = _missing_parents(dest)
     try:
         dest.mkdir(parents=True, exist_ok=True)
