@@ -349,3 +349,37 @@ def test_download_progress_line_never_shows_a_mirror_password():
     from pipeline.data.download import describe_source
     shown = describe_source("strecha", f"http://u:{SECRET}@127.0.0.1:8/mirror")
     assert shown.endswith("from 127.0.0.1:8") and SECRET not in shown, shown
+
+
+# -- 8. tune data build-gt: camera model and image size -----------------------------------------------------------
+
+def test_build_gt_unknown_camera_model_lists_pycolmaps(tmp_path, data3):
+    import pycolmap
+    r = tune("data", "build-gt", "--data", data3, "--method", "sfm", "--gt-dir", tmp_path / "gt", "--camera-model",
+             "BOGUS", "--num-features", "256", "--quiet", env={"IMTUNE_CACHE": str(tmp_path / "cache")})
+    known = [n for n in pycolmap.CameraModelId.__members__ if n != "INVALID"]
+    assert "SIMPLE_PINHOLE" in known and "OPENCV" in known
+    one_line_error(r, "unknown COLMAP camera model 'BOGUS'", "choose from " + ", ".join(known))
+    assert not (tmp_path / "gt").exists()
+
+
+def test_build_gt_camera_model_names_are_pycolmaps():
+    import pycolmap
+    from pipeline.data.ground_truth import GTConfig, camera_models
+    from pipeline.errors import ImtuneError
+    assert camera_models() == [n for n in pycolmap.CameraModelId.__members__ if n != "INVALID"]
+    for name in camera_models():
+        GTConfig(camera_model=name)
+    with pytest.raises(ImtuneError, match=r"'pinhole' \(did you mean 'PINHOLE'"):
+        GTConfig(camera_model="pinhole")
+    for size in (0, -5, 2.5):
+        with pytest.raises(ImtuneError, match="max_image_size"):
+            GTConfig(max_image_size=size)
+
+
+@pytest.mark.parametrize("size", ["0", "-5"])
+def test_build_gt_non_positive_image_size_is_refused(size, tmp_path, data3):
+    r = tune("data", "build-gt", "--data", data3, "--gt-dir", tmp_path / "gt", "--num-features", "256", "--quiet",
+             f"--max-image-size={size}", env={"IMTUNE_CACHE": str(tmp_path / "cache")})
+    one_line_error(r, "argument --max-image-size: must be >= 1", size)
+    assert not (tmp_path / "gt").exists()

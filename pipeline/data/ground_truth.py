@@ -97,6 +97,27 @@ class GTConfig:
             raise ImtuneError(f"unknown ground-truth method {self.method!r} (choose {', '.join(METHODS)})")
         if self.num_features < 16:
             raise ImtuneError(f"num_features must be >= 16, got {self.num_features}")
+        if isinstance(self.max_image_size, bool) or not isinstance(self.max_image_size, int) \
+                or self.max_image_size < 1:
+            raise ImtuneError(f"max_image_size (COLMAP's extraction size, px) must be a positive integer, "
+                              f"got {self.max_image_size!r}")
+        models = camera_models()
+        if models and self.camera_model not in models:
+            from pipeline.registry import did_you_mean
+            raise ImtuneError(f"unknown COLMAP camera model {self.camera_model!r}"
+                              f"{did_you_mean(str(self.camera_model), models)} (choose from {', '.join(models)})")
+
+
+def camera_models() -> list[str]:
+    """The camera model names of the installed pycolmap (``pycolmap.CameraModelId``, without INVALID), in COLMAP's
+    order; [] when pycolmap is missing (building ground truth then says so itself)."""
+    try:
+        import pycolmap
+    except ImportError:
+        return []
+    ids = getattr(pycolmap, "CameraModelId", None)
+    members = getattr(ids, "__members__", {}) if ids is not None else {}
+    return [n for n in members if n != "INVALID"]
 
 
 @dataclass

@@ -3,6 +3,7 @@ ground truth. Where data is looked for: :mod:`pipeline.data.locate`."""
 from __future__ import annotations
 
 from pipeline.data.locate import resolve_data
+from tuner.argtypes import positive_int
 
 DATA_HELP = "data folder (default: $IMTUNE_DATA, imtune.yaml, else strecha in the download location or ../shared/data)"
 
@@ -37,7 +38,8 @@ def register(sub) -> None:
     g.add_argument("--method", default="auto", choices=["auto", "poses", "sfm"],
                    help="auto: poses when every image has K, R, t, else sfm")
     g.add_argument("--num-features", type=int, default=8192, help="COLMAP SIFT keypoints per image")
-    g.add_argument("--max-image-size", type=int, default=3200, help="COLMAP extracts on images resized to this (px)")
+    g.add_argument("--max-image-size", type=positive_int, default=3200,
+                   help="COLMAP extracts on images resized to this (px)")
     g.add_argument("--camera-model", default="SIMPLE_PINHOLE", help="COLMAP camera model for sfm (SIMPLE_PINHOLE, "
                    "PINHOLE, SIMPLE_RADIAL, ...; distortion is not kept in the scene)")
     g.add_argument("--gt-dir", default=None, help="where ground truth is written (default $IMTUNE_GT, $IMTUNE_CACHE/gt or ~/.cache/imtune/gt)")
