@@ -383,3 +383,93 @@ def test_build_gt_non_positive_image_size_is_refused(size, tmp_path, data3):
              f"--max-image-size={size}", env={"IMTUNE_CACHE": str(tmp_path / "cache")})
     one_line_error(r, "argument --max-image-size: must be >= 1", size)
     assert not (tmp_path / "gt").exists()
+
+
+# -- 9. invalid calibrations in budgets.json -----------------------------------------------------------------------
+
+def _calibrate(data: Path, sdir: Path, cache: Path, *extra):
+    return tune("calibrate", "--data", data, "--num-features", "512", "--ransac", "cv-ransac", "--budget", "0.002",
+                "--pairs", "2", "--jobs", "1", "--studies-dir", sdir, "--quiet", *extra,
+                env={"IMTUNE_CACHE": str(cache)})
+
+
+@pytest.fixture(scope="module")
+def budgets(tmp_path_factory, data3):
+    """A real budgets.json (a calibration measured here, ~1 s) and its cache: (json text, cache folder)."""
+    tmp = tmp_path_factory.mktemp("bad-files-budgets")
+    r = _calibrate(data3, tmp / "studies", tmp / "cache")
+    assert r.returncode == 0, r.stderr
+    return (tmp / "studies" / "budgets.json").read_text(), tmp / "cache"
+
+
+def _curve_median(c, v):
+    c["curve"][1][1] = v
+
+
+def _curve_cap(c, v):
+    c["curve"][0][0] = v
+
+
+def _all_medians(c, v):
+    for pt in c["curve"]:
+        pt[1] = pt[2] = v
+
+
+BAD_CALIBRATIONS = {  # name -> (change, what the message says)
+    "median-nan": (lambda c: _curve_median(c, float("nan")), "curve[1]: the median seconds"),
+    "median-string": (lambda c: _curve_median(c, "fast"), "curve[1]: the median seconds"),
+    "medians-negative": (lambda c: _all_medians(c, -0.5), "curve[0]: the median seconds"),  # was Gamma_max 1
+    "cap-negative": (lambda c: _curve_cap(c, -100), "curve[0]: the cap max_iters"),
+    "cap-nan": (lambda c: _curve_cap(c, float("nan")), "curve[0]: the cap max_iters"),
+    "ceiling-negative": (lambda c: c.update(ceiling=-5), "'ceiling' must be a positive integer"),
+    "ceiling-string": (lambda c: c.update(ceiling="1e6"), "'ceiling' must be a positive integer"),
+    "curve-empty": (lambda c: c.update(curve=[]), "'curve' must be a non-empty list"),
+    "not-a-mapping": (None, "expected a mapping"),
+}
+
+
+def _spoil(sdir: Path, text: str, case: str) -> str:
+    import json
+    store = json.loads(text)
+    (key,) = store
+    change, _ = BAD_CALIBRATIONS[case]
+    if change is None:
+        store[key] = [1, 2, 3]
+    else:
+        change(store[key])
+    sdir.mkdir(parents=True, exist_ok=True)
+    (sdir / "budgets.json").write_text(json.dumps(store))
+    return key
+
+
+@pytest.mark.parametrize("case", list(BAD_CALIBRATIONS))
+def test_invalid_stored_calibration_is_one_line_never_used(case, budgets, tmp_path, data3):
+    text, cache = budgets
+    sdir = tmp_path / "studies"
+    key = _spoil(sdir, text, case)
+    r = _calibrate(data3, sdir, cache)
+    one_line_error(r, f"{sdir / 'budgets.json'}: the stored calibration {key!r} is invalid", BAD_CALIBRATIONS[case][1],
+                   "delete that entry", "tune calibrate --force")
+
+
+@pytest.mark.parametrize("case", ["medians-negative", "median-nan"])
+def test_tune_run_never_uses_an_invalid_calibration(case, budgets, tmp_path, data3):
+    # negative times gave Gamma_max = 1 silently: every trial ran with Gamma 1 under a false "search ceiling" warning
+    text, cache = budgets
+    sdir = tmp_path / "studies"
+    key = _spoil(sdir, text, case)
+    r = tune("run", "--data", data3, "--num-features", "512", "--ransac", "cv-ransac", "--jobs", "1", "--n-trials", "1",
+             "--no-test", "--quiet", "--studies-dir", sdir, "--storage", f"sqlite:///{tmp_path}/optuna.db",
+             env={"IMTUNE_CACHE": str(cache)})
+    one_line_error(r, f"the stored calibration {key!r} is invalid", "tune run --recalibrate")
+
+
+def test_force_measures_an_invalid_calibration_again(budgets, tmp_path, data3):
+    import json
+    text, cache = budgets
+    sdir = tmp_path / "studies"
+    key = _spoil(sdir, text, "median-nan")
+    r = _calibrate(data3, sdir, cache, "--force")
+    assert r.returncode == 0, r.stderr
+    from tuner.budget import calibration_problem
+    assert calibration_problem(json.loads((sdir / "budgets.json").read_text())[key]) is None

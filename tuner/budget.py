@@ -156,13 +156,75 @@ def _write_store(path: Path, data: dict) -> None:
     atomic_write(path, json.dumps(data, indent=1, sort_keys=True))
 
 
+def _is_int(v, lo: int) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and v >= lo
+
+
+def _is_real(v, lo: float = 0.0, strict: bool = False) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and \
+        (v > lo if strict else v >= lo)
+
+
+def calibration_problem(d) -> str | None:
+    """What is wrong with a stored calibration (a budgets.json entry), or None when it can be used: every cap of the
+    curve a positive integer, every time a finite number >= 0 s, the ceiling a positive integer, r in (0, 1],
+    eta > 0, jobs a positive integer, pairs an integer >= 0. NaN, strings or negative numbers there gave a crash ("cannot
+    convert float NaN to integer") or, worse, a silent Gamma_max of 1 for every trial."""
+    if not isinstance(d, dict):
+        return f"expected a mapping, got {type(d).__name__}"
+    missing = [k for k in ("estimator", "curve", "ratio", "threshold", "pairs") if k not in d]
+    if missing:
+        return f"no {missing[0]!r}"
+    curve = d["curve"]
+    if not isinstance(curve, list) or not curve:
+        return "'curve' must be a non-empty list of [max_iters, median seconds, p90 seconds]"
+    for i, pt in enumerate(curve):
+        if not isinstance(pt, (list, tuple)) or len(pt) < 2:
+            return f"curve[{i}] must be [max_iters, median seconds, p90 seconds], got {pt!r}"
+        if not _is_int(pt[0], 1):
+            return f"curve[{i}]: the cap max_iters must be a positive integer, got {pt[0]!r}"
+        for j, v in enumerate(pt[1:3], 1):
+            if not _is_real(v):
+                what = ("median", "p90")[j - 1]
+                return f"curve[{i}]: the {what} seconds per pair must be a finite number >= 0, got {v!r}"
+    checks = (("ceiling", lambda v: _is_int(v, 1), "a positive integer"),
+              ("ratio", lambda v: _is_real(v, 0.0, strict=True) and v <= 1.0, "a number in (0, 1]"),
+              ("threshold", lambda v: _is_real(v, 0.0, strict=True), "a number > 0"),
+              ("pairs", lambda v: _is_int(v, 0), "an integer >= 0"),
+              ("jobs", lambda v: _is_int(v, 1), "a positive integer"),
+              ("seconds", _is_real, "a finite number >= 0"))
+    for key, ok, what in checks:
+        if key in d and not ok(d[key]):
+            return f"{key!r} must be {what}, got {d[key]!r}"
+    if not isinstance(d["estimator"], str) or not isinstance(d.get("feature", {}), dict):
+        return "'estimator' must be a name and 'feature' a mapping"
+    return None
+
+
+def _checked(path: Path, key: str, d) -> Calibration:
+    """The stored calibration ``key`` of ``path``, validated (:func:`calibration_problem`): never silently used when
+    invalid, a one-line ImtuneError naming the file and the entry and saying how to measure it again."""
+    why = calibration_problem(d)
+    if why is None:
+        try:
+            return Calibration.from_dict(d)
+        except TypeError as e:  # an unexpected shape of an otherwise valid-looking entry
+            why = str(e)
+    raise ImtuneError(f"{path}: the stored calibration {key!r} is invalid ({why}); delete that entry (or the file) "
+                      "or measure it again with `tune calibrate --force` (`tune run --recalibrate`)")
+
+
 def stored_calibration(studies_dir: Path, key: str) -> Calibration | None:
-    d = _read_store(Path(studies_dir) / BUDGETS_FILE).get(key)
-    return Calibration.from_dict(d) if d else None
+    path = Path(studies_dir) / BUDGETS_FILE
+    store = _read_store(path)
+    if key not in store:
+        return None
+    return _checked(path, key, store[key])
 
 
 def list_calibrations(studies_dir: Path) -> dict[str, Calibration]:
-    return {k: Calibration.from_dict(v) for k, v in _read_store(Path(studies_dir) / BUDGETS_FILE).items()}
+    path = Path(studies_dir) / BUDGETS_FILE
+    return {k: _checked(path, k, v) for k, v in _read_store(path).items()}
 
 
 # -- measuring --------------------------------------------------------------------------------------
