@@ -473,3 +473,70 @@ def test_force_measures_an_invalid_calibration_again(budgets, tmp_path, data3):
     assert r.returncode == 0, r.stderr
     from tuner.budget import calibration_problem
     assert calibration_problem(json.loads((sdir / "budgets.json").read_text())[key]) is None
+
+
+# -- 10. a frozen.yaml whose numbers are not sound -------------------------------------------------------------------
+
+FROZEN = """\
+study: X
+trial: 3
+value: 0.75
+task: stereo
+task_options: {{min_covisibility: 0.1, max_pairs: null}}
+feature: sift
+num_features: 512
+ransac: cv-ransac
+params: {{max_iters: 20000, ratio: 0.8, threshold: 1.0}}
+fixed: {{strategy: both}}
+config:
+  feature: {{name: sift, num_features: 512}}
+  matching: {{ratio: 0.8, strategy: both}}
+  geometry: {{ransac: cv-ransac, threshold: 1.0, max_iters: 20000, seed: 0}}
+budget: {{seconds_per_pair: 0.5, test_seconds_per_pair: 1.0, gamma_max: 50000, gamma_max_test: 100000}}
+data: {{root: {root}, val_scenes: [fountain-P11], test_scenes: [fountain-P11]}}
+validation: {{mAA10: 0.75, mAA5: 0.5, ransac_seconds: 0.01, ransac_seconds_median: 0.01, pairs: 3}}
+"""
+
+BAD_FROZEN = {  # (text to replace, replacement, the key named)
+    "value-nan": ("value: 0.75", "value: .nan", "value must be a finite number"),
+    "gamma-max-inf": ("gamma_max: 50000", "gamma_max: .inf", "budget.gamma_max must be a positive integer"),
+    "gamma-max-zero": ("gamma_max: 50000", "gamma_max: 0", "budget.gamma_max must be a positive integer"),
+    "budget-negative": ("seconds_per_pair: 0.5", "seconds_per_pair: -1", "budget.seconds_per_pair must be a finite"),
+    "test-budget-nan": ("test_seconds_per_pair: 1.0", "test_seconds_per_pair: .nan", "budget.test_seconds_per_pair"),
+    "max-iters-1e5": ("params: {max_iters: 20000", "params: {max_iters: 1e5", "params.max_iters must be a positive integer"),
+    "seconds-negative": ("ransac_seconds: 0.01", "ransac_seconds: -3", "validation.ransac_seconds must be a finite"),
+    "validation-inf": ("mAA5: 0.5", "mAA5: .inf", "validation.mAA5 must be a finite number"),
+}
+
+
+def _frozen_text(data: Path, case: str | None = None) -> str:
+    text = FROZEN.format(root=data)
+    if case:
+        old, new, _ = BAD_FROZEN[case]
+        assert old in text
+        text = text.replace(old, new, 1)
+    return text
+
+
+def test_the_sound_frozen_file_loads(tmp_path, data3):
+    from tuner.freeze import load_frozen
+    sdir = _frozen_study(tmp_path, _frozen_text(data3))
+    assert load_frozen(sdir, "X")["budget"]["gamma_max"] == 50000
+
+
+@pytest.mark.parametrize("case", list(BAD_FROZEN))
+def test_tune_test_refuses_a_frozen_file_with_unsound_numbers(case, tmp_path, data3):
+    sdir = _frozen_study(tmp_path, _frozen_text(data3, case))
+    r = tune("test", "--study", "X", "--studies-dir", sdir, "--storage", f"sqlite:///{tmp_path}/none.db", "--runs", "1",
+             "--max-pairs", "2", "--reference", "none", "--ci", "none", "--jobs", "1", "--quiet",
+             env={"IMTUNE_CACHE": str(tmp_path / "cache")})
+    one_line_error(r, f"{sdir / 'X' / 'frozen.yaml'}: {BAD_FROZEN[case][2]}")
+    assert not (sdir / "X" / "test.json").exists()
+
+
+@pytest.mark.parametrize("case", ["gamma-max-inf", "budget-negative"])
+def test_a_frozen_file_given_as_config_is_checked_too(case, tmp_path, data3):
+    f = tmp_path / "frozen.yaml"
+    f.write_text(_frozen_text(data3, case))
+    r = tune("evaluate", "--config", f, "--data", data3, "--quiet", env={"IMTUNE_CACHE": str(tmp_path / "cache")})
+    one_line_error(r, f"{f}: {BAD_FROZEN[case][2]}")

@@ -159,6 +159,93 @@ def freeze(study, studies_dir: Path | str, select: str | None = None, warn=None)
     return frozen, path
 
 
+def _finite(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _positive_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and v >= 1
+
+
+#: the numbers a frozen file carries and what they must be: (key path, check, what); ``None`` is allowed for each
+#: (a value not measured), "*" matches every key of a mapping
+FROZEN_NUMBERS = (
+    (("trial",), lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "an integer >= 0"),
+    (("value",), _finite, "a finite number"),
+    (("budget", "seconds_per_pair"), lambda v: _finite(v) and v > 0, "a finite number of seconds > 0"),
+    (("budget", "test_seconds_per_pair"), lambda v: _finite(v) and v > 0, "a finite number of seconds > 0"),
+    (("budget", "gamma_max"), _positive_int, "a positive integer (Gamma)"),
+    (("budget", "gamma_max_test"), _positive_int, "a positive integer (Gamma)"),
+    (("budget", "gamma_max_front"), _positive_int, "a positive integer (Gamma)"),
+    (("params", "max_iters"), _positive_int, "a positive integer (Gamma)"),
+    (("fixed", "max_iters"), lambda v: _positive_int(v) or v == "calibrated", "a positive integer (Gamma)"),
+    (("params", "*"), lambda v: not isinstance(v, float) or math.isfinite(v), "a finite number"),
+    (("fixed", "*"), lambda v: not isinstance(v, float) or math.isfinite(v), "a finite number"),
+)
+
+
+def _at(d, path: tuple):
+    """(dotted key, value) pairs found at ``path`` in ``d`` ("*": every key of a mapping)."""
+    items = [("", d)]
+    for k in path:
+        nxt = []
+        for where, node in items:
+            if not isinstance(node, dict):
+                continue
+            keys = list(node) if k == "*" else [k] if k in node else []
+            nxt += [(f"{where}.{kk}" if where else str(kk), node[kk]) for kk in keys]
+        items = nxt
+    return items
+
+
+def _non_finite(node, where: str = ""):
+    """The first (dotted key, value) holding a float NaN or infinity anywhere in ``node``, else None (imtune writes
+    non-finite numbers as null or "inf": a YAML .nan / .inf is an edit)."""
+    if isinstance(node, float) and not math.isfinite(node):
+        return where, node
+    if isinstance(node, dict):
+        for k, v in node.items():
+            hit = _non_finite(v, f"{where}.{k}" if where else str(k))
+            if hit:
+                return hit
+    if isinstance(node, list):
+        for i, v in enumerate(node):
+            hit = _non_finite(v, f"{where}[{i}]")
+            if hit:
+                return hit
+    return None
+
+
+def frozen_problem(d: dict) -> str | None:
+    """What is wrong with the numbers of a frozen-settings dict, or None: the validation value finite, the budgets
+    finite seconds > 0, Gamma (gamma_max, max_iters) a positive integer, the measured seconds >= 0, no NaN or
+    infinity anywhere. A frozen file carrying ``value: .nan``, ``gamma_max: .inf`` or ``seconds_per_pair: -1`` was
+    tested as if it were sound."""
+    from pipeline.config import yaml_number_hint
+    for path, ok, what in FROZEN_NUMBERS:
+        for key, v in _at(d, path):
+            if v is not None and not ok(v):
+                return f"{key} must be {what}, got {v!r}{yaml_number_hint(v)}"
+    for key, v in _at(d, ("validation", "*")) + [(f"{k}.{kk}", vv) for k, sc in _at(d, ("validation", "scenes", "*"))
+                                                if isinstance(sc, dict) for kk, vv in sc.items()]:
+        if "seconds" in key.rsplit(".", 1)[-1] and v is not None and not (_finite(v) and v >= 0):
+            return f"{key} must be a finite number of seconds >= 0, got {v!r}{yaml_number_hint(v)}"
+    hit = _non_finite(d)
+    if hit:
+        return f"{hit[0]} must be a finite number, got {hit[1]!r}"
+    return None
+
+
+def check_frozen(d: dict, where) -> dict:
+    """``d`` if its numbers are sound (:func:`frozen_problem`), else a one-line ImtuneError naming ``where`` (the
+    file) and the key."""
+    why = frozen_problem(d)
+    if why:
+        raise ImtuneError(f"{where}: {why}; correct it, or write the file again from the study's storage "
+                          "(`tune test --study NAME --storage URL` freezes it anew)")
+    return d
+
+
 def load_frozen(studies_dir: Path | str, name: str) -> dict:
     path = study_dir(studies_dir, name) / "frozen.yaml"
     if not path.is_file():
@@ -175,7 +262,7 @@ def load_frozen(studies_dir: Path | str, name: str) -> dict:
         raise ImtuneError(f"{path} holds the frozen settings of study {d.get('study')!r}, not {name!r} (copied from "
                           f"another study?): test that study (`tune test --study {d.get('study')}`), or evaluate the "
                           f"file itself (`tune evaluate --config {path}`)")
-    return d
+    return check_frozen(d, path)
 
 
 def test_scene_names(frozen: dict, data_root: Path, scenes=None) -> list[str]:

@@ -33,6 +33,9 @@ def load_config_source(path: str | Path, base: PipelineConfig | None = None) -> 
     """A configuration file (``pipeline.config_files.load_config_file``) as a Source."""
     from pipeline.config_files import load_config_file
     cf = load_config_file(path, base)
+    if cf.frozen is not None:  # a frozen.yaml: its numbers are checked as when a study's is loaded
+        from tuner.freeze import check_frozen
+        check_frozen(cf.frozen, cf.path)
     return Source(cf.conf, cf.label, frozen=cf.frozen, path=cf.path)
 
 
