@@ -43,7 +43,9 @@ def register(sub) -> None:
     ap.add_argument("--trials", type=positive_int, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--max-pairs", type=positive_int, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--test-runs", type=positive_int, default=None, help=argparse.SUPPRESS)
-    from tuner.argtypes import positive_int, resamples_int, scene_list, seed_int
+    ap.add_argument("--ci-resamples", type=resamples_int, default=2000, help=argparse.SUPPRESS)
+    from tuner.cli import RESUME_NOTE
+    ap.set_defaults(func=run, on_interrupt=RESUME_NOTE)  # finished studies are reused, an unfinished one resumes
 
 
 def _scenes(v):
