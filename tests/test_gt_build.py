@@ -135,3 +135,21 @@ def test_a_failed_sfm_is_one_line_and_leaves_no_colmap_logs(tmp_path):
     assert len(errors) == 1 and "SfM registered fewer than 2 images" in errors[0], r.stderr
     assert not [ln for ln in r.stderr.splitlines() if ".cc:" in ln or ln[:1] in "EWF" and ln[1:9].isdigit()], r.stderr
     assert glog_files() <= logs
+
+
+def test_checking_a_camera_model_keeps_sigterm_for_tune():
+    """GTConfig checks its camera model against pycolmap's list: loading pycolmap there must not hand SIGTERM to
+    glog's failure handler (a stack trace and death by signal instead of tune's one line and exit 143; a bare
+    `import pycolmap` did that to every multiview study, whose ground truth makes a GTConfig)."""
+    import subprocess
+    import sys
+    from tests.conftest import ROOT
+    code = ("import os, signal, sys, time\n"
+            "signal.signal(signal.SIGTERM, lambda *a: (print('tune handler', flush=True), os._exit(143)))\n"
+            "from pipeline.data.ground_truth import GTConfig\n"
+            "GTConfig(camera_model='SIMPLE_RADIAL')\n"
+            "os.kill(os.getpid(), signal.SIGTERM)\n"
+            "time.sleep(5)\n")
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 143 and r.stdout.strip() == "tune handler", (r.returncode, r.stdout, r.stderr[-800:])
+    assert "Aborted at" not in r.stderr

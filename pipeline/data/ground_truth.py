@@ -111,8 +111,9 @@ class GTConfig:
 def camera_models() -> list[str]:
     """The camera model names of the installed pycolmap (``pycolmap.CameraModelId``, without INVALID), in COLMAP's
     order; [] when pycolmap is missing (building ground truth then says so itself)."""
+    from pipeline.colmap_db import import_pycolmap
     try:
-        import pycolmap
+        pycolmap = import_pycolmap()  # never a bare import: it would hand SIGTERM to glog (see import_pycolmap)
     except ImportError:
         return []
     ids = getattr(pycolmap, "CameraModelId", None)

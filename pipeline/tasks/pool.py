@@ -178,6 +178,9 @@ def kill_executor(ex, procs=None) -> None:
     t = getattr(ex, "_executor_manager_thread", None)  # a private attribute: absent in another Python, no wait
     if t is not None and t.is_alive():
         t.join(5.0)
+    if t is not None and t.is_alive():  # still ending (a loaded machine): keep the exit hook off its closing pipe
+        import concurrent.futures.process as cfp
+        getattr(cfp, "_threads_wakeups", {}).pop(t, None)  # it was woken by shutdown() already; 3.12 needs none
 
 
 # ------------------------------------------------------------------------------------- the pair data
