@@ -198,6 +198,46 @@ def main(argv: list[str] | None = None) -> int:
         return _main(argv)
 
 
+def _interrupted(e: KeyboardInterrupt, args) -> int:
+    """One line and exit 130 (Ctrl-C) / 143 (SIGTERM). What an interruption leaves, as the command says it
+    (``on_interrupt`` in its parser's defaults): a study's completed trials are kept and it resumes; a test run
+    or a calibration is written only when it finishes."""
+    note = getattr(args, "on_interrupt", None)
+    kept = f"; {note}" if note else ""
+    if isinstance(e, Terminated):
+        print(f"tune: terminated (SIGTERM){kept}", file=sys.stderr)
+        return 128 + signal.SIGTERM
+    print(f"tune: interrupted{kept}", file=sys.stderr)
+    return 130
+
+
+def _unexpected(e: Exception, args, url: str | None) -> int:
+    """An exception no command turned into an ImtuneError: an interruption Optuna masked (130 / 143), a storage
+    that failed mid-run (one line, exit 2), else one "internal error" line (exit 1; the traceback, credentials
+    masked, under IMTUNE_DEBUG=1)."""
+    from tuner.storage import interrupt_in_chain, scrub, storage_fault
+    # Optuna 5.1's _run_trial catches only Exception while it records a trial: a Ctrl-C / SIGTERM landing there
+    # surfaces as UnboundLocalError('updated_state') from its `finally`, the interrupt as its context. It is an
+    # interruption (exit 130 / 143), not a storage fault.
+    stop = interrupt_in_chain(e)
+    if stop is not None:
+        return _interrupted(stop, args)
+    if os.environ.get("IMTUNE_DEBUG"):  # the traceback, with the storage's credentials masked like every line
+        import traceback
+        lines = "".join(traceback.format_exception(e)).rstrip().splitlines()
+        print("\n".join(scrub(line, url) if line.strip() else line for line in lines), file=sys.stderr)
+        return 1
+    # a storage that failed mid-run (full disk, server gone): the cause and what to do, exit 2
+    fault = storage_fault(e, url, getattr(args, "studies_dir", None)) if hasattr(args, "storage") else None
+    if fault:
+        print(f"tune: error: {fault}", file=sys.stderr)
+        return 2
+    msg = str(e).strip().splitlines()[0] if str(e).strip() else ""
+    print(f"tune: internal error: {type(e).__name__}: {scrub(msg, url)} (set IMTUNE_DEBUG=1 for details)",
+          file=sys.stderr)
+    return 1
+
+
 def _main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
@@ -230,30 +270,9 @@ def _main(argv: list[str] | None = None) -> int:
             pass
         return 0
     except KeyboardInterrupt as e:
-        # what an interruption leaves, as the command says it (``on_interrupt`` in its parser's defaults): a study's
-        # completed trials are kept and it resumes; a test run or a calibration is written only when it finishes
-        note = getattr(args, "on_interrupt", None)
-        kept = f"; {note}" if note else ""
-        if isinstance(e, Terminated):
-            print(f"tune: terminated (SIGTERM){kept}", file=sys.stderr)
-            return 128 + signal.SIGTERM
-        print(f"tune: interrupted{kept}", file=sys.stderr)
-        return 130
+        return _interrupted(e, args)
     except Exception as e:  # never a traceback for users; IMTUNE_DEBUG=1 shows it
-        if os.environ.get("IMTUNE_DEBUG"):  # the traceback, with the storage's credentials masked like every line
-            import traceback
-            print("\n".join(scrub(line, url) if line.strip() else line
-                            for line in traceback.format_exc().rstrip().splitlines()), file=sys.stderr)
-            return 1
-        # a storage that failed mid-run (full disk, server gone): the cause and what to do, exit 2
-        fault = storage_fault(e, url, getattr(args, "studies_dir", None)) if hasattr(args, "storage") else None
-        if fault:
-            print(f"tune: error: {fault}", file=sys.stderr)
-            return 2
-        msg = str(e).strip().splitlines()[0] if str(e).strip() else ""
-        print(f"tune: internal error: {type(e).__name__}: {scrub(msg, url)} (set IMTUNE_DEBUG=1 for details)",
-              file=sys.stderr)
-        return 1
+        return _unexpected(e, args, url)
 
 
 if __name__ == "__main__":

@@ -613,6 +613,12 @@ def _chain(exc: BaseException | None) -> list[BaseException]:
     return out
 
 
+def interrupt_in_chain(exc: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C / SIGTERM (a KeyboardInterrupt) another exception was raised while handling, if any: Optuna's
+    ``_run_trial`` masks an interrupt that lands while a trial is recorded with UnboundLocalError('updated_state')."""
+    return next((e for e in _chain(exc) if isinstance(e, KeyboardInterrupt)), None)
+
+
 def storage_fault(exc: BaseException, url: str | None = None, studies_dir: Path | str | None = None) -> str | None:
     """A one-line message for an exception caused by the storage failing mid-run, or None if it is not one.
 
@@ -630,6 +636,8 @@ def storage_fault(exc: BaseException, url: str | None = None, studies_dir: Path 
     except ImtuneError:
         kind = "unknown"
     chain = _chain(exc)
+    if interrupt_in_chain(exc) is not None:  # an interruption, reported as one by the CLI
+        return None
     keep = "completed trials are kept; rerun the same command to resume"
     for e in chain:
         if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG) and not _is_db(e):
