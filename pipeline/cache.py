@@ -35,7 +35,11 @@ import numpy as np
 
 from pipeline.config import config_hash
 from pipeline.errors import ImtuneError
-from pipeline.fileio import FileWriteError, arrays_checksum, atomic_write_h5
+from pipeline.fileio import (FOLDER_ERRNOS, FileWriteError, arrays_checksum, atomic_write_h5, check_writable_folder,
+                             folder_error)
+
+#: what to do about an unusable cache folder
+CACHE_FIX = "give a usable folder with --cache DIR or the IMTUNE_CACHE environment variable"
 
 log = logging.getLogger(__name__)
 
@@ -126,42 +130,34 @@ class H5Cache:
     # -- folder faults -> one line naming the folder and what to do
 
     def _folder_error(self, err: OSError | FileWriteError, entry: Path) -> ImtuneError:
-        code = err.errno
+        """One line for a cache folder that cannot be written (:func:`pipeline.fileio.folder_error`); an errno it
+        does not tell apart names the entry that failed."""
+        code = errno.ENOTDIR if self.root.is_file() else err.errno
         reason = getattr(err, "reason", None) or err.strerror or str(err)
-        fix = "give a usable folder with --cache DIR or the IMTUNE_CACHE environment variable"
-        if code in (errno.ENOSPC, errno.EDQUOT):
-            return ImtuneError(f"cache folder {self.root} is full ({reason}): free some space there, or {fix} "
-                               f"on a disk with room")
-        if code in (errno.EACCES, errno.EPERM, errno.EROFS):
-            return ImtuneError(f"cache folder {self.root} is not writable ({reason}): {fix}")
-        if code in (errno.ENOTDIR, errno.EEXIST) or self.root.is_file():
-            return ImtuneError(f"cache folder {self.root} is not a folder (a file is in the way): {fix}")
-        return ImtuneError(f"cache folder {self.root}: cannot write {entry} ({reason}): {fix}")
+        if code not in FOLDER_ERRNOS:
+            reason = f"{entry}: {reason}"
+        return folder_error(self.root, OSError(code, reason), "cache folder", CACHE_FIX)
 
     def _check_root(self) -> None:
         if self.root.exists() and not self.root.is_dir():
-            raise ImtuneError(f"cache folder {self.root} is not a folder (a file is in the way): give a usable "
-                              "folder with --cache DIR or the IMTUNE_CACHE environment variable")
+            raise folder_error(self.root, NotADirectoryError(errno.ENOTDIR, f"{self.root} is a file"), "cache folder",
+                               CACHE_FIX)
 
     def check_writable(self) -> None:
-        """Create the cache folder if needed and write (then remove) a small file in it: a one-line ImtuneError
-        naming the folder when it cannot be created or written (a file where it or a parent should be, no
-        permission, a read-only or full disk). For commands that would otherwise find out only at their first
-        entry, after the work before it (`tune findings` checks it before any study)."""
-        fix = "give a usable folder with --cache DIR or the IMTUNE_CACHE environment variable"
-        probe = self.root / f".write-check-{os.getpid()}-{threading.get_ident()}"
+        """Create the cache folder if needed and check it can be written
+        (:func:`pipeline.fileio.check_writable_folder`): a one-line ImtuneError naming the folder when it cannot
+        (a file where it or a parent should be, no permission, a read-only or full disk). For commands that would
+        otherwise find out only at their first entry, after the work before it (`tune findings` checks it before
+        any study)."""
+        blocker = next((p for p in [self.root, *self.root.parents] if p.exists() and not p.is_dir()), None)
+        if blocker is not None:
+            raise ImtuneError(f"cannot create the cache folder {self.root}: {blocker} is a file, not a folder; "
+                              f"{CACHE_FIX}")
+        check_writable_folder(self.root, "cache folder", CACHE_FIX)
         try:
             self.root.mkdir(parents=True, exist_ok=True)
-            with open(probe, "wb") as fh:
-                fh.write(b"imtune")
-            probe.unlink()
         except OSError as e:
-            if e.errno in (errno.ENOTDIR, errno.EEXIST):
-                blocker = next((p for p in [self.root, *self.root.parents] if p.exists() and not p.is_dir()), None)
-                if blocker is not None:
-                    raise ImtuneError(f"cannot create the cache folder {self.root}: {blocker} is a file, not a folder; "
-                                      f"{fix}") from None
-            raise self._folder_error(e, probe) from None
+            raise self._folder_error(e, self.root) from None
 
     # -- reading
 

@@ -6,6 +6,7 @@ import errno as _errno
 import hashlib
 import io
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -50,6 +51,11 @@ def read_text(path: Path | str, what: str = "file") -> str:
                           "cannot be decoded); is it the right file? save it as UTF-8 text") from None
 
 
+#: the errnos :func:`folder_error` tells apart (full, not writable, a file in the way)
+FOLDER_ERRNOS = frozenset({_errno.ENOSPC, _errno.EDQUOT, _errno.EACCES, _errno.EPERM, _errno.EROFS, _errno.ENOTDIR,
+                           _errno.EEXIST})
+
+
 def folder_error(path: Path | str, err: OSError, what: str, fix: str) -> ImtuneError:
     """One line for a folder that cannot be created or written: ``<what> <path> is not writable / is full / is not
     a folder (a file is in the way)...: <fix>``. A read-only file system (EROFS), a folder without permission
@@ -70,17 +76,26 @@ def check_writable_folder(path: Path | str, what: str, fix: str) -> Path:
     nearest existing folder on its way (``path`` itself, else its deepest existing ancestor) is probed by making
     and removing a temporary folder in it, so a read-only file system or folder, a file in the way or a full disk
     is a one-line ImtuneError (:func:`folder_error`) before any work, whoever runs (root writes through
-    permission bits, not through a read-only mount). Returns ``path``."""
+    permission bits, not through a read-only mount; a few bytes are written in the temporary folder, as a new
+    folder alone may take no block on a full tmpfs). Returns ``path``."""
     path = Path(path)
     p = path
     while not p.exists() and p != p.parent:
         p = p.parent
     if not p.is_dir():
         raise folder_error(path, NotADirectoryError(_errno.ENOTDIR, f"{p} is a file"), what, fix)
+    probe = None
     try:
-        os.rmdir(tempfile.mkdtemp(prefix=".imtune-write-test-", dir=p))
+        probe = tempfile.mkdtemp(prefix=".imtune-write-test-", dir=p)
+        with open(os.path.join(probe, "probe"), "wb") as fh:
+            fh.write(b"imtune")
+            fh.flush()
+            os.fsync(fh.fileno())
     except OSError as e:
         raise folder_error(path, e, what, fix) from None
+    finally:
+        if probe is not None:
+            shutil.rmtree(probe, ignore_errors=True)
     return path
 
 

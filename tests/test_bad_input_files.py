@@ -271,6 +271,38 @@ def test_studies_folder_on_a_read_only_file_system_is_one_line(cmd, tmp_path, da
     one_line_error(r, f"studies folder {mnt / 'studies'} is not writable (Read-only file system)", "--studies-dir")
 
 
+def test_a_full_disk_is_found_before_any_work(tmp_path):
+    """A full tmpfs: the up-front folder checks (studies folder, cache folder) say "is full" and leave nothing,
+    although an empty folder can still be made there (a new folder takes no block on tmpfs)."""
+    why = _can_mount()
+    if why:
+        pytest.skip(why)
+    mnt = tmp_path / "full"
+    mnt.mkdir()
+    code = ("from pipeline.fileio import check_writable_folder\n"
+            "from pipeline.cache import H5Cache\n"
+            "import os, sys\n"
+            "os.mkdir(sys.argv[1] + '/still-makes-folders')\n"
+            "os.rmdir(sys.argv[1] + '/still-makes-folders')\n"
+            "for check in (lambda: check_writable_folder(sys.argv[1] + '/studies', 'studies folder', 'pass it'),\n"
+            "              lambda: H5Cache(sys.argv[1] + '/cache').check_writable()):\n"
+            "    try:\n"
+            "        check()\n"
+            "        print('NO ERROR')\n"
+            "    except Exception as e:\n"
+            "        print(e)\n"
+            "print('LEFT', *sorted(os.listdir(sys.argv[1])))\n")
+    r = subprocess.run(["unshare", "-m", "sh", "-c", f"mount -t tmpfs -o size=64k tmpfs '{mnt}' || exit 99; "
+                        f"dd if=/dev/zero of='{mnt}/fill' bs=4k count=64 2>/dev/null; "
+                        f"exec '{sys.executable}' -c \"$0\" '{mnt}'", code],
+                       capture_output=True, text=True, cwd=ROOT, timeout=120, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    assert lines[0].startswith(f"studies folder {mnt / 'studies'} is full (No space left on device)"), r.stdout
+    assert lines[1].startswith(f"cache folder {mnt / 'cache'} is full (No space left on device)"), r.stdout
+    assert "--cache" in lines[1] and lines[2] == "LEFT fill", r.stdout
+
+
 # -- 5. tune viz --out on a file, or where nothing can be written ---------------------------------------------
 
 VIZ = ["viz", "--num-features", "512", "--scenes", "fountain-P11", "--worst", "1", "--best", "0", "--random", "0",
