@@ -510,6 +510,34 @@ def test_force_measures_an_invalid_calibration_again(budgets, tmp_path, data3):
     assert calibration_problem(json.loads((sdir / "budgets.json").read_text())[key]) is None
 
 
+DAMAGED_STORES = {  # name -> (bytes, what the message says)
+    "truncated": (None, "is not valid JSON"),
+    "a-list": (b"[1, 2]\n", "a JSON list, not an object of calibrations"),
+    "binary": (b"\x89PNG\r\n\x1a\n\x00\x00", "is not valid JSON (byte 0x89 at offset 0"),
+}
+
+
+@pytest.mark.parametrize("case", list(DAMAGED_STORES))
+@pytest.mark.parametrize("force", [False, True])
+def test_a_damaged_budgets_json_is_one_line_and_kept(case, force, budgets, tmp_path, data3):
+    """A budgets.json that is no JSON object: one line naming it, before any measuring, and the file left as it was
+    (it was silently replaced by a file holding only the next calibration: every other one lost)."""
+    text, cache = budgets
+    sdir = tmp_path / "studies"
+    sdir.mkdir()
+    raw = DAMAGED_STORES[case][0]
+    raw = text.encode()[: len(text) // 2] if raw is None else raw  # a copy cut short
+    (sdir / "budgets.json").write_bytes(raw)
+    r = _calibrate(data3, sdir, cache, *(["--force"] if force else []))
+    one_line_error(r, f"{sdir / 'budgets.json'}", DAMAGED_STORES[case][1], "delete it")
+    assert (sdir / "budgets.json").read_bytes() == raw
+    r = tune("run", "--data", data3, "--num-features", "512", "--ransac", "cv-ransac", "--jobs", "1", "--n-trials",
+             "1", "--no-test", "--quiet", "--studies-dir", sdir, "--storage", f"sqlite:///{tmp_path}/optuna.db",
+             env={"IMTUNE_CACHE": str(cache)})
+    one_line_error(r, f"{sdir / 'budgets.json'}", DAMAGED_STORES[case][1])
+    assert (sdir / "budgets.json").read_bytes() == raw
+
+
 # -- 10. a frozen.yaml whose numbers are not sound -------------------------------------------------------------------
 
 FROZEN = """\

@@ -142,13 +142,27 @@ def _locked(path: Path):
 
 
 def _read_store(path: Path) -> dict:
+    """The calibrations stored in ``path`` ({} when there is no file). A file that cannot be read or is no JSON
+    object is a one-line ImtuneError: never trusted, and never silently replaced by a file holding only the next
+    calibration measured (the others, each a minute of measuring, would be lost without a word)."""
     if not path.is_file():
         return {}
     try:
-        d = json.loads(path.read_text())
-        return d if isinstance(d, dict) else {}
-    except (OSError, ValueError):
-        return {}  # a damaged store is re-measured, never trusted
+        raw = path.read_bytes()
+    except OSError as e:
+        raise ImtuneError(f"cannot read the calibration store {path}: {e.strerror or e}") from None
+    try:
+        d = json.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as e:
+        why = f"not valid JSON (byte 0x{raw[e.start]:02x} at offset {e.start} is no UTF-8 text)"
+    except ValueError as e:  # JSONDecodeError
+        why = f"not valid JSON ({str(e).splitlines()[0][:120]})"
+    else:
+        if isinstance(d, dict):
+            return d
+        why = f"a JSON {type(d).__name__}, not an object of calibrations"
+    raise ImtuneError(f"{path} is {why}; delete it (its calibrations are measured again when next needed) or "
+                      "restore it from a copy")
 
 
 def _write_store(path: Path, data: dict) -> None:
@@ -337,6 +351,8 @@ def calibrate(estimator_name: str, base_conf, scenes, cache, data_fingerprint: s
     def usable(c: Calibration | None) -> bool:
         return c is not None and c.covers(bmax)
 
+    if store is not None:
+        _read_store(store)  # a damaged store is one line before the measuring, not after it
     if store is not None and not force:
         c = stored_calibration(store.parent, key)
         if usable(c):
