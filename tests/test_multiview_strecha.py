@@ -104,3 +104,22 @@ def test_multiview_without_ground_truth_points_is_a_clear_error(tmp_path, capsys
     rc, out, err = run_cli(["evaluate", "--data", str(DATA / "strecha"), "--scenes", "fountain-P11", "--task",
                             "multiview", "--num-features", "512", "--bags", "5:1"], capsys)
     assert rc == 2 and "build-gt" in err and "Traceback" not in err
+
+
+def test_bag_sizes_above_the_scenes_images_are_said_and_kept(small_strecha, capsys):
+    """--bags 5:1,8:1,10:1 on a 6-image scene: sizes 8 and 10 become one bag of all 6 images. The numbers are listed
+    under size 6 (not 8 or 10), a warning line says so and the JSON keeps it: a user comparing with the paper's
+    25-image bags on 11-image Strecha scenes must not read them as the protocol's."""
+    root, cache = small_strecha
+    rc, out, err = run_cli(["evaluate", "--data", str(root), "--task", "multiview", "--num-features", "1024",
+                            "--bags", "5:1,8:1,10:1", "--workers", "2", "--json", "--quiet"], capsys)
+    assert rc == 0, err
+    mv = json.loads(out)["multiview"]
+    assert set(mv["by_size"]) == {"5", "6"} and mv["bags"] == 2
+    note = ("scene fountain-P11 has 6 images: bag sizes 8, 10 evaluated as bags of all 6 (listed under size 6, at "
+            "most one bag); its multiview numbers at those sizes are not the protocol's")
+    assert mv["notes"] == [note]
+    assert [ln for ln in err.splitlines() if ln.strip()] == [f"warning: {note}"]
+    rc, out, err = run_cli(["evaluate", "--data", str(root), "--task", "multiview", "--num-features", "1024",
+                            "--bags", "5:1", "--workers", "2", "--json", "--quiet"], capsys)
+    assert rc == 0 and "notes" not in json.loads(out)["multiview"] and "warning" not in err, err

@@ -364,6 +364,7 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
                    "statistic": "median estimator seconds per pair"},
         "runs": results, "mean": mean, "std": std, "interval": interval, "reference": reference_out,
         "validation": frozen.get("validation"),
+        "notes": vs.notes,  # where the task could not follow its options on a scene (bag sizes above its images)
         "code_version": code_version(),
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "wall_seconds": time.perf_counter() - t_start,  # features, the runs and the reference's runs

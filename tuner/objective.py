@@ -95,6 +95,11 @@ class ValidationSet:
         return [s.name for s, _ in self.scenes]
 
     @property
+    def notes(self) -> list[str]:
+        """The task's notes on these scenes (:meth:`pipeline.tasks.base.Task.scene_notes`)."""
+        return [n for s in self.scene_objs for n in self.task.scene_notes(s)]
+
+    @property
     def n_pairs(self) -> int:
         return sum(len(p) for _, p in self.scenes)
 

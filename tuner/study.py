@@ -402,6 +402,8 @@ def preflight(s: TuneSettings, task, stored: dict | None = None) -> list[str]:
             (scene,) = load_scenes(s.data_root, [n], split="test", gt_dir=s.gt_dir)
         except ImtuneError as e:
             raise ImtuneError(f"test scene {n!r}: {e}; choose others with --test-scenes, {skip}") from None
+        for note in task.scene_notes(scene):  # e.g. bag sizes above the scene's image count
+            s.warn(f"test {note}")
         why = task.check_scene(scene)  # the task says what it needs (pairs, ground truth, bags)
         if why and why.startswith("no ground truth"):
             raise ImtuneError(f"test scene {n!r} has {why}; build it with `tune data build-gt --data {scene.root}`, "
@@ -540,6 +542,8 @@ def setup_study(s: TuneSettings) -> StudyContext:
     if held_in:
         s.warn(f"test scene {', '.join(held_in)} is also a validation scene: its test numbers are not held out "
                "(tuned on the scene they measure); choose other --test-scenes for a fair test")
+    for note in vs.notes:
+        s.warn(f"validation {note}")
     s.say(f"validation: {', '.join(vs.scene_names)} ({vs.n_pairs} pairs) from {s.data_root}")
     vs.prepare(base, cache, progress=s.progress)
     if created:

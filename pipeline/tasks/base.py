@@ -120,6 +120,12 @@ class Task(abc.ABC):
         why = scene.missing_ground_truth(units)
         return f"no ground truth to evaluate against ({why})" if why else None
 
+    def scene_notes(self, scene) -> list[str]:
+        """What a user must know about how this task evaluates ``scene`` where it cannot follow its options as
+        given (one line each; the callers print them as warnings and keep them in the results). Reads the scene's
+        metadata only. Default: none."""
+        return []
+
     def prepare(self, scenes: list, conf: PipelineConfig, cache, progress: bool = False) -> dict[str, float]:
         """Warm the caches the evaluation reads (features, k-NN tables) once; returns features per image
         (NF) per scene. Default: nothing to warm."""

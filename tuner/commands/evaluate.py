@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 
 from tuner.formatting import render
 from tuner.evaluate import evaluate_config
@@ -135,6 +136,9 @@ def run(args) -> int:
                           intermediate=args.intermediate, ci_resamples=ci_resamples(args), jobs=args.jobs)
     if source:
         out["config_source"] = {"config": args.config, "overridden": sorted(explicit_options(args) & set(OPTION_FIELDS))}
+    for section in out.values():  # the tasks' notes (bag sizes above a scene's images): on stderr, kept in the JSON
+        for note in (section.get("notes") or []) if isinstance(section, dict) else []:
+            print(f"warning: {note}", file=sys.stderr, flush=True)
     if args.json:
         print(json.dumps(_jsonable(out), indent=2))
     else:

@@ -414,6 +414,8 @@ def run_test_cmd(args) -> int:
     else:
         frozen = load_frozen(sdir, args.study)  # no such study in this storage: the frozen file alone
         result = run_test(frozen, study_data_root(frozen, root), sdir, **kw)
+    for note in result.get("notes") or []:
+        print(f"warning: test {note}", file=sys.stderr, flush=True)
     held_in = [n for n in (_scenes(args.scenes) or []) if n in ((frozen.get("data") or {}).get("val_scenes") or [])]
     if held_in:  # as `tune run` warns for --test-scenes
         print(f"warning: test scene {', '.join(held_in)} is also a validation scene of study {args.study}: its test "
