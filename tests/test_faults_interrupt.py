@@ -66,15 +66,3 @@ def test_an_interrupt_while_a_trial_is_recorded_is_an_interruption(tmp_path, cap
     assert cli._unexpected(exc, _Args(), None) == code
     assert capsys.readouterr().err.strip() == line
 
-
-def test_a_lost_connection_without_an_interrupt_is_still_a_storage_fault():
-    """The same UnboundLocalError with a dropped connection as its context (no interrupt) stays a storage fault."""
-    import sqlalchemy.exc
-    try:
-        try:
-            raise sqlalchemy.exc.OperationalError("SELECT", {}, Exception("server closed the connection unexpectedly"))
-        except Exception:  # noqa: BLE001
-            raise UnboundLocalError("cannot access local variable 'updated_state' where it is not associated")
-    except UnboundLocalError as err:
-        assert interrupt_in_chain(err) is None
-        assert storage_fault(err, "postgresql://u:pw@h/db").startswith("lost the connection to the storage")

@@ -197,6 +197,8 @@ def test_storage_fault_mapping_walks_optunas_wrappers():
             raise UnboundLocalError("cannot access local variable 'updated_state' where it is not associated")
     except UnboundLocalError as err:
         msg = storage_fault(err, "postgresql://u:pw@h/db")
+        from tuner.storage import interrupt_in_chain
+        assert interrupt_in_chain(err) is None  # no interrupt in this chain: a storage fault, not an interruption
     assert msg.startswith("lost the connection to the storage postgresql://u:***@h/db; completed trials are kept")
     msg = storage_fault(UnboundLocalError("'updated_state'"), "postgresql://u:pw@h/db")
     assert msg.startswith("lost the connection")
