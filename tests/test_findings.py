@@ -353,6 +353,21 @@ def test_the_report_header_names_the_scenes_and_where_they_come_from(subset, tmp
         "validation scenes: entry-P10; test scenes: entry-P10 (from --test-scenes, else splits.yaml)")
 
 
+def test_the_report_header_says_the_multiview_bags_and_where_a_size_exceeds_a_scene(tmp_path):
+    """The full run uses the protocol's bags (5:100, 10:50, 25:25); fountain-P11 has 11 images, so its 25-image bags
+    are one bag of all 11, and the header says so (it said nothing about the bags of the full run)."""
+    from tuner.findings.report import settings_lines
+
+    def bags_line(**kw):
+        fs = FindingsSettings(data_root=DATA / "strecha", studies_dir=tmp_path / "studies", **kw)
+        return next(ln for ln in settings_lines(fs) if ln.startswith("trials per study: "))
+    full = bags_line()
+    assert "multiview bags (size:count): 5:100, 10:50, 25:25 (the protocol's); scene fountain-P11 has 11 images: " \
+           "bag size 25 evaluated as bags of all 11" in full, full
+    quick = bags_line(quick=True)
+    assert quick.endswith("multiview bags (size:count): 5:6, 10:3"), quick
+
+
 def test_too_few_scenes_lists_every_finding_with_reason(subset, tmp_path, monkeypatch, capsys):
     """Validation data only (no test scene): each selected finding is listed, "not run", with the reason."""
     root = tmp_path / "data"

@@ -52,6 +52,7 @@ def _ci(ci, d=4):
 def settings_lines(fs) -> list[str]:
     m = fs.mode()
     from tuner.findings import resolved_splits
+    from tuner.findings.runner import multiview_bags, multiview_notes
     from tuner.storage import storage_label
     val, test, split_source = resolved_splits(fs)
     mode = ("--quick (a reduced but real version: not the protocol; with so few trials a study can freeze a poor "
@@ -61,7 +62,10 @@ def settings_lines(fs) -> list[str]:
         f"mode: {mode}",
         f"features per image: {m['num_features']} (finding 9 also runs {2048 if m['num_features'] == 8000 else 8000})",
         f"trials per study: {m['trials_effective']} (the multiview study: its r grid, at most as many); pairs per scene: {m['max_pairs'] or 'all'}; "
-        f"test runs: {m['test_runs']}" + (f"; multiview bags: {m['multiview_bags']}" if m.get("multiview_bags") else ""),
+        f"test runs: {m['test_runs']}; multiview bags (size:count): "
+        + ", ".join(f"{size}:{count}" for size, count in multiview_bags(fs))
+        + ("" if m.get("multiview_bags") else " (the protocol's)")
+        + "".join(f"; {note}" for note in multiview_notes(fs)),
         f"budget: {fs.budget:g} s per pair on validation (median estimator time), {fs.test_budget:g} s on test",
         f"data: {fs.data_root}; validation scenes: {', '.join(val) or 'none'}; test scenes: {', '.join(test) or 'none'} "
         f"(from {split_source})",

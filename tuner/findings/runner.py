@@ -146,6 +146,24 @@ def ensure_multiview_ground_truth(spec: StudySpec, fs: FindingsSettings) -> None
         build_ground_truth(sc, gt_dir, GTConfig())
 
 
+def multiview_bags(fs: FindingsSettings) -> tuple:
+    """The (size, count) bags of the multiview study: --quick's, else the protocol's."""
+    from pipeline.tasks.multiview import MultiviewConfig
+    return tuple(fs.mode()["multiview_bags"] or MultiviewConfig().bags)
+
+
+def multiview_notes(fs: FindingsSettings) -> list[str]:
+    """The multiview task's notes on the validation scenes (bag sizes above a scene's images), for the report."""
+    from pipeline.tasks.multiview import MultiviewConfig, MultiviewTask
+    from tuner.evaluate import load_scenes
+    task = MultiviewTask(MultiviewConfig(bags=multiview_bags(fs)))
+    try:
+        scenes = load_scenes(Path(fs.data_root), fs.val_scenes, split="val", ground_truth=False)
+    except ImtuneError:  # the report of a run that could not load them says why elsewhere
+        return []
+    return [n for sc in scenes for n in task.scene_notes(sc)]
+
+
 def tune_settings(spec: StudySpec, fs: FindingsSettings):
     from tuner.study import TuneSettings
     m = fs.mode()
