@@ -461,3 +461,12 @@ def test_a_terminated_test_run_does_not_promise_a_resume(tiny, tmp_path, capsys)
     assert lines[-1] == ("tune: terminated (SIGTERM); a test run is written only when it finishes (test.json keeps "
                          "the last finished one); rerun the command"), err
     assert "resume" not in err and not (st / "s" / "test.json").exists()
+
+
+def test_calibrate_says_it_takes_no_storage(tmp_path, capsys):
+    """`tune calibrate --storage URL` was accepted and ignored (a calibration lives in <studies dir>/budgets.json):
+    a user expecting workers to share it through PostgreSQL got nothing. One line, the password never echoed."""
+    rc, out, err = _cli(["calibrate", "--storage", "postgresql://u:s3cret@127.0.0.1:1/db", "--studies-dir",
+                         tmp_path / "studies"], capsys)
+    _one_line_error(rc, err, "argument --storage", "budgets.json", "drop --storage", "--studies-dir")
+    assert "s3cret" not in err and not (tmp_path / "studies").exists()

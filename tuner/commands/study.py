@@ -17,6 +17,8 @@ Every command takes ``--storage URL`` (default ``sqlite:///<studies dir>/optuna.
 """
 from __future__ import annotations
 
+import argparse
+
 import json
 import sys
 from pathlib import Path
@@ -30,14 +32,23 @@ from tuner.options import add_pipeline_options, build_config, resolve_data
 FORMATS = ("markdown", "csv", "latex", "json")
 
 
-def _storage_opts(ap) -> None:
+def _storage_opts(ap, storage: bool = True) -> None:
+    """--storage (the Optuna storage; not for commands that never open it) and --studies-dir."""
     g = ap.add_argument_group("storage")
-    g.add_argument("--storage", default=None,
-                   help="sqlite:///PATH, postgresql://USER:PASS@HOST:PORT/DB, mysql+pymysql://..., or journal:PATH "
-                        "(default sqlite:///<studies dir>/optuna.db)")
+    if storage:
+        g.add_argument("--storage", default=None,
+                       help="sqlite:///PATH, postgresql://USER:PASS@HOST:PORT/DB, mysql+pymysql://..., or journal:PATH "
+                            "(default sqlite:///<studies dir>/optuna.db)")
     g.add_argument("--studies-dir", default=None,
                    help="frozen settings, test results, reports, budgets.json (default $IMTUNE_STUDIES, else "
                         "studies/ in the project checkout)")
+
+
+def _no_storage_for_calibrate(value: str):
+    """`tune calibrate --storage ...`: said, not silently ignored (a calibration is no Optuna study)."""
+    raise argparse.ArgumentTypeError("tune calibrate stores its calibration in <studies dir>/budgets.json, not in an "
+                                     "Optuna storage: drop --storage (--studies-dir chooses the folder; a study "
+                                     "run with that --studies-dir reuses it)")
 
 
 def resolve_reference(value: str | None, sdir):
@@ -125,7 +136,8 @@ def register(sub) -> None:
 
     c = sub.add_parser("calibrate", help="measure estimator seconds per pair vs max-iters; store Gamma_max(B)")
     add_pipeline_options(c, tuning=True)
-    _storage_opts(c)
+    _storage_opts(c, storage=False)  # a calibration lives in <studies dir>/budgets.json, never in the storage
+    c.add_argument("--storage", dest="refused_storage", type=_no_storage_for_calibrate, help=argparse.SUPPRESS)
     c.add_argument("--budget", type=positive_float, action="append", default=None,
                    help="B in seconds per pair (repeatable; default 0.5 and 1.0)")
     c.add_argument("--pairs", type=positive_int, default=16, help="validation pairs timed per cap (default 16)")
