@@ -66,3 +66,21 @@ def test_an_interrupt_while_a_trial_is_recorded_is_an_interruption(tmp_path, cap
     assert cli._unexpected(exc, _Args(), None) == code
     assert capsys.readouterr().err.strip() == line
 
+
+
+def test_an_error_raised_while_an_interrupt_is_handled_is_the_interruption(capsys):
+    """An ImtuneError raised inside the handling of a Ctrl-C (a clean-up that fails) reports the interruption, exit
+    130, not the clean-up's message; one raised otherwise is the usual one line, exit 2, credentials masked."""
+    from pipeline.errors import ImtuneError
+    try:
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise ImtuneError("cannot write the study's report: the folder went away") from None
+    except ImtuneError as err:
+        capsys.readouterr()
+        assert cli._user_error(err, _Args(), None) == 130
+        assert capsys.readouterr().err.strip() == f"tune: interrupted; {cli.RESUME_NOTE}"
+    capsys.readouterr()
+    assert cli._user_error(ImtuneError("storage postgresql://u:pw@h/db is down"), _Args(), "postgresql://u:pw@h/db") == 2
+    assert capsys.readouterr().err.strip() == "tune: error: storage postgresql://u:***@h/db is down"

@@ -211,6 +211,16 @@ def _interrupted(e: KeyboardInterrupt, args) -> int:
     return 130
 
 
+def _user_error(e: ImtuneError, args, url: str | None) -> int:
+    """One line, exit 2; an ImtuneError raised while an interrupt was being handled is the interruption."""
+    from tuner.storage import interrupt_in_chain, scrub
+    stop = interrupt_in_chain(e)
+    if stop is not None:
+        return _interrupted(stop, args)
+    print(f"tune: error: {scrub(e, url)}", file=sys.stderr)
+    return 2
+
+
 def _unexpected(e: Exception, args, url: str | None) -> int:
     """An exception no command turned into an ImtuneError: an interruption Optuna masked (130 / 143), a storage
     that failed mid-run (one line, exit 2), else one "internal error" line (exit 1; the traceback, credentials
@@ -261,8 +271,7 @@ def _main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except ImtuneError as e:
-        print(f"tune: error: {scrub(e, url)}", file=sys.stderr)
-        return 2
+        return _user_error(e, args, url)
     except BrokenPipeError:  # `tune ... | head`: the reader left; nothing more to say
         try:
             sys.stdout = open(os.devnull, "w")
