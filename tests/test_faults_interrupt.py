@@ -31,10 +31,12 @@ class _SignalWhileTold(optuna.storages.RDBStorage):
         return super().set_trial_state_values(trial_id, state, values)
 
 
-def _masked(tmp_path, signum):
+def _masked(tmp_path, signum, study_out: list | None = None):
     """Run one trial whose recording is interrupted by ``signum``; the exception Optuna lets out."""
     storage = _SignalWhileTold(f"sqlite:///{tmp_path / 'optuna.db'}", signum)
     study = optuna.create_study(storage=storage, study_name="s")
+    if study_out is not None:
+        study_out.append(study)
     with cli._sigterm_as_interrupt():
         with pytest.raises(BaseException) as info:
             study.optimize(lambda t: t.suggest_float("x", 0, 1), n_trials=1)
@@ -84,3 +86,20 @@ def test_an_error_raised_while_an_interrupt_is_handled_is_the_interruption(capsy
     capsys.readouterr()
     assert cli._user_error(ImtuneError("storage postgresql://u:pw@h/db is down"), _Args(), "postgresql://u:pw@h/db") == 2
     assert capsys.readouterr().err.strip() == "tune: error: storage postgresql://u:***@h/db is down"
+
+
+def test_the_trial_interrupted_while_recorded_is_failed_not_left_running(tmp_path):
+    """The interrupted trial stays RUNNING in the storage (its state was never written); `tune` marks it FAIL at once
+    (tuner.storage.fail_interrupted_trials), as an interrupt during the trial's work does, so a resume does not wait
+    for the heartbeat's grace period to see it."""
+    from optuna.trial import TrialState
+
+    from tuner.storage import fail_interrupted_trials
+    optuna.logging.set_verbosity(optuna.logging.ERROR)
+    got: list = []
+    _masked(tmp_path, signal.SIGINT, got)
+    plain = optuna.load_study(study_name="s", storage=f"sqlite:///{tmp_path / 'optuna.db'}")
+    assert [t.state for t in plain.trials] == [TrialState.RUNNING]  # what Optuna leaves
+    assert fail_interrupted_trials(plain, [5, 0]) == [0]  # only this process's numbers, only RUNNING ones
+    assert [t.state for t in plain.trials] == [TrialState.FAIL]
+    assert fail_interrupted_trials(plain, [0]) == []

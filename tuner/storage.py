@@ -619,6 +619,24 @@ def interrupt_in_chain(exc: BaseException) -> KeyboardInterrupt | None:
     return next((e for e in _chain(exc) if isinstance(e, KeyboardInterrupt)), None)
 
 
+def fail_interrupted_trials(study, numbers) -> list[int]:
+    """Mark FAIL the trials among ``numbers`` (this process's) still RUNNING after an interruption: one interrupted
+    while Optuna recorded it (see :func:`interrupt_in_chain`) is left RUNNING, and would wait for the heartbeat's
+    grace period before a resume could see it stale. Best effort (the storage may be the thing that failed);
+    returns the numbers marked."""
+    from optuna.trial import TrialState
+    marked = []
+    try:
+        running = {t.number for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))}
+        for n in numbers:
+            if n in running:
+                study.tell(n, state=TrialState.FAIL)
+                marked.append(n)
+    except Exception:  # noqa: BLE001 - the interruption is what gets reported
+        pass
+    return marked
+
+
 def storage_fault(exc: BaseException, url: str | None = None, studies_dir: Path | str | None = None) -> str | None:
     """A one-line message for an exception caused by the storage failing mid-run, or None if it is not one.
 

@@ -655,6 +655,11 @@ def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
         if done0 < n_target:
             study.optimize(ctx.objective, n_trials=None, timeout=s.timeout, callbacks=[callback],
                            gc_after_trial=False, show_progress_bar=False)
+    except BaseException as e:
+        from tuner.storage import fail_interrupted_trials, interrupt_in_chain
+        if isinstance(e, KeyboardInterrupt) or interrupt_in_chain(e) is not None:
+            fail_interrupted_trials(study, ctx.objective.trials_run[-1:])  # the trial this process was running
+        raise
     finally:
         if bar is not None:
             bar.close()
