@@ -264,7 +264,7 @@ def _main(argv: list[str] | None = None) -> int:
         ap.print_help()
         return 2
     # every message is scrubbed of credentials: exceptions from SQLAlchemy / psycopg2 may embed the URL or DSN
-    from tuner.storage import quiet_thread_storage_faults, scrub, storage_fault
+    from tuner.storage import quiet_thread_storage_faults
     url = getattr(args, "storage", None)
     if hasattr(args, "storage"):  # Optuna's heartbeat thread: its storage faults are reported once, below
         quiet_thread_storage_faults(url, getattr(args, "studies_dir", None))
