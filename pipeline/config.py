@@ -73,6 +73,26 @@ def _number(what: str, v, integer: bool = False) -> float:
     return f
 
 
+def _set_types(obj) -> None:
+    """Normalise a stage dataclass in place (its ``__post_init__``): an integral number in an int field becomes an
+    int (YAML's ``num_features: 2048.0`` reached OpenCV as a float and crashed); a bool field takes true / false (or
+    0 / 1) only (a quoted ``"false"`` was truthy: the option silently on); an optional path field a string."""
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        if v is None:
+            continue
+        if f.type == "bool":
+            if isinstance(v, bool) or getattr(getattr(v, "dtype", None), "kind", "") == "b" \
+                    or (isinstance(v, int) and v in (0, 1)):
+                object.__setattr__(obj, f.name, bool(v))
+            else:
+                raise ImtuneError(f"{f.name} must be true or false, got {v!r}")
+        elif f.type == "int" and isinstance(v, float) and v.is_integer():  # anything else: the field's own check
+            object.__setattr__(obj, f.name, int(v))
+        elif f.type == "str | None" and not isinstance(v, str):
+            raise ImtuneError(f"{f.name} must be a string (a folder), got {v!r}")
+
+
 def check_covisibility(v) -> float | None:
     """A minimum co-visibility: None (all listed pairs) or a finite fraction in [0, 1]."""
     if v is None:
@@ -116,11 +136,13 @@ class FeatureConfig:
     options: tuple = ()
 
     def __post_init__(self):
+        _set_types(self)
         if _number("num_features", self.num_features, integer=True) < 1:
             raise ImtuneError(f"num_features must be >= 1, got {self.num_features}")
         if self.mr_size is not None and not _number("mr_size", self.mr_size) > 0:
             raise ImtuneError(f"mr_size must be > 0, got {self.mr_size}")
-        _number("max_side", self.max_side, integer=True)
+        if _number("max_side", self.max_side, integer=True) < 0:
+            raise ImtuneError(f"max_side must be >= 0 px (0 = keep the original size), got {self.max_side}")
         if self.clahe not in ("none", "detector", "descriptor", "both"):
             raise ImtuneError(f"clahe must be none|detector|descriptor|both, got {self.clahe!r}")
 
@@ -150,6 +172,7 @@ class MatchConfig:
     custom_matches: str | None = None
 
     def __post_init__(self):
+        _set_types(self)
         if not (0.0 < _number("ratio r", self.ratio) <= 1.0):
             raise ImtuneError(f"ratio r must be in (0, 1], got {self.ratio}")
         if self.strategy not in STRATEGIES:
@@ -181,6 +204,7 @@ class GeometryConfig:
     seed: int = 0
 
     def __post_init__(self):
+        _set_types(self)
         if not _number("inlier threshold", self.threshold) > 0:
             raise ImtuneError(f"inlier threshold must be > 0 px, got {self.threshold}")
         if not (0.0 < _number("confidence", self.confidence) < 1.0):

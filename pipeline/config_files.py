@@ -57,11 +57,15 @@ def config_label(conf: PipelineConfig) -> str:
     return f"{feat} · {match} · {geo}"
 
 
-def _options(v):
-    """Extractor options as sorted (key, value) pairs, from a mapping or a list of pairs."""
+def _options(v, what: str):
+    """Extractor options as sorted (key, value) pairs, from a mapping or a list of [key, value] pairs (one-line
+    ImtuneError naming ``what`` for anything else: a number, a list of three, ...)."""
     if isinstance(v, dict):
         return tuple(sorted((str(k), x) for k, x in v.items()))
-    return tuple(sorted(tuple(x) if isinstance(x, list) else x for x in (v or ())))
+    if not isinstance(v, (list, tuple)) or \
+            not all(isinstance(x, (list, tuple)) and len(x) == 2 and isinstance(x[0], str) for x in v):
+        raise ImtuneError(f"{what} must be a mapping of option: value (e.g. {{edge_threshold: 10}}), got {v!r}")
+    return tuple(sorted((tuple(x) for x in v), key=lambda kv: kv[0]))
 
 
 def pipeline_from_dict(d: dict, base: PipelineConfig | None = None, where: str = "configuration") -> PipelineConfig:
@@ -89,7 +93,7 @@ def pipeline_from_dict(d: dict, base: PipelineConfig | None = None, where: str =
                 vals[f.name] = float(vals[f.name])
         for k in ("options", "prefilter_options"):
             if k in vals:
-                vals[k] = _options(vals[k])
+                vals[k] = _options(vals[k], f"{where}: {sec}.{k}")
         try:
             kw[sec] = dataclasses.replace(getattr(base, sec), **vals)
         except (TypeError, ValueError) as e:
@@ -113,23 +117,44 @@ def config_from_flat(d: dict, base: PipelineConfig | None = None, where: str = "
 
 
 def config_from_imc(method: dict, where: str = "IMC method") -> PipelineConfig:
-    """An official IMC benchmark method (config_common + config_<dataset>_stereo) -> PipelineConfig."""
+    """An official IMC benchmark method (config_common + config_<dataset>_stereo) -> PipelineConfig; one-line
+    ImtuneError naming ``where`` for a section that is no mapping or a value the stages reject."""
+    try:
+        return _imc(method)
+    except ImtuneError as e:
+        raise ImtuneError(f"{where}: {e}") from None
+
+
+def _section(d: dict, key: str, what: str) -> dict:
+    v = d.get(key)
+    if v is None:
+        return {}
+    if not isinstance(v, dict):
+        raise ImtuneError(f"{what} must be an object, got {v!r}")
+    return v
+
+
+def _imc(method: dict) -> PipelineConfig:
     from pipeline.geometry import imc_geom_to_config
-    common = method.get("config_common") or {}
-    task = next((v for k, v in method.items() if k.startswith("config_") and k.endswith("_stereo")), None)
-    if not isinstance(task, dict):
-        raise ImtuneError(f"{where}: IMC method config has no config_<dataset>_stereo section")
+    common = _section(method, "config_common", "config_common")
+    key = next((k for k in method if k.startswith("config_") and k.endswith("_stereo")), None)
+    if key is None or not isinstance(method[key], dict):
+        raise ImtuneError("IMC method config has no config_<dataset>_stereo section")
+    task = method[key]
     name = str(common.get("descriptor") or common.get("keypoint") or "sift").lower()
     name = {"siftdef": "sift", "rootsiftdef": "rootsift"}.get(name, name)
     from pipeline.features import EXTRACTORS
     EXTRACTORS.get(name)
-    fc = FeatureConfig(name=name, num_features=int(common.get("num_keypoints", 8000)))
-    m = task.get("matcher") or {}
-    filt = m.get("filtering") or {}
-    ratio = float(filt.get("threshold", 1.0)) if "ratio" in str(filt.get("type", "")) else 1.0
-    sym = m.get("symmetric") or {}
+    fc = FeatureConfig(name=name, num_features=common.get("num_keypoints", 8000))
+    m = _section(task, "matcher", f"{key}.matcher")
+    filt = _section(m, "filtering", f"{key}.matcher.filtering")
+    ratio = filt.get("threshold", 1.0) if "ratio" in str(filt.get("type", "")) else 1.0
+    if isinstance(ratio, (int, float)) and not isinstance(ratio, bool) and ratio > 1.0:
+        ratio = 1.0  # IMC's r above 1 tests nothing, as r = 1 (nan is no number > 1: MatchConfig rejects it)
+    sym = _section(m, "symmetric", f"{key}.matcher.symmetric")
     strategy = str(sym.get("reduce", "both")) if sym.get("enabled", True) else "uni"
-    mc = MatchConfig(ratio=min(1.0, ratio), strategy=strategy, fginn="fginn" in str(filt.get("type", "")),
+    mc = MatchConfig(ratio=float(ratio) if isinstance(ratio, int) and not isinstance(ratio, bool) else ratio,
+                     strategy=strategy, fginn="fginn" in str(filt.get("type", "")),
                      method="flann" if m.get("flann") else "exact")
     gc = GeometryConfig(**imc_geom_to_config(task.get("geom") or {}))
     return PipelineConfig(feature=fc, matching=mc, geometry=gc)
@@ -177,7 +202,7 @@ def _load(path: Path, base: PipelineConfig | None) -> ConfigFile:
     where = str(path)
     if "config_common" in d:
         conf = config_from_imc(d, where)
-        return ConfigFile(conf, f"{d['config_common'].get('json_label', path.stem)}: {config_label(conf)}", "imc",
+        return ConfigFile(conf, f"{d['config_common'].get('json_label') or path.stem}: {config_label(conf)}", "imc",
                           path=path)
     if isinstance(d.get("config"), dict):
         conf = pipeline_from_dict(d["config"], base, where)

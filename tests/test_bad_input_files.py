@@ -603,3 +603,59 @@ def test_a_frozen_file_given_as_config_is_checked_too(case, tmp_path, data3):
     f.write_text(_frozen_text(data3, case))
     r = tune("evaluate", "--config", f, "--data", data3, "--quiet", env={"IMTUNE_CACHE": str(tmp_path / "cache")})
     one_line_error(r, f"{f}: {BAD_FROZEN[case][2]}")
+
+
+# -- a configuration file's values of the wrong type (YAML config and IMC method JSON) ------------------------
+
+_IMC_STEREO = '"config_phototourism_stereo": {"geom": {"method": "cmp-degensac-f", "threshold": 0.5}%s}'
+BAD_CONFIG_VALUES = {  # name: (file name, text, what the error line says)
+    "upright-quoted-false": ("c.yaml", 'feature: {num_features: 512, upright: "false"}', "upright must be true or false"),
+    "fginn-string": ("c.yaml", "matching: {fginn: maybe}", "fginn must be true or false, got 'maybe'"),
+    "low-threshold-off-string": ("c.yaml", 'feature: {low_threshold: "off"}', "low_threshold must be true or false"),
+    "max-side-negative": ("c.yaml", "feature: {max_side: -5}", "max_side must be >= 0"),
+    "num-features-fraction": ("c.yaml", "feature: {num_features: 512.5}", "num_features must be an integer"),
+    "options-number": ("c.yaml", "feature: {options: 5}", "feature.options must be a mapping"),
+    "options-triple": ("c.yaml", "feature: {options: [[a, 1, 2]]}", "feature.options must be a mapping"),
+    "options-flat-list": ("c.yaml", "feature: {options: [5]}", "feature.options must be a mapping"),
+    "custom-matches-number": ("c.yaml", "matching: {custom_matches: 5}", "custom_matches must be a string"),
+    "imc-num-keypoints-text": ("m.json", '{"config_common": {"num_keypoints": "many"}, %s}' % (_IMC_STEREO % ""),
+                               "num_features must be a number, got 'many'"),
+    "imc-common-not-object": ("m.json", '{"config_common": "sift", %s}' % (_IMC_STEREO % ""),
+                              "config_common must be an object"),
+    "imc-matcher-not-object": ("m.json", '{"config_common": {}, %s}' % (_IMC_STEREO % ', "matcher": "nn"'),
+                               "config_phototourism_stereo.matcher must be an object"),
+    "imc-ratio-nan": ("m.json", '{"config_common": {}, %s}' % (_IMC_STEREO % ', "matcher": {"filtering": '
+                                                               '{"type": "snn_ratio_pairwise", "threshold": NaN}}'),
+                      "ratio r must be a finite number"),
+    "imc-threshold-text": ("m.json", '{"config_common": {}, "config_phototourism_stereo": {"geom": '
+                                     '{"method": "cmp-degensac-f", "threshold": "x"}}}', "inlier threshold must be a number"),
+    "imc-max-iter-fraction": ("m.json", '{"config_common": {}, "config_phototourism_stereo": {"geom": '
+                                        '{"method": "cmp-degensac-f", "max_iter": 1000.5}}}', "max-iters must be an integer"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_CONFIG_VALUES))
+def test_config_value_of_the_wrong_type_is_one_line_naming_the_file(case, tmp_path, data3):
+    """A quoted "false" was truthy (the option silently on), NaN became r = 1 (no ratio test), and the rest were
+    an internal error (TypeError, ValueError, AttributeError)."""
+    name, text, needle = BAD_CONFIG_VALUES[case]
+    f = tmp_path / name
+    f.write_text(text + "\n")
+    r = tune("evaluate", "--config", f, "--data", data3, "--quiet", "--jobs", "1",
+             env={"IMTUNE_CACHE": str(tmp_path / "cache")})
+    one_line_error(r, f"{f}: ", needle)
+
+
+def test_integral_floats_in_a_config_are_integers(tmp_path, data3):
+    """YAML's ``num_features: 512.0`` / ``max_iters: 100.0`` are the integers (they reached OpenCV as floats: an
+    internal error), and the label shows Γ 100, not 100.0."""
+    f = tmp_path / "c.yaml"
+    f.write_text("feature: {num_features: 512.0}\ngeometry: {max_iters: 100.0, seed: 3.0}\n")
+    r = tune("evaluate", "--config", f, "--data", data3, "--quiet", "--jobs", "1", "--ci", "none",
+             env={"IMTUNE_CACHE": str(tmp_path / "cache")})
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "Γ 100)" in r.stdout and "100.0" not in r.stdout.splitlines()[0], r.stdout[:500]
+    from pipeline.config_files import load_config_file
+    conf = load_config_file(f).conf
+    assert (type(conf.feature.num_features), type(conf.geometry.max_iters), type(conf.geometry.seed)) == (int,) * 3
+

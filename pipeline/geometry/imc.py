@@ -42,10 +42,10 @@ def imc_geom_to_config(geom: dict) -> dict:
         if str(geom.get("error_type", "sampson")).lower() != "sampson":
             raise ImtuneError(f"IMC geom error_type {geom['error_type']!r} is not supported (only 'sampson')")
     out: dict = {"ransac": name}
-    if "threshold" in geom:
-        out["threshold"] = float(geom["threshold"])
-    if "confidence" in geom:
-        out["confidence"] = float(geom["confidence"])
-    if "max_iter" in geom:
-        out["max_iters"] = int(geom["max_iter"])
+    # the values as written: GeometryConfig checks them (a string or nan is one line there; int() / float() here
+    # raised a bare ValueError or cut 1000.5 iterations to 1000 silently)
+    for key, field in (("threshold", "threshold"), ("confidence", "confidence"), ("max_iter", "max_iters")):
+        if key in geom:
+            v = geom[key]
+            out[field] = float(v) if field != "max_iters" and isinstance(v, int) and not isinstance(v, bool) else v
     return out
