@@ -659,3 +659,19 @@ def test_integral_floats_in_a_config_are_integers(tmp_path, data3):
     conf = load_config_file(f).conf
     assert (type(conf.feature.num_features), type(conf.geometry.max_iters), type(conf.geometry.seed)) == (int,) * 3
 
+
+# -- tune plot --out that cannot be written ---------------------------------------------------------------
+
+@pytest.mark.parametrize("page", [["--study", "plots-a"], ["--pareto", "plots-a"]])
+@pytest.mark.parametrize("how", ["under-a-file", "is-a-folder"])
+def test_plot_out_that_cannot_be_written_is_one_line_before_drawing(how, page, tmp_path):
+    """A file in the way of --out's folder was an internal error (FileExistsError from mkdir)."""
+    from tests.test_plots_labels import _study
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    _study(storage, "plots-a")
+    (tmp_path / "afile").write_text("x")
+    out, needle = {"under-a-file": (tmp_path / "afile" / "r.html", "a file is in the way"),
+                   "is-a-folder": (tmp_path, "is a folder")}[how]
+    r = tune("plot", *page, "--storage", storage, "--studies-dir", tmp_path / "studies", "--out", out)
+    one_line_error(r, "--out", needle)
+    assert (tmp_path / "afile").read_text() == "x"

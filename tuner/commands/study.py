@@ -513,11 +513,17 @@ def run_plot(args) -> int:
     if args.study and args.pareto:
         raise ImtuneError("tune plot: --study and --pareto draw different pages; give one of them")
     storage = open_storage(args.storage, heartbeat=None, studies_dir=sdir, must_exist=True)
+    out = Path(args.out) if args.out else (sdir / "pareto.html" if args.pareto else
+                                           study_dir(sdir, args.study) / "report.html")
+    if args.out:  # before drawing: a folder or a file in the way was an internal error (FileExistsError)
+        from pipeline.fileio import check_writable_folder
+        if out.is_dir():
+            raise ImtuneError(f"--out {out} is a folder: give the HTML file to write, e.g. {out / 'report.html'}")
+        check_writable_folder(out.parent, "--out folder", "give --out a file in a folder you can write")
     if args.pareto:
         from tuner.pareto import write_overlay
-        print(str(write_overlay(storage, args.pareto, Path(args.out) if args.out else sdir / "pareto.html")))
+        print(str(write_overlay(storage, args.pareto, out)))
         return 0
-    out = Path(args.out) if args.out else study_dir(sdir, args.study) / "report.html"
     path = write_report(storage, args.study, out, studies_dir=sdir)
     print(str(path))
     return 0
