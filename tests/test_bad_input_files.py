@@ -417,6 +417,16 @@ def test_build_gt_non_positive_image_size_is_refused(size, tmp_path, data3):
     assert not (tmp_path / "gt").exists()
 
 
+
+@pytest.mark.parametrize("json_out", [False, True])
+def test_build_gt_on_a_folder_without_scenes_is_one_line(json_out, tmp_path):
+    """An empty folder (or one of other files) was exit 0 with nothing printed: a build that did nothing, unsaid."""
+    (tmp_path / "empty").mkdir()
+    r = tune("data", "build-gt", "--data", tmp_path / "empty", "--gt-dir", tmp_path / "gt", "--quiet",
+             *(["--json"] if json_out else []), env={"IMTUNE_CACHE": str(tmp_path / "cache")})
+    one_line_error(r, f"no scenes in {tmp_path / 'empty'}", "tune data scenes")
+    assert not (tmp_path / "gt").exists()
+
 # -- 9. invalid calibrations in budgets.json -----------------------------------------------------------------------
 
 def _calibrate(data: Path, sdir: Path, cache: Path, *extra):

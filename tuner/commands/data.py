@@ -3,6 +3,7 @@ ground truth. Where data is looked for: :mod:`pipeline.data.locate`."""
 from __future__ import annotations
 
 from pipeline.data.locate import resolve_data
+from pipeline.errors import ImtuneError
 from tuner.argtypes import positive_int
 
 DATA_HELP = "data folder (default: $IMTUNE_DATA, imtune.yaml, else strecha in the download location or ../shared/data)"
@@ -125,6 +126,8 @@ def run_build_gt(args) -> int:
     conf = GTConfig(method=args.method, num_features=args.num_features, max_image_size=args.max_image_size,
                     camera_model=args.camera_model)
     scenes = load_scenes(root, args.scenes, split="all", ground_truth=False)
+    if not scenes:  # was exit 0 with nothing printed: it looked like a build that found nothing to do
+        raise ImtuneError(f"no scenes in {root} to build ground truth for (see `tune data scenes --data {root}`)")
     report = {}
     for sc in scenes:
         t0 = time.perf_counter()
