@@ -93,3 +93,33 @@ def test_warm_started_study_on_real_studies(tmp_path, data4):
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert r.returncode == 2 and len(lines) == 1 and "nosuch" in lines[0] and "src" in lines[0], r.stderr
     print(f"WARM START: {len(enq)} trials from src projected into dst ({[e['params'] for e in enq]})")
+
+
+@needs_data
+def test_warm_start_carries_the_sources_fixed_values(tmp_path, data4):
+    """A source that fixed r and Gamma (--fix) and searched eta: its optimum is (eta*, r 0.9, Gamma 500). A study
+    searching all three started from eta* with r and Gamma drawn at random (r 0.70, Gamma 878,818 here: over the
+    budget), which is no warm start from that optimum."""
+    import optuna
+    from tuner.storage import open_storage
+    cache, storage = tmp_path / "cache", f"sqlite:///{tmp_path}/w.db"
+    common = ["--data", data4, "--feature", "sift", "--num-features", "512", "--scenes", "fountain-P11",
+              "--max-pairs", "3", "--storage", storage, "--studies-dir", tmp_path, "--no-test", "--quiet",
+              "--sampler", "random", "--seed", "3", "--pruner", "none", "--jobs", "1", "--n-trials", "1"]
+    space = tmp_path / "space.yaml"
+    space.write_text("params:\n  ratio: {type: float, low: 0.6, high: 1.0}\n"
+                     "  threshold: {type: float, low: 0.1, high: 2.0, log: true}\n"
+                     "  max_iters: {type: int, low: 100, high: 20000, log: true}\n")
+    r = tune(cache, *common, "--space", space, "--fix", "ratio=0.9", "--fix", "max_iters=500", "--study", "src")
+    assert r.returncode == 0, r.stderr[-2000:]
+    r = tune(cache, *common, "--space", space, "--budget", "10", "--study", "dst", "--warm-start", "src")
+    assert r.returncode == 0, r.stderr[-2000:]
+    st = open_storage(storage, heartbeat=None)
+    src = optuna.load_study(study_name="src", storage=st)
+    dst = optuna.load_study(study_name="dst", storage=st)
+    assert set(src.trials[0].params) == {"threshold"}
+    first = dst.trials[0]
+    assert first.user_attrs["warm_start"] == "src#0"
+    assert first.params == {"threshold": pytest.approx(src.trials[0].params["threshold"]), "ratio": 0.9,
+                            "max_iters": 500}
+    assert dst.user_attrs["warm_start"][0]["params"]["max_iters"] == 500

@@ -281,8 +281,8 @@ def project_params(params: dict, space) -> dict:
 
 def warm_start(study, storage, space, sources: list, best: int = WARM_START_BEST, say=None) -> list[dict]:
     """``--warm-start STUDY`` (repeatable): enqueue the frozen optimum and the ``best`` best feasible trials of each
-    source study (in the same storage) as this study's first trials, projected into its space
-    (:func:`project_params`), without repeats. Only a study without trials is warm-started (a resumed study keeps
+    source study (in the same storage) as this study's first trials, with the values the source fixed, projected into
+    its space (:func:`project_params`), without repeats. Only a study without trials is warm-started (a resumed study keeps
     its history); an unknown source is a one-line error naming the studies in the storage. Returns what was
     enqueued ([{"study", "trial", "params"}]), also recorded in the study's user attribute ``warm_start``."""
     if not sources:
@@ -294,8 +294,11 @@ def warm_start(study, storage, space, sources: list, best: int = WARM_START_BEST
         return []
     done, seen = [], set()
     for src in srcs:
+        # the source's pinned values (--fix, a scalar in its space) are part of its optimum: a parameter it fixed
+        # and this study searches takes that value, not a random draw beside the source's other values
+        fixed = (src.user_attrs.get("search_space_resolved") or {}).get("fixed") or {}
         for t in _source_picks(src, best):
-            params = project_params(t.params, space)
+            params = project_params({**fixed, **t.params}, space)
             key = tuple(sorted(params.items()))
             if not params or key in seen:
                 continue
