@@ -66,3 +66,14 @@ def test_plugin_errors_are_one_line(tmp_path):
         load_plugins("no_such_module_xyz")
     r = tune("list", env={"IMTUNE_PLUGINS": "no_such_module_xyz"})
     assert r.returncode != 0 and len(r.stderr.strip().splitlines()) == 1 and "no_such_module_xyz" in r.stderr
+
+
+@pytest.mark.parametrize("code", [0, 3])
+def test_plugin_calling_sys_exit_is_one_line_not_a_silent_end(code, tmp_path):
+    """A plug-in that exits while importing ended `tune list` with its exit code and no word (0: a success)."""
+    p = tmp_path / "exits.py"
+    p.write_text(f"import sys\nsys.exit({code})\n")
+    r = tune("list", env={"IMTUNE_PLUGINS": str(p)})
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert r.returncode == 2 and len(lines) == 1, (r.returncode, r.stderr)
+    assert str(p) in lines[0] and f"sys.exit({code})" in lines[0] and "Traceback" not in r.stderr

@@ -88,6 +88,10 @@ def load_plugins(spec: str | None = None) -> list[str]:
                 importlib.import_module(item)
         except ImtuneError:
             raise
+        except SystemExit as e:  # was the process's silent end: `tune list` exited 0 (or the plug-in's code) unsaid
+            raise ImtuneError(f"{PLUGINS_ENV}: plug-in {item!r} called sys.exit({e.code!r}) while importing; a plug-in "
+                              "module should only define and register (fix it, or drop it from "
+                              f"{PLUGINS_ENV})") from None
         except Exception as e:
             msg = str(e).strip().splitlines()[0] if str(e).strip() else ""
             raise ImtuneError(f"{PLUGINS_ENV}: plug-in {item!r} failed to import: {type(e).__name__}: {msg}") from None
