@@ -461,6 +461,43 @@ def test_a_negative_seed_from_python_fails_before_any_study(subset, tmp_path):
     assert not (tmp_path / "s" / "optuna.db").exists()
 
 
+
+@pytest.mark.parametrize("field,value,said", [
+    ("only", [], "only must be None (every finding) or a non-empty list"),  # ran all twelve findings
+    ("only", [99], "finding ids 1-12, got [99]"),  # KeyError
+    ("only", ["1"], "got ['1']"),  # KeyError
+    ("only", 1, "got 1"),  # TypeError
+    ("trials", 0, "trials must be None (the mode's value) or an integer >= 1, got 0"),  # every study "not run"
+    ("trials", 2.5, "trials must be None"),  # ran
+    ("max_pairs", 0, "max_pairs must be None"),
+    ("test_runs", 0, "test_runs must be None"),
+    ("jobs", 0, "jobs must be None (the default) or an integer >= 1"),
+    ("budget", -1.0, "budget must be a finite number of seconds per pair > 0, got -1.0"),
+    ("budget", float("nan"), "budget must be a finite number"),
+    ("test_budget", 0, "test_budget must be a finite number"),
+    ("n_resamples", 0, "n_resamples must be an integer from 1 to 100,000, got 0"),  # scipy's error after the studies
+    ("val_scenes", [1], "val_scenes must be None (the data's split) or a list of scene names"),
+])
+def test_wrong_settings_from_python_fail_before_any_study(field, value, said, subset, tmp_path):
+    """What the CLI's parser checks, the Python call checks too: one line naming the FindingsSettings field, before
+    the studies folder or the storage is made."""
+    from pipeline.errors import ImtuneError
+    from tuner.findings import FindingsSettings, run_findings
+    kw = {"data_root": subset, "studies_dir": tmp_path / "s", "quick": True, "only": [1], "progress": False,
+          field: value}
+    with pytest.raises(ImtuneError) as e:
+        run_findings(FindingsSettings(**kw))
+    assert str(e.value).startswith(f"FindingsSettings.{field} ") and said in str(e.value), str(e.value)
+    assert "\n" not in str(e.value) and not (tmp_path / "s").exists()
+
+
+def test_scene_names_as_one_string_from_python_are_split_at_commas(subset, tmp_path):
+    """``val_scenes="fountain-P11"`` was read letter by letter ("scene 'n' is named twice (f, o, u, n, ...)")."""
+    from tuner.findings import FindingsSettings, check_settings
+    fs = FindingsSettings(data_root=str(subset), val_scenes="fountain-P11", test_scenes=" entry-P10 ,", only="1,4")
+    check_settings(fs)
+    assert (fs.val_scenes, fs.test_scenes, fs.only, fs.data_root) == (["fountain-P11"], ["entry-P10"], [1, 4], subset)
+
 def test_bad_only_is_one_line(capsys):
     rc, out, err = _cli(["findings", "--only", "1,13"], capsys)
     assert rc == 2 and err.count("\n") == 1 and "no finding 13" in err

@@ -20,7 +20,7 @@ from tuner.findings.analysis import NOT_RUN, analyse
 from tuner.findings.definitions import BY_ID, FINDINGS, Finding, StudySpec  # noqa: F401
 from tuner.findings.runner import FindingsSettings, StudyOutcome, run_study, study_name  # noqa: F401
 
-__all__ = ["FindingsSettings", "run_findings", "FINDINGS", "BY_ID", "parse_only", "check_scenes"]
+__all__ = ["FindingsSettings", "run_findings", "FINDINGS", "BY_ID", "parse_only", "check_scenes", "check_settings"]
 
 
 def parse_only(text: str | None) -> list[int] | None:
@@ -43,6 +43,49 @@ def parse_only(text: str | None) -> list[int] | None:
     if not out:
         raise ImtuneError(f"--only {text!r}: no finding id given (ids 1-{len(FINDINGS)})")
     return out
+
+
+def check_settings(fs: FindingsSettings) -> None:
+    """The Python caller's values, checked (and normalised in place) before any study, as the CLI's options are: a
+    one-line ImtuneError naming the FindingsSettings field. Without it ``only=[]`` ran all twelve findings,
+    ``only=[99]`` was a KeyError, ``trials=0`` / ``budget=-1`` / ``jobs=0`` left every study "not run", ``trials=2.5``
+    ran, ``n_resamples=0`` failed in scipy after every study, and ``val_scenes="fountain-P11"`` was read letter by
+    letter."""
+    import math
+
+    from tuner.argtypes import MAX_RESAMPLES
+
+    def bad(field: str, want: str, v) -> ImtuneError:
+        return ImtuneError(f"FindingsSettings.{field} must be {want}, got {v!r}")
+
+    if fs.only is not None:
+        if isinstance(fs.only, str):
+            fs.only = parse_only(fs.only) or None
+        else:
+            ids = list(fs.only) if isinstance(fs.only, (list, tuple, set, frozenset)) else None
+            if not ids or any(isinstance(i, bool) or not isinstance(i, int) or i not in BY_ID for i in ids):
+                raise bad("only", f"None (every finding) or a non-empty list of finding ids 1-{len(FINDINGS)}",
+                          fs.only)
+            fs.only = list(dict.fromkeys(ids))
+    for k in ("trials", "max_pairs", "test_runs", "jobs"):
+        v = getattr(fs, k)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+            raise bad(k, f"None ({'the default' if k == 'jobs' else 'the mode' + chr(39) + 's value'}) or an integer "
+                      ">= 1", v)
+    for k in ("budget", "test_budget"):
+        v = getattr(fs, k)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+            raise bad(k, "a finite number of seconds per pair > 0", v)
+    v = fs.n_resamples
+    if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= MAX_RESAMPLES:
+        raise bad("n_resamples", f"an integer from 1 to {MAX_RESAMPLES:,}", v)
+    for k in ("val_scenes", "test_scenes"):
+        v = getattr(fs, k)
+        if isinstance(v, str):  # "a,b" as on the command line, not the letters of one name
+            setattr(fs, k, [n.strip() for n in v.split(",") if n.strip()] or None)
+        elif v is not None and (not isinstance(v, (list, tuple)) or not all(isinstance(n, str) for n in v)):
+            raise bad(k, "None (the data's split) or a list of scene names", v)
+    fs.data_root = Path(fs.data_root)
 
 
 def resolved_splits(fs: FindingsSettings) -> tuple[list, list, str]:
@@ -123,6 +166,7 @@ def run_findings(fs: FindingsSettings, write: bool = True) -> dict:
     from tuner.storage import default_studies_dir
     t0 = time.perf_counter()
     fs.studies_dir = Path(fs.studies_dir) if fs.studies_dir else default_studies_dir()
+    check_settings(fs)
     selected = [BY_ID[i] for i in (fs.only or [f.id for f in FINDINGS])]
     if isinstance(fs.seed, bool) or not isinstance(fs.seed, int) or fs.seed < 0:
         # numpy's generators (the bootstrap) take no negative seed: found only after every study had run
