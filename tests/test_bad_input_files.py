@@ -359,6 +359,20 @@ def test_ci_resamples_at_the_bound_parses():
         assert ap.parse_args([*argv, "--ci-resamples", str(MAX_RESAMPLES)]).ci_resamples == MAX_RESAMPLES
 
 
+
+@pytest.mark.parametrize("cmd", [["evaluate", "--num-features", "512"], ["compare", "A", "B"], ["test", "--study", "X"],
+                                 ["run", "--num-features", "512", "--n-trials", "1", "--no-test"], ["findings"]])
+@pytest.mark.parametrize("n", ["1", "99"])
+def test_too_few_ci_resamples_are_refused_by_every_command(n, cmd, tmp_path, data3):
+    """`tune compare --ci-resamples 1` printed mAA10 0.8667 [0.8000, 0.8000] and B - A +0.1000 [+0.2000, +0.2000]
+    (intervals missing their own estimate) and numpy warnings; evaluate / test / run refused fewer than 100."""
+    r = tune(*cmd, "--data", data3, "--quiet", "--ci-resamples", n,
+             env={"IMTUNE_CACHE": str(tmp_path / "cache"), "IMTUNE_STUDIES": str(tmp_path / "studies")})
+    one_line_error(r, "argument --ci-resamples: must be >= 100 for a 95% interval", n)
+    from tuner.argtypes import MIN_RESAMPLES
+    from tuner.cli import build_parser
+    assert build_parser().parse_args([*cmd, "--ci-resamples", str(MIN_RESAMPLES)]).ci_resamples == MIN_RESAMPLES
+
 # -- 7. a download base URL that is no URL ---------------------------------------------------------------------
 
 @pytest.mark.parametrize("base", ["not a url", "ftp//mirror/x", "/srv/mirror", f"htp://u:{SECRET}@mirror/x",

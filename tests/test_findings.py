@@ -475,7 +475,8 @@ def test_a_negative_seed_from_python_fails_before_any_study(subset, tmp_path):
     ("budget", -1.0, "budget must be a finite number of seconds per pair > 0, got -1.0"),
     ("budget", float("nan"), "budget must be a finite number"),
     ("test_budget", 0, "test_budget must be a finite number"),
-    ("n_resamples", 0, "n_resamples must be an integer from 1 to 100,000, got 0"),  # scipy's error after the studies
+    ("n_resamples", 0, "n_resamples must be an integer from 100 to 100,000, got 0"),  # scipy's error after the studies
+    ("n_resamples", 1, "n_resamples must be an integer from 100"),  # an interval missing its own estimate
     ("val_scenes", [1], "val_scenes must be None (the data's split) or a list of scene names"),
 ])
 def test_wrong_settings_from_python_fail_before_any_study(field, value, said, subset, tmp_path):

@@ -155,9 +155,18 @@ MAX_RESAMPLES = 100_000
 RESAMPLES_WHY = "every resample is held in memory"
 
 
+#: the fewest resamples a 95% interval is drawn from: with fewer, its 2.5% and 97.5% percentiles are one or two
+#: resamples (`tune compare --ci-resamples 1` printed mAA10 0.8667 [0.8000, 0.8000] and B - A +0.1000 [+0.2000,
+#: +0.2000]: intervals that miss their own estimate)
+MIN_RESAMPLES = 100
+MIN_RESAMPLES_WHY = "for a 95% interval"
+
+
 def resamples_int(s: str) -> int:
-    """A resample count: an integer in [1, MAX_RESAMPLES]."""
+    """A resample count: an integer in [MIN_RESAMPLES, MAX_RESAMPLES]."""
     v = positive_int(s)
+    if v < MIN_RESAMPLES:
+        raise argparse.ArgumentTypeError(f"must be >= {MIN_RESAMPLES} {MIN_RESAMPLES_WHY}, got {s!r}")
     if v > MAX_RESAMPLES:
         raise argparse.ArgumentTypeError(f"must be at most {MAX_RESAMPLES:,} ({RESAMPLES_WHY}), got {s!r}")
     return v

@@ -48,9 +48,10 @@ def _resamples(s: str) -> int:
         v = int(s)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected an integer, got {s!r}") from None
-    if v < 100:
-        raise argparse.ArgumentTypeError(f"must be >= 100 for a 95% interval, got {v} (use --ci none to skip)")
-    from tuner.argtypes import MAX_RESAMPLES, RESAMPLES_WHY
+    from tuner.argtypes import MAX_RESAMPLES, MIN_RESAMPLES, MIN_RESAMPLES_WHY, RESAMPLES_WHY
+    if v < MIN_RESAMPLES:
+        raise argparse.ArgumentTypeError(f"must be >= {MIN_RESAMPLES} {MIN_RESAMPLES_WHY}, got {v} (use --ci none to "
+                                         "skip)")
     if v > MAX_RESAMPLES:
         raise argparse.ArgumentTypeError(f"must be at most {MAX_RESAMPLES:,} ({RESAMPLES_WHY}), got {v}")
     return v

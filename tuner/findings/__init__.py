@@ -53,7 +53,7 @@ def check_settings(fs: FindingsSettings) -> None:
     letter."""
     import math
 
-    from tuner.argtypes import MAX_RESAMPLES
+    from tuner.argtypes import MAX_RESAMPLES, MIN_RESAMPLES
 
     def bad(field: str, want: str, v) -> ImtuneError:
         return ImtuneError(f"FindingsSettings.{field} must be {want}, got {v!r}")
@@ -77,8 +77,8 @@ def check_settings(fs: FindingsSettings) -> None:
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
             raise bad(k, "a finite number of seconds per pair > 0", v)
     v = fs.n_resamples
-    if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= MAX_RESAMPLES:
-        raise bad("n_resamples", f"an integer from 1 to {MAX_RESAMPLES:,}", v)
+    if isinstance(v, bool) or not isinstance(v, int) or not MIN_RESAMPLES <= v <= MAX_RESAMPLES:
+        raise bad("n_resamples", f"an integer from {MIN_RESAMPLES} to {MAX_RESAMPLES:,}", v)
     for k in ("val_scenes", "test_scenes"):
         v = getattr(fs, k)
         if isinstance(v, str):  # "a,b" as on the command line, not the letters of one name
