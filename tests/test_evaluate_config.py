@@ -184,3 +184,26 @@ def test_feature_options_name_the_study():
     assert default_study_name(conf) == "sift+contrast_threshold0.01+edge_threshold5-8000-degensac-stereo"
     plain = build_config(build_parser().parse_args(["run"]), ratio=1.0, threshold=0.5, max_iters=1000, seed=0)
     assert default_study_name(plain) == "sift-8000-degensac-stereo"
+
+
+@pytest.mark.parametrize("kw,said", [
+    ({"conf": {"feature": {"num_features": 512}}}, "conf must be a PipelineConfig"),  # AttributeError
+    ({"conf": None}, "conf must be a PipelineConfig"),
+    ({"max_pairs": -1}, "max_pairs must be None or 0 (every pair) or an integer >= 1, got -1"),  # numpy ValueError
+    ({"max_pairs": 1.5}, "max_pairs must be None"),  # numpy TypeError
+    ({"ci_resamples": -1}, "ci_resamples must be None (the default, 2000), 0 (no interval) or an integer from 100"),
+    ({"ci_resamples": 1}, "got 1"),  # mAA10 0.633 [0.333, 0.333]: an interval missing its estimate
+    ({"ci_resamples": 2.5}, "got 2.5"),
+    ({"workers": 0}, "workers must be None (every usable CPU) or an integer >= 1, got 0"),
+])
+def test_evaluate_config_checks_its_arguments_first(kw, said, data, cache):
+    """The documented Python call (tuner.evaluate.evaluate_config) with a wrong argument value: one ImtuneError
+    naming it, before any scene is read, instead of an AttributeError / numpy / scipy error."""
+    from pipeline.config import FeatureConfig, PipelineConfig
+    from pipeline.errors import ImtuneError
+    from tuner.evaluate import evaluate_config
+    args = {"conf": PipelineConfig(feature=FeatureConfig(num_features=512)), "data_root": data,
+            "scenes": ["fountain-P11"], "cache_dir": cache, "jobs": 1, **kw}
+    with pytest.raises(ImtuneError) as e:
+        evaluate_config(**args)
+    assert said in str(e.value) and "\n" not in str(e.value), str(e.value)

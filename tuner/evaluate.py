@@ -43,6 +43,29 @@ def load_scenes(data_root: Path, names: list[str] | str | None, split: str = "va
     return scenes
 
 
+def _check_arguments(conf, max_pairs, ci_resamples, workers) -> None:
+    """What the CLI's parser checks, for a Python caller (one-line ImtuneError naming the argument, before any scene
+    is read): a dict or None as ``conf`` was an AttributeError, ``max_pairs=-1`` / ``1.5`` numpy's ValueError /
+    TypeError, ``ci_resamples=-1`` scipy's ValueError after every pair, and ``ci_resamples=1`` an interval that
+    misses its own estimate."""
+    from tuner.argtypes import MAX_RESAMPLES, MIN_RESAMPLES
+
+    def whole(v) -> bool:
+        return isinstance(v, int) and not isinstance(v, bool)
+
+    if not isinstance(conf, PipelineConfig):
+        raise ImtuneError(f"conf must be a PipelineConfig (pipeline.config; from a file: "
+                          f"pipeline.config_files.load_config_file(PATH).conf), got {type(conf).__name__}")
+    if max_pairs is not None and not (whole(max_pairs) and max_pairs >= 0):
+        raise ImtuneError(f"max_pairs must be None or 0 (every pair) or an integer >= 1, got {max_pairs!r}")
+    if ci_resamples is not None and not (whole(ci_resamples) and (ci_resamples == 0 or
+                                                                 MIN_RESAMPLES <= ci_resamples <= MAX_RESAMPLES)):
+        raise ImtuneError(f"ci_resamples must be None (the default, 2000), 0 (no interval) or an integer from "
+                          f"{MIN_RESAMPLES} to {MAX_RESAMPLES:,}, got {ci_resamples!r}")
+    if workers is not None and not (whole(workers) and workers >= 1):
+        raise ImtuneError(f"workers must be None (every usable CPU) or an integer >= 1, got {workers!r}")
+
+
 def evaluate_config(conf: PipelineConfig, data_root: Path, scenes=None, cache_dir=None,
                     min_covisibility: float | None = 0.1, progress: bool = False,
                     with_pairs: bool = False, task: str = "stereo", multiview=None, workers: int | None = None,
@@ -61,6 +84,7 @@ def evaluate_config(conf: PipelineConfig, data_root: Path, scenes=None, cache_di
     usable CPU; the records do not depend on it). Raises ImtuneError when there is nothing to evaluate."""
     from pipeline.cache import H5Cache
     from pipeline.tasks import make_task, task_list
+    _check_arguments(conf, max_pairs, ci_resamples, workers)
     names = task_list(task)
     scene_objs = load_scenes(data_root, scenes, split="all", gt_dir=gt_dir)
     if not scene_objs:
