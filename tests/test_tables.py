@@ -150,3 +150,24 @@ def test_settings_table_multiview_only():
     assert tex[2] == (r"\caption{Optimal ratio test $r$ for multiview reconstruction (COLMAP, which runs its own "
                       r"RANSAC) on the validation scenes fountain\_P11.}")
     assert tex[3] == r"\begin{tabular}{lrrr}" and tex[7] == r"sift & 1024 & 0.93 & 0.400 \\"
+
+
+def test_tune_test_table_shows_each_scenes_seconds(tmp_path):
+    """`tune test` printed '-' under match_seconds and ransac_seconds in every scene row (the per-scene test
+    figures kept only the median estimator seconds), so a one-scene test table showed no timing at all while
+    `tune evaluate` shows both. Real `tune test` on 3 fountain-P11 images with a frozen file."""
+    from tests.conftest import copy_strecha_subset
+    from tests.test_bad_input_files import _frozen_study, _frozen_text, tune
+    data = copy_strecha_subset(tmp_path / "data", ["0003.jpg", "0004.jpg", "0005.jpg"])
+    sdir = _frozen_study(tmp_path, _frozen_text(data))
+    r = tune("test", "--study", "X", "--studies-dir", sdir, "--storage", f"sqlite:///{tmp_path}/none.db", "--runs", "1",
+             "--reference", "none", "--ci", "none", "--jobs", "1", "--quiet", env={"IMTUNE_CACHE": str(tmp_path / "c")})
+    assert r.returncode == 0, r.stderr[-2000:]
+    lines = r.stdout.splitlines()
+    head = next(ln for ln in lines if ln.startswith("| scene"))
+    row = next(ln for ln in lines if ln.startswith("| fountain-P11"))
+    cells = dict(zip([c.strip() for c in head.split("|")], [c.strip() for c in row.split("|")]))
+    for col in ("match_seconds", "ransac_seconds"):
+        assert cells[col] not in ("-", "") and float(cells[col]) >= 0, (col, row)
+    t = json.loads((sdir / "X" / "test.json").read_text())
+    assert {"match_seconds", "ransac_seconds"} <= set(t["mean"]["scenes"]["fountain-P11"])

@@ -295,7 +295,8 @@ class StereoTask(Task):
                 "ransac_seconds", "failed", "pairs", "accuracy", "covisibility")
         out = {k: s.get(k) for k in keys}
         out["scenes"] = {k: {kk: v.get(kk) for kk in ("mAA5", "mAA10", "NF", "NM", "NI", "pairs", "failed",
-                                                     "ransac_seconds_median", "accuracy", "covisibility")}
+                                                     "match_seconds", "ransac_seconds", "ransac_seconds_median",
+                                                     "accuracy", "covisibility")}
                          for k, v in result.scenes.items()}
         for part, src in [(out, s)] + [(out["scenes"][k], v) for k, v in result.scenes.items()]:
             part.update({k: v for k, v in src.items() if k in CI_KEYS})  # intervals, where computed
