@@ -171,3 +171,31 @@ def test_tune_test_table_shows_each_scenes_seconds(tmp_path):
         assert cells[col] not in ("-", "") and float(cells[col]) >= 0, (col, row)
     t = json.loads((sdir / "X" / "test.json").read_text())
     assert {"match_seconds", "ransac_seconds"} <= set(t["mean"]["scenes"]["fountain-P11"])
+
+
+def _renamed(s: StudyInfo, name: str, best="keep", test=None) -> StudyInfo:
+    import dataclasses
+    return dataclasses.replace(s, name=name, best=s.best if best == "keep" else best, test=test)
+
+
+def test_several_studies_of_one_estimator_show_the_best_validated_one():
+    """Two studies of sift 8000 + degensac in one storage (a second --study name, a findings study, an unfinished
+    one): the row took eta and Gamma from whichever was listed last, here one without a feasible trial, so it said
+    'eta -' beside the r of the tuned study. Now the study with the best validation value gives the estimator's
+    columns, in the settings table and in the results table (and their JSON)."""
+    from tuner.reports import results_rows
+    good = STEREO[0]
+    worse = _renamed(info("sift", 8000, "degensac", 0.55, 0.7, 2.0, 999), "sift-8000-degensac-other")
+    unfinished = _renamed(good, "zz-unfinished", best=None)
+    for group in ([good, worse, unfinished], [unfinished, worse, good]):
+        rows, cols = settings_rows(group, "markdown")
+        assert (rows[0]["eta degensac"], rows[0]["Gamma degensac"], rows[0]["r"]) == (0.5123, 48213, 0.851)
+        js = json.loads(render_table(*settings_rows(group, "json"), "json"))
+        assert js[0]["studies"]["degensac"]["study"] == good.name
+    t_good = {"NF": 8000, "NI": 300.0, "mAA10": 0.6, "mAA10_ci": [0.5, 0.7]}
+    t_other = {"NF": 8000, "NI": 10.0, "mAA10": 0.9, "mAA10_ci": [0.8, 1.0]}  # better on test, worse on validation
+    tested = [_renamed(good, good.name, test=t_good), _renamed(worse, worse.name, best=worse.best, test=t_other)]
+    for group in (tested, tested[::-1]):
+        rows, _ = results_rows(group, "json")
+        assert (rows[0]["NI degensac"], rows[0]["mAA10 degensac"]) == (300.0, 0.6)
+        assert rows[0]["studies"]["degensac"]["study"] == good.name

@@ -91,6 +91,21 @@ def _groups(studies: list[StudyInfo]):
     return dict(sorted(groups.items(), key=lambda kv: (kv[0][1], kv[0][0])))
 
 
+def _by_estimator(group: list[StudyInfo]) -> dict[str, StudyInfo]:
+    """One study per estimator of a (feature, count) group: where several studies share the estimator (a second
+    --study name, a findings study beside the main one), the one with the best validation value of the trial it
+    freezes (studies without one last; then by name). It was the last study listed in the storage, so the row
+    could show the eta and Gamma of an unfinished study next to the r of another ("eta -" beside a tuned eta)."""
+    out: dict[str, StudyInfo] = {}
+    for st in sorted(group, key=lambda x: x.name):
+        cur = out.get(st.ransac)
+        v = trial_value(st.best) if st.best is not None else None
+        cv = trial_value(cur.best) if cur is not None and cur.best is not None else None
+        if cur is None or (v is not None and (cv is None or v > cv)):
+            out[st.ransac] = st
+    return out
+
+
 def _estimators(studies: list[StudyInfo]) -> list[str]:
     return sorted({s.ransac for s in studies})
 
@@ -172,7 +187,7 @@ def settings_rows(studies: list[StudyInfo], fmt: str = "markdown",
     for feat, nf in keys:
         group = groups.get((feat, nf), [])
         row = {"feature": feat, "features": nf}
-        by_est = {s.ransac: s for s in group}
+        by_est = _by_estimator(group)
         scored = [s for s in group if s.best is not None]
         top = max(scored, key=lambda s: trial_value(s.best)) if scored else None
         row["r"] = _num(_param(top, "ratio"), 3) if top else None
@@ -205,7 +220,7 @@ def settings_rows(studies: list[StudyInfo], fmt: str = "markdown",
                                          "gamma_max": (s.attrs.get("budget") or {}).get("gamma_max"),
                                          "budget": _budget(s),
                                          "complete_trials": s.n_complete}
-                              for s in group}
+                              for s in by_est.values()}
             row["multiview_studies"] = {s.ransac: {"study": s.name, "trial": s.best.number if s.best else None,
                                                    "value": trial_value(s.best) if s.best else None,
                                                    "params": dict(s.best.params) if s.best else None,
@@ -291,7 +306,7 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
         row = {"feature": feat, "features": nf}
         nfs = [s.test.get("NF") for s in group if s.test.get("NF") is not None]
         row["NF"] = round(float(sum(nfs) / len(nfs)), 1) if nfs else None
-        by_est = {s.ransac: s for s in group}
+        by_est = _by_estimator(group)
         best = None
         for e in ests:
             s = by_est.get(e)
@@ -312,7 +327,7 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
         row["best"] = best[1] if best else None
         row["_best"] = best
         if fmt == "json":
-            row["studies"] = {s.ransac: {"study": s.name, **s.test} for s in group}
+            row["studies"] = {s.ransac: {"study": s.name, **s.test} for s in by_est.values()}
         rows.append(row)
     scored = [i for i, r in enumerate(rows) if r["_best"] is not None]
     name = {i: f"{rows[i]['feature']} ({rows[i]['features']})" for i in range(len(rows))}
