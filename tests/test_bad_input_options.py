@@ -470,3 +470,19 @@ def test_calibrate_says_it_takes_no_storage(tmp_path, capsys):
                          tmp_path / "studies"], capsys)
     _one_line_error(rc, err, "argument --storage", "budgets.json", "drop --storage", "--studies-dir")
     assert "s3cret" not in err and not (tmp_path / "studies").exists()
+
+
+# ------------------------------------------------------------------------------ a study that fixed max_iters
+
+def test_a_fixed_gamma_says_no_gamma_max_was_calibrated(tiny, tmp_path, capsys):
+    """With --fix max_iters no calibration is made: the frozen table printed 'Gamma_max None' and the HTML report
+    'Gamma_max = None iterations'. Both now say it was not calibrated, and why."""
+    st = tmp_path / "st"
+    rc, out, err = _cli(["run", "--data", tiny, *FAST, "--studies-dir", st, "--fix", "max_iters=500", "--no-test",
+                         "--n-trials", "1", "--study", "fixed-gamma"], capsys)
+    assert rc == 0, err
+    assert "None" not in out and "Gamma_max not calibrated (max_iters fixed)" in out, out
+    rc, out, err = _cli(["plot", "--study", "fixed-gamma", "--studies-dir", st], capsys)
+    assert rc == 0, err
+    html = (st / "fixed-gamma" / "report.html").read_text()
+    assert "Gamma_max = None" not in html and "Gamma_max not calibrated (max_iters fixed)" in html

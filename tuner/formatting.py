@@ -218,3 +218,11 @@ def render(rows: list[dict], fmt: str = "markdown", columns: list[str] | None = 
     if caption:  # pandoc's table caption: a "Table:" paragraph after the table
         out += ["", f"Table: {caption}"]
     return "\n".join(out)
+
+
+def gamma_max_text(gmax, fixed=None, unit: str = "") -> str:
+    """``Gamma_max 48213`` (``unit`` appended, e.g. " iterations"), or what stands for it where no calibration was
+    made (a study that fixed max_iters measures none: the frozen table and the report said 'Gamma_max None')."""
+    if gmax is not None:
+        return f"Gamma_max = {gmax}{unit}" if unit else f"Gamma_max {gmax}"
+    return "Gamma_max not calibrated" + (" (max_iters fixed)" if "max_iters" in (fixed or {}) else "")

@@ -438,6 +438,7 @@ def write_report(storage, study_name: str, out: Path | str, studies_dir: Path | 
     """Write the HTML report of one study; returns its path. ``studies_dir``: where test.json is read
     for the test-scene breakdowns."""
     import plotly.io as pio
+    from tuner.formatting import gamma_max_text
     from tuner.study import best_feasible, load_study, trial_counts
     sections = report_sections(storage, study_name, studies_dir)
     study = load_study(storage, study_name)
@@ -449,7 +450,8 @@ def write_report(storage, study_name: str, out: Path | str, studies_dir: Path | 
             "<p>" + html.escape(f"trials: {counts['complete']} complete ({counts['infeasible']} over budget), "
                                 f"{counts['pruned']} pruned, {counts['fail']} failed; "
                                 f"budget B = {b.get('seconds_per_pair')} s per pair (median estimator time), "
-                                f"Gamma_max = {b.get('gamma_max')} iterations; "
+                                + gamma_max_text(b.get("gamma_max"), (attrs.get("search_space_resolved") or {})
+                                                 .get("fixed"), unit=" iterations") + "; "
                                 f"data {attrs.get('data_fingerprint')}; code {attrs.get('code_version')}") + "</p>"]
     if best is not None:
         ps = ", ".join(f"{PARAM_SHORT.get(k, k)} = {v:.4g}" if isinstance(v, float) else f"{PARAM_SHORT.get(k, k)} = {v}"

@@ -291,8 +291,10 @@ def frozen_table(f: dict) -> str:
     v = f.get("validation", {})
     b = f.get("budget", {})
     if "max_iters" in f["params"] or task.budget_seconds(v) is not None:
+        from tuner.formatting import gamma_max_text
+        gmax = b.get("gamma_max")
         rows.append({"parameter": "budget", "value": f"{b.get('seconds_per_pair')} s/pair",
-                     "": f"Gamma_max {b.get('gamma_max')}"})
+                     "": gamma_max_text(gmax, f.get("fixed"))})
     others = ", ".join(f"{k} {_fmt(v.get(k))}" for k in task.columns if k not in ("mAA10",) and v.get(k) is not None)
     obj = v.get(task.objective)
     rows.append({"parameter": f"validation {task.objective}",
