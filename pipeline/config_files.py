@@ -209,6 +209,10 @@ def _load(path: Path, base: PipelineConfig | None) -> ConfigFile:
         if "study" in d and "trial" in d:  # a frozen.yaml
             return ConfigFile(conf, f"{d.get('study') or path.stem}: {config_label(conf)}", "frozen", frozen=d,
                               path=path)
+        beside = [k for k in d if k != "config" and (k in SECTIONS or str(k).replace("-", "_") in FLAT)]
+        if beside:  # read as nothing: `geometry: {threshold: 2}` next to `config:` left eta at its default, unsaid
+            raise ImtuneError(f"{where}: {beside[0]!r} is beside 'config:' and would be ignored: move it under "
+                              "config: (or drop the config: level)")
         return ConfigFile(conf, f"{path.stem}: {config_label(conf)}", "config", path=path)
     if any(isinstance(d.get(k), dict) for k in ("matching", "geometry")) or isinstance(d.get("feature"), dict):
         conf = pipeline_from_dict(d, base, where)

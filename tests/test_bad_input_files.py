@@ -699,3 +699,21 @@ def test_plot_out_that_cannot_be_written_is_one_line_before_drawing(how, page, t
     r = tune("plot", *page, "--storage", storage, "--studies-dir", tmp_path / "studies", "--out", out)
     one_line_error(r, "--out", needle)
     assert (tmp_path / "afile").read_text() == "x"
+
+
+@pytest.mark.parametrize("text,key", [("config:\n  feature: {num_features: 512}\ngeometry: {threshold: 2.0}\n", "geometry"),
+                                      ("config:\n  feature: {num_features: 512}\nratio: 0.7\n", "ratio"),
+                                      ("config:\n  feature: {num_features: 512}\nmax-iters: 10\n", "max-iters")])
+def test_values_beside_config_are_refused_not_ignored(text, key, tmp_path, data3):
+    """`geometry: {threshold: 2.0}` or `ratio: 0.7` next to `config:` was read as nothing: the evaluation ran with
+    eta 0.5 and r 1 and said so only in its header. A frozen.yaml (study + trial) keeps its descriptive keys."""
+    f = tmp_path / "c.yaml"
+    f.write_text(text)
+    r = tune("evaluate", "--config", f, "--data", data3, "--quiet", "--jobs", "1",
+             env={"IMTUNE_CACHE": str(tmp_path / "cache")})
+    one_line_error(r, f"{f}: {key!r} is beside 'config:'", "move it under config:")
+    from pipeline.config_files import load_config_file
+    frozen = tmp_path / "frozen.yaml"
+    frozen.write_text("study: s\ntrial: 1\nfeature: sift\nnum_features: 512\nransac: degensac\n" + text.split("\n", 2)[0]
+                      + "\n  feature: {num_features: 512}\n")
+    assert load_config_file(frozen).kind == "frozen"
