@@ -104,3 +104,24 @@ def test_unregistered_image_is_drawn_all_red():
                             masks={"a": np.array([True]), "b": None}, paths={}, image_sizes={"a": (200, 100), "b": (200, 100)})
     img = draw_bag(bag, images={"a": np.zeros((100, 200), np.uint8), "b": np.zeros((100, 200), np.uint8)}, panel_width=200)
     assert img.ndim == 3 and img.shape[1] >= 400
+
+
+def test_viz_of_a_multiview_study_draws_its_bags_by_default(tmp_path):
+    """`tune viz --study NAME` of a multiview study drew stereo pairs (the --task default) with the study's r and an
+    eta and Gamma it never tuned. The study's task is now the default; --task stereo still draws pairs. Real
+    3-image fountain-P11 subset: build-gt, a 1-trial multiview study, then viz."""
+    from tests.conftest import copy_strecha_subset
+    from tests.test_bad_input_files import tune
+    data = copy_strecha_subset(tmp_path / "data", ["0003.jpg", "0004.jpg", "0005.jpg"])
+    env = {"IMTUNE_CACHE": str(tmp_path / "cache"), "IMTUNE_STUDIES": str(tmp_path / "studies")}
+    r = tune("data", "build-gt", "--data", data, "--num-features", "1024", "--quiet", env=env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    r = tune("run", "--task", "multiview", "--data", data, "--num-features", "512", "--n-trials", "1", "--no-test",
+             "--bags", "3:1", "--workers", "1", "--quiet", "--study", "mv", env=env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    common = ["viz", "--study", "mv", "--data", data, "--split", "val", "--workers", "1", "--quiet"]
+    r = tune(*common, "--out", tmp_path / "v1", env=env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.startswith("multiview fountain-P11 bag 3#0") and list((tmp_path / "v1").glob("bag_*.png")), r.stdout
+    r = tune(*common, "--task", "stereo", "--out", tmp_path / "v2", env=env)
+    assert r.returncode == 0 and r.stdout.startswith("worst ") and list((tmp_path / "v2").glob("fountain-P11_*.png"))

@@ -51,7 +51,8 @@ def register(sub) -> None:
     s.add_argument("--studies-dir", default=None, help="where studies live (default $IMTUNE_STUDIES, else studies/)")
     s.add_argument("--split", default="test", choices=["val", "test"],
                    help="with --study and no --scenes: the study's test (default) or validation scenes")
-    s.add_argument("--task", default="stereo", choices=task_choices())
+    s.add_argument("--task", default=None, choices=task_choices(),
+                   help="what to draw (default: the task of --study / a frozen --config, else stereo)")
     s.add_argument("--pairs", default=None, help="comma-separated pairs 'IMAGE1|IMAGE2' or 'SCENE:IMAGE1|IMAGE2' "
                                                  "(quote them: '|' is the shell's pipe)")
     s.add_argument("--pair", nargs=2, action="append", default=None, metavar=("IMAGE1", "IMAGE2"),
@@ -167,6 +168,8 @@ def viz(args: argparse.Namespace) -> dict:
         from pipeline.config_files import config_label
         sources = [Source(conf, config_label(conf))]
     primary = sources[0]
+    if args.task is None:  # a multiview study's frozen r drawn as stereo pairs with an untuned eta 0.5, unsaid
+        args.task = ((primary.frozen or {}).get("task") or "stereo") if not args.compare else "stereo"
     study = next((s.study for s in sources if s.study), None)  # a comparison goes to its study's gallery
     if args.out:
         out_dir = Path(args.out).expanduser().resolve()
