@@ -410,6 +410,29 @@ def test_compare_states_its_verdict_rule(tiny, tmp_path, capsys):
     assert rc == 0 and res["overall"]["verdict"] == "no significant difference" and "sign-flip" in res["verdict_rule"]
 
 
+
+def test_compare_says_a_multiview_study_runs_with_untuned_eta_and_gamma(tiny, tmp_path, capsys):
+    """A multiview study tunes r only (COLMAP runs its own RANSAC); `tune compare` ran its frozen eta 0.5 px and
+    Gamma on the stereo pairs and labelled it like any tuned study. It now says so on stderr (the JSON is unchanged)."""
+    import yaml
+    sdir = tmp_path / "studies"
+    (sdir / "mv").mkdir(parents=True)
+    (sdir / "mv" / "frozen.yaml").write_text(yaml.safe_dump({
+        "study": "mv", "trial": 0, "task": "multiview", "params": {"ratio": 0.74}, "fixed": {"strategy": "both"},
+        "config": {"feature": {"name": "sift", "num_features": 256}, "matching": {"ratio": 0.74},
+                   "geometry": {"ransac": "degensac", "threshold": 0.5, "max_iters": 1000}}}))
+    conf = tmp_path / "a.yaml"
+    conf.write_text(yaml.safe_dump({"config": {"feature": {"name": "sift", "num_features": 256},
+                                               "geometry": {"ransac": "degensac", "max_iters": 1000}}}))
+    rc, out, err = _cli(["compare", conf, "mv", "--data", tiny, "--cache", tmp_path / "cache", "--studies-dir", sdir,
+                         "--quiet", "--ci-resamples", "200"], capsys)
+    assert rc == 0, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0] == ("warning: mv is a multiview study: it tuned ratio only; on these stereo "
+                                            "pairs it runs with its file's eta 0.5 px and Gamma 1000 as they are, "
+                                            "untuned"), err
+    assert "| no significant difference |" in out or "better |" in out
+
 # ------------------------------------------------------------------------------ 11. what an interrupted command says
 
 def test_each_command_says_what_an_interruption_leaves():

@@ -52,6 +52,14 @@ def run(args) -> int:
                           "give A B [C ...], each a study name or a config file")
     sdir = Path(args.studies_dir).expanduser().resolve() if args.studies_dir else default_studies_dir()
     sources = load_sources(args.sources, sdir)
+    for spec, src in zip(args.sources, sources):
+        task = (src.frozen or {}).get("task") or "stereo"
+        if task != "stereo":  # its eta and Gamma were never tuned: compared as they are, say so
+            import sys
+            tuned = ", ".join((src.frozen or {}).get("params") or {}) or "nothing"
+            print(f"warning: {spec} is a {task} study: it tuned {tuned} only; on these stereo pairs it "
+                  f"runs with its file's eta {src.conf.geometry.threshold:g} px and Gamma {src.conf.geometry.max_iters} "
+                  "as they are, untuned", file=sys.stderr)
     data = resolve_data(args.data)
     res = compare(sources, data, args.scenes, cache_dir=args.cache, min_covisibility=args.covisibility,
                   progress=not (args.quiet or args.json), n_resamples=args.ci_resamples, seed=args.seed)
