@@ -164,12 +164,12 @@ def read_mapping(path: str | Path):
     """The parsed file (JSON by suffix, else YAML with safe_load); one-line ImtuneError if unreadable."""
     import yaml
 
-    from pipeline.fileio import read_text
+    from pipeline.fileio import load_json, load_yaml, read_text
     path = Path(path)
     text = read_text(path, "config file")
     is_json = path.suffix.lower() == ".json"
     try:
-        return json.loads(text) if is_json else yaml.safe_load(text)
+        return load_json(text, str(path)) if is_json else load_yaml(text, str(path))
     except (ValueError, yaml.YAMLError) as e:
         raise ImtuneError(f"{path}: invalid {'JSON' if is_json else 'YAML'} ({str(e).strip().splitlines()[0]})") from None
 

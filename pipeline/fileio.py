@@ -51,6 +51,51 @@ def read_text(path: Path | str, what: str = "file") -> str:
                           "cannot be decoded); is it the right file? save it as UTF-8 text") from None
 
 
+def load_yaml(text: str, where: str):
+    """``yaml.safe_load`` of ``text``, refusing a key given twice in one mapping (PyYAML keeps the last without a
+    word: ``geometry: {threshold: 2}`` then ``geometry: {max_iters: 100}`` lost the threshold): a one-line
+    ImtuneError naming ``where``, the key and both lines. YAML errors propagate as ``yaml.YAMLError``."""
+    import yaml
+
+    class _UniqueKeys(yaml.SafeLoader):
+        pass
+
+    def construct_mapping(loader, node, deep=False):
+        seen: dict = {}
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
+            key = loader.construct_object(key_node, deep=True)
+            line = key_node.start_mark.line + 1
+            try:
+                if key in seen:
+                    raise ImtuneError(f"{where}: key {key!r} is given twice (lines {seen[key]} and {line}); YAML "
+                                      "would keep only the last: write it once")
+                seen[key] = line
+            except TypeError:  # an unhashable key: safe_load's own error follows
+                continue
+        return yaml.SafeLoader.construct_mapping(loader, node, deep=deep)
+
+    _UniqueKeys.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, construct_mapping)
+    return yaml.load(text, Loader=_UniqueKeys)  # noqa: S506 - a SafeLoader subclass
+
+
+def load_json(text: str, where: str):
+    """``json.loads`` of ``text``, refusing a key given twice in one object (json keeps the last without a word):
+    a one-line ImtuneError naming ``where`` and the key. Invalid JSON propagates as ``ValueError``."""
+    import json
+
+    def pairs(items):
+        out = {}
+        for k, v in items:
+            if k in out:
+                raise ImtuneError(f"{where}: key {k!r} is given twice in one object; JSON would keep only the last: "
+                                  "write it once")
+            out[k] = v
+        return out
+    return json.loads(text, object_pairs_hook=pairs)
+
+
 #: the errnos :func:`folder_error` tells apart (full, not writable, a file in the way)
 FOLDER_ERRNOS = frozenset({_errno.ENOSPC, _errno.EDQUOT, _errno.EACCES, _errno.EPERM, _errno.EROFS, _errno.ENOTDIR,
                            _errno.EEXIST})

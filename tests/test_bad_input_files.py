@@ -717,3 +717,42 @@ def test_values_beside_config_are_refused_not_ignored(text, key, tmp_path, data3
     frozen.write_text("study: s\ntrial: 1\nfeature: sift\nnum_features: 512\nransac: degensac\n" + text.split("\n", 2)[0]
                       + "\n  feature: {num_features: 512}\n")
     assert load_config_file(frozen).kind == "frozen"
+
+
+# -- a key given twice: YAML and JSON keep the last without a word ---------------------------------------------
+
+@pytest.mark.parametrize("name,text,needle", [
+    ("c.yaml", "geometry: {threshold: 2.0}\nfeature: {num_features: 512}\ngeometry: {max_iters: 100}\n",
+     "key 'geometry' is given twice (lines 1 and 3)"),  # ran with eta 0.5: the threshold was dropped
+    ("c.yaml", "geometry: {threshold: 1.0, threshold: 2.0}\n", "key 'threshold' is given twice (lines 1 and 1)"),
+    ("c.json", '{"geometry": {"threshold": 2.0}, "geometry": {"max_iters": 100}}', "key 'geometry' is given twice"),
+])
+def test_config_file_key_given_twice_is_one_line(name, text, needle, tmp_path, data3):
+    f = tmp_path / name
+    f.write_text(text)
+    r = tune("evaluate", "--config", f, "--data", data3, "--quiet", "--jobs", "1",
+             env={"IMTUNE_CACHE": str(tmp_path / "cache")})
+    one_line_error(r, f"{f}: {needle}", "write it once")
+
+
+def test_search_space_or_splits_key_given_twice_is_one_line(tmp_path, data3):
+    """A search space listing ratio twice (a range, then a scalar) searched with ratio pinned to the scalar."""
+    space = tmp_path / "space.yaml"
+    space.write_text("params:\n  ratio: {type: float, low: 0.6, high: 1.0}\n  threshold: {type: float, low: 0.1, "
+                     "high: 2.0}\n  ratio: 0.8\n")
+    env = {"IMTUNE_CACHE": str(tmp_path / "cache")}
+    r = tune("run", "--data", data3, "--space", space, "--studies-dir", tmp_path / "st", "--n-trials", "1", "--quiet",
+             env=env)
+    one_line_error(r, f"search space {space}: key 'ratio' is given twice (lines 2 and 4)")
+    assert not (tmp_path / "st" / "optuna.db").exists()
+    import shutil
+    data = tmp_path / "data"
+    shutil.copytree(data3, data)
+    (data / "splits.yaml").write_text("val: [fountain-P11]\ntest: []\nval: []\n")
+    r = tune("data", "scenes", "--data", data, env=env)
+    one_line_error(r, f"{data / 'splits.yaml'}: key 'val' is given twice (lines 1 and 3)")
+
+
+def test_yaml_merge_keys_are_no_duplicates():
+    from pipeline.fileio import load_yaml
+    assert load_yaml("a: &x {t: 1}\nb:\n  <<: *x\n  m: 2\n", "f") == {"a": {"t": 1}, "b": {"t": 1, "m": 2}}

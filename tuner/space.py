@@ -276,11 +276,11 @@ def _check_param(name: str, d, where: str):
 
 def read_yaml(path: Path) -> dict:
     """Parse one search-space file (yaml.safe_load) and check its top-level shape."""
-    from pipeline.fileio import read_text
+    from pipeline.fileio import load_yaml, read_text
     path = Path(path)
     text = read_text(path, "search space")
     try:
-        data = yaml.safe_load(text)
+        data = load_yaml(text, f"search space {path}")
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f"line {mark.line + 1}: " if mark is not None else ""

@@ -93,10 +93,10 @@ def load_scene(data_root: str | Path, scene_name: str | None = None, **kwargs) -
 def _read_splits(path: Path, scenes: list[str]) -> dict[str, list[str]]:
     import yaml
 
-    from pipeline.fileio import read_text
+    from pipeline.fileio import load_yaml, read_text
     text = read_text(path, "splits file")
     try:
-        data = yaml.safe_load(text)
+        data = load_yaml(text, str(path))
     except yaml.YAMLError as e:
         raise ImtuneError(f"cannot read {path}: {' '.join(str(e).split())}") from None
     if not isinstance(data, dict):
