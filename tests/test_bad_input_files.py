@@ -629,6 +629,16 @@ def test_a_frozen_file_given_as_config_is_checked_too(case, tmp_path, data3):
     one_line_error(r, f"{f}: {BAD_FROZEN[case][2]}")
 
 
+
+@pytest.mark.parametrize("task", ["foo", "[stereo]"])
+def test_a_frozen_files_unknown_task_names_the_file(task, tmp_path, data3):
+    """`tune evaluate --config frozen.yaml` takes the file's task: an unknown one said "unknown task 'foo'" with no
+    word of the file it came from."""
+    f = tmp_path / "frozen.yaml"
+    f.write_text(_frozen_text(data3).replace("task: stereo", f"task: {task}", 1))
+    r = tune("evaluate", "--config", f, "--data", data3, "--quiet", env={"IMTUNE_CACHE": str(tmp_path / "cache")})
+    one_line_error(r, f"--config {f}: task: unknown task")
+
 # -- a configuration file's values of the wrong type (YAML config and IMC method JSON) ------------------------
 
 _IMC_STEREO = '"config_phototourism_stereo": {"geom": {"method": "cmp-degensac-f", "threshold": 0.5}%s}'

@@ -5,6 +5,7 @@ import json
 import math
 import sys
 
+from pipeline.errors import ImtuneError
 from tuner.formatting import render
 from tuner.evaluate import evaluate_config
 from tuner.options import (add_jobs_option, add_multiview_options, add_pipeline_options, build_config, multiview_config,
@@ -122,6 +123,11 @@ def config_of(args):
     src = resolve_source(args.config, studies_dir(getattr(args, "studies_dir", None)))
     conf, used = config_over(src.conf, args, where=f"--config {args.config}")
     if src.frozen and src.frozen.get("task") and "task" not in explicit_options(args):
+        from pipeline.tasks import TASKS
+        try:  # the file's task: an unknown one was "unknown task 'foo'" with no word of where it came from
+            TASKS.get(src.frozen["task"] if isinstance(src.frozen["task"], str) else repr(src.frozen["task"]))
+        except ImtuneError as e:
+            raise ImtuneError(f"--config {args.config}: task: {e}") from None
         args.task = src.frozen["task"]
     return conf, (f"config {args.config} ({src.label})"
                   + (f"; overridden on the command line: {', '.join(used)}" if used else ""))
