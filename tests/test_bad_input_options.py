@@ -320,6 +320,19 @@ def test_a_pinned_gamma_above_the_calibrated_gamma_max_warns(tiny, tmp_path, cap
     assert rc == 2 and "warning" not in err and len(err.strip().splitlines()) == 1, err
 
 
+
+def test_a_fix_the_task_does_not_use_is_said_not_silently_dropped(tiny, tmp_path, capsys):
+    """`--task multiview --fix threshold=1` was dropped without a word (COLMAP runs its own RANSAC): the user
+    believed eta pinned. --test-scenes nosuch stops the run at its preflight, after the warning."""
+    rc, out, err = _cli(["run", "--data", tiny, *FAST, "--task", "multiview", "--studies-dir", tmp_path / "st",
+                         "--fix", "threshold=1.0", "--fix", "max_iters=100",
+                         "--test-scenes", "nosuch"], capsys)
+    lines = err.strip().splitlines()
+    assert rc == 2 and len(lines) == 2, err
+    assert lines[0] == ("warning: --fix threshold, max_iters: the multiview task does not use them (it uses ratio, "
+                        "strategy); ignored"), err
+    assert lines[1].startswith("tune: error: test scene 'nosuch'")
+
 # ------------------------------------------------------------------------------ 8. --warm-start checked before the study exists
 
 def test_an_unknown_warm_start_source_leaves_no_study(tiny, tmp_path, capsys):

@@ -454,10 +454,15 @@ def load_study_space(s: TuneSettings, task):
     """The study's search space: ``--space``, else the task's own file (``Task.space_file``), else the estimator
     family's; then ``--fix`` pins; then every parameter the task does not use dropped (never searched, never
     recorded)."""
-    from tuner.protocol import unused_by
+    from tuner.protocol import searchable, unused_by
     from tuner.space import SPACES_DIR, load_space
     path = s.space_path or (SPACES_DIR / task.space_file if task.space_file else None)
     space = load_space(path, feature=s.base.feature.name, estimator=s.base.geometry.ransac, fixes=s.fixes)
+    from tuner.space import parse_fixes
+    unused = [k for k in parse_fixes(s.fixes) if k in unused_by(task)]
+    if unused:  # dropped below like the rest: a typed pin that does nothing was silently forgotten
+        s.warn(f"--fix {', '.join(unused)}: the {task.name} task does not use "
+               f"{'it' if len(unused) == 1 else 'them'} (it uses {', '.join(searchable(task))}); ignored")
     for k in unused_by(task):
         space.params.pop(k, None)
         space.fixed.pop(k, None)
