@@ -333,6 +333,16 @@ def test_a_fix_the_task_does_not_use_is_said_not_silently_dropped(tiny, tmp_path
                         "strategy); ignored"), err
     assert lines[1].startswith("tune: error: test scene 'nosuch'")
 
+
+def test_a_fix_given_twice_with_two_values_is_one_line(tiny, tmp_path, capsys):
+    """`--fix ratio=0.8 --fix ratio=0.9` pinned 0.9 without a word (the last won); the same value twice is fine."""
+    rc, out, err = _cli(["run", "--data", tiny, *FAST, "--studies-dir", tmp_path / "st", "--fix", "ratio=0.8",
+                         "--fix", "ratio=0.9"], capsys)
+    _one_line_error(rc, err, "--fix ratio is given twice (ratio=0.8 and ratio=0.9): give it once")
+    assert not (tmp_path / "st" / "optuna.db").exists()
+    from tuner.space import parse_fixes
+    assert parse_fixes(["ratio=0.8", "ratio=0.8"]) == {"ratio": "0.8"}
+
 # ------------------------------------------------------------------------------ 8. --warm-start checked before the study exists
 
 def test_an_unknown_warm_start_source_leaves_no_study(tiny, tmp_path, capsys):

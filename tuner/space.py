@@ -421,5 +421,7 @@ def parse_fixes(fixes) -> dict:
     for k, v in items:
         if k not in PARAMS:
             raise ImtuneError(f"--fix {k}: unknown parameter (expected {', '.join(PARAMS)})")
+        if k in out and out[k] != v:  # the last one won without a word
+            raise ImtuneError(f"--fix {k} is given twice ({k}={out[k]} and {k}={v}): give it once")
         out[k] = v
     return out
