@@ -766,3 +766,20 @@ def test_search_space_or_splits_key_given_twice_is_one_line(tmp_path, data3):
 def test_yaml_merge_keys_are_no_duplicates():
     from pipeline.fileio import load_yaml
     assert load_yaml("a: &x {t: 1}\nb:\n  <<: *x\n  m: 2\n", "f") == {"a": {"t": 1}, "b": {"t": 1, "m": 2}}
+
+
+@pytest.mark.parametrize("text,needle", [
+    # every match filtered: every pair failed, mAA 0, exit 0
+    ("matching: {prefilter: gms, prefilter_options: {threshold: .inf}}\n", "prefilter 'gms': option threshold=inf"),
+    ("feature: {name: orb, options: {n_levels: .inf}}\n", "feature 'orb': option n_levels=inf"),  # OverflowError
+    ("feature: {options: {edge_threshold: .nan}}\n", "feature 'sift': option edge_threshold=nan"),
+])
+def test_non_finite_extractor_or_prefilter_option_in_a_file_is_one_line(text, needle, tmp_path, data3):
+    """--feature-option refuses nan / inf while parsing; the same values from a configuration file reached the
+    extractor or pre-filter."""
+    f = tmp_path / "c.yaml"
+    f.write_text("feature: {num_features: 512}\n" + text if not text.startswith("feature") else
+                 text.replace("{", "{num_features: 512, ", 1))
+    r = tune("evaluate", "--config", f, "--data", data3, "--quiet", "--jobs", "1", "--ci", "none",
+             env={"IMTUNE_CACHE": str(tmp_path / "cache")})
+    one_line_error(r, needle, "must be a finite number")

@@ -70,6 +70,14 @@ def cv_const(name: str, fallback: int) -> int:
 
 
 def _coerce(name: str, key: str, value: Any, default: Any) -> Any:
+    import math
+    if not isinstance(default, bool) and isinstance(value, (int, float, str)) and not isinstance(value, bool):
+        try:
+            finite = math.isfinite(float(value))
+        except (TypeError, ValueError):
+            finite = True  # not a number at all: the type check below says so
+        if not finite:  # gms threshold=inf filtered every match (every pair failed, unsaid); an int option crashed
+            raise ImtuneError(f"feature {name!r}: option {key}={value!r} must be a finite number")
     try:
         if default is None or isinstance(default, float):
             return float(value)
