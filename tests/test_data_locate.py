@@ -99,6 +99,10 @@ def test_named_folder_that_does_not_exist_is_an_error_not_a_fall_through(env, mo
     (env / "work" / "imtune.yaml").write_text("data: [unclosed\n")
     with pytest.raises(ImtuneError, match="invalid YAML"):
         lc.locate()
+    _set(env / "work" / "mine")  # `data:` twice: PyYAML kept the last without a word
+    (env / "work" / "imtune.yaml").write_text("data: mine/strecha\nscenes: [a]\ndata: elsewhere\n")
+    with pytest.raises(ImtuneError, match=r"imtune.yaml: key 'data' is given twice \(lines 1 and 3\)"):
+        lc.locate()
 
 
 def test_empty_download_folder_is_skipped(env, monkeypatch):

@@ -63,13 +63,14 @@ def shared_data_root() -> Path:
 
 
 def project_config() -> tuple[dict, Path | None]:
-    """The first ``imtune.yaml`` found (cwd, then project root), parsed with yaml.safe_load, and its path."""
+    """The first ``imtune.yaml`` found (cwd, then project root), parsed (:func:`pipeline.fileio.load_yaml`), and its
+    path."""
     for p in (Path.cwd() / CONFIG_FILE, PROJECT_ROOT / CONFIG_FILE):
         if p.is_file():
-            from pipeline.fileio import read_text
+            from pipeline.fileio import load_yaml, read_text
             text = read_text(p, "project configuration")
             try:
-                d = yaml.safe_load(text) or {}
+                d = load_yaml(text, str(p)) or {}  # a key given twice is one line, not the last one silently
             except yaml.YAMLError as e:
                 raise ImtuneError(f"{p}: invalid YAML ({str(e).splitlines()[0]})") from None
             if not isinstance(d, dict):
