@@ -593,6 +593,7 @@ BAD_FROZEN = {  # (text to replace, replacement, the key named)
     "max-iters-1e5": ("params: {max_iters: 20000", "params: {max_iters: 1e5", "params.max_iters must be a positive integer"),
     "seconds-negative": ("ransac_seconds: 0.01", "ransac_seconds: -3", "validation.ransac_seconds must be a finite"),
     "validation-inf": ("mAA5: 0.5", "mAA5: .inf", "validation.mAA5 must be a finite number"),
+    "key-twice": ("value: 0.75", "value: 0.75\nvalue: 0.99", "key 'value' is given twice (lines 3 and 4)"),
 }
 
 

@@ -250,10 +250,10 @@ def load_frozen(studies_dir: Path | str, name: str) -> dict:
     path = study_dir(studies_dir, name) / "frozen.yaml"
     if not path.is_file():
         raise ImtuneError(f"no frozen settings for study {name!r} ({path} does not exist; run `tune` first)")
-    from pipeline.fileio import read_text
+    from pipeline.fileio import load_yaml, read_text
     text = read_text(path, "frozen settings file")
     try:
-        d = yaml.safe_load(text)
+        d = load_yaml(text, str(path))  # a hand-edited key given twice is one line, not the last one silently
     except yaml.YAMLError as e:
         raise ImtuneError(f"{path}: invalid YAML ({str(e).splitlines()[0]})") from None
     if not isinstance(d, dict) or "config" not in d:
