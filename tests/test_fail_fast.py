@@ -113,6 +113,23 @@ def test_bad_test_scenes_fail_before_calibration(data, cache, tmp_path, case, ex
     assert_fails_fast(r, studies, *needles)
 
 
+@pytest.mark.parametrize("case, extra, needles", [
+    ("multiview without ground truth", ["--task", "multiview", "--no-test"],  # fountain-P11 here has no built 3D points
+     ["validation scene 'fountain-P11' has no ground truth", "no multiview bags and no 3D points", "build-gt",
+      "--scenes"]),
+])
+def test_bad_validation_scenes_fail_before_the_study_exists(data, tmp_path, case, extra, needles):
+    """A validation scene the task cannot evaluate: one line before any study, calibration or trial (a multiview
+    study without built ground truth was created, and stayed in the storage with one failed trial)."""
+    studies = tmp_path / "studies"
+    r = tune(*quick(data, studies, *extra), env_extra={"IMTUNE_CACHE": str(tmp_path / "fresh-cache")})
+    assert_fails_fast(r, studies, *needles)
+    assert not (studies / "optuna.db").exists() or trials_in(studies / "optuna.db") == 0
+    import optuna
+    if (studies / "optuna.db").exists():
+        assert optuna.get_all_study_names(f"sqlite:///{studies / 'optuna.db'}") == []
+
+
 def test_no_test_split_names_both_flags(val_only, cache, tmp_path):
     studies = tmp_path / "studies"
     r = tune(*quick(val_only, studies), env_extra={"IMTUNE_CACHE": cache})

@@ -374,6 +374,13 @@ def open_validation(s: TuneSettings, task):
     scenes = load_scenes(s.data_root, s.val_scenes, split="val", gt_dir=s.gt_dir)
     if not scenes:
         raise ImtuneError(f"no validation scenes in {s.data_root}")
+    for scene in scenes:  # before the study exists: a study whose every trial must fail is never created
+        why = task.check_scene(scene)
+        if why and why.startswith("no ground truth"):
+            raise ImtuneError(f"validation scene {scene.name!r} has {why}; build it with `tune data build-gt --data "
+                              f"{scene.root}`, or choose others with --scenes")
+        if why:
+            raise ImtuneError(f"validation scene {scene.name!r}: {why}; choose others with --scenes")
     return ValidationSet.from_scenes(scenes, task)
 
 
