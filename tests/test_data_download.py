@@ -144,6 +144,21 @@ def test_network_errors_are_one_line_and_leave_nothing(server, tmp_path):
     _no_leftovers(dest)
 
 
+def test_tune_data_download_unreachable_says_what_else_works(tmp_path, capsys):
+    """`tune data download` with the host unreachable (a closed loopback port stands in for no network): one line,
+    exit 2, saying what else works (--data with a copy, a mirror with --base-url); an HTTP 404 is no network
+    problem and gets no such hint."""
+    from tuner.cli import main
+    capsys.readouterr()
+    rc = main(["data", "download", "sacre_coeur", "--dest", str(tmp_path / "d"), "--base-url", _closed_port_url(),
+               "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1, err
+    assert err[0].startswith("tune: error: download failed: http://127.0.0.1") and "--data DIR" in err[0] \
+        and "--base-url URL" in err[0] and "IMTUNE_DOWNLOAD_BASE" in err[0], err
+    assert not (tmp_path / "d" / "sacre_coeur").exists()
+
+
 def test_unknown_name_lists_available(tmp_path):
     with pytest.raises(ImtuneError, match="unknown data set 'nope'.*strecha.*sacre_coeur.*scannet_sample.*phototourism"):
         dl.download("nope", tmp_path)

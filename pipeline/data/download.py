@@ -193,6 +193,15 @@ def resolve_url(url: str, base_url: str | None) -> str:
     return base_url.rstrip("/") + "/" + path.lstrip("/")
 
 
+class NetworkError(ImtuneError):
+    """The host could not be reached or the transfer broke (not an HTTP status, not a local write)."""
+
+
+#: what `tune data download` adds to a NetworkError (no network, a firewall, a mirror that is down)
+NET_HINT = (f"no network here? copy the data set from a machine that has it and pass --data DIR, or download from a "
+            f"mirror with --base-url URL (or ${ENV_BASE})")
+
+
 def _fetch(url: str, out: Path, sha256: str | None, quiet: bool) -> None:
     """Stream ``url`` to ``out`` with a progress bar; ImtuneError (one line) on any network or checksum error."""
     from tqdm import tqdm
@@ -213,10 +222,12 @@ def _fetch(url: str, out: Path, sha256: str | None, quiet: bool) -> None:
     except urllib.error.HTTPError as e:
         raise ImtuneError(f"download failed: {url}: HTTP {e.code} {e.reason}") from None
     except urllib.error.URLError as e:
-        raise ImtuneError(f"download failed: {url}: {e.reason}") from None
+        raise NetworkError(f"download failed: {url}: {e.reason}") from None
     except (socket.timeout, TimeoutError) as e:
-        raise ImtuneError(f"download failed: {url}: timed out ({e})") from None
-    except (HTTPException, ConnectionError, OSError) as e:
+        raise NetworkError(f"download failed: {url}: timed out ({e})") from None
+    except (HTTPException, ConnectionError) as e:
+        raise NetworkError(f"download failed: {url}: {type(e).__name__}: {e}") from None
+    except OSError as e:  # writing the file (a full disk, no permission): the network is not the cause
         raise ImtuneError(f"download failed: {url}: {type(e).__name__}: {e}") from None
     if total is not None and got != total:
         raise ImtuneError(f"download failed: {url}: incomplete ({got} of {total} bytes)")

@@ -55,15 +55,19 @@ def run_download(args) -> int:
     import sys
     from pathlib import Path
 
-    from pipeline.data.download import describe_source, download
+    from pipeline.data.download import NET_HINT, NetworkError, describe_source, download
     from pipeline.data.locate import DEFAULT_SET, download_home, locate
+    from pipeline.errors import ImtuneError
     dest = Path(args.dest).expanduser().resolve() if args.dest else download_home()[0]
     target = dest / args.name
     if target.exists() and not args.force:
         print(f"{args.name}: already in {target} (--force downloads it again)", file=sys.stderr)
     elif not args.quiet:
         print(f"{args.name}: {describe_source(args.name, args.base_url)} -> {target}", file=sys.stderr, flush=True)
-    out = download(args.name, dest, base_url=args.base_url, force=args.force, quiet=args.quiet)
+    try:
+        out = download(args.name, dest, base_url=args.base_url, force=args.force, quiet=args.quiet)
+    except NetworkError as e:  # the host cannot be reached: say what else works
+        raise ImtuneError(f"{e}; {NET_HINT}") from None
     print(f"{args.name}: ready in {out}")
     try:
         found = locate().path if args.name == DEFAULT_SET else None
