@@ -698,7 +698,7 @@ def test_integral_floats_in_a_config_are_integers(tmp_path, data3):
 # -- tune plot --out that cannot be written ---------------------------------------------------------------
 
 @pytest.mark.parametrize("page", [["--study", "plots-a"], ["--pareto", "plots-a"]])
-@pytest.mark.parametrize("how", ["under-a-file", "is-a-folder"])
+@pytest.mark.parametrize("how", ["under-a-file", "is-a-folder", "a-png-name"])
 def test_plot_out_that_cannot_be_written_is_one_line_before_drawing(how, page, tmp_path):
     """A file in the way of --out's folder was an internal error (FileExistsError from mkdir)."""
     from tests.test_plots_labels import _study
@@ -706,10 +706,12 @@ def test_plot_out_that_cannot_be_written_is_one_line_before_drawing(how, page, t
     _study(storage, "plots-a")
     (tmp_path / "afile").write_text("x")
     out, needle = {"under-a-file": (tmp_path / "afile" / "r.html", "a file is in the way"),
-                   "is-a-folder": (tmp_path, "is a folder")}[how]
+                   "is-a-folder": (tmp_path, "is a folder"),
+                   # an HTML page was written under a picture's name
+                   "a-png-name": (tmp_path / "p.png", "writes an interactive HTML page (plotly); name it .html")}[how]
     r = tune("plot", *page, "--storage", storage, "--studies-dir", tmp_path / "studies", "--out", out)
     one_line_error(r, "--out", needle)
-    assert (tmp_path / "afile").read_text() == "x"
+    assert (tmp_path / "afile").read_text() == "x" and not (tmp_path / "p.png").exists()
 
 
 @pytest.mark.parametrize("text,key", [("config:\n  feature: {num_features: 512}\ngeometry: {threshold: 2.0}\n", "geometry"),

@@ -521,6 +521,9 @@ def run_plot(args) -> int:
         from pipeline.fileio import check_writable_folder
         if out.is_dir():
             raise ImtuneError(f"--out {out} is a folder: give the HTML file to write, e.g. {out / 'report.html'}")
+        if out.suffix.lower() not in (".html", ".htm"):  # p.png got an HTML page under a picture's name
+            raise ImtuneError(f"--out {out}: tune plot writes an interactive HTML page (plotly); name it .html, "
+                              f"e.g. {out.with_suffix('.html')} (a picture: the page's camera button saves a PNG)")
         check_writable_folder(out.parent, "--out folder", "give --out a file in a folder you can write")
     if args.pareto:
         from tuner.pareto import write_overlay
