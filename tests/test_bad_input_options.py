@@ -323,7 +323,8 @@ def test_a_pinned_gamma_above_the_calibrated_gamma_max_warns(tiny, tmp_path, cap
 
 def test_a_fix_the_task_does_not_use_is_said_not_silently_dropped(tiny, tmp_path, capsys):
     """`--task multiview --fix threshold=1` was dropped without a word (COLMAP runs its own RANSAC): the user
-    believed eta pinned. --test-scenes nosuch stops the run at its preflight, after the warning."""
+    believed eta pinned. The run stops at its preflight, after the warning: this data has no multiview ground truth
+    for the validation scene (and --test-scenes nosuch would stop it next)."""
     rc, out, err = _cli(["run", "--data", tiny, *FAST, "--task", "multiview", "--studies-dir", tmp_path / "st",
                          "--fix", "threshold=1.0", "--fix", "max_iters=100",
                          "--test-scenes", "nosuch"], capsys)
@@ -331,7 +332,7 @@ def test_a_fix_the_task_does_not_use_is_said_not_silently_dropped(tiny, tmp_path
     assert rc == 2 and len(lines) == 2, err
     assert lines[0] == ("warning: --fix threshold, max_iters: the multiview task does not use them (it uses ratio, "
                         "strategy); ignored"), err
-    assert lines[1].startswith("tune: error: test scene 'nosuch'")
+    assert lines[1].startswith("tune: error: validation scene 'fountain-P11' has no ground truth"), err
 
 
 def test_a_fix_given_twice_with_two_values_is_one_line(tiny, tmp_path, capsys):
