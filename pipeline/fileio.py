@@ -10,6 +10,8 @@ import shutil
 import tempfile
 from pathlib import Path
 
+import yaml
+
 from pipeline.errors import ImtuneError
 
 
@@ -51,33 +53,39 @@ def read_text(path: Path | str, what: str = "file") -> str:
                           "cannot be decoded); is it the right file? save it as UTF-8 text") from None
 
 
+class _UniqueKeysLoader(yaml.SafeLoader):
+    """PyYAML's SafeLoader (no arbitrary objects), refusing a key given twice in one mapping; ``where`` names the
+    file in the error."""
+
+    where = "YAML"
+
+    def construct_mapping(self, node, deep=False):
+        seen: dict = {}
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":  # `<<: *anchor` merges are no duplicates
+                continue
+            key = self.construct_object(key_node, deep=True)
+            line = key_node.start_mark.line + 1
+            try:
+                if key in seen:
+                    raise ImtuneError(f"{self.where}: key {key!r} is given twice (lines {seen[key]} and {line}); "
+                                      "YAML would keep only the last: write it once")
+                seen[key] = line
+            except TypeError:  # an unhashable key: SafeLoader's own error follows
+                continue
+        return super().construct_mapping(node, deep=deep)
+
+
 def load_yaml(text: str, where: str):
     """``yaml.safe_load`` of ``text``, refusing a key given twice in one mapping (PyYAML keeps the last without a
     word: ``geometry: {threshold: 2}`` then ``geometry: {max_iters: 100}`` lost the threshold): a one-line
     ImtuneError naming ``where``, the key and both lines. YAML errors propagate as ``yaml.YAMLError``."""
-    import yaml
-
-    class _UniqueKeys(yaml.SafeLoader):
-        pass
-
-    def construct_mapping(loader, node, deep=False):
-        seen: dict = {}
-        for key_node, _ in node.value:
-            if key_node.tag == "tag:yaml.org,2002:merge":
-                continue
-            key = loader.construct_object(key_node, deep=True)
-            line = key_node.start_mark.line + 1
-            try:
-                if key in seen:
-                    raise ImtuneError(f"{where}: key {key!r} is given twice (lines {seen[key]} and {line}); YAML "
-                                      "would keep only the last: write it once")
-                seen[key] = line
-            except TypeError:  # an unhashable key: safe_load's own error follows
-                continue
-        return yaml.SafeLoader.construct_mapping(loader, node, deep=deep)
-
-    _UniqueKeys.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, construct_mapping)
-    return yaml.load(text, Loader=_UniqueKeys)  # noqa: S506 - a SafeLoader subclass
+    loader = _UniqueKeysLoader(text)  # what yaml.safe_load does, with the SafeLoader subclass above
+    loader.where = where
+    try:
+        return loader.get_single_data()
+    finally:
+        loader.dispose()
 
 
 def load_json(text: str, where: str):
