@@ -101,7 +101,7 @@ def evaluate_config(conf: PipelineConfig, data_root: Path, scenes=None, cache_di
                               f"(a scene needs at least 2 images{' and co-visibility >= ' + str(min_covisibility) if min_covisibility else ''})")
         res = t.evaluate(scene_objs, conf, cache)
         out[name] = res.to_dict(with_records=with_pairs or with_bags)
-        notes = [n for sc in scene_objs for n in t.scene_notes(sc)]
+        notes = t.notes(scene_objs)
         if notes:  # where the task could not follow its options (bag sizes above a scene's images)
             out[name]["notes"] = notes
         if t.options():

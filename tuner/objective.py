@@ -97,7 +97,7 @@ class ValidationSet:
     @property
     def notes(self) -> list[str]:
         """The task's notes on these scenes (:meth:`pipeline.tasks.base.Task.scene_notes`)."""
-        return [n for s in self.scene_objs for n in self.task.scene_notes(s)]
+        return self.task.notes(self.scene_objs)
 
     @property
     def n_pairs(self) -> int:

@@ -367,6 +367,17 @@ def check_compatible(name: str, stored: dict, mine: dict) -> None:
                           f"rerun with --budget {b_old} or name a new study with --study")
 
 
+def check_task_scene(task, scene, role: str, others: str) -> None:
+    """A one-line ImtuneError when ``task`` cannot evaluate ``scene`` (``Task.check_scene``: no pairs, no ground
+    truth, no bags), naming the ``role`` ("validation", "test") and ending with ``others`` (the flag that fixes it)."""
+    why = task.check_scene(scene)
+    if why and why.startswith("no ground truth"):
+        raise ImtuneError(f"{role} scene {scene.name!r} has {why}; build it with `tune data build-gt --data "
+                          f"{scene.root}`, {others}")
+    if why:
+        raise ImtuneError(f"{role} scene {scene.name!r}: {why}; {others}")
+
+
 def open_validation(s: TuneSettings, task):
     """The ValidationSet of the settings' data and validation scenes for ``task``."""
     from tuner.evaluate import load_scenes
@@ -375,12 +386,7 @@ def open_validation(s: TuneSettings, task):
     if not scenes:
         raise ImtuneError(f"no validation scenes in {s.data_root}")
     for scene in scenes:  # before the study exists: a study whose every trial must fail is never created
-        why = task.check_scene(scene)
-        if why and why.startswith("no ground truth"):
-            raise ImtuneError(f"validation scene {scene.name!r} has {why}; build it with `tune data build-gt --data "
-                              f"{scene.root}`, or choose others with --scenes")
-        if why:
-            raise ImtuneError(f"validation scene {scene.name!r}: {why}; choose others with --scenes")
+        check_task_scene(task, scene, "validation", "choose others with --scenes")
     return ValidationSet.from_scenes(scenes, task)
 
 
@@ -414,12 +420,7 @@ def preflight(s: TuneSettings, task, stored: dict | None = None) -> list[str]:
             raise ImtuneError(f"test scene {n!r}: {e}; choose others with --test-scenes, {skip}") from None
         for note in task.scene_notes(scene):  # e.g. bag sizes above the scene's image count
             s.warn(f"test {note}")
-        why = task.check_scene(scene)  # the task says what it needs (pairs, ground truth, bags)
-        if why and why.startswith("no ground truth"):
-            raise ImtuneError(f"test scene {n!r} has {why}; build it with `tune data build-gt --data {scene.root}`, "
-                              f"choose others with --test-scenes, {skip}")
-        if why:
-            raise ImtuneError(f"test scene {n!r}: {why}; choose others with --test-scenes, {skip}")
+        check_task_scene(task, scene, "test", f"choose others with --test-scenes, {skip}")
     return names
 
 

@@ -126,6 +126,10 @@ class Task(abc.ABC):
         metadata only. Default: none."""
         return []
 
+    def notes(self, scenes: list) -> list[str]:
+        """:meth:`scene_notes` of every scene, in order."""
+        return [n for s in scenes for n in self.scene_notes(s)]
+
     def prepare(self, scenes: list, conf: PipelineConfig, cache, progress: bool = False) -> dict[str, float]:
         """Warm the caches the evaluation reads (features, k-NN tables) once; returns features per image
         (NF) per scene. Default: nothing to warm."""

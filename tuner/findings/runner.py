@@ -161,7 +161,7 @@ def multiview_notes(fs: FindingsSettings) -> list[str]:
         scenes = load_scenes(Path(fs.data_root), fs.val_scenes, split="val", ground_truth=False)
     except ImtuneError:  # the report of a run that could not load them says why elsewhere
         return []
-    return [n for sc in scenes for n in task.scene_notes(sc)]
+    return task.notes(scenes)
 
 
 def tune_settings(spec: StudySpec, fs: FindingsSettings):
