@@ -533,3 +533,17 @@ def test_a_fixed_gamma_says_no_gamma_max_was_calibrated(tiny, tmp_path, capsys):
     assert rc == 0, err
     html = (st / "fixed-gamma" / "report.html").read_text()
     assert "Gamma_max = None" not in html and "Gamma_max not calibrated (max_iters fixed)" in html
+
+
+# ------------------------------------------------------------------------------ viz --bag on stereo figures
+
+@pytest.mark.parametrize("extra, what", [([], "--task stereo draws stereo pairs"),
+                                         (["--task", "stereo"], "--task stereo draws stereo pairs")])
+def test_viz_bag_without_the_multiview_task_is_refused(extra, what, tiny, tmp_path, capsys):
+    """`tune viz --bag 5:0` without --task multiview drew stereo pairs and ignored the bag, unsaid. One line
+    naming --bag and the fix, before any feature is computed (nothing written)."""
+    out = tmp_path / "figs"
+    rc, _, err = _cli(["viz", "--data", tiny, "--feature", "sift", "--num-features", "256", "--bag", "5:0",
+                       "--out", out, "--cache", tmp_path / "cache", *extra], capsys)
+    _one_line_error(rc, err, "--bag 5:0", what, "add --task multiview")
+    assert not out.exists()

@@ -170,6 +170,12 @@ def viz(args: argparse.Namespace) -> dict:
     primary = sources[0]
     if args.task is None:  # a multiview study's frozen r drawn as stereo pairs with an untuned eta 0.5, unsaid
         args.task = ((primary.frozen or {}).get("task") or "stereo") if not args.compare else "stereo"
+    from pipeline.tasks import task_list
+    if args.bag and (args.compare or "multiview" not in task_list(args.task)):
+        # --bag picks a multiview bag: on stereo pairs or a comparison it was silently ignored
+        what = "tune viz --compare draws stereo pairs" if args.compare else f"--task {args.task} draws stereo pairs"
+        raise ImtuneError(f"--bag {args.bag[0]} selects a multiview bag, but {what}; add --task multiview "
+                          "(or --task both), or drop --bag")
     study = next((s.study for s in sources if s.study), None)  # a comparison goes to its study's gallery
     if args.out:
         out_dir = Path(args.out).expanduser().resolve()
@@ -194,7 +200,6 @@ def viz(args: argparse.Namespace) -> dict:
                                   pairs=specs or None, n=args.num, min_covisibility=min_cov, opts=opts,
                                   progress=progress)
     else:
-        from pipeline.tasks import task_list
         for name in task_list(args.task):
             figs, rep = render_task(name, scenes, primary.conf, out_dir, cache=cache, pairs=specs or None,
                                     worst=args.worst, best=args.best, random=args.random,
