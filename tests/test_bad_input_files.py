@@ -653,6 +653,9 @@ BAD_CONFIG_VALUES = {  # name: (file name, text, what the error line says)
     "options-triple": ("c.yaml", "feature: {options: [[a, 1, 2]]}", "feature.options must be a mapping"),
     "options-flat-list": ("c.yaml", "feature: {options: [5]}", "feature.options must be a mapping"),
     "custom-matches-number": ("c.yaml", "matching: {custom_matches: 5}", "custom_matches must be a string"),
+    # the pre-filter's own option check said "prefilter 'gms': unknown option(s) bogus" without naming the file
+    "prefilter-option-unknown": ("c.yaml", "matching: {prefilter: gms, prefilter_options: {bogus: 1}}",
+                                 "prefilter 'gms': unknown option(s) bogus"),
     "imc-num-keypoints-text": ("m.json", '{"config_common": {"num_keypoints": "many"}, %s}' % (_IMC_STEREO % ""),
                                "num_features must be a number, got 'many'"),
     "imc-common-not-object": ("m.json", '{"config_common": "sift", %s}' % (_IMC_STEREO % ""),

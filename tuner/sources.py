@@ -36,7 +36,21 @@ def load_config_source(path: str | Path, base: PipelineConfig | None = None) -> 
     if cf.frozen is not None:  # a frozen.yaml: its numbers are checked as when a study's is loaded
         from tuner.freeze import check_frozen
         check_frozen(cf.frozen, cf.path)
+    check_prefilter(cf.conf, str(cf.path))
     return Source(cf.conf, cf.label, frozen=cf.frozen, path=cf.path)
+
+
+def check_prefilter(conf: PipelineConfig, where: str) -> None:
+    """The configuration's pre-filter accepts its options: built once here (cheap), so that a wrong option name in
+    a file is one line naming the file now, not a line without it at the first pair."""
+    m = conf.matching
+    if not m.prefilter or m.prefilter == "none":
+        return
+    from pipeline.matching.prefilters import get_prefilter
+    try:
+        get_prefilter(m.prefilter, m.prefilter_options)
+    except ImtuneError as e:
+        raise ImtuneError(f"{where}: {e}") from None
 
 
 def load_study_source(name: str, sdir: Path) -> Source:
