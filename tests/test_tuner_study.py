@@ -204,6 +204,11 @@ def test_settings_table_formats(two_studies, tuner_cache):
     assert set(js[0]["studies"]) == {"degensac", "magsac++"}
     bad = tune("table", "--studies-dir", str(d), "--format", "xml", cache=tuner_cache)
     assert bad.returncode == 2 and "unknown format" in bad.stderr
+    # the paper's table names the multiview r even when no multiview study was run; `--task stereo` asks for the
+    # stereo settings alone and had an empty r_multiview column
+    assert "| r_multiview |" in head
+    st = tune("table", "--studies-dir", str(d), "--task", "stereo", cache=tuner_cache, check=True).stdout
+    assert "r_multiview" not in st and "| eta degensac |" in st.splitlines()[0], st
 
 
 def test_results_table(two_studies, tuner_cache):

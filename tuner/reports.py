@@ -167,14 +167,16 @@ def _settings_caption(studies: list[StudyInfo], multiview: list[StudyInfo], per_
 
 
 def settings_rows(studies: list[StudyInfo], fmt: str = "markdown",
-                  multiview: list[StudyInfo] | None = None) -> tuple[list[dict], list[str]]:
+                  multiview: list[StudyInfo] | None = None,
+                  multiview_column: bool = True) -> tuple[list[dict], list[str]]:
     """(rows, columns) of the optimal-settings table (the paper's "optimal hyper-parameters" tables):
     per feature and feature count (``features``) the ratio test ``r`` (stereo; from the estimator study
     with the best validation mAA(10), named in ``r from``) and ``r_multiview``, then per estimator the
     inlier threshold ``eta <est>`` (px) and iteration cap ``Gamma <est>``, and the budget ``B`` (s per
     pair; one ``B <est>`` column per estimator when the studies differ). ``columns`` is a
     :class:`tuner.formatting.Columns` with the caption of the LaTeX form; ``multiview`` studies fill
-    ``r_multiview``."""
+    ``r_multiview`` (an empty column without them, as the paper's table has it, unless ``multiview_column`` is
+    False: a table asked for one task only)."""
     from tuner.formatting import Columns
     multiview = list(multiview or [])
     ests = _estimators(studies)
@@ -227,7 +229,8 @@ def settings_rows(studies: list[StudyInfo], fmt: str = "markdown",
                                                    "complete_trials": s.n_complete}
                                         for s in mv_groups.get((feat, nf), [])}
         rows.append(row)
-    names = ["feature", "features"] + (["r"] if studies else []) + ["r_multiview"]
+    names = ["feature", "features"] + (["r"] if studies else []) + \
+        (["r_multiview"] if multiview or multiview_column else [])
     for e in ests:
         names += [f"eta {e}", f"Gamma {e}"] + ([f"B {e}"] if per_est_budget else [])
     if studies and not per_est_budget:

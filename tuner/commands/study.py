@@ -476,7 +476,8 @@ def run_table(args) -> int:
     other = [s for s in known if s not in geo]
     if not geo and not other:
         raise ImtuneError(f"no imtune {task} studies in the storage")
-    rows, cols = settings_rows(geo, args.format, multiview=other)
+    # `--task stereo` asks for the stereo settings alone: no empty multiview column
+    rows, cols = settings_rows(geo, args.format, multiview=other, multiview_column=task in (None, "both", "all"))
     print(render_table(rows, cols, args.format))
     return 0
 
