@@ -223,6 +223,47 @@ def test_results_table(two_studies, tuner_cache):
     assert 0 <= js[0]["mAA10 degensac"] <= 1 and 0 <= js[0]["mAA10 magsac++"] <= 1
 
 
+def _nan_pair_error(p: Path) -> None:
+    d = json.loads(p.read_text())
+    d["runs"][0]["pair_errors"][0][2] = float("nan")  # json.dumps writes NaN
+    p.write_text(json.dumps(d))
+
+
+@pytest.mark.parametrize("damage, why", [
+    (b'{"study": "cut sho', "not valid JSON"),
+    (b"[]", "not a test result"),
+    (b"\xff\xfe\x00binary", "not UTF-8 text"),
+    (_nan_pair_error, "a pair error of nan degrees"),
+], ids=["cut-short", "json-list", "binary", "nan-pair-error"])
+def test_a_damaged_test_json_is_said_never_a_crash_or_silence(damage, why, two_studies, tuner_cache, tmp_path):
+    """A test.json cut short, binary or a JSON list was skipped without a word (tune results then took the interval
+    from the stored summary and ranked ties unpaired), a NaN pair error went into the bootstrap, and `tune test`
+    / `tune findings` rechecking a list crashed ('list' object has no attribute 'get'). Now: a warning naming the
+    file and what to run, the study's row kept from its stored summary, the report says so, the test is rerun."""
+    d = tmp_path / "st"
+    shutil.copytree(two_studies["dir"], d)
+    name = two_studies["name"]
+    p = d / name / "test.json"
+    assert p.is_file()
+    good = json.loads(tune("results", "--studies-dir", str(d), "--format", "json", cache=tuner_cache,
+                           check=True).stdout)
+    damage(p) if callable(damage) else p.write_bytes(damage)
+    r = tune("results", "--studies-dir", str(d), "--format", "json", cache=tuner_cache)
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+    warn = [ln for ln in r.stderr.splitlines() if ln.startswith("warning: ")]
+    assert len(warn) == 1 and str(p) in warn[0] and why in warn[0], r.stderr
+    assert f"rerun `tune test --study {name}`" in warn[0]
+    rows = json.loads(r.stdout)
+    assert rows[0]["mAA10 degensac"] == pytest.approx(good[0]["mAA10 degensac"])  # the stored summary's value
+    rep = tune("plot", "--study", name, "--studies-dir", str(d), cache=tuner_cache, check=True)
+    assert f"test.json cannot be read ({why.split(':')[0]}" in Path(rep.stdout.strip()).read_text() or callable(damage)
+    if damage == b"[]":  # --reuse rechecks the file: it is rerun and rewritten, not a crash
+        t = tune("test", "--study", name, "--studies-dir", str(d), "--reuse", "--runs", "1", "--quiet",
+                 cache=tuner_cache)
+        assert t.returncode == 0 and "Traceback" not in t.stderr, t.stderr
+        assert isinstance(json.loads(p.read_text()), dict)
+
+
 def test_plot_html_report(two_studies, tuner_cache):
     d = two_studies["dir"]
     r = tune("plot", "--study", two_studies["name"], "--studies-dir", str(d), cache=tuner_cache, check=True)

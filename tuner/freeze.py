@@ -49,16 +49,33 @@ def study_dir(studies_dir: Path | str, name: str) -> Path:
     return Path(studies_dir) / f"{safe.strip('.')[:MAX_DIR_NAME - 11] or 'study'}-{tag}"
 
 
+def load_test_file(path: Path | str | None) -> tuple[dict | None, str | None]:
+    """A study's test.json: (the result, None); (None, None) when there is none; (None, why) when it is there but
+    cannot be read or holds no test result (cut short, binary, a JSON list). The one reader every table, report and
+    rerun check goes through, so that a damaged file is said (or rerun), never a crash or silently ignored."""
+    if path is None or not Path(path).is_file():
+        return None, None
+    try:
+        d = json.loads(Path(path).read_text())
+    except UnicodeDecodeError:
+        return None, "not UTF-8 text"
+    except json.JSONDecodeError:
+        return None, "not valid JSON"
+    except (OSError, ValueError) as e:
+        return None, getattr(e, "strerror", None) or str(e).splitlines()[0][:120]
+    if not isinstance(d, dict) or not isinstance(d.get("runs", []), list) \
+            or not all(isinstance(r, dict) for r in d.get("runs", [])):
+        return None, "not a test result (a JSON object with a list of runs)"
+    return d, None
+
+
 def _previous_result(out_path: Path | None, ident: dict) -> dict | None:
     """The test.json already written for exactly this identity (trial, config, data, runs), if any. Asked with no
     reference (``--reference none``), a result that also compared a reference serves too: its own runs are the
     same."""
-    if out_path is None or not out_path.is_file():
-        return None
-    try:
-        old = json.loads(out_path.read_text())
-    except (OSError, ValueError):
-        return None  # unreadable: rerun the test rather than trust it
+    old, _ = load_test_file(out_path)
+    if old is None:
+        return None  # none, or unreadable: rerun the test rather than trust it
     have, want = old.get("identity"), _plain(ident)
     if have == want:
         return old

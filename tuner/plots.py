@@ -247,18 +247,12 @@ def fig_eta_curves(storage, study):
 def breakdown_sources(study, best, studies_dir=None) -> list[tuple[str, dict]]:
     """[(label, {scene: summary with "accuracy" and maybe "covisibility"})]: the best trial's validation
     scenes, then the test scenes of test.json (per scene, averaged over the runs) when it is there."""
-    import json
-
-    from tuner.freeze import study_dir
+    from tuner.freeze import load_test_file, study_dir
     out = []
     if best is not None and best.user_attrs.get("scenes"):
         out.append((f"validation (trial {best.number})", best.user_attrs["scenes"]))
     if studies_dir is not None:
-        p = study_dir(studies_dir, study.study_name) / "test.json"
-        try:
-            t = json.loads(p.read_text()) if p.is_file() else None
-        except (OSError, ValueError):
-            t = None
+        t, _ = load_test_file(study_dir(studies_dir, study.study_name) / "test.json")  # unreadable: not drawn
         if t and t.get("runs"):
             scenes = {}
             for name in t["runs"][0].get("scenes") or {}:
@@ -399,9 +393,8 @@ def _uncertainty_lines(study, studies_dir=None) -> list[str]:
     """HTML paragraphs: the frozen trial (its selection rule) with the 95% interval of its validation mAA(10°), how
     flat the optimum is, the warnings, and from test.json the test mAA(10°) with its interval and the paired
     comparison with the reference configuration."""
-    import json
 
-    from tuner.freeze import frozen_from_study, study_dir
+    from tuner.freeze import frozen_from_study, load_test_file, study_dir
     from tuner.select import comparison_text, flat_text
     try:
         f = frozen_from_study(study)
@@ -418,12 +411,10 @@ def _uncertainty_lines(study, studies_dir=None) -> list[str]:
     out = [f"<p><b>{html.escape(txt)}</b><br>{html.escape(sel.get('note', ''))}</p>",
            f"<p>{html.escape(flat_text(f.get('robustness')))}</p>"]
     out += [f"<p style='color:#b00'>warning: {html.escape(w)}</p>" for w in f.get("warnings") or []]
-    p = study_dir(studies_dir, study.study_name) / "test.json" if studies_dir is not None else None
-    if p is not None and p.is_file():
-        try:
-            t = json.loads(p.read_text())
-        except (OSError, ValueError):
-            return out
+    t, why = load_test_file(study_dir(studies_dir, study.study_name) / "test.json" if studies_dir is not None else None)
+    if why:
+        out.append(f"<p style='color:#b00'>{html.escape(f'test.json cannot be read ({why}): rerun `tune test --study {study.study_name}`')}</p>")
+    if t is not None:
         m = t.get("mean") or {}
         tci = m.get("mAA10_ci")
         line = (f"test ({len(t.get('runs') or [])} runs, trial {t.get('trial')}): {METRIC} = "

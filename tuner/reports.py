@@ -20,7 +20,7 @@ mAA(10) over estimators (1 = best).
 """
 from __future__ import annotations
 
-import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,15 +41,16 @@ class StudyInfo:
     test: dict | None
 
 
-def collect_studies(storage, task: str | None = None, studies_dir: Path | str | None = None) -> list[StudyInfo]:
+def collect_studies(storage, task: str | None = None, studies_dir: Path | str | None = None,
+                    warn=None) -> list[StudyInfo]:
     """Every imtune study in the storage (others are skipped), with the trial it freezes (``best``: its selection
     rule's pick, by default the best feasible trial) and test
-    summary (study attribute ``test``, else ``<studies_dir>/<study>/test.json``)."""
+    summary (study attribute ``test``, else ``<studies_dir>/<study>/test.json``). ``warn(line)``: told of a
+    test.json that cannot be read."""
     import optuna
     from optuna.trial import TrialState
 
-    from tuner.freeze import study_dir, test_summary
-    from tuner.study import best_feasible
+    from tuner.freeze import load_test_file, study_dir, test_summary
     out = []
     for summ in optuna.get_all_study_summaries(storage, include_best_trial=False):
         attrs = summ.user_attrs
@@ -61,11 +62,14 @@ def collect_studies(storage, task: str | None = None, studies_dir: Path | str | 
         test = attrs.get("test")
         if test is None and studies_dir is not None:
             p = study_dir(studies_dir, summ.study_name) / "test.json"
-            if p.is_file():
-                try:
-                    test = test_summary(json.loads(p.read_text()))
-                except (OSError, ValueError, KeyError):
-                    test = None
+            d, why = load_test_file(p)
+            try:
+                test = test_summary(d) if d is not None else None
+            except (ValueError, KeyError, AttributeError, TypeError):
+                why = "not a test result"
+            if why and warn is not None:  # the study's test results vanished from the tables, unsaid
+                warn(f"{p} cannot be read ({why}): study {summ.study_name} is shown without test results; "
+                     f"rerun `tune test --study {summ.study_name}` to rewrite it")
         out.append(StudyInfo(name=summ.study_name, task=attrs.get("task", "stereo"), feature=attrs.get("feature", "?"),
                              num_features=int(attrs.get("num_features") or 0), ransac=attrs.get("ransac", "?"),
                              attrs=attrs, best=_frozen_trial(study),
@@ -257,24 +261,41 @@ def _tex(s) -> str:
     return latex_escape(s)
 
 
-def _test_pair_runs(s: StudyInfo, studies_dir) -> list[list[dict]] | None:
+def _test_pair_runs(s: StudyInfo, studies_dir, warn=None) -> list[list[dict]] | None:
     """Per-run stereo pair records of a study's test runs, from ``<studies_dir>/<study>/test.json``: each run's
-    ``pair_errors`` ([scene, pair, err] triples) or ``pair_records`` (dicts). None where not stored."""
+    ``pair_errors`` ([scene, pair, err] triples) or ``pair_records`` (dicts). None where not stored; ``warn(line)``
+    is told when the file is there but cannot be read (the study's interval and ties then come from its summary)."""
     if studies_dir is None:
         return None
-    from tuner.freeze import study_dir
+    from tuner.freeze import load_test_file, study_dir
     p = study_dir(studies_dir, s.name) / "test.json"
-    try:
-        runs = json.loads(p.read_text()).get("runs") or []
-    except (OSError, ValueError, AttributeError):
-        return None
+    d, why = load_test_file(p)
+    if d is not None:
+        try:
+            return _pair_runs(d)
+        except (ValueError, AttributeError, TypeError, KeyError) as e:
+            why = f"its pair errors: {str(e).splitlines()[0][:80] if isinstance(e, ValueError) else 'malformed'}"
+    if why and warn is not None:  # the interval silently came from the summary and ties became unpaired
+        warn(f"{p} cannot be read ({why}): study {s.name}'s test interval and rank ties come from its stored "
+             f"summary (unpaired); rerun `tune test --study {s.name}` to rewrite it")
+    return None
+
+
+def _pair_error(e) -> float:
+    """A stored pair error in degrees: a number >= 0, or None / "inf" / Infinity for a failed pair (+inf)."""
+    err = float("inf") if e is None else float(e)
+    if math.isnan(err) or err < 0:
+        raise ValueError(f"a pair error of {e!r} degrees")
+    return err
+
+
+def _pair_runs(d: dict) -> list[list[dict]] | None:
     out = []
-    for r in runs:
+    for r in d.get("runs") or []:
         if r.get("pair_errors") is not None:
-            out.append([{"scene": sc, "pair": pr, "err": float(e if e is not None else "inf")}
-                        for sc, pr, e in r["pair_errors"]])
+            out.append([{"scene": sc, "pair": pr, "err": _pair_error(e)} for sc, pr, e in r["pair_errors"]])
         elif r.get("pair_records") is not None:
-            out.append([{"scene": x["scene"], "pair": x["pair"], "err": float(x["err"] if x["err"] is not None else "inf")}
+            out.append([{"scene": x["scene"], "pair": x["pair"], "err": _pair_error(x["err"])}
                         for x in r["pair_records"]])
         else:
             return None
@@ -289,7 +310,7 @@ def _with_ci(m, ci) -> str | None:
 
 
 def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: Path | str | None = None,
-                 n_resamples: int = 2000, seed: int = 0) -> tuple[list[dict], list[str]]:
+                 n_resamples: int = 2000, seed: int = 0, warn=None) -> tuple[list[dict], list[str]]:
     """(rows, columns) of the test-results table, ranked by each feature's best mAA(10), with ties.
 
     Each mAA(10) is shown as ``value [lo, hi]`` (95% interval) where one is known: from the test runs' pair
@@ -300,7 +321,7 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
     pairs (:func:`~pipeline.metrics.uncertainty.rank_with_ties`) where both have pair errors, else when their
     intervals overlap (:func:`~pipeline.metrics.uncertainty.rank_by_intervals`, unpaired and conservative).
     The ``ties`` column says which rule shared a rank, or that no interval was available. ``--format json``
-    adds ``mAA10_ci <est>`` lists and ``studies``."""
+    adds ``mAA10_ci <est>`` lists and ``studies``. ``warn(line)``: told of a test.json that cannot be read."""
     from pipeline.metrics.uncertainty import combine_runs_interval, rank_by_intervals, rank_with_ties
     tested = [s for s in studies if s.test]
     ests = _estimators(tested)
@@ -315,7 +336,7 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
             s = by_est.get(e)
             ni = s.test.get("NI") if s else None
             m = s.test.get("mAA10") if s else None
-            runs = _test_pair_runs(s, studies_dir) if s and m is not None else None
+            runs = _test_pair_runs(s, studies_dir, warn) if s and m is not None else None
             ci = s.test.get("mAA10_ci") if s else None
             if runs:
                 ci = combine_runs_interval(runs, taus=(10,), n_resamples=n_resamples, seed=seed)["mAA10_ci"]

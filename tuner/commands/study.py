@@ -444,6 +444,10 @@ def run_test_cmd(args) -> int:
 
 # -- tables, plot, dashboard, studies ----------------------------------------------------------------
 
+def _warn(line: str) -> None:
+    print(f"warning: {line}", file=sys.stderr, flush=True)
+
+
 def _collect(args):
     from tuner.reports import collect_studies
     from tuner.storage import open_storage
@@ -453,7 +457,7 @@ def _collect(args):
         raise ImtuneError(f"unknown format {args.format!r} (choose {', '.join(FORMATS)})")
     sdir = _studies_dir(args)
     storage = open_storage(args.storage, heartbeat=None, studies_dir=sdir, must_exist=True)
-    return collect_studies(storage, task=args.task, studies_dir=sdir)
+    return collect_studies(storage, task=args.task, studies_dir=sdir, warn=_warn)
 
 
 def run_table(args) -> int:
@@ -496,7 +500,7 @@ def run_results(args) -> int:
     from tuner.reports import render_table, results_rows
     _check_task(args.task)
     studies = _collect(args)
-    rows, cols = results_rows(studies, args.format, studies_dir=_studies_dir(args))
+    rows, cols = results_rows(studies, args.format, studies_dir=_studies_dir(args), warn=_warn)
     if not rows:
         raise ImtuneError(f"no tested {args.task} study in the storage (run `tune test --study NAME`)")
     print(render_table(rows, cols, args.format))
