@@ -264,6 +264,23 @@ def test_a_damaged_test_json_is_said_never_a_crash_or_silence(damage, why, two_s
         assert isinstance(json.loads(p.read_text()), dict)
 
 
+def test_results_says_when_studies_were_tested_on_different_test_sets(two_studies, tuner_cache, tmp_path):
+    """`tune test --scenes` on one study left `tune results` ranking its mAA(10), measured on other pairs, beside
+    the others' without a word. Now a warning naming the test sets, and a 'test set' column."""
+    d = tmp_path / "st"
+    shutil.copytree(two_studies["dir"], d)
+    same = tune("results", "--studies-dir", str(d), cache=tuner_cache, check=True)
+    assert "test set" not in same.stdout and "different test sets" not in same.stderr  # both on Herz-Jesus-P8
+    tune("test", "--study", "sift-2048-magsac++-stereo", "--studies-dir", str(d), "--scenes", "entry-P10",
+         "--runs", "1", "--max-pairs", "3", "--quiet", cache=tuner_cache, check=True)
+    r = tune("results", "--studies-dir", str(d), "--format", "json", cache=tuner_cache, check=True)
+    warn = [ln for ln in r.stderr.splitlines() if "different test sets" in ln]
+    assert len(warn) == 1 and "entry-P10 (3 pairs)" in warn[0] and "Herz-Jesus-P8 (8 pairs)" in warn[0], r.stderr
+    row = json.loads(r.stdout)[0]
+    best = row["best"]
+    assert row["test set"] == ("entry-P10 (3 pairs)" if best == "magsac++" else "Herz-Jesus-P8 (8 pairs)"), row
+
+
 def test_plot_html_report(two_studies, tuner_cache):
     d = two_studies["dir"]
     r = tune("plot", "--study", two_studies["name"], "--studies-dir", str(d), cache=tuner_cache, check=True)

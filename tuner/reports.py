@@ -325,6 +325,15 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
     from pipeline.metrics.uncertainty import combine_runs_interval, rank_by_intervals, rank_with_ties
     tested = [s for s in studies if s.test]
     ests = _estimators(tested)
+    sets: dict[str, list[str]] = {}
+    for s in tested:
+        sets.setdefault(_test_set(s), []).append(s.name)
+    several = len(sets) > 1
+    if several and warn is not None:  # one table ranked numbers measured on different pairs, unsaid
+        warn("the studies were tested on different test sets (" + "; ".join(
+            f"{k}: {', '.join(v[:3])}{' ...' if len(v) > 3 else ''}" for k, v in sets.items())
+            + "): mAA(10) of different test sets are not comparable; the 'test set' column says which each row's "
+              "best study measured (rerun `tune test --study NAME --scenes ...` to align them)")
     rows = []
     for (feat, nf), group in _groups(tested).items():
         row = {"feature": feat, "features": nf}
@@ -349,6 +358,8 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
             if m is not None and (best is None or m > best[0]):
                 best = (m, e, runs, ci)
         row["best"] = best[1] if best else None
+        if several:
+            row["test set"] = _test_set(by_est[best[1]]) if best else None
         row["_best"] = best
         if fmt == "json":
             row["studies"] = {s.ransac: {"study": s.name, **s.test} for s in by_est.values()}
@@ -386,10 +397,19 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
     cols = ["rank", "feature", "features", "NF"]
     for e in ests:
         cols += [f"NI {e}", f"mAA10 {e}"] + ([f"mAA10_ci {e}"] if fmt == "json" else [])
-    cols += ["best", "ties"]
+    cols += ["best"] + (["test set"] if several else []) + ["ties"]
     if fmt == "json":
         cols.append("studies")
     return rows, cols
+
+
+def _test_set(s: StudyInfo) -> str:
+    """What a study's test numbers were measured on: its test scenes and pairs (e.g. ``Herz-Jesus-P8, entry-P10
+    (73 pairs)``); two studies are comparable only on the same."""
+    t = s.test or {}
+    pairs = t.get("pairs")
+    scenes = ", ".join(sorted(str(x) for x in (t.get("scenes") or []))) or "?"
+    return scenes + (f" ({float(pairs):g} pairs)" if isinstance(pairs, (int, float)) else "")
 
 
 def render_table(rows, cols, fmt: str) -> str:
