@@ -1,6 +1,7 @@
 """download(): served from a local HTTP server on 127.0.0.1 (never the internet)."""
 from __future__ import annotations
 
+import base64
 import functools
 import hashlib
 import http.server
@@ -8,6 +9,7 @@ import io
 import socket
 import tarfile
 import threading
+import urllib.parse
 import zipfile
 from pathlib import Path
 
@@ -253,3 +255,85 @@ def test_truncated_download_is_detected(server, tmp_path):
     (folder / dl.SACRE_COEUR_IMAGES[4]).write_bytes(cv2.imencode(".jpg", np.zeros((30, 40), np.uint8))[1].tobytes())
     out = dl.download("sacre_coeur", tmp_path / "data", base_url=base, quiet=True)
     assert len(list((out / "images").iterdir())) == 10
+
+
+# -- a mirror that asks for a password ------------------------------------------------------------------------
+
+PASSWORD = "p@ss w0rd/s3cret"  # '@', ' ' and '/' percent-encoded in the URL, decoded in the header
+USERINFO = "imtune:" + urllib.parse.quote(PASSWORD, safe="")
+
+
+def _auth_server(root: Path, seen: list, redirect_to: str | None = None):
+    """An HTTP server on loopback serving ``root``: 401 for wrong Basic credentials, the file for imtune:PASSWORD
+    or for none at all; ``seen`` collects every request's Authorization header; ``redirect_to``: answer every
+    authorised GET with a 302 there (and a request without credentials with 401)."""
+    expected = "Basic " + base64.b64encode(f"imtune:{PASSWORD}".encode()).decode()
+
+    class Handler(_Quiet):
+        def do_GET(self):
+            got = self.headers.get("Authorization")
+            seen.append(got)
+            if redirect_to is None and got is None:
+                return super().do_GET()  # no credentials (a redirect's target): served; ``seen`` records it
+            if got != expected:
+                self.send_response(401)
+                self.send_header("WWW-Authenticate", 'Basic realm="mirror"')
+                self.end_headers()
+                return
+            if redirect_to is not None:
+                self.send_response(302)
+                self.send_header("Location", redirect_to + self.path)
+                self.end_headers()
+                return
+            return super().do_GET()
+
+    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Handler, directory=str(root)))
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    return httpd, httpd.server_address[1]
+
+
+def test_a_mirror_password_in_the_url_is_sent_as_basic_auth_and_never_shown(tmp_path, capsys):
+    """A mirror URL with credentials (http://user:password@host/..., as curl and wget take them) failed with
+    "InvalidURL: nonnumeric port: '<password>@host'": the password in the error line, and no way to use such a
+    mirror. Now the credentials go as Basic authentication (never to a redirect's host) and no message shows them."""
+    root = tmp_path / "mirror"
+    root.mkdir()
+    (root / "f.bin").write_bytes(b"imtune" * 100)
+    seen: list = []
+    httpd, port = _auth_server(root, seen)
+    try:
+        out = tmp_path / "f.bin"
+        dl._fetch(f"http://{USERINFO}@127.0.0.1:{port}/f.bin", out, hashlib.sha256(b"imtune" * 100).hexdigest(),
+                  True)
+        assert out.read_bytes() == b"imtune" * 100
+        wrong = "imtune:" + urllib.parse.quote("not-" + PASSWORD, safe="")
+        with pytest.raises(ImtuneError) as e:
+            dl._fetch(f"http://{wrong}@127.0.0.1:{port}/f.bin", tmp_path / "g.bin", None, True)
+        assert "HTTP 401" in str(e.value) and "p@ss" not in str(e.value) and "p%40ss" not in str(e.value), e.value
+        assert "imtune:***@127.0.0.1" in str(e.value)
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
+    # a redirect to another host does not carry the credentials
+    target_seen: list = []
+    target, tport = _auth_server(root, target_seen)
+    front_seen: list = []
+    front, fport = _auth_server(root, front_seen, redirect_to=f"http://127.0.0.1:{tport}")
+    try:
+        dl._fetch(f"http://{USERINFO}@127.0.0.1:{fport}/f.bin", tmp_path / "h.bin", None, True)
+        assert (tmp_path / "h.bin").read_bytes() == b"imtune" * 100
+        assert front_seen and front_seen[0] is not None and target_seen == [None], (front_seen, target_seen)
+    finally:
+        for h in (front, target):
+            h.shutdown()
+            h.server_close()
+    # the CLI, host unreachable: one line, no form of the password anywhere
+    from tuner.cli import main
+    capsys.readouterr()
+    closed = _closed_port_url().replace("http://", f"http://{USERINFO}@")
+    rc = main(["data", "download", "sacre_coeur", "--dest", str(tmp_path / "d"), "--base-url", closed, "--quiet"])
+    cap = capsys.readouterr()
+    err = cap.err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("tune: error: download failed: http://imtune:***@"), err
+    for shown in (cap.out, cap.err):
+        assert "p@ss" not in shown and "p%40ss" not in shown and "s3cret" not in shown, shown

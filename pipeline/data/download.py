@@ -22,6 +22,7 @@ uses; images already at that size (a mirror of ``../shared/data``) are kept as t
 """
 from __future__ import annotations
 
+import base64
 import hashlib
 import os
 import shutil
@@ -202,13 +203,57 @@ NET_HINT = (f"no network here? copy the data set from a machine that has it and 
             f"mirror with --base-url URL (or ${ENV_BASE})")
 
 
+def _secrets(url: str | None) -> list[str]:
+    """The password of ``url``'s userinfo, as written and percent-decoded (what a message must never show)."""
+    try:
+        pw = urllib.parse.urlsplit(url or "").password
+    except ValueError:
+        return []
+    return sorted({s for s in (pw, urllib.parse.unquote(pw or "")) if s}, key=len, reverse=True)
+
+
+def _redacted(text: str, url: str | None) -> str:
+    """``text`` with ``url``'s password replaced by ``***`` wherever it appears (a library's own message may quote
+    the host part it failed to parse, password included)."""
+    for sec in _secrets(url):
+        text = text.replace(sec, "***")
+    return text
+
+
+def _request(url: str) -> urllib.request.Request:
+    """The request for ``url``. A mirror's credentials in the userinfo (``http://user:password@host/path``, as
+    curl and wget take them) become a Basic Authorization header on the URL without them: urllib / http.client
+    have no userinfo support (they read ``password@host`` as the port). Written by hand because urllib's
+    HTTPBasicAuthHandler answers a 401 challenge only after a realm lookup; the header is an unredirected one, so
+    a redirect to another host never receives the credentials."""
+    u = urllib.parse.urlsplit(url)
+    if u.scheme not in ("http", "https") or (u.username is None and u.password is None):
+        return urllib.request.Request(url)
+    bare = urllib.parse.urlunsplit((u.scheme, u.netloc.rpartition("@")[2], u.path, u.query, u.fragment))
+    user, pw = urllib.parse.unquote(u.username or ""), urllib.parse.unquote(u.password or "")
+    req = urllib.request.Request(bare)
+    req.add_unredirected_header("Authorization",
+                                "Basic " + base64.b64encode(f"{user}:{pw}".encode("utf-8")).decode("ascii"))
+    return req
+
+
 def _fetch(url: str, out: Path, sha256: str | None, quiet: bool) -> None:
-    """Stream ``url`` to ``out`` with a progress bar; ImtuneError (one line) on any network or checksum error."""
+    """Stream ``url`` to ``out`` with a progress bar; ImtuneError (one line) on any network or checksum error.
+    A password in ``url`` is sent as Basic authentication (:func:`_request`) and never shown."""
+    try:
+        _fetch_shown(url, out, sha256, quiet)
+    except ImtuneError as e:
+        raise type(e)(_redacted(str(e), url)) from None
+
+
+def _fetch_shown(url: str, out: Path, sha256: str | None, quiet: bool) -> None:
     from tqdm import tqdm
 
     digest = hashlib.sha256()
+    req = _request(url)
+    url = _shown(url)  # every message below
     try:
-        with urllib.request.urlopen(url, timeout=TIMEOUT_S) as r, open(out, "wb") as f:
+        with urllib.request.urlopen(req, timeout=TIMEOUT_S) as r, open(out, "wb") as f:
             total = r.headers.get("Content-Length")
             total = int(total) if total and total.isdigit() else None
             got = 0
@@ -368,11 +413,11 @@ def download(name: str, dest: str | Path | None = None, base_url: str | None = N
                 _place(file, stage / src.target if src.target else stage / file.name)
                 continue
             xdir = tmp / f"_x{k:05d}"
-            _extract(file, src.kind, xdir, url)
+            _extract(file, src.kind, xdir, _shown(url))
             file.unlink()
             member = xdir / src.member if src.member else xdir
             if not member.exists():
-                raise ImtuneError(f"archive from {url} has no {src.member!r}")
+                raise ImtuneError(f"archive from {_shown(url)} has no {src.member!r}")
             _place(member, stage / src.target if src.target else stage / (member.name if member.is_file() else ""))
             shutil.rmtree(xdir, ignore_errors=True)
         if bar is not None:
