@@ -199,3 +199,35 @@ def test_several_studies_of_one_estimator_show_the_best_validated_one():
         rows, _ = results_rows(group, "json")
         assert (rows[0]["NI degensac"], rows[0]["mAA10 degensac"]) == (300.0, 0.6)
         assert rows[0]["studies"]["degensac"]["study"] == good.name
+
+
+def _with_pairs(st, pairs, name):
+    st.attrs["data"]["pairs"] = pairs
+    return StudyInfo(**{**st.__dict__, "name": name})
+
+
+def test_a_quick_study_beside_the_main_one_does_not_replace_its_settings():
+    """`tune findings --quick` writes a SIFT 8k DEGENSAC study tuned on 12 pairs beside the main job's (55 pairs) in
+    one storage; the table took the one with the higher validation value, a number of another pair set (on 12 pairs
+    0.9 beats 0.88 by chance), and showed its 10-trial settings as the optimum, unsaid. Now the study tuned on more
+    validation pairs wins, and a warning names the two validation sets."""
+    main = _with_pairs(info("sift", 8000, "degensac", 0.88, 0.85, 0.5, 48213), 55, "sift-8000-degensac-stereo")
+    quick = _with_pairs(info("sift", 8000, "degensac", 0.90, 0.70, 1.5, 2000), 12, "findings-9-quick")
+    said = []
+    for order in ([main, quick], [quick, main]):
+        said.clear()
+        rows, _ = settings_rows(order, "json", warn=said.append)
+        assert rows[0]["eta degensac"] == 0.5 and rows[0]["Gamma degensac"] == 48213 and rows[0]["r"] == 0.85
+        assert rows[0]["studies"]["degensac"]["study"] == "sift-8000-degensac-stereo"
+        assert said == [], said  # one study shown: nothing mixed
+    other = _with_pairs(info("sift", 8000, "magsac++", 0.7, 0.8, 1.25, 20000), 12, "findings-2-quick-magsac")
+    rows, _ = settings_rows([main, quick, other], "markdown", warn=said.append)
+    assert len(said) == 1 and "fountain-P11 (55 pairs): sift-8000-degensac-stereo" in said[0] \
+        and "fountain-P11 (12 pairs): findings-2-quick-magsac" in said[0], said
+    # among studies of one pair set the better validation value still wins; a study without a frozen trial loses
+    a = _with_pairs(info("sift", 8000, "degensac", 0.70, 0.8, 0.3, 1000), 55, "a")
+    b = _with_pairs(info("sift", 8000, "degensac", 0.75, 0.9, 0.4, 2000), 55, "b")
+    empty = _with_pairs(info("sift", 8000, "degensac", 0.1, 0.8, 0.3, 1000), 99, "c")
+    empty = StudyInfo(**{**empty.__dict__, "best": None})
+    rows, _ = settings_rows([a, b, empty], "json")
+    assert rows[0]["studies"]["degensac"]["study"] == "b"

@@ -95,19 +95,32 @@ def _groups(studies: list[StudyInfo]):
     return dict(sorted(groups.items(), key=lambda kv: (kv[0][1], kv[0][0])))
 
 
+def _val_pairs(s: StudyInfo) -> float:
+    """Validation pairs (or bags) a study was tuned on (0 when not recorded)."""
+    v = (s.attrs.get("data") or {}).get("pairs")
+    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else 0.0
+
+
 def _by_estimator(group: list[StudyInfo]) -> dict[str, StudyInfo]:
     """One study per estimator of a (feature, count) group: where several studies share the estimator (a second
-    --study name, a findings study beside the main one), the one with the best validation value of the trial it
+    --study name, a findings study beside the main one), the one tuned on the most validation pairs (a
+    `tune findings --quick` study's 12 pairs per scene against the main job's 55: values of different pair sets
+    are not comparable, and the fuller set is the protocol's), then the best validation value of the trial it
     freezes (studies without one last; then by name). It was the last study listed in the storage, so the row
     could show the eta and Gamma of an unfinished study next to the r of another ("eta -" beside a tuned eta)."""
     out: dict[str, StudyInfo] = {}
     for st in sorted(group, key=lambda x: x.name):
         cur = out.get(st.ransac)
-        v = trial_value(st.best) if st.best is not None else None
-        cv = trial_value(cur.best) if cur is not None and cur.best is not None else None
-        if cur is None or (v is not None and (cv is None or v > cv)):
+        if cur is None or _study_rank(st) > _study_rank(cur):
             out[st.ransac] = st
     return out
+
+
+def _study_rank(st: StudyInfo) -> tuple:
+    """Which of several studies a table shows: one with a frozen trial, then the most validation pairs, then the
+    best validation value."""
+    v = trial_value(st.best) if st.best is not None else None
+    return (v is not None, _val_pairs(st) if v is not None else 0.0, v if v is not None else 0.0)
 
 
 def _estimators(studies: list[StudyInfo]) -> list[str]:
@@ -170,9 +183,16 @@ def _settings_caption(studies: list[StudyInfo], multiview: list[StudyInfo], per_
     return plain, tex
 
 
+def _val_set(s: StudyInfo) -> str:
+    """What a study was tuned on: its validation scenes and pairs (e.g. ``fountain-P11 (55 pairs)``)."""
+    d = s.attrs.get("data") or {}
+    scenes = ", ".join(str(x) for x in (d.get("val_scenes") or [])) or "?"
+    return scenes + (f" ({_val_pairs(s):g} pairs)" if _val_pairs(s) else "")
+
+
 def settings_rows(studies: list[StudyInfo], fmt: str = "markdown",
                   multiview: list[StudyInfo] | None = None,
-                  multiview_column: bool = True) -> tuple[list[dict], list[str]]:
+                  multiview_column: bool = True, warn=None) -> tuple[list[dict], list[str]]:
     """(rows, columns) of the optimal-settings table (the paper's "optimal hyper-parameters" tables):
     per feature and feature count (``features``) the ratio test ``r`` (stereo; from the estimator study
     with the best validation mAA(10), named in ``r from``) and ``r_multiview``, then per estimator the
@@ -180,12 +200,20 @@ def settings_rows(studies: list[StudyInfo], fmt: str = "markdown",
     pair; one ``B <est>`` column per estimator when the studies differ). ``columns`` is a
     :class:`tuner.formatting.Columns` with the caption of the LaTeX form; ``multiview`` studies fill
     ``r_multiview`` (an empty column without them, as the paper's table has it, unless ``multiview_column`` is
-    False: a table asked for one task only)."""
+    False: a table asked for one task only). ``warn(line)``: told when the stereo studies shown were tuned on
+    different validation sets (scenes or pairs)."""
     from tuner.formatting import Columns
     multiview = list(multiview or [])
     ests = _estimators(studies)
     mv_groups = _groups(multiview)
     groups = _groups(studies)
+    sets: dict[str, list[str]] = {}
+    for st in (x for g in groups.values() for x in _by_estimator(g).values() if x.best is not None):
+        sets.setdefault(_val_set(st), []).append(st.name)
+    if len(sets) > 1 and warn is not None:  # one table of settings tuned on different pairs, unsaid
+        warn("the settings shown were tuned on different validation sets (" + "; ".join(
+            f"{k}: {', '.join(v[:3])}{' ...' if len(v) > 3 else ''}" for k, v in sets.items())
+            + "): their validation values are not comparable (--format json names each row's studies)")
     keys = sorted(set(groups) | set(mv_groups), key=lambda k: (k[1], k[0]))
     per_est_budget = len({_budget(s) for s in studies}) > 1
     iters = {e: _uses_iterations(e) for e in ests}
@@ -194,11 +222,11 @@ def settings_rows(studies: list[StudyInfo], fmt: str = "markdown",
         group = groups.get((feat, nf), [])
         row = {"feature": feat, "features": nf}
         by_est = _by_estimator(group)
-        scored = [s for s in group if s.best is not None]
-        top = max(scored, key=lambda s: trial_value(s.best)) if scored else None
+        scored = [s for s in by_est.values() if s.best is not None]  # r from a study the row shows
+        top = max(scored, key=_study_rank) if scored else None
         row["r"] = _num(_param(top, "ratio"), 3) if top else None
         mv_scored = [s for s in mv_groups.get((feat, nf), []) if s.best is not None]
-        mv_top = max(mv_scored, key=lambda s: trial_value(s.best)) if mv_scored else None
+        mv_top = max(mv_scored, key=_study_rank) if mv_scored else None
         row["r_multiview"] = _num(_param(mv_top, "ratio"), 3) if mv_top else None
         for e in ests:
             s = by_est.get(e)
@@ -325,12 +353,13 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
     from pipeline.metrics.uncertainty import combine_runs_interval, rank_by_intervals, rank_with_ties
     tested = [s for s in studies if s.test]
     ests = _estimators(tested)
+    shown = [st for group in _groups(tested).values() for st in _by_estimator(group).values()]
     sets: dict[str, list[str]] = {}
-    for s in tested:
-        sets.setdefault(_test_set(s), []).append(s.name)
+    for st in shown:
+        sets.setdefault(_test_set(st), []).append(st.name)
     several = len(sets) > 1
     if several and warn is not None:  # one table ranked numbers measured on different pairs, unsaid
-        warn("the studies were tested on different test sets (" + "; ".join(
+        warn("the studies shown were tested on different test sets (" + "; ".join(
             f"{k}: {', '.join(v[:3])}{' ...' if len(v) > 3 else ''}" for k, v in sets.items())
             + "): mAA(10) of different test sets are not comparable; the 'test set' column says which each row's "
               "best study measured (rerun `tune test --study NAME --scenes ...` to align them)")

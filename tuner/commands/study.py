@@ -481,7 +481,8 @@ def run_table(args) -> int:
     if not geo and not other:
         raise ImtuneError(f"no imtune {task} studies in the storage")
     # `--task stereo` asks for the stereo settings alone: no empty multiview column
-    rows, cols = settings_rows(geo, args.format, multiview=other, multiview_column=task in (None, "both", "all"))
+    rows, cols = settings_rows(geo, args.format, multiview=other, multiview_column=task in (None, "both", "all"),
+                               warn=_warn)
     print(render_table(rows, cols, args.format))
     return 0
 
