@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 
 import numpy as np
@@ -14,7 +15,7 @@ import pytest
 from tests.conftest import DATA, ROOT
 from tuner.findings import analysis as A
 from tuner.findings.definitions import BY_ID, FINDINGS, StudySpec
-from tuner.findings.runner import FindingsSettings, StudyOutcome, study_name
+from tuner.findings.runner import FindingsSettings, StudyOutcome, data_tag, study_name
 
 KEYS = {"id", "claim", "paper", "measured", "difference", "ci", "p_value", "verdict", "studies"}
 
@@ -189,11 +190,17 @@ def test_one_configuration_is_one_study():
         assert len(names) == expected
     f9 = next(f for f in FINDINGS if f.id == 9)
     full = FindingsSettings(data_root=DATA)
-    assert study_name(f9.studies["8k"], full) == "findings-2-tuned-sift-8000-degensac"
-    assert study_name(f9.studies["2k"], full) == "findings-2-tuned-sift-2048-degensac"
+    tag = data_tag(full)  # names the validation data: "" only where it cannot be loaded
+    v = f"-v{tag}" if tag else ""
+    assert tag == "" or (len(tag) == 8 and int(tag, 16) >= 0)
+    assert study_name(f9.studies["8k"], full) == "findings-2-tuned-sift-8000-degensac" + v
+    assert study_name(f9.studies["2k"], full) == "findings-2-tuned-sift-2048-degensac" + v
     quick = FindingsSettings(data_root=DATA, quick=True)
-    assert study_name(f9.studies["2k"], quick) == "findings-2-tuned-sift-2048-degensac-p12"
-    assert study_name(f9.studies["8k"], quick) == "findings-9-tuned-sift-8000-degensac-p12"
+    assert study_name(f9.studies["2k"], quick) == "findings-2-tuned-sift-2048-degensac-p12" + v
+    assert study_name(f9.studies["8k"], quick) == "findings-9-tuned-sift-8000-degensac-p12" + v
+    # another budget is another study (a resume would refuse it): its name says so
+    assert study_name(f9.studies["2k"], FindingsSettings(data_root=DATA, quick=True, budget=1.0)) == \
+        "findings-2-tuned-sift-2048-degensac-p12-B1" + v
 
 
 # ------------------------------------------------------------------------------------------ end to end
@@ -283,7 +290,7 @@ def test_findings_1_and_4_end_to_end(subset, tmp_path, monkeypatch, capsys):
             st = optuna.load_study(study_name=s["study"], storage=storage)
             assert st.user_attrs["test"]["mAA10"] == pytest.approx(s["mAA10"], abs=1e-12)
             assert s["mAA10_ci"][0] <= s["mAA10_records"] <= s["mAA10_ci"][1]
-            assert s["study"].startswith(f"findings-") and s["study"].endswith("-p3")
+            assert re.fullmatch(r"findings-.*-p3-v[0-9a-f]{8}", s["study"]), s["study"]
         # the key difference is the paired bootstrap of the two studies' test pair errors
         a, b = BY_ID[f["id"]].key or BY_ID[f["id"]].relations[0]
 
@@ -502,6 +509,62 @@ def test_scene_names_as_one_string_from_python_are_split_at_commas(subset, tmp_p
 def test_bad_only_is_one_line(capsys):
     rc, out, err = _cli(["findings", "--only", "1,13"], capsys)
     assert rc == 2 and err.count("\n") == 1 and "no finding 13" in err
+
+
+def test_findings_on_other_data_share_the_storage_and_a_copy_reuses_the_studies(subset, tmp_path, monkeypatch,
+                                                                                 capsys):
+    """Findings studies had names without their data: `tune findings` on another data set (or another validation
+    scene) after a first run in the same studies folder found every study "exists with different validation data
+    ... name a new study with --study" (findings have no --study), and every finding was "not run". Now the names
+    carry the validation data's tag: other data runs its own studies beside the first ones, and a copy of the same
+    data in another folder reuses them (no new trial)."""
+    import optuna
+    monkeypatch.setenv("IMTUNE_CACHE", str(tmp_path / "cache"))
+    sdir = tmp_path / "studies"
+    other = tmp_path / "other"  # the same scenes, the other one tuned on
+    shutil.copytree(subset, other)
+    (other / "splits.yaml").write_text("val: [entry-P10]\ntest: [fountain-P11]\n")
+    copy = tmp_path / "copy"
+    shutil.copytree(subset, copy)
+
+    def run(data):
+        rc, out, err = _cli(["findings", "--data", str(data), "--studies-dir", str(sdir), "--quick", "--only", "3",
+                             "--trials", "2", "--max-pairs", "3", "--ci-resamples", "200", "--jobs", "1", "--json"],
+                            capsys)
+        assert rc == 0, err
+        f = json.loads(out)["findings"][0]
+        assert f["verdict"] != "not run" and "exists with" not in json.dumps(f), f
+        return set(f["studies"])
+
+    storage = f"sqlite:///{sdir / 'optuna.db'}"
+    first = run(subset)
+    second = run(other)
+    assert first and second and not (first & second), (first, second)
+    assert first | second <= set(optuna.get_all_study_names(storage))
+    before = _trial_count(storage)
+    assert run(copy) == first and _trial_count(storage) == before
+
+
+def test_a_findings_study_that_exists_with_another_pipeline_says_what_to_do(subset, tmp_path, monkeypatch):
+    """What the names cannot tell apart (a search space edited between runs, another code's pipeline) still
+    stops that study; its reason says what to do for findings (a storage of the run's own), not --study."""
+    import optuna
+
+    from tuner.findings.runner import run_study, tune_settings
+    from tuner.study import tune
+    monkeypatch.setenv("IMTUNE_CACHE", str(tmp_path / "cache"))
+    fs = FindingsSettings(data_root=subset, studies_dir=tmp_path / "studies", quick=True, trials=1, max_pairs=3,
+                          jobs=1, progress=False)
+    spec = BY_ID[3].studies["gamma1000"]
+    s = tune_settings(spec, fs)
+    s.fixes = ["max_iters=900"]  # the same name, another pinned value: another search space
+    s.test = False
+    tune(s)
+    assert study_name(spec, fs) in optuna.get_all_study_names(f"sqlite:///{tmp_path / 'studies' / 'optuna.db'}")
+    out = run_study(spec, fs, cache=None)
+    assert not out.ok and "exists with a different search space" in out.reason, out.reason
+    assert "--studies-dir DIR or --storage URL" in out.reason and "--study" not in out.reason.replace(
+        "--studies-dir", ""), out.reason
 
 
 def test_two_workers_share_the_studies(subset, tmp_path):

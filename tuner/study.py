@@ -345,8 +345,12 @@ def _first_difference(a, b, path="") -> str:
     return f"{path}: {a!r} -> {b!r}" if path else f"{a!r} -> {b!r}"
 
 
+class IncompatibleStudy(ImtuneError):
+    """A study of this name exists with other settings or data (:func:`check_compatible`)."""
+
+
 def check_compatible(name: str, stored: dict, mine: dict) -> None:
-    """Resume only with the same search space, pipeline, budget and validation data."""
+    """Resume only with the same search space, pipeline, budget and validation data (IncompatibleStudy)."""
     import json
 
     def norm(x):
@@ -358,13 +362,13 @@ def check_compatible(name: str, stored: dict, mine: dict) -> None:
     for key, what in checks:
         if norm(stored.get(key)) != norm(mine.get(key)):
             diff = _first_difference(norm(stored.get(key)), norm(mine.get(key)))
-            raise ImtuneError(f"study {name!r} exists with {what} ({diff}); rerun with its original settings "
-                              "or name a new study with --study")
+            raise IncompatibleStudy(f"study {name!r} exists with {what} ({diff}); rerun with its original settings "
+                                    "or name a new study with --study")
     b_old = (stored.get("budget") or {}).get("seconds_per_pair")
     b_new = mine["budget"]["seconds_per_pair"]
     if b_old is not None and not math.isclose(float(b_old), float(b_new)):
-        raise ImtuneError(f"study {name!r} exists with budget {b_old} s per pair, not {b_new}; "
-                          f"rerun with --budget {b_old} or name a new study with --study")
+        raise IncompatibleStudy(f"study {name!r} exists with budget {b_old} s per pair, not {b_new}; "
+                                f"rerun with --budget {b_old} or name a new study with --study")
 
 
 def check_task_scene(task, scene, role: str, others: str) -> None:

@@ -4,9 +4,9 @@ its verdict is decided (the ``rule`` the analysis applies, see :mod:`tuner.findi
 A study is a :class:`StudySpec`: the pipeline it fixes (feature, matching, estimator, pinned parameters) and the
 finding that owns it. Its name in the storage is deterministic::
 
-    findings-<owner id>-<variant>-<feature>-<num features>-<ransac>
+    findings-<owner id>-<variant>-<feature>-<num features>-<ransac>[-p<pairs>][-B<budget>]-v<data tag>
 
-so rerunning reuses finished studies and several workers on one storage share the work. A finding that needs a
+(the suffixes: :func:`tuner.findings.runner.study_name`) so rerunning reuses finished studies and several workers on one storage share the work. A finding that needs a
 study owned by another (finding 2 ranks the estimator of finding 1, ...) reuses that study by name.
 
 Paper references are to Jin et al., "Image Matching Across Wide Baselines: From Paper to Practice", IJCV 2021

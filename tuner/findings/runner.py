@@ -45,6 +45,7 @@ class FindingsSettings:
     n_resamples: int = 2000
     progress: bool = True
     log: object = None
+    _data_tag: str | None = field(default=None, init=False, repr=False, compare=False)
 
     def mode(self) -> dict:
         m = dict(QUICK if self.quick else FULL)
@@ -93,12 +94,45 @@ def canonical_spec(spec: StudySpec, default_features: int) -> StudySpec:
     return spec
 
 
+#: the budget (s per pair) the names of findings studies leave unsaid: the protocol's
+DEFAULT_BUDGET = 0.5
+
+
+def data_tag(fs: FindingsSettings) -> str:
+    """8 hex naming the validation data: its scenes' names and each scene's images (names and sizes,
+    :func:`pipeline.data.ground_truth.scene_content_id`, stable across copies of the data folder). Studies of
+    other data get other names, so findings of several data sets share one storage (a rerun on other data found
+    every study "exists with different validation data"). "" when the validation scenes cannot be loaded (the
+    run stops on that elsewhere)."""
+    if fs._data_tag is None:
+        import hashlib
+
+        from pipeline.data.ground_truth import scene_content_id
+        from tuner.evaluate import load_scenes
+        from tuner.findings import resolved_splits
+        try:
+            val, _, _ = resolved_splits(fs)
+            scenes = load_scenes(Path(fs.data_root), val, split="val", ground_truth=False) if val else []
+        except ImtuneError:
+            return ""
+        h = hashlib.sha1()
+        for sc in sorted(scenes, key=lambda x: x.name):
+            h.update(f"{sc.name}\0{scene_content_id(sc)}\n".encode())
+        fs._data_tag = h.hexdigest()[:8] if scenes else ""
+    return fs._data_tag
+
+
 def study_name(spec: StudySpec, fs: FindingsSettings) -> str:
     """Deterministic: ``findings-<owner>-<variant>-<feature>-<n>-<ransac>`` of the :func:`canonical_spec`, plus
-    ``-p<N>`` when the pairs per scene are capped (a capped study is a different study: its task options differ)."""
+    ``-p<N>`` when the pairs per scene are capped (a capped study is a different study: its task options differ),
+    ``-B<s>`` for a budget other than the protocol's 0.5 s, and ``-v<tag>`` naming the validation data
+    (:func:`data_tag`)."""
     m = fs.mode()
     name = canonical_spec(spec, m["num_features"]).name(m["num_features"])
-    return name + (f"-p{m['max_pairs']}" if m["max_pairs"] else "")
+    name += f"-p{m['max_pairs']}" if m["max_pairs"] else ""
+    name += f"-B{float(fs.budget):g}" if float(fs.budget) != DEFAULT_BUDGET else ""
+    tag = data_tag(fs)
+    return name + (f"-v{tag}" if tag else "")
 
 
 def base_config(spec: StudySpec, num_features: int):
@@ -333,7 +367,7 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
 
     from tuner.freeze import study_dir
     from tuner.protocol import best_feasible, trial_within_budget
-    from tuner.study import tune
+    from tuner.study import IncompatibleStudy, tune
     name = study_name(spec, fs)
     out = StudyOutcome(spec=spec, name=name)
     why = unavailable(spec)
@@ -346,6 +380,10 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
         res = tune(s)
     except UnavailableError as e:
         out.reason = str(e)
+        return out
+    except IncompatibleStudy as e:  # its name says data and budget: another pipeline or search space remains
+        out.reason = (f"could not run: {str(e).split('; rerun')[0]}; findings studies have fixed names: give this "
+                      "run a storage of its own (--studies-dir DIR or --storage URL)")
         return out
     except ImtuneError as e:
         out.reason = f"could not run: {e}"
