@@ -631,7 +631,7 @@ def test_a_frozen_file_given_as_config_is_checked_too(case, tmp_path, data3):
 
 
 
-@pytest.mark.parametrize("task", ["foo", "[stereo]"])
+@pytest.mark.parametrize("task", ["foo"])  # a task that is no name: test_a_frozen_file_of_the_wrong_shape_...
 def test_a_frozen_files_unknown_task_names_the_file(task, tmp_path, data3):
     """`tune evaluate --config frozen.yaml` takes the file's task: an unknown one said "unknown task 'foo'" with no
     word of the file it came from."""
@@ -639,6 +639,48 @@ def test_a_frozen_files_unknown_task_names_the_file(task, tmp_path, data3):
     f.write_text(_frozen_text(data3).replace("task: stereo", f"task: {task}", 1))
     r = tune("evaluate", "--config", f, "--data", data3, "--quiet", env={"IMTUNE_CACHE": str(tmp_path / "cache")})
     one_line_error(r, f"--config {f}: task: unknown task")
+
+
+FROZEN_SHAPES = {  # (text to replace, replacement, what the line says): a frozen file cut short or hand-edited
+    # `tune test` of the frozen file alone: "tune: internal error: AttributeError: 'str' object has no attribute 'get'"
+    "budget-text": ("budget: {seconds_per_pair: 0.5, test_seconds_per_pair: 1.0, gamma_max: 50000, "
+                    "gamma_max_test: 100000}", "budget: fast", "budget must be a mapping, got 'fast'"),
+    "data-list": ("data: {root: ", "data: [here]\nunused: {root: ", "data must be a mapping, got ['here']"),
+    "task-options-text": ("task_options: {min_covisibility: 0.1, max_pairs: null}", "task_options: all",
+                          "task_options must be a mapping, got 'all'"),
+    "task-list": ("task: stereo", "task: [stereo]", "task must be a task name, got ['stereo']"),
+    # "scene 'n' is named twice (f, o, u, n, t, a, i, n, ...)": a string read as a list of characters
+    "test-scenes-text": ("test_scenes: [fountain-P11]", "test_scenes: fountain-P11",
+                         "data.test_scenes must be a list of scene names, got 'fountain-P11'"),
+    # "holds the frozen settings of study None, not 'X' (copied from another study?)"
+    "no-study": ("study: X\n", "", "no study (cut short"),
+    # "configuration: num_features must be a number": no word of which file
+    "config-value": ("feature: {name: sift, num_features: 512}", "feature: {name: sift, num_features: many}",
+                     "num_features must be a number, got 'many'"),
+    # "not a frozen-settings file (no 'config')" of a file that is empty
+    "empty": (None, "", "is empty (cut short?)"),
+}
+
+
+@pytest.mark.parametrize("case", list(FROZEN_SHAPES))
+def test_a_frozen_file_of_the_wrong_shape_is_one_line_naming_it(case, tmp_path, data3):
+    old, new, needle = FROZEN_SHAPES[case]
+    text = _frozen_text(data3)
+    assert old is None or old in text
+    sdir = _frozen_study(tmp_path, new if old is None else text.replace(old, new, 1))
+    frozen = sdir / "X" / "frozen.yaml"
+    before = frozen.read_bytes()
+    r = tune("test", "--study", "X", "--studies-dir", sdir, "--storage", f"sqlite:///{tmp_path}/none.db", "--runs", "1",
+             "--max-pairs", "2", "--reference", "none", "--ci", "none", "--jobs", "1", "--quiet",
+             env={"IMTUNE_CACHE": str(tmp_path / "cache")})
+    one_line_error(r, str(frozen), needle)
+    assert not (sdir / "X" / "test.json").exists() and frozen.read_bytes() == before
+    if case in ("budget-text", "task-list", "test-scenes-text"):  # the same line from every reader of the study
+        for argv in (["evaluate", "--config", "X", "--data", data3], ["compare", "X", "X", "--data", data3],
+                     ["viz", "--study", "X", "--data", data3, "--out", tmp_path / "viz"]):
+            r = tune(*argv, "--studies-dir", sdir, "--quiet", env={"IMTUNE_CACHE": str(tmp_path / "cache")})
+            one_line_error(r, str(frozen), needle)
+
 
 # -- a configuration file's values of the wrong type (YAML config and IMC method JSON) ------------------------
 

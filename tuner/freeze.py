@@ -233,12 +233,34 @@ def _non_finite(node, where: str = ""):
     return None
 
 
+#: the sections of a frozen file its readers use and what each must be (absent or null is allowed but for
+#: ``study`` and ``config``): ``budget: x`` or ``data: [..]`` was an internal error in `tune test`, ``test_scenes:
+#: fountain-P11`` (no list) a scene per character
+FROZEN_SHAPE = (
+    (("study",), lambda v: isinstance(v, str) and v != "", "a study name", True),
+    (("config",), lambda v: isinstance(v, dict), "a mapping (feature / matching / geometry)", True),
+    (("task",), lambda v: isinstance(v, str), "a task name", False),
+    *((((k,), lambda v: isinstance(v, dict), "a mapping", False))
+      for k in ("task_options", "params", "fixed", "budget", "data", "validation", "selection")),
+    (("data", "root"), lambda v: isinstance(v, str), "a folder name", False),
+    *((("data", k), lambda v: isinstance(v, list) and all(isinstance(x, str) for x in v), "a list of scene names",
+       False) for k in ("val_scenes", "test_scenes")),
+)
+
+
 def frozen_problem(d: dict) -> str | None:
-    """What is wrong with the numbers of a frozen-settings dict, or None: the validation value finite, the budgets
-    finite seconds > 0, Gamma (gamma_max, max_iters) a positive integer, the measured seconds >= 0, no NaN or
-    infinity anywhere. A frozen file carrying ``value: .nan``, ``gamma_max: .inf`` or ``seconds_per_pair: -1`` was
-    tested as if it were sound."""
+    """What is wrong with a frozen-settings dict, or None: its sections of the right type (:data:`FROZEN_SHAPE`);
+    the validation value finite, the budgets finite seconds > 0, Gamma (gamma_max, max_iters) a positive integer,
+    the measured seconds >= 0, no NaN or infinity anywhere. A frozen file carrying ``value: .nan``,
+    ``gamma_max: .inf`` or ``seconds_per_pair: -1`` was tested as if it were sound."""
     from pipeline.config import yaml_number_hint
+    for path, ok, what, required in FROZEN_SHAPE:
+        found = _at(d, path)
+        if required and not found:
+            return f"no {'.'.join(path)} (cut short, or not a frozen-settings file?)"
+        for key, v in found:
+            if (v is not None or required) and not ok(v):
+                return f"{key} must be {what}, got {v!r}"
     for path, ok, what in FROZEN_NUMBERS:
         for key, v in _at(d, path):
             if v is not None and not ok(v):
@@ -273,13 +295,18 @@ def load_frozen(studies_dir: Path | str, name: str) -> dict:
         d = load_yaml(text, str(path))  # a hand-edited key given twice is one line, not the last one silently
     except yaml.YAMLError as e:
         raise ImtuneError(f"{path}: invalid YAML ({str(e).splitlines()[0]})") from None
+    if d is None:  # empty, or comments only
+        raise ImtuneError(f"{path} is empty (cut short?): write it again from the study's storage "
+                          f"(`tune test --study {name} --storage URL` freezes it anew)")
     if not isinstance(d, dict) or "config" not in d:
         raise ImtuneError(f"{path}: not a frozen-settings file (no 'config')")
+    check_frozen(d, path)  # its sections' types before its study name is read
     if d.get("study") != name:  # its test.json would go to that study's folder, and its numbers pass for it
         raise ImtuneError(f"{path} holds the frozen settings of study {d.get('study')!r}, not {name!r} (copied from "
                           f"another study?): test that study (`tune test --study {d.get('study')}`), or evaluate the "
                           f"file itself (`tune evaluate --config {path}`)")
-    return check_frozen(d, path)
+    pipeline_from_dict(d["config"], where=str(path))  # a wrong value names the file, not "configuration"
+    return d
 
 
 def test_scene_names(frozen: dict, data_root: Path, scenes=None) -> list[str]:
