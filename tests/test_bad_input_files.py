@@ -759,6 +759,21 @@ def test_plot_out_that_cannot_be_written_is_one_line_before_drawing(how, page, t
     assert (tmp_path / "afile").read_text() == "x" and not (tmp_path / "p.png").exists()
 
 
+@pytest.mark.parametrize("page,default", [(["--study", "plots-a"], "plots-a/report.html"),
+                                          (["--pareto", "plots-a"], "pareto.html")])
+def test_plot_default_page_that_is_a_folder_is_one_line_and_kept(page, default, tmp_path):
+    """A folder where the study's report.html (or pareto.html) goes said "cannot write ...: Is a directory" after
+    drawing the page, with no word of what to do."""
+    from tests.test_plots_labels import _study
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    _study(storage, "plots-a")
+    folder = tmp_path / "studies" / default
+    (folder / "inside").mkdir(parents=True)
+    r = tune("plot", *page, "--storage", storage, "--studies-dir", tmp_path / "studies")
+    one_line_error(r, f"{folder} is a folder where tune plot writes its page", "move it away, or give --out")
+    assert (folder / "inside").is_dir()
+
+
 @pytest.mark.parametrize("text,key", [("config:\n  feature: {num_features: 512}\ngeometry: {threshold: 2.0}\n", "geometry"),
                                       ("config:\n  feature: {num_features: 512}\nratio: 0.7\n", "ratio"),
                                       ("config:\n  feature: {num_features: 512}\nmax-iters: 10\n", "max-iters")])

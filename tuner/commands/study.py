@@ -523,14 +523,17 @@ def run_plot(args) -> int:
     storage = open_storage(args.storage, heartbeat=None, studies_dir=sdir, must_exist=True)
     out = Path(args.out) if args.out else (sdir / "pareto.html" if args.pareto else
                                            study_dir(sdir, args.study) / "report.html")
-    if args.out:  # before drawing: a folder or a file in the way was an internal error (FileExistsError)
-        from pipeline.fileio import check_writable_folder
-        if out.is_dir():
+    from pipeline.fileio import check_writable_folder
+    if out.is_dir():  # before drawing (a folder or a file in the way was an internal error, FileExistsError)
+        if args.out:
             raise ImtuneError(f"--out {out} is a folder: give the HTML file to write, e.g. {out / 'report.html'}")
+        raise ImtuneError(f"{out} is a folder where tune plot writes its page: move it away, or give --out FILE.html")
+    if args.out:
         if out.suffix.lower() not in (".html", ".htm"):  # p.png got an HTML page under a picture's name
             raise ImtuneError(f"--out {out}: tune plot writes an interactive HTML page (plotly); name it .html, "
                               f"e.g. {out.with_suffix('.html')} (a picture: the page's camera button saves a PNG)")
-        check_writable_folder(out.parent, "--out folder", "give --out a file in a folder you can write")
+    check_writable_folder(out.parent, "--out folder" if args.out else "studies folder" if args.pareto else
+                          "study folder", "give --out a file in a folder you can write")
     if args.pareto:
         from tuner.pareto import write_overlay
         print(str(write_overlay(storage, args.pareto, out)))
