@@ -229,8 +229,17 @@ class H5Cache:
         except _Invalid as why:
             self._drop(p, ident[0] if ident else None, stage, why)
             return None
-        except IsADirectoryError:
-            self._drop(p, None, stage, _Invalid("a folder, not a file"))
+        except IsADirectoryError:  # an empty folder holds nothing: removed; one with files is not ours to delete
+            try:
+                p.rmdir()
+            except FileNotFoundError:
+                pass
+            except OSError:
+                raise ImtuneError(f"cache entry {p} ({stage}) is a folder with files in it, not a file: move it "
+                                  "away (the entry is recomputed), or give another cache folder with --cache DIR or "
+                                  "the IMTUNE_CACHE environment variable") from None
+            self.stats["corrupt"] += 1
+            log.warning("warning: cache entry %s (%s) is not valid (a folder, not a file): recomputing it", p, stage)
             return None
         except OSError as e:
             if e.errno == errno.ENOTDIR:  # a file where a sub-folder of the cache should be

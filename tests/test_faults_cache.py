@@ -247,3 +247,34 @@ def test_read_only_cache_folder_is_one_line(clean, tmp_path):
     assert r.returncode == 2, r.stderr
     line = _one_line(r)
     assert str(folder) in line and "not writable" in line and "--cache" in line
+
+
+@pytest.mark.parametrize("stage", ["features", "knn"])
+def test_an_entry_that_is_a_folder(clean, tmp_path, stage):
+    """A folder where an entry's file goes (a copy gone wrong, a hand-made folder) was warned "recomputing it", then
+    the run failed with "cache folder ... cannot be written (...: Is a directory)", naming the whole cache. An empty
+    folder is now removed and the entry recomputed (the clean run's numbers); one holding files is never deleted:
+    one line naming the entry and what to do."""
+    cache = tmp_path / "cache"
+    shutil.copytree(clean["cache"], cache)
+    p = entries(cache, stage)[1]
+    p.unlink()
+    p.mkdir()
+    r = run(clean["data"], cache, tmp_path)
+    assert r.returncode == 0, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if str(p) in ln]
+    assert len(lines) == 1 and "a folder, not a file" in lines[0] and "recomputing" in lines[0], r.stderr
+    out = json.loads(r.stdout)
+    assert records(out) == records(clean["out"])
+    _assert_repaired(cache, clean["cache"], [p])
+
+    p.unlink()
+    (p / "keep").mkdir(parents=True)
+    (p / "keep" / "note.txt").write_text("mine")
+    r = run(clean["data"], cache, tmp_path)
+    assert r.returncode == 2, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith(f"tune: error: cache entry {p} ({stage}) is a folder with files"), \
+        r.stderr
+    assert "move it away" in lines[0]
+    assert (p / "keep" / "note.txt").read_text() == "mine"
