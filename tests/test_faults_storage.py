@@ -368,3 +368,43 @@ def test_read_only_commands_leave_a_foreign_file_alone(tmp_path, cache, content,
         line = one_line_error(tune(*cmd, "--storage", f"sqlite:///{f}", "--studies-dir", tmp_path / "s", cache=cache))
         assert needle in line, line
     assert f.read_bytes() == content and sorted(p.name for p in tmp_path.iterdir()) == ["other.db"]
+
+
+@pytest.fixture(scope="module")
+def tuned(tmp_path_factory, data3, cache):
+    """A real study with frozen settings, its storage and studies folder (to copy and damage)."""
+    tmp = tmp_path_factory.mktemp("tuned")
+    storage = f"sqlite:///{tmp}/optuna.db"
+    r = tune(*quick(data3, tmp / "studies", storage, "s"), "--n-trials", "2", cache=cache)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert (tmp / "studies" / "s" / "frozen.yaml").is_file()
+    return tmp
+
+
+@pytest.mark.parametrize("damage", ["cut-short", "not-sqlite", "zero-bytes", "absent"])
+def test_tune_test_says_when_the_storage_cannot_be_read(damage, tuned, tmp_path, data3, cache):
+    """`tune test` falls back on the study's frozen file when its storage cannot be opened; with an optuna.db cut
+    short or overwritten it did so without a word (the storage's damage, and that the result is not recorded in
+    it, went unsaid). Now one warning line names the storage and the frozen file, and the test runs; a storage
+    that is simply not there (a study folder copied alone) is no warning."""
+    shutil.copytree(tuned / "studies", tmp_path / "studies")
+    db = tmp_path / "optuna.db"
+    raw = (tuned / "optuna.db").read_bytes()
+    db.write_bytes({"cut-short": raw[: len(raw) // 3], "not-sqlite": b"not a database\n" * 100, "zero-bytes": b"",
+                    "absent": raw}[damage])
+    if damage == "absent":
+        db.unlink()
+    before = db.read_bytes() if db.exists() else None
+    r = tune("test", "--study", "s", "--studies-dir", tmp_path / "studies", "--storage", f"sqlite:///{db}",
+             "--data", data3, "--scenes", "fountain-P11", "--runs", "1", "--reference", "none", "--ci", "none",
+             "--jobs", "1", "--quiet", cache=cache)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert (tmp_path / "studies" / "s" / "test.json").is_file()
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip() and not ln.startswith("warning: test scene")]
+    if damage == "absent":
+        assert lines == [], r.stderr
+        assert not db.exists()
+        return
+    assert len(lines) == 1 and lines[0].startswith("warning: ") and str(db) in lines[0], r.stderr
+    assert f"testing the frozen settings {tmp_path / 'studies' / 's' / 'frozen.yaml'} alone" in lines[0]
+    assert db.read_bytes() == before  # the damaged storage is left as it was

@@ -329,6 +329,18 @@ def _sqlite_path(url: str) -> Path:
     return Path(make_url(url).database).expanduser()
 
 
+def storage_absent(url: str | None, studies_dir: Path | str | None = None) -> bool:
+    """True when ``url`` (default: the studies folder's SQLite file) is a SQLite or journal file that does not exist:
+    no storage at all, as against one that is there but cannot be read (damaged, not a database, a server down)."""
+    try:
+        kind, norm = classify(url or default_storage_url(studies_dir))
+    except ImtuneError:
+        return False
+    if kind == "rdb":
+        return False
+    return not os.path.lexists(_sqlite_path(norm) if kind == "sqlite" else Path(norm))
+
+
 def _prepare_sqlite(path: Path, must_exist: bool = False) -> None:
     """Create the folder; switch the file to WAL (persistent per file) so readers never block the writer.
 

@@ -416,6 +416,10 @@ def run_test_cmd(args) -> int:
     frozen_file = study_dir(sdir, args.study) / "frozen.yaml"
     if study is None and no_storage is not None and not frozen_file.is_file():
         raise ImtuneError(f"no study {args.study!r}: no frozen settings at {frozen_file}, and {no_storage}")
+    from tuner.storage import storage_absent
+    if no_storage is not None and not storage_absent(args.storage, sdir):  # there, but unreadable: said, not hidden
+        _warn(f"{no_storage} -- testing the frozen settings {frozen_file} alone (the result is not recorded in the "
+              "storage)")
     quiet = bool(args.quiet or args.json)
     root = resolve_data(args.data) if args.data else None
     kw = dict(scenes=_scenes(args.scenes), cache=H5Cache(args.cache), runs=args.runs, max_pairs=args.max_pairs,
