@@ -408,3 +408,28 @@ def test_tune_test_says_when_the_storage_cannot_be_read(damage, tuned, tmp_path,
     assert len(lines) == 1 and lines[0].startswith("warning: ") and str(db) in lines[0], r.stderr
     assert f"testing the frozen settings {tmp_path / 'studies' / 's' / 'frozen.yaml'} alone" in lines[0]
     assert db.read_bytes() == before  # the damaged storage is left as it was
+
+
+def _spoil_pages(raw: bytes) -> bytes:
+    b = bytearray(raw)
+    b[8192:12288] = bytes(x ^ 0x5A for x in b[8192:12288])  # pages 3 (4 KiB pages): a table's b-tree
+    return bytes(b)
+
+
+@pytest.mark.parametrize("damage", ["header-only", "cut-short", "pages-overwritten"])
+def test_a_damaged_sqlite_storage_says_so(damage, tuned, tmp_path, data3, cache):
+    """An optuna.db cut short or overwritten in the middle: `tune results` / `studies` said "the storage ... failed
+    (database disk image is malformed); completed trials are kept; rerun the same command to resume" (a rerun meets
+    the same bytes), or "cannot open ...: database disk image is malformed" with no word of what to do. Now one line
+    saying the file is damaged and what to do; the file is left as it was."""
+    raw = (tuned / "optuna.db").read_bytes()
+    bad = {"header-only": raw[:100], "cut-short": raw[: len(raw) // 3], "pages-overwritten": _spoil_pages(raw)}[damage]
+    db = tmp_path / "optuna.db"
+    db.write_bytes(bad)
+    storage = ["--storage", f"sqlite:///{db}", "--studies-dir", tmp_path / "studies"]
+    for cmd in (["results", *storage], ["studies", *storage], ["table", *storage],
+                [*quick(data3, tmp_path / "studies", f"sqlite:///{db}", "s"), "--n-trials", "3"]):  # resume
+        line = one_line_error(tune(*cmd, cache=cache))
+        assert str(db) in line and "malformed" in line, (cmd, line)
+        assert "restore it from a backup, or pass another --storage" in line and "rerun" not in line, (cmd, line)
+    assert db.read_bytes() == bad

@@ -378,8 +378,15 @@ def _prepare_sqlite(path: Path, must_exist: bool = False) -> None:
     # WAL is an optimisation: the busy timeout alone still prevents lock errors
 
 
+#: what to do about an SQLite file that is damaged (cut short, overwritten): rerunning on it cannot help
+SQLITE_DAMAGED = ("the file is damaged (cut short or overwritten?): restore it from a backup, or pass another --storage "
+                  "(a new file starts the studies anew)")
+
+
 def _sqlite_hint(msg: str) -> str:
     m = msg.lower()
+    if "malformed" in m:
+        return f"; {SQLITE_DAMAGED}"
     if "full" in m or "disk i/o" in m:
         return "; free disk space (or point --storage elsewhere) and rerun"
     if "not a database" in m:
@@ -688,6 +695,10 @@ def storage_fault(exc: BaseException, url: str | None = None, studies_dir: Path 
         return f"the storage {label} is read-only; fix its permissions (or pass another --storage); {keep}"
     if any(k in t for t in texts for k in _LOST):
         return f"lost the connection to the storage {label}; {keep}"
+    damaged = next((m for t in texts for m in ("database disk image is malformed", "file is not a database")
+                    if m in t), None)
+    if damaged and kind == "sqlite":  # "rerun the same command" would meet the same bytes
+        return f"the storage {label} cannot be read ({damaged}); {SQLITE_DAMAGED}"
     optuna_storage = any(type(e).__name__ == "StorageInternalError" for e in chain)
     updated_state = any(isinstance(e, UnboundLocalError) and "updated_state" in str(e) for e in chain)
     if updated_state and kind == "rdb":
