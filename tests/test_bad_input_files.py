@@ -166,6 +166,34 @@ def test_corrupt_journal_is_one_line(content, cmd, tmp_path, data3):
     assert j.read_bytes() == JOURNALS[content]  # left as it was
 
 
+def test_a_journal_cut_short_is_refused_before_it_is_broken(tmp_path, data3):
+    """A journal whose last record was cut short (a crash or a full disk mid-write): Optuna skips that record but
+    appends the next one right after its bytes, so `tune run` (resume) died with "tune: internal error:
+    AttributeError: ... '_last_created_trial_id_by_this_process'" and left one invalid line in the middle of the
+    journal (every later reading fails). Now one line naming the file and the exact truncate that drops the partial
+    record; the file is left as it was, and after that truncate the study resumes with its trials."""
+    import re
+    j = tmp_path / "optuna.log"
+    run = ["run", "--storage", f"journal:{j}", "--studies-dir", tmp_path / "studies", "--data", data3, "--study", "s",
+           "--num-features", "512", "--calibration-pairs", "2", "--no-test", "--quiet", "--jobs", "1"]
+    env = {"IMTUNE_CACHE": str(tmp_path / "cache")}
+    r = tune(*run, "--n-trials", "2", env=env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    raw = j.read_bytes()
+    last = raw.rstrip(b"\n").rfind(b"\n") + 1  # the start of the last record
+    cut = raw[: last + (len(raw) - last) // 2]
+    j.write_bytes(cut)
+    for argv in (run + ["--n-trials", "3"], ["studies", "--storage", f"journal:{j}"]):
+        line = one_line_error(tune(*argv, env=env), f"journal storage {j} ends in a record cut short")
+        assert j.read_bytes() == cut
+    keep = int(re.search(r"`truncate -s (\d+) ", line).group(1))
+    assert keep == last and f"`truncate -s {last} {j}`" in line
+    os.truncate(j, keep)
+    r = tune(*run, "--n-trials", "3", env=env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "trials: 3 complete" in r.stdout, r.stdout
+
+
 def test_a_real_journal_still_opens(tmp_path):
     import optuna
     from optuna.storages import JournalStorage

@@ -567,7 +567,7 @@ def _check_journal_path(p: Path) -> None:
         except UnicodeDecodeError as e:
             rec = e
     elif not first.endswith(b"\n"):
-        return  # the first record, still being written by another worker
+        return _check_journal_tail(p)  # the first record, still being written by another worker, or cut short
     else:
         try:
             rec = json.loads(first)
@@ -578,6 +578,36 @@ def _check_journal_path(p: Path) -> None:
         why = _journal_fault(rec) if isinstance(rec, Exception) else "its first line is no Optuna log record"
         raise ImtuneError(f"journal storage {p} is not an Optuna journal file, or is corrupt ({why}); pass the "
                           "journal:PATH the studies were run with, or a new file name")
+    _check_journal_tail(p)
+
+
+def _check_journal_tail(p: Path) -> None:
+    """A journal's last record ends with its line end. Cut short (a crash or a full disk mid-write), Optuna skips it
+    on reading but appends the next record right after its bytes: the two make one invalid line, the new trial is
+    lost (`tune run` died with "AttributeError: ... '_last_created_trial_id_by_this_process'") and every later
+    reading of the journal fails. A record another worker is writing ends within moments: looked at again first."""
+    for attempt in range(6):
+        try:
+            with open(p, "rb") as f:
+                size = f.seek(0, os.SEEK_END)
+                f.seek(max(0, size - 1))
+                if size == 0 or f.read(1) == b"\n":
+                    return
+                keep, pos = 0, size
+                while pos > 0:  # the end of the last complete record
+                    step = min(1 << 16, pos)
+                    pos -= step
+                    f.seek(pos)
+                    i = f.read(step).rfind(b"\n")
+                    if i >= 0:
+                        keep = pos + i + 1
+                        break
+        except OSError as e:
+            raise ImtuneError(f"cannot open journal storage {p}: {e.strerror or e}") from None
+        time.sleep(0.1 * (attempt + 1))
+    raise ImtuneError(f"journal storage {p} ends in a record cut short ({size - keep} bytes without a line end: a "
+                      "crash or a full disk mid-write?) that the next record would be glued to, breaking the journal: "
+                      f"drop it with `truncate -s {keep} {p}` (the complete records before it are kept), then rerun")
 
 
 def _journal_fault(e: BaseException) -> str:
