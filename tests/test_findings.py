@@ -429,6 +429,31 @@ def test_user_errors_fail_before_any_study(subset, tmp_path, capsys, what, args,
     assert not (tmp_path / "s" / "findings").exists()
 
 
+@pytest.mark.parametrize("what", ["findings is a file", "findings.json is a folder", "report.html is a folder"])
+def test_a_findings_output_in_the_way_fails_before_any_study(subset, tmp_path, capsys, what):
+    """A file where the findings folder goes was found when the report was written, after every study had run:
+    "tune: internal error: FileExistsError"; an output that is a folder was "cannot write ...: Is a directory" then,
+    report.md already replaced. Now one line naming it before any study; nothing in the way is touched."""
+    sdir = tmp_path / "s"
+    sdir.mkdir()
+    if what == "findings is a file":
+        culprit = sdir / "findings"
+        culprit.write_text("mine")
+        said = [f"findings folder {culprit} is not a folder (a file is in the way", "--studies-dir"]
+    else:
+        culprit = sdir / "findings" / what.split()[0]
+        (culprit / "inside").mkdir(parents=True)
+        said = [f"{culprit} is a folder where tune findings writes its {culprit.name}: move it away"]
+    rc, out, err = _cli(["findings", "--data", str(subset), "--studies-dir", str(sdir), "--quick", "--only", "1",
+                         "--trials", "2", "--max-pairs", "3", "--test-runs", "1", "--jobs", "1"], capsys)
+    assert rc == 2 and out == "" and err.count("\n") == 1 and err.startswith("tune: error: "), err
+    for s in said:
+        assert s in err, (s, err)
+    assert not (sdir / "optuna.db").exists()  # no study started
+    assert culprit.read_text() == "mine" if culprit.is_file() else (culprit / "inside").is_dir()
+    assert not (sdir / "findings" / "report.md").exists() if (sdir / "findings").is_dir() else True
+
+
 @pytest.mark.parametrize("what", ["invalid splits.yaml", "no data set in the folder"])
 def test_unreadable_data_folder_fails_before_any_study(subset, tmp_path, capsys, what):
     """An invalid splits.yaml, or a --data folder that holds no data set, is the user's error: one line naming the

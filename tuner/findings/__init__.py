@@ -173,6 +173,9 @@ def run_findings(fs: FindingsSettings, write: bool = True) -> dict:
         raise ImtuneError(f"seed must be an integer >= 0, got {fs.seed!r}")
     from pipeline.config import check_seed
     check_seed("seed", fs.seed)  # <= SEED_MAX: a larger one repeats a smaller one's runs
+    if write:
+        from tuner.findings.report import check_outputs
+        check_outputs(fs.studies_dir)
     no_data = check_scenes(fs)
     if no_data is None:
         preflight(fs)

@@ -275,6 +275,24 @@ def _compute_line(c: dict) -> str:
     return line
 
 
+#: what `tune findings` writes under ``<studies dir>/findings``
+OUTPUTS = ("report.html", "report.md", "findings.json")
+
+
+def check_outputs(studies_dir) -> None:
+    """Before any study: the findings folder can be created and written, and none of :data:`OUTPUTS` is a folder
+    (found only when the report was written, after every study: a file in the folder's place was an internal
+    error, FileExistsError). One-line ImtuneError naming the culprit."""
+    from pipeline.errors import ImtuneError
+    from pipeline.fileio import check_writable_folder
+    root = Path(studies_dir) / "findings"
+    check_writable_folder(root, "findings folder", "move what is in the way, or choose another --studies-dir")
+    for name in OUTPUTS:
+        if (root / name).is_dir():
+            raise ImtuneError(f"{root / name} is a folder where tune findings writes its {name}: move it away, or "
+                              "choose another --studies-dir")
+
+
 def write_report(out: dict, fs, seconds: float = 0.0) -> Path:
     """Write report.md, report.html and findings.json under ``<studies dir>/findings``; returns report.html."""
     from tuner.freeze import atomic_write
