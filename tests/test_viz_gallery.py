@@ -197,3 +197,60 @@ def test_viz_bad_input_is_one_line(strecha, shared_cache, tmp_path, capsys):
         rc = main(["viz", *args])
         err = capsys.readouterr().err.strip()
         assert rc == 2 and words in err and "\n" not in err, (args, err)
+
+
+def _tune(*args):
+    """`python -m tuner ARGS` in a real process (pipeline warnings go to stderr through logging's last resort)."""
+    import os
+    import subprocess
+    import sys
+
+    from tests.conftest import ROOT
+    env = {k: v for k, v in os.environ.items() if k != "IMTUNE_DEBUG"}
+    return subprocess.run([sys.executable, "-m", "tuner", *map(str, args)], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=300, stdin=subprocess.DEVNULL)
+
+
+@pytest.fixture(scope="module")
+def data3(tmp_path_factory):
+    from tests.conftest import copy_strecha_subset
+    return copy_strecha_subset(tmp_path_factory.mktemp("viz-data3"), ["0003.jpg", "0004.jpg", "0005.jpg"])
+
+
+@pytest.mark.parametrize("damage", ["cut-short", "a-json-list"])
+def test_a_damaged_gallery_manifest_is_kept_aside_and_said(damage, data3, shared_cache, tmp_path):
+    """A gallery.json cut short (or hand-edited into a list): the next `tune viz` silently rewrote the gallery with
+    its own figures only, every earlier entry gone and the damaged manifest overwritten. Now one warning line naming
+    it, the damaged file kept beside as gallery.json.damaged, and the run goes on."""
+    out = tmp_path / "viz"
+    argv = ["viz", *BASE, "--data", data3, "--scenes", "fountain-P11", "--cache", shared_cache, "--out", out]
+    r = _tune(*argv, "--pairs", "0003.jpg|0004.jpg")
+    assert r.returncode == 0, r.stderr[-2000:]
+    manifest = out / "gallery.json"
+    assert len(read_manifest(out / "gallery.html")) == 1
+    bad = manifest.read_bytes()[:200] if damage == "cut-short" else b"[1, 2]\n"
+    manifest.write_bytes(bad)
+    r = _tune(*argv, "--pairs", "0004.jpg|0005.jpg")
+    assert r.returncode == 0, r.stderr[-2000:]
+    err = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(err) == 1 and err[0].startswith(f"warning: gallery manifest {manifest} cannot be read"), err
+    assert f"kept as {manifest}.damaged" in err[0]
+    assert (out / "gallery.json.damaged").read_bytes() == bad
+    (entry,) = read_manifest(out / "gallery.html")  # the gallery restarts from this run's figure
+    assert "fountain-P11_0004_0005_" in entry.png
+
+
+def test_a_gallery_manifest_that_is_a_folder_is_one_line_before_drawing(data3, shared_cache, tmp_path, capsys):
+    """A folder named gallery.json (or gallery.html, the gallery in the figures folder) was found after every figure
+    was drawn: "cannot write .../gallery.json: Is a directory"."""
+    out = tmp_path / "viz"
+    for name in ("gallery.json", "gallery.html"):
+        (out / name / "inside").mkdir(parents=True)
+        capsys.readouterr()
+        rc = main(["viz", *BASE, "--data", str(data3), "--scenes", "fountain-P11", "--cache", shared_cache,
+                   "--out", str(out)])
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and "\n" not in err and f"{out / name} is a folder" in err, err
+        assert (out / name / "inside").is_dir() and not list(out.glob("*.png"))
+        (out / name / "inside").rmdir()
+        (out / name).rmdir()

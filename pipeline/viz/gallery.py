@@ -53,15 +53,25 @@ def _now() -> str:
 
 def read_manifest(html_path: str | Path) -> list[GalleryEntry]:
     """Entries of the gallery at ``html_path`` (empty when there is none; an unreadable manifest is ignored)."""
-    p = Path(html_path).with_name(MANIFEST)
-    if not p.is_file():
-        return []
+    return _manifest(Path(html_path).with_name(MANIFEST))[0]
+
+
+def _manifest(p: Path) -> tuple[list[GalleryEntry], str | None]:
+    """(entries, None) of the manifest ``p`` (none when absent); ([], why) when it is there but cannot be read."""
+    if not p.exists():
+        return [], None
     try:
         raw = json.loads(p.read_text())
         names = set(GalleryEntry.__dataclass_fields__)
-        return [GalleryEntry(**{k: v for k, v in e.items() if k in names}) for e in raw.get("entries", [])]
-    except (OSError, ValueError, TypeError, AttributeError):
-        return []
+        return [GalleryEntry(**{k: v for k, v in e.items() if k in names}) for e in raw.get("entries", [])], None
+    except UnicodeDecodeError:
+        return [], "not UTF-8 text"
+    except ValueError as e:
+        return [], f"not valid JSON: {str(e).splitlines()[0][:80]}"
+    except OSError as e:
+        return [], e.strerror or str(e)
+    except (TypeError, AttributeError):
+        return [], "not a gallery manifest (an object with a list of entries)"
 
 
 def write_gallery(html_path: str | Path, entries: list[GalleryEntry], title: str = "imtune gallery",
@@ -71,7 +81,19 @@ def write_gallery(html_path: str | Path, entries: list[GalleryEntry], title: str
     links: {label: href} shown at the top (e.g. the study's report). Returns the HTML path."""
     html_path = Path(html_path)
     root = html_path.parent
-    old = read_manifest(html_path)
+    old, why = _manifest(root / MANIFEST)
+    if why:  # cut short, hand-edited: kept aside, never silently replaced by this run's entries alone
+        import logging
+        import os
+        aside = root / f"{MANIFEST}.damaged"
+        try:
+            os.replace(root / MANIFEST, aside)
+            kept_as = f"kept as {aside}"
+        except OSError as e:
+            kept_as = f"left in place ({e.strerror or e})"
+        logging.getLogger(__name__).warning(
+            "warning: gallery manifest %s cannot be read (%s): %s; the gallery restarts from this run's figures "
+            "(earlier PNGs stay in their folder)", root / MANIFEST, why, kept_as)
     new_pngs = {e.png for e in entries}
     kept = []
     for e in old:

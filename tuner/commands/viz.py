@@ -138,8 +138,12 @@ def _check_outputs(args: argparse.Namespace, out_dir: Path, gallery: Path | None
     if gallery is not None and gallery.parent != out_dir:
         check_writable_folder(gallery.parent, "gallery folder",
                               "give --gallery a file in a writable folder, or --no-gallery")
-        if gallery.is_dir():
-            raise ImtuneError(f"--gallery {gallery} is a folder; give the path of an HTML file")
+    if gallery is not None and gallery.is_dir():
+        raise ImtuneError(f"--gallery {gallery} is a folder; give the path of an HTML file")
+    from pipeline.viz.gallery import MANIFEST
+    if gallery is not None and gallery.with_name(MANIFEST).is_dir():  # found after every figure was drawn
+        raise ImtuneError(f"{gallery.with_name(MANIFEST)} is a folder where the gallery keeps its list of figures: "
+                          "move it away, or give --gallery another file, or --no-gallery")
 
 
 def viz(args: argparse.Namespace) -> dict:
