@@ -67,3 +67,41 @@ def test_a_test_never_switches_silently_to_other_data(tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc == 2 and err.count("\n") == 1 and str(gone) in err and "--data" in err, err
     assert not (study_dir(sdir, "s1") / "test.json").exists()
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    from tests.conftest import copy_strecha_subset
+    return copy_strecha_subset(tmp_path_factory.mktemp("study-folders-data"), ["0003.jpg", "0004.jpg", "0005.jpg"])
+
+
+@pytest.mark.parametrize("cmd", ["run", "test"])
+@pytest.mark.parametrize("what", ["the study folder is a file", "frozen.yaml is a folder", "test.json is a folder"])
+def test_a_study_file_in_the_way_is_one_line_before_any_work(what, cmd, tiny, tmp_path, capsys):
+    """`tune run` ran every trial (and `tune test` the whole test) before finding that its study folder was a file
+    ("cannot write .../frozen.yaml: File exists") or its frozen.yaml / test.json a folder ("... Is a directory").
+    Now one line naming the culprit before any trial or test run; what is in the way is left alone."""
+    from tuner.cli import main
+    sdir = tmp_path / "studies"
+    d = sdir / "s"
+    if what == "the study folder is a file":
+        sdir.mkdir()
+        d.write_text("mine")
+        needle = f"study folder {d} is not a folder (a file is in the way"
+    else:
+        _frozen(d, "s", tiny)
+        name = what.split()[0]
+        if name == "frozen.yaml":
+            (d / name).unlink()
+        (d / name / "inside").mkdir(parents=True)
+        needle = f"{d / name} is a folder where study 's' writes its {name}: move it away"
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    argv = (["run", "--data", str(tiny), "--num-features", "512", "--n-trials", "2", "--calibration-pairs", "2",
+             "--no-test"] if cmd == "run" else ["test", "--data", str(tiny), "--scenes", "fountain-P11", "--runs", "1"])
+    capsys.readouterr()
+    rc = main(argv + ["--study", "s", "--studies-dir", str(sdir), "--storage", storage, "--cache",
+                      str(tmp_path / "cache"), "--jobs", "1", "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "\n" not in err and err.startswith("tune: error: ") and needle in err, err
+    assert not (tmp_path / "optuna.db").exists() and not (tmp_path / "cache").exists()  # no trial, no test run
+    assert d.read_text() == "mine" if d.is_file() else (d / what.split()[0] / "inside").is_dir()

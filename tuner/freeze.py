@@ -285,6 +285,26 @@ def check_frozen(d: dict, where) -> dict:
     return d
 
 
+#: what a study writes in its folder and reads back
+STUDY_FILES = ("frozen.yaml", "test.json")
+
+
+def check_study_outputs(studies_dir: Path | str, name: str) -> Path:
+    """Before any trial or test run: the study's folder can be created and written, and none of
+    :data:`STUDY_FILES` is a folder (found only once every trial or the whole test had run: "cannot write
+    .../frozen.yaml: File exists", "... test.json: Is a directory"). One-line ImtuneError naming the culprit;
+    nothing is created. Returns the folder."""
+    from pipeline.fileio import check_writable_folder
+    d = study_dir(studies_dir, name)
+    check_writable_folder(d, "study folder", "move what is in the way (the study's frozen.yaml and test.json go "
+                                             "there), or give another --studies-dir")
+    for f in STUDY_FILES:
+        if (d / f).is_dir():
+            raise ImtuneError(f"{d / f} is a folder where study {name!r} writes its {f}: move it away, or give "
+                              "another --studies-dir")
+    return d
+
+
 def load_frozen(studies_dir: Path | str, name: str) -> dict:
     path = study_dir(studies_dir, name) / "frozen.yaml"
     if not path.is_file():

@@ -520,6 +520,8 @@ def setup_study(s: TuneSettings) -> StudyContext:
     check_studies_dir(s.studies_dir)  # budgets.json, frozen.yaml, reports: read-only or a file in the way -> now
     space = load_study_space(s, task)
     name = s.study_name or default_study_name(s.base, task.name) + (PARETO_SUFFIX if pareto else "")
+    from tuner.freeze import check_study_outputs
+    check_study_outputs(s.studies_dir, name)  # frozen.yaml, test.json: a file or folder in the way -> now
     storage = open_storage(s.storage, heartbeat=s.heartbeat, studies_dir=s.studies_dir)
     check_warm_start_sources(storage, name, s.warm_start)  # before the study is created: a typo leaves no empty study
     cache = H5Cache(s.cache_dir)

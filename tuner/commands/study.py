@@ -404,6 +404,8 @@ def run_test_cmd(args) -> int:
     from tuner.study import _quiet_optuna
     _quiet_optuna()
     sdir = _studies_dir(args)
+    from tuner.freeze import check_study_outputs
+    check_study_outputs(sdir, args.study)  # test.json (and frozen.yaml) go there: a file or folder in the way -> now
     study, no_storage = None, None
     try:  # a test never creates a storage: without one, the study's frozen file alone is enough
         storage = open_storage(args.storage, heartbeat=None, studies_dir=sdir, must_exist=True)
@@ -537,7 +539,8 @@ def run_plot(args) -> int:
             raise ImtuneError(f"--out {out}: tune plot writes an interactive HTML page (plotly); name it .html, "
                               f"e.g. {out.with_suffix('.html')} (a picture: the page's camera button saves a PNG)")
     check_writable_folder(out.parent, "--out folder" if args.out else "studies folder" if args.pareto else
-                          "study folder", "give --out a file in a folder you can write")
+                          "study folder", "give --out a file in a folder you can write" if args.out else
+                          "move what is in the way, or give --out FILE.html")
     if args.pareto:
         from tuner.pareto import write_overlay
         print(str(write_overlay(storage, args.pareto, out)))
