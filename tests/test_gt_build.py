@@ -153,3 +153,24 @@ def test_checking_a_camera_model_keeps_sigterm_for_tune():
     r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert r.returncode == 143 and r.stdout.strip() == "tune handler", (r.returncode, r.stdout, r.stderr[-800:])
     assert "Aborted at" not in r.stderr
+
+
+def test_a_folder_where_the_ground_truth_goes_is_one_line(tmp_path, capsys):
+    """A folder in the place of a scene's gt.h5 read as "no ground truth built": `tune evaluate` went on without the
+    scene's co-visibility (other pairs, other numbers) without a word, and `tune data build-gt` built it (SfM: hours)
+    only to fail writing it ("cannot write ...: Is a directory"). Now one line naming it from both, before work."""
+    from tests.conftest import copy_strecha_subset
+    from tuner.cli import main
+    data = copy_strecha_subset(tmp_path / "data", ["0003.jpg", "0004.jpg", "0005.jpg"])
+    gt_dir = tmp_path / "gt"
+    where = gt_path(load_scene(data, "fountain-P11"), gt_dir)
+    (where / "inside").mkdir(parents=True)
+    for argv in (["evaluate", "--data", str(data), "--num-features", "512", "--jobs", "1", "--gt-dir", str(gt_dir),
+                  "--cache", str(tmp_path / "cache"), "--quiet"],
+                 ["data", "build-gt", "--data", str(data), "--gt-dir", str(gt_dir), "--quiet"]):
+        capsys.readouterr()
+        rc = main(argv)
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and "\n" not in err, (argv[0], err)
+        assert err.startswith(f"tune: error: ground truth {where} is a folder") and "move it away" in err, err
+        assert (where / "inside").is_dir() and sorted(p.name for p in where.parent.iterdir()) == ["gt.h5"]
