@@ -710,6 +710,20 @@ def test_a_frozen_file_of_the_wrong_shape_is_one_line_naming_it(case, tmp_path, 
             one_line_error(r, str(frozen), needle)
 
 
+@pytest.mark.parametrize("cmd", ["evaluate", "compare", "viz"])
+def test_a_frozen_file_that_is_a_folder_is_named_as_one(cmd, tmp_path, data3):
+    """A folder named frozen.yaml in a study's folder: "'X' is neither a config file nor a study with frozen
+    settings (.../frozen.yaml does not exist)" -- it does exist, as a folder."""
+    sdir = tmp_path / "studies"
+    frozen = sdir / "X" / "frozen.yaml"
+    (frozen / "inside").mkdir(parents=True)
+    argv = {"evaluate": ["evaluate", "--config", "X"], "compare": ["compare", "X", "X"],
+            "viz": ["viz", "--study", "X", "--out", tmp_path / "viz"]}[cmd]
+    r = tune(*argv, "--data", data3, "--studies-dir", sdir, "--quiet", env={"IMTUNE_CACHE": str(tmp_path / "cache")})
+    one_line_error(r, f"{frozen} is a folder")
+    assert (frozen / "inside").is_dir()
+
+
 # -- a configuration file's values of the wrong type (YAML config and IMC method JSON) ------------------------
 
 _IMC_STEREO = '"config_phototourism_stereo": {"geom": {"method": "cmp-degensac-f", "threshold": 0.5}%s}'

@@ -307,7 +307,7 @@ def check_study_outputs(studies_dir: Path | str, name: str) -> Path:
 
 def load_frozen(studies_dir: Path | str, name: str) -> dict:
     path = study_dir(studies_dir, name) / "frozen.yaml"
-    if not path.is_file():
+    if not path.exists():  # a folder or a device there: read_text names it
         raise ImtuneError(f"no frozen settings for study {name!r} ({path} does not exist; run `tune` first)")
     from pipeline.fileio import load_yaml, read_text
     text = read_text(path, "frozen settings file")

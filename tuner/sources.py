@@ -74,7 +74,7 @@ def resolve_source(spec: str, sdir: Path) -> Source:
             return load_config_source(p)
         raise ImtuneError(f"config file {p} does not exist")
     from tuner.freeze import study_dir
-    if not (study_dir(sdir, spec) / "frozen.yaml").is_file():
+    if not (study_dir(sdir, spec) / "frozen.yaml").exists():  # a folder there: load_frozen says so
         raise ImtuneError(f"{spec!r} is neither a config file nor a study with frozen settings "
                           f"({study_dir(sdir, spec) / 'frozen.yaml'} does not exist)")
     return load_study_source(spec, sdir)
