@@ -133,6 +133,12 @@ class H5Cache:
         """One line for a cache folder that cannot be written (:func:`pipeline.fileio.folder_error`); an errno it
         does not tell apart names the entry that failed."""
         code = errno.ENOTDIR if self.root.is_file() else err.errno
+        if code in (errno.ENOTDIR, errno.EEXIST) and not self.root.is_file():  # a file inside the cache, not the cache
+            blocker = next((q for q in entry.parents if q != self.root and self.root in q.parents
+                            and q.exists() and not q.is_dir()), None)
+            if blocker is not None:
+                return ImtuneError(f"cache folder {self.root}: {blocker} is a file where a folder of the cache should "
+                                   f"be: move it away (the entries it held are recomputed), or {CACHE_FIX}")
         reason = getattr(err, "reason", None) or err.strerror or str(err)
         if code not in FOLDER_ERRNOS:
             reason = f"{entry}: {reason}"

@@ -278,3 +278,21 @@ def test_an_entry_that_is_a_folder(clean, tmp_path, stage):
         r.stderr
     assert "move it away" in lines[0]
     assert (p / "keep" / "note.txt").read_text() == "mine"
+
+
+@pytest.mark.parametrize("where", ["stage", "shard"])
+def test_a_file_inside_the_cache_in_a_folders_place_is_named(clean, tmp_path, where):
+    """A file where one of the cache's own folders goes (``knn`` or ``knn/d9``) said "cache folder CACHE is not a
+    folder (a file is in the way: Not a directory)" of a cache that is a folder: the file in the way went unnamed.
+    Now the line names it and what to do; it is left alone."""
+    cache = tmp_path / "cache"
+    shutil.copytree(clean["cache"], cache)
+    blocker = cache / "knn" if where == "stage" else entries(cache, "knn")[0].parent
+    shutil.rmtree(blocker)
+    blocker.write_text("mine")
+    r = run(clean["data"], cache, tmp_path)
+    assert r.returncode == 2, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith(f"tune: error: cache folder {cache}: {blocker} is a file where a "
+                                                   "folder of the cache should be: move it away"), r.stderr
+    assert blocker.read_text() == "mine"
