@@ -286,6 +286,41 @@ def test_results_says_when_studies_were_tested_on_different_test_sets(two_studie
         "Herz-Jesus-P8 ("), row
 
 
+def _edit_test_json(edit):
+    def damage(p: Path) -> None:
+        d = json.loads(p.read_text())
+        edit(d)
+        p.write_text(json.dumps(d))
+    return damage
+
+
+@pytest.mark.parametrize("damage, why", [
+    (_edit_test_json(lambda d: d["mean"].__setitem__("mAA10", "high")), "mean.mAA10 is not a number: 'high'"),
+    (_edit_test_json(lambda d: d.__setitem__("mean", [1])), "mean is not an object"),
+    (_edit_test_json(lambda d: d["mean"].__setitem__("scenes", "entry-P10")), "mean.scenes is not an object"),
+    (_edit_test_json(lambda d: d["data"].__setitem__("scenes", "entry-P10")), "data.scenes is not a list"),
+], ids=["mean-value-text", "mean-list", "scenes-text", "data-scenes-text"])
+def test_a_test_json_with_figures_of_the_wrong_type_is_said(damage, why, two_studies, tuner_cache, tmp_path):
+    """A hand-edited test.json whose figures are of the wrong type ("mAA10": "high", "mean": [1], ...) passed the
+    reader's check and was "tune: internal error: ValueError / AttributeError" in tune results, tune plot and
+    tune test --reuse. Now it is a damaged test.json like any other: named in a warning, rerun by --reuse."""
+    d = tmp_path / "st"
+    shutil.copytree(two_studies["dir"], d)
+    name = two_studies["name"]
+    p = d / name / "test.json"
+    damage(p)
+    r = tune("results", "--studies-dir", str(d), "--format", "json", cache=tuner_cache)
+    assert r.returncode == 0 and "internal error" not in r.stderr, r.stderr
+    warn = [ln for ln in r.stderr.splitlines() if ln.startswith("warning: ") and "different test sets" not in ln]
+    assert len(warn) == 1 and f"{p} cannot be read ({why}" in warn[0], r.stderr
+    rep = tune("plot", "--study", name, "--studies-dir", str(d), cache=tuner_cache)
+    assert rep.returncode == 0, rep.stderr
+    t = tune("test", "--study", name, "--studies-dir", str(d), "--reuse", "--runs", "1", "--quiet", cache=tuner_cache)
+    assert t.returncode == 0 and "internal error" not in t.stderr, t.stderr
+    from tuner.freeze import load_test_file
+    assert load_test_file(p)[1] is None  # rerun and rewritten whole
+
+
 def test_plot_html_report(two_studies, tuner_cache):
     d = two_studies["dir"]
     r = tune("plot", "--study", two_studies["name"], "--studies-dir", str(d), cache=tuner_cache, check=True)

@@ -66,7 +66,37 @@ def load_test_file(path: Path | str | None) -> tuple[dict | None, str | None]:
     if not isinstance(d, dict) or not isinstance(d.get("runs", []), list) \
             or not all(isinstance(r, dict) for r in d.get("runs", [])):
         return None, "not a test result (a JSON object with a list of runs)"
-    return d, None
+    why = _test_figures_problem(d)
+    return (None, why) if why else (d, None)
+
+
+def _figure(v) -> bool:
+    """A figure as test.json holds it: a number, null (NaN), "inf" / "-inf" (_plain), or a list of such."""
+    if isinstance(v, list):
+        return all(_figure(x) for x in v)
+    return v is None or v in ("inf", "-inf") or isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _test_figures_problem(d: dict) -> str | None:
+    """What is wrong with the figures of a test result, or None: ``mean`` / ``std`` (and each scene of ``mean``) map
+    names to figures, ``data`` and ``budget`` are objects, ``data.scenes`` a list of names. A hand-edited
+    ``"mAA10": "high"`` or ``"mean": [1]`` was an internal error in tune results, tune plot and tune test --reuse."""
+    for key in ("data", "budget", "mean", "std"):
+        if d.get(key) is not None and not isinstance(d[key], dict):
+            return f"{key} is not an object"
+    scenes = (d.get("data") or {}).get("scenes")
+    if scenes is not None and not (isinstance(scenes, list) and all(isinstance(x, str) for x in scenes)):
+        return "data.scenes is not a list of scene names"
+    parts = [("mean", d.get("mean") or {}), ("std", d.get("std") or {})]
+    per = parts[0][1].get("scenes")
+    if per is not None and not (isinstance(per, dict) and all(isinstance(v, dict) for v in per.values())):
+        return "mean.scenes is not an object of scenes"
+    parts += [(f"mean.scenes.{k}", v) for k, v in (per or {}).items()]
+    for where, figures in parts:
+        for k, v in figures.items():
+            if not (where == "mean" and k == "scenes") and not _figure(v):
+                return f"{where}.{k} is not a number: {v!r}"[:160]
+    return None
 
 
 def _previous_result(out_path: Path | None, ident: dict) -> dict | None:
