@@ -682,6 +682,11 @@ FROZEN_SHAPES = {  # (text to replace, replacement, what the line says): a froze
                          "data.test_scenes must be a list of scene names, got 'fountain-P11'"),
     # "holds the frozen settings of study None, not 'X' (copied from another study?)"
     "no-study": ("study: X\n", "", "no study (cut short"),
+    # `tune test` without --max-pairs silently tested every pair (73 for fountain) instead of failing
+    "max-pairs-text": ("max_pairs: null}", "max_pairs: x}", "task_options.max_pairs must be a positive integer"),
+    # "co-visibility must be a number, got 'lots'": no word of which file
+    "covisibility-text": ("{min_covisibility: 0.1,", "{min_covisibility: lots,",
+                          "task_options.min_covisibility must be a number in [0, 1], got 'lots'"),
     # "configuration: num_features must be a number": no word of which file
     "config-value": ("feature: {name: sift, num_features: 512}", "feature: {name: sift, num_features: many}",
                      "num_features must be a number, got 'many'"),

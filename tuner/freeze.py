@@ -273,6 +273,9 @@ FROZEN_SHAPE = (
     *((((k,), lambda v: isinstance(v, dict), "a mapping", False))
       for k in ("task_options", "params", "fixed", "budget", "data", "validation", "selection")),
     (("data", "root"), lambda v: isinstance(v, str), "a folder name", False),
+    *(((k, "min_covisibility"), lambda v: _finite(v) and 0 <= v <= 1, "a number in [0, 1]", False)
+      for k in ("data", "task_options")),
+    (("task_options", "max_pairs"), _positive_int, "a positive integer", False),
     *((("data", k), lambda v: isinstance(v, list) and all(isinstance(x, str) for x in v), "a list of scene names",
        False) for k in ("val_scenes", "test_scenes")),
 )
