@@ -321,6 +321,30 @@ def test_a_test_json_with_figures_of_the_wrong_type_is_said(damage, why, two_stu
     assert load_test_file(p)[1] is None  # rerun and rewritten whole
 
 
+def test_a_test_json_of_another_study_is_never_taken_for_this_ones(two_studies, tuner_cache, tmp_path):
+    """A study folder's test.json copied from another study (a folder copied under a new name): `tune results` took
+    its pair errors for this study's interval and paired ties (this study's mAA10 with the other's interval) and
+    `tune plot` drew the other study's test as this one's, without a word. Now it is named in a warning (report: a
+    red line) and the study's numbers come from its own stored summary."""
+    d = tmp_path / "st"
+    shutil.copytree(two_studies["dir"], d)
+    name = two_studies["name"]
+    other = next(p.parent.name for p in d.glob("*/test.json") if p.parent.name != name)
+    good = json.loads(tune("results", "--studies-dir", str(d), "--format", "json", cache=tuner_cache,
+                           check=True).stdout)
+    p = d / name / "test.json"
+    shutil.copyfile(d / other / "test.json", p)
+    r = tune("results", "--studies-dir", str(d), "--format", "json", cache=tuner_cache)
+    assert r.returncode == 0, r.stderr
+    warn = [ln for ln in r.stderr.splitlines() if ln.startswith("warning: ")]
+    assert len(warn) == 1 and f"{p} cannot be read (it holds the test of study {other!r}, not {name!r}" in warn[0], \
+        r.stderr
+    assert json.loads(r.stdout)[0]["mAA10 degensac"] == pytest.approx(good[0]["mAA10 degensac"])
+    rep = tune("plot", "--study", name, "--studies-dir", str(d), cache=tuner_cache, check=True)
+    html = Path(rep.stdout.strip()).read_text()
+    assert "test.json cannot be read (it holds the test of study" in html
+
+
 def test_plot_html_report(two_studies, tuner_cache):
     d = two_studies["dir"]
     r = tune("plot", "--study", two_studies["name"], "--studies-dir", str(d), cache=tuner_cache, check=True)

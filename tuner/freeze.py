@@ -49,10 +49,12 @@ def study_dir(studies_dir: Path | str, name: str) -> Path:
     return Path(studies_dir) / f"{safe.strip('.')[:MAX_DIR_NAME - 11] or 'study'}-{tag}"
 
 
-def load_test_file(path: Path | str | None) -> tuple[dict | None, str | None]:
+def load_test_file(path: Path | str | None, study: str | None = None) -> tuple[dict | None, str | None]:
     """A study's test.json: (the result, None); (None, None) when there is none; (None, why) when it is there but
-    cannot be read or holds no test result (cut short, binary, a JSON list). The one reader every table, report and
-    rerun check goes through, so that a damaged file is said (or rerun), never a crash or silently ignored."""
+    cannot be read or holds no test result (cut short, binary, a JSON list), or, given ``study``, holds another
+    study's (a study folder copied under a new name: its numbers passed for this study's). The one reader every
+    table, report and rerun check goes through, so that a damaged file is said (or rerun), never a crash or
+    silently ignored."""
     if path is None or not Path(path).is_file():
         return None, None
     try:
@@ -67,6 +69,8 @@ def load_test_file(path: Path | str | None) -> tuple[dict | None, str | None]:
             or not all(isinstance(r, dict) for r in d.get("runs", [])):
         return None, "not a test result (a JSON object with a list of runs)"
     why = _test_figures_problem(d)
+    if why is None and study is not None and d.get("study") != study:
+        why = f"it holds the test of study {d.get('study')!r}, not {study!r} (copied from another study?)"
     return (None, why) if why else (d, None)
 
 
@@ -99,11 +103,11 @@ def _test_figures_problem(d: dict) -> str | None:
     return None
 
 
-def _previous_result(out_path: Path | None, ident: dict) -> dict | None:
+def _previous_result(out_path: Path | None, ident: dict, study: str | None = None) -> dict | None:
     """The test.json already written for exactly this identity (trial, config, data, runs), if any. Asked with no
     reference (``--reference none``), a result that also compared a reference serves too: its own runs are the
     same."""
-    old, _ = load_test_file(out_path)
+    old, _ = load_test_file(out_path, study)
     if old is None:
         return None  # none, or unreadable: rerun the test rather than trust it
     have, want = old.get("identity"), _plain(ident)
@@ -407,7 +411,7 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
     ident = {"trial": frozen.get("trial"), "config": frozen["config"], "task_options": task.options(),
              "fingerprint": vs.fingerprint, "runs": int(runs), "test_budget": tb, "ci_resamples": n_ci,
              "reference": None if ref is None else ref[0].to_dict()}
-    old = _previous_result(out_path, ident) if reuse else None
+    old = _previous_result(out_path, ident, frozen["study"]) if reuse else None
     if old is not None:
         return old
     cache = cache if cache is not None else H5Cache()

@@ -252,7 +252,8 @@ def breakdown_sources(study, best, studies_dir=None) -> list[tuple[str, dict]]:
     if best is not None and best.user_attrs.get("scenes"):
         out.append((f"validation (trial {best.number})", best.user_attrs["scenes"]))
     if studies_dir is not None:
-        t, _ = load_test_file(study_dir(studies_dir, study.study_name) / "test.json")  # unreadable: not drawn
+        t, _ = load_test_file(study_dir(studies_dir, study.study_name) / "test.json",  # unreadable: not drawn
+                              study.study_name)
         if t and t.get("runs"):
             scenes = {}
             for name in t["runs"][0].get("scenes") or {}:
@@ -411,7 +412,8 @@ def _uncertainty_lines(study, studies_dir=None) -> list[str]:
     out = [f"<p><b>{html.escape(txt)}</b><br>{html.escape(sel.get('note', ''))}</p>",
            f"<p>{html.escape(flat_text(f.get('robustness')))}</p>"]
     out += [f"<p style='color:#b00'>warning: {html.escape(w)}</p>" for w in f.get("warnings") or []]
-    t, why = load_test_file(study_dir(studies_dir, study.study_name) / "test.json" if studies_dir is not None else None)
+    t, why = load_test_file(study_dir(studies_dir, study.study_name) / "test.json" if studies_dir is not None else None,
+                            study.study_name)
     if why:
         out.append(f"<p style='color:#b00'>{html.escape(f'test.json cannot be read ({why}): rerun `tune test --study {study.study_name}`')}</p>")
     if t is not None:

@@ -62,7 +62,7 @@ def collect_studies(storage, task: str | None = None, studies_dir: Path | str | 
         test = attrs.get("test")
         if test is None and studies_dir is not None:
             p = study_dir(studies_dir, summ.study_name) / "test.json"
-            d, why = load_test_file(p)
+            d, why = load_test_file(p, summ.study_name)
             try:
                 test = test_summary(d) if d is not None else None
             except (ValueError, KeyError, AttributeError, TypeError):
@@ -297,7 +297,7 @@ def _test_pair_runs(s: StudyInfo, studies_dir, warn=None) -> list[list[dict]] | 
         return None
     from tuner.freeze import load_test_file, study_dir
     p = study_dir(studies_dir, s.name) / "test.json"
-    d, why = load_test_file(p)
+    d, why = load_test_file(p, s.name)
     if d is not None:
         try:
             return _pair_runs(d)
