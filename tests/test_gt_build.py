@@ -137,6 +137,26 @@ def test_a_failed_sfm_is_one_line_and_leaves_no_colmap_logs(tmp_path):
     assert glog_files() <= logs
 
 
+def test_a_file_where_the_ground_truth_folder_goes_is_one_line(tmp_path, capsys):
+    """--gt-dir (or $IMTUNE_CACHE/gt) a file: every scene's ground truth read as "not built" -- `tune evaluate`
+    went on without it, without a word -- and `tune data build-gt` built it only to fail writing it ("cannot write
+    ...: Not a directory"). Now one line naming the file in the way, from both, before work."""
+    from tests.conftest import copy_strecha_subset
+    from tuner.cli import main
+    data = copy_strecha_subset(tmp_path / "data", ["0003.jpg", "0004.jpg", "0005.jpg"])
+    gt_dir = tmp_path / "gt"
+    gt_dir.write_text("mine")
+    for argv in (["evaluate", "--data", str(data), "--num-features", "512", "--jobs", "1", "--gt-dir", str(gt_dir),
+                  "--cache", str(tmp_path / "cache"), "--quiet"],
+                 ["data", "build-gt", "--data", str(data), "--gt-dir", str(gt_dir), "--quiet"]):
+        capsys.readouterr()
+        rc = main(argv)
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and "\n" not in err, (argv[0], err)
+        assert f": {gt_dir} is a file where a folder should be: move it away" in err, err
+        assert gt_dir.read_text() == "mine"
+
+
 def test_checking_a_camera_model_keeps_sigterm_for_tune():
     """GTConfig checks its camera model against pycolmap's list: loading pycolmap there must not hand SIGTERM to
     glog's failure handler (a stack trace and death by signal instead of tune's one line and exit 143; a bare

@@ -397,8 +397,9 @@ def build_ground_truth(scene, gt_dir: Path | str | None = None, conf: GTConfig =
                        progress=None) -> tuple[GroundTruth, Path]:
     """Build (or, unless ``force``, reuse) the ground truth of ``scene`` and store it; (gt, path)."""
     path = gt_path(scene, gt_dir)
-    if path.exists() and not path.is_file():  # before the build (SfM may take hours), not when it is written
-        raise _not_a_file(path)
+    err = _not_a_file(path)  # before the build (SfM may take hours), not when it is written
+    if err is not None:
+        raise err
     method = choose_method(scene, conf.method)
     if path.is_file() and not force:
         try:
@@ -468,17 +469,26 @@ def load_ground_truth(path: Path | str) -> GroundTruth:
                           f"rebuild it with `tune data build-gt --force`") from None
 
 
-def _not_a_file(p: Path) -> ImtuneError:
-    return ImtuneError(f"ground truth {p} is {'a folder' if p.is_dir() else 'not a regular file'}, not the file it "
-                       "should be: move it away, then build the ground truth again with `tune data build-gt`")
+def _not_a_file(p: Path) -> ImtuneError | None:
+    """The error for something other than a file in the place of the ground-truth file ``p`` or a file in the place
+    of one of its folders (both read as "not built"), else None."""
+    if p.exists() and not p.is_file():
+        return ImtuneError(f"ground truth {p} is {'a folder' if p.is_dir() else 'not a regular file'}, not the file "
+                           "it should be: move it away, then build the ground truth again with `tune data build-gt`")
+    blocker = None if p.exists() else next((q for q in p.parents if q.exists() and not q.is_dir()), None)
+    if blocker is not None:
+        return ImtuneError(f"ground truth {p}: {blocker} is a file where a folder should be: move it away, or give "
+                           "another folder with --gt-dir (or $IMTUNE_GT)")
+    return None
 
 
 def find_ground_truth(scene, gt_dir: Path | str | None = None) -> Path | None:
     """The ground-truth file of ``scene`` if one has been built, else None; ImtuneError when something else (a
     folder) stands in its place (it read as "not built": stereo lost its co-visibility filter without a word)."""
     p = gt_path(scene, gt_dir)
-    if p.exists() and not p.is_file():
-        raise _not_a_file(p)
+    err = _not_a_file(p)
+    if err is not None:
+        raise err
     return p if p.is_file() else None
 
 
