@@ -433,3 +433,19 @@ def test_a_damaged_sqlite_storage_says_so(damage, tuned, tmp_path, data3, cache)
         assert str(db) in line and "malformed" in line, (cmd, line)
         assert "restore it from a backup, or pass another --storage" in line and "rerun" not in line, (cmd, line)
     assert db.read_bytes() == bad
+
+
+def test_a_colmap_database_given_as_storage_is_left_alone(tmp_path, data3, cache):
+    """`--storage sqlite:///database.db` naming a COLMAP database by mistake: `tune run` added Optuna's twelve
+    tables to it (and switched it to WAL) and tuned into it without a word. Now one line saying it is another
+    program's database, before anything is written to it; read-only commands say the same."""
+    import pycolmap
+    db = tmp_path / "database.db"
+    pycolmap.Database.open(str(db)).close()  # COLMAP's own empty database: cameras, images, keypoints, ...
+    raw = db.read_bytes()
+    for cmd in (quick(data3, tmp_path / "studies", f"sqlite:///{db}", "s") + ["--n-trials", "1"],
+                ["studies", "--storage", f"sqlite:///{db}", "--studies-dir", tmp_path / "studies"]):
+        line = one_line_error(tune(*cmd, cache=cache))
+        assert f"storage {db} is an SQLite database of another program (tables " in line and "cameras" in line, line
+        assert "pass another --storage" in line
+    assert db.read_bytes() == raw and not (tmp_path / "database.db-wal").exists()

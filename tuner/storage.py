@@ -341,11 +341,32 @@ def storage_absent(url: str | None, studies_dir: Path | str | None = None) -> bo
     return not os.path.lexists(_sqlite_path(norm) if kind == "sqlite" else Path(norm))
 
 
+def _foreign_sqlite(path: Path) -> list[str]:
+    """The tables of the SQLite file ``path`` when it is another program's database (tables, not one of them
+    Optuna's), else [] (no file, empty, an Optuna storage -- maybe being created by another worker this moment --,
+    or no SQLite database: said elsewhere)."""
+    try:
+        if not path.is_file() or path.stat().st_size == 0:
+            return []
+        # immutable: no -wal / -shm file is made beside another program's database (a worker creating an Optuna
+        # storage this moment shows some of its tables, or none: never "foreign")
+        con = sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro&immutable=1", uri=True, timeout=SQLITE_TIMEOUT_S)
+        try:
+            tables = [r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type='table'")]
+        finally:
+            con.close()
+    except (OSError, sqlite3.Error):
+        return []
+    optuna_tables = {"version_info", "alembic_version", "studies", "study_directions", "trials"}
+    return sorted(tables) if tables and not optuna_tables & set(tables) else []
+
+
 def _prepare_sqlite(path: Path, must_exist: bool = False) -> None:
     """Create the folder; switch the file to WAL (persistent per file) so readers never block the writer.
 
     must_exist: the file must already be there (read-only commands); nothing is created, and the WAL
-    switch is best effort (a reader of a read-only file still reads)."""
+    switch is best effort (a reader of a read-only file still reads). Another program's SQLite database (a COLMAP
+    database.db given by mistake) is refused before anything is written to it: Optuna added its tables to it."""
     if must_exist:
         if not path.is_file():
             what = "a folder, not a file" if path.is_dir() else "no such file"
@@ -353,6 +374,11 @@ def _prepare_sqlite(path: Path, must_exist: bool = False) -> None:
                               "studies were run with, or run `tune` first")
         if path.stat().st_size == 0:  # an empty file: nothing to switch to WAL, and it is left empty
             return
+    foreign = _foreign_sqlite(path)
+    if foreign:
+        shown = ", ".join(foreign[:5]) + (", ..." if len(foreign) > 5 else "")
+        raise ImtuneError(f"storage {path} is an SQLite database of another program (tables {shown}), not an Optuna "
+                          "storage; it is left as it is: pass another --storage (a new file name creates one)")
     else:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
@@ -379,8 +405,8 @@ def _prepare_sqlite(path: Path, must_exist: bool = False) -> None:
 
 
 #: what to do about an SQLite file that is damaged (cut short, overwritten): rerunning on it cannot help
-SQLITE_DAMAGED = ("the file is damaged (cut short or overwritten?): restore it from a backup, or pass another --storage "
-                  "(a new file starts the studies anew)")
+SQLITE_DAMAGED = ("the file is damaged (cut short or overwritten?): restore it from a backup, or pass another "
+                  "--storage (a new file starts the studies anew)")
 
 
 def _sqlite_hint(msg: str) -> str:
