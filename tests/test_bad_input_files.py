@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import DATA, ROOT, copy_strecha_subset
+from tests.conftest import ROOT, copy_strecha_subset
 
 SECRET = "Zq7-secret-pw"
 BINARY = bytes(range(128, 256)) * 4 + b"\n\xff\xfe\x00"  # no valid UTF-8 sequence
