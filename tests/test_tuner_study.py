@@ -140,6 +140,28 @@ def test_rerun_resumes_and_checks_the_space(study_run, tuner_cache):
         assert r.returncode == 2, r.stderr
         assert needle in r.stderr and r.stderr.strip().count("\n") == 0, r.stderr
     assert len(load(study_run["storage"], study_run["name"]).trials) == 6
+    assert not list((d / study_run["name"]).glob("earlier-*"))  # a resume sets nothing aside
+
+
+def test_a_new_study_keeps_an_earlier_studys_results_in_its_folder(study_run, tuner_cache, tmp_path):
+    """optuna.db deleted (or another --storage on this studies folder): `tune` created the study anew and, once its
+    trials had run, overwrote the earlier study's frozen.yaml and test.json without a word. Now they are moved into
+    the folder's earlier-<time>/ (said in one warning) before the new study writes anything."""
+    d = tmp_path / "st"
+    shutil.copytree(study_run["dir"], d)
+    name = study_run["name"]
+    before = {f: (d / name / f).read_bytes() for f in ("frozen.yaml", "test.json")}
+    (d / "optuna.db").unlink()
+    r = tune(*quick(d, "--n-trials", "2", "--seed", "11", "--no-test"), cache=tuner_cache, check=True)
+    kept = list((d / name).glob("earlier-*"))
+    assert len(kept) == 1 and kept[0].is_dir(), list((d / name).iterdir())
+    for f, data in before.items():
+        assert (kept[0] / f).read_bytes() == data
+    warn = [ln for ln in r.stderr.splitlines() if "earlier study" in ln]
+    assert len(warn) == 1 and str(kept[0]) in warn[0] and warn[0].startswith("warning: "), r.stderr
+    new = yaml.safe_load((d / name / "frozen.yaml").read_text())
+    assert new["study"] == name and yaml.safe_load(before["frozen.yaml"]) != new
+    assert not (d / name / "test.json").exists()  # --no-test: the earlier test is not this study's
 
 
 def test_tune_test_command(study_run, tuner_cache):

@@ -342,6 +342,46 @@ def check_study_outputs(studies_dir: Path | str, name: str) -> Path:
     return d
 
 
+#: prefix of the folder inside a study's folder that keeps an earlier study's outputs (see set_aside_earlier_outputs)
+EARLIER_PREFIX = "earlier-"
+
+
+def set_aside_earlier_outputs(studies_dir: Path | str, name: str) -> Path | None:
+    """A new study ``name`` is being created while its folder still holds the outputs of an earlier study of that
+    name that the storage no longer has (optuna.db deleted or replaced, or another ``--storage`` using this studies
+    folder): move them (frozen.yaml, test.json, report.html, viz/, ...) into ``<folder>/earlier-<UTC time>/`` so
+    that nothing the earlier study measured is overwritten by the new one. Returns that folder, or None when
+    there was nothing to keep. Earlier ``earlier-*`` folders stay where they are."""
+    d = study_dir(studies_dir, name)
+    try:
+        entries = [e for e in d.iterdir() if not e.name.startswith(EARLIER_PREFIX) and not e.name.startswith(".")]
+    except (FileNotFoundError, NotADirectoryError):
+        return None
+    if not entries:
+        return None
+    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    dest = d / f"{EARLIER_PREFIX}{stamp}"
+    k = 1
+    while dest.exists():
+        k += 1
+        dest = d / f"{EARLIER_PREFIX}{stamp}-{k}"
+    try:
+        dest.mkdir()
+        for e in entries:
+            try:
+                e.rename(dest / e.name)
+            except FileNotFoundError:  # another worker creating the same study moved it first
+                pass
+    except OSError as e:
+        raise ImtuneError(f"study folder {d} holds an earlier study's outputs ({', '.join(x.name for x in entries)})"
+                          f" that could not be set aside ({e.strerror or e}): move them away, or name a new study "
+                          "with --study") from None
+    if not any(dest.iterdir()):
+        dest.rmdir()
+        return None
+    return dest
+
+
 def load_frozen(studies_dir: Path | str, name: str) -> dict:
     path = study_dir(studies_dir, name) / "frozen.yaml"
     if not path.exists():  # a folder or a device there: read_text names it

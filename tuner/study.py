@@ -597,6 +597,13 @@ def setup_study(s: TuneSettings) -> StudyContext:
                                     directions=["maximize", "minimize"] if pareto else ["maximize"])
         again = study.user_attrs
         if not again.get("imtune"):
+            # this process creates the study: an earlier study's frozen.yaml / test.json in its folder (the storage
+            # emptied or replaced) would be overwritten by this one's without a word -- kept aside, and said
+            from tuner.freeze import set_aside_earlier_outputs
+            kept = set_aside_earlier_outputs(s.studies_dir, name)
+            if kept is not None:
+                s.warn(f"study {name!r} is new in this storage, but its folder held the results of an earlier study of "
+                       f"that name: moved to {kept} (kept, not overwritten)")
             for k, v in mine.items():
                 if k != "imtune":
                     study.set_user_attr(k, v)
