@@ -227,6 +227,19 @@ def test_journal_path_that_is_not_a_regular_file_is_refused_unopened(what, path,
     assert not Path(f"{p}.lock").exists() and not (tmp_path / "studies").exists()
 
 
+def test_a_folder_at_the_journal_lock_is_refused_not_retried_forever(tmp_path, data3):
+    """Optuna's journal lock is a symbolic link <journal>.lock it creates and removes (a stale one is released after
+    30 s); a folder there made `tune run` wait those 30 s without a word, then Optuna renamed the user's folder away
+    to <journal>.lock<uuid>.renamed. Now one line naming it, the folder left where it is."""
+    j = tmp_path / "optuna.log"
+    (tmp_path / "optuna.log.lock").mkdir()
+    r = tune("run", "--storage", f"journal:{j}", "--studies-dir", tmp_path / "studies", "--data", data3,
+             "--num-features", "512", "--n-trials", "1", "--no-test", "--quiet", timeout=90,
+             env={"IMTUNE_CACHE": str(tmp_path / "cache")})
+    one_line_error(r, f"{j}.lock is a folder where journal storage {j} takes its lock")
+    assert (tmp_path / "optuna.log.lock").is_dir() and not list(tmp_path.glob("*.renamed"))
+
+
 def test_dev_full_as_journal_is_refused_before_reading(tmp_path, data3):
     # /dev/full reads endless zeros with no line end: Optuna read it until the OOM killer came; the address-space
     # limit makes an unfixed build fail within seconds with MemoryError instead (exit 1), never the machine

@@ -563,6 +563,16 @@ def _check_journal_path(p: Path) -> None:
     """A journal path that exists must be a regular file: a device (/dev/null, /dev/full: endless zeros read until
     memory runs out), a folder or a FIFO is refused before Optuna opens it."""
     import stat
+
+    from optuna.storages.journal._file import LOCK_FILE_SUFFIX
+    lock = Path(str(p) + LOCK_FILE_SUFFIX)
+    try:  # Optuna's lock is a symbolic link it creates and removes (a stale one is released after a grace period);
+        lmode = os.lstat(lock).st_mode  # a folder there: 30 s of silent retries, then Optuna renames it away
+    except OSError:
+        lmode = None
+    if lmode is not None and stat.S_ISDIR(lmode):
+        raise ImtuneError(f"{lock} is a folder where journal storage {p} takes its lock (a link Optuna creates and "
+                          "removes): move it away, or give another journal: path")
     try:
         mode = os.stat(p).st_mode
     except FileNotFoundError:
