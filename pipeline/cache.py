@@ -107,6 +107,10 @@ class _Invalid(Exception):
     """An entry that must not be trusted; ``str`` is the reason."""
 
 
+class _NotAFile(Exception):
+    """Something other than a file or folder at an entry's name (a FIFO, a device); ``str`` says which."""
+
+
 class _Stale(_Invalid):
     """An entry of the old format (no key inside)."""
 
@@ -173,8 +177,17 @@ class H5Cache:
         import io
 
         import h5py
-        with open(p, "rb") as fh:  # whole file in memory: one snapshot, no HDF5 file locking on shared folders
-            st = os.fstat(fh.fileno())
+        import stat
+        # O_NONBLOCK: a FIFO at the entry's name would block this open until a writer came (a hang, unsaid)
+        fd = os.open(p, os.O_RDONLY | os.O_NONBLOCK)
+        with os.fdopen(fd, "rb") as fh:  # whole file in memory: one snapshot, no HDF5 file locking on shared folders
+            st = os.fstat(fd)
+            if stat.S_ISDIR(st.st_mode):
+                raise IsADirectoryError(errno.EISDIR, "Is a directory", str(p))
+            if not stat.S_ISREG(st.st_mode):
+                raise _NotAFile("a FIFO" if stat.S_ISFIFO(st.st_mode) else "a socket" if stat.S_ISSOCK(st.st_mode)
+                                else "a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode)
+                                else "not a regular file")
             ident.append((st.st_dev, st.st_ino))
             data = fh.read()
         if not data:
@@ -235,6 +248,10 @@ class H5Cache:
         except _Invalid as why:
             self._drop(p, ident[0] if ident else None, stage, why)
             return None
+        except _NotAFile as kind:
+            raise ImtuneError(f"cache entry {p} ({stage}) is {kind}, not a file: move it away (the entry is "
+                              "recomputed), or give another cache folder with --cache DIR or the IMTUNE_CACHE "
+                              "environment variable") from None
         except IsADirectoryError:  # an empty folder holds nothing: removed; one with files is not ours to delete
             try:
                 p.rmdir()

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import stat
 import subprocess
 import sys
 from pathlib import Path
@@ -278,6 +279,23 @@ def test_an_entry_that_is_a_folder(clean, tmp_path, stage):
         r.stderr
     assert "move it away" in lines[0]
     assert (p / "keep" / "note.txt").read_text() == "mine"
+
+
+def test_a_fifo_at_an_entrys_name_is_named_not_waited_on(clean, tmp_path):
+    """A FIFO where an entry's file goes: reading the entry blocked until a writer came, the run hung without a
+    word. Now one line naming the entry and what to do; the FIFO is left alone."""
+    cache = tmp_path / "cache"
+    shutil.copytree(clean["cache"], cache)
+    p = entries(cache, "features")[0]
+    p.unlink()
+    os.mkfifo(p)
+    r = subprocess.run(tune_cmd(clean["data"], cache), capture_output=True, text=True, cwd=ROOT, env=env_for(tmp_path),
+                       timeout=120)
+    assert r.returncode == 2, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith(f"tune: error: cache entry {p} (features) is a FIFO, not a file"), \
+        r.stderr
+    assert "move it away" in lines[0] and stat.S_ISFIFO(os.lstat(p).st_mode)
 
 
 @pytest.mark.parametrize("where", ["stage", "shard"])
