@@ -125,3 +125,12 @@ def test_viz_of_a_multiview_study_draws_its_bags_by_default(tmp_path):
     assert r.stdout.startswith("multiview fountain-P11 bag 3#0") and list((tmp_path / "v1").glob("bag_*.png")), r.stdout
     r = tune(*common, "--task", "stereo", "--out", tmp_path / "v2", env=env)
     assert r.returncode == 0 and r.stdout.startswith("worst ") and list((tmp_path / "v2").glob("fountain-P11_*.png"))
+    # the study's report links the gallery `tune viz --study` wrote; `tune plot` redrew it without that link
+    report = tmp_path / "studies" / "mv" / "report.html"
+    r = tune("plot", "--study", "mv", env=env)
+    assert r.returncode == 0 and report.is_file() and "gallery.html" not in report.read_text(), r.stderr[-2000:]
+    r = tune(*common, env=env)  # the study's own figures folder and gallery (no --out)
+    assert r.returncode == 0 and (report.parent / "gallery.html").is_file(), r.stderr[-2000:]
+    assert report.read_text().count("href='gallery.html'") == 1
+    r = tune("plot", "--study", "mv", env=env)
+    assert r.returncode == 0 and report.read_text().count("href='gallery.html'") == 1, r.stderr[-2000:]

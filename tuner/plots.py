@@ -432,6 +432,7 @@ def write_report(storage, study_name: str, out: Path | str, studies_dir: Path | 
     for the test-scene breakdowns."""
     import plotly.io as pio
     from tuner.formatting import gamma_max_text
+    from tuner.freeze import study_dir
     from tuner.study import best_feasible, load_study, trial_counts
     sections = report_sections(storage, study_name, studies_dir)
     study = load_study(storage, study_name)
@@ -468,4 +469,8 @@ def write_report(storage, study_name: str, out: Path | str, studies_dir: Path | 
            "\n".join(head + body) + "</body></html>")
     from pipeline.fileio import atomic_write
     atomic_write(out, doc)
+    if studies_dir is not None and out.parent.resolve() == study_dir(studies_dir, study_name).resolve() \
+            and (out.parent / "gallery.html").is_file():  # `tune viz --study` linked it: a redraw keeps the link
+        from pipeline.viz.gallery import link_gallery
+        link_gallery(out, "gallery.html")
     return out
