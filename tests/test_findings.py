@@ -669,3 +669,47 @@ def test_finding_2_sets_the_papers_optimal_gamma_beside_ours_both_ways():
     pc = f["measured"]["paper_comparison"]
     assert pc["ours_frozen"] == {"magsac": 2364, "degensac": 152981, "cv-ransac": 1000}
     assert pc["paper"]["magsac"] == 10000 and pc["paper"]["pyransac"] == 250000
+
+
+@pytest.mark.parametrize("damage", [
+    None, "runs-not-list", "no-err", "err-text", "err-nan", "err-negative", "one-run-short", "run-empty"])
+def test_cached_test_records_of_the_wrong_shape_are_recomputed_not_trusted(damage):
+    """records/<study>-test.json (the findings' re-evaluated pair errors) cut short or hand-edited into another
+    shape was an internal error ('list' object has no attribute 'get', KeyError 'err') or, for a NaN or negative
+    error, a number trusted as a pair error. Now such a file is not used (the records are recomputed)."""
+    from tuner.findings.runner import _cached_runs
+    ident = {"study": "s", "trial": 3}
+    good = [[{"scene": "a", "pair": "0-1", "err": 1.5}, {"scene": "a", "pair": "0-2", "err": None}],
+            [{"scene": "a", "pair": "0-1", "err": "inf"}, {"scene": "a", "pair": "0-2", "err": 0.0}]]
+    old = {"study": "s", "identity": ident, "runs": json.loads(json.dumps(good))}
+    bad = {"runs-not-list": {**old, "runs": 7},
+           "no-err": {**old, "runs": [[{"scene": "a", "pair": "0-1"}], good[1]]},
+           "err-text": {**old, "runs": [[{"scene": "a", "pair": "0-1", "err": "high"}], good[1]]},
+           "err-nan": {**old, "runs": [[{"scene": "a", "pair": "0-1", "err": float("nan")}], good[1]]},
+           "err-negative": {**old, "runs": [[{"scene": "a", "pair": "0-1", "err": -2.0}], good[1]]},
+           "one-run-short": {**old, "runs": good[:1]}, "run-empty": {**old, "runs": [good[0], []]}}
+    if damage is None:
+        got = _cached_runs(old, ident, 2)
+        assert [[r["err"] for r in run] for run in got] == [[1.5, math.inf], [math.inf, 0.0]]
+        assert _cached_runs(old, {"study": "s", "trial": 4}, 2) is None  # another trial's records
+    else:
+        assert _cached_runs(bad[damage], ident, 2) is None
+
+
+def test_cached_validation_records_of_the_wrong_shape_are_recomputed_not_trusted(tmp_path):
+    from tuner.findings.runner import _cached_val_records, _read_json
+    ident = {"trial": 1}
+    stereo = {"identity": ident, "records": [{"scene": "a", "pair": "0-1", "err": 2.0}]}
+    bags = {"identity": ident, "records": [{"scene": "a", "bag_size": 5, "errors": [1.0, None, "inf"]}]}
+    assert _cached_val_records(stereo, ident, False) == stereo["records"]
+    assert _cached_val_records(bags, ident, True) == bags["records"]
+    for old, b in ((stereo, True), (bags, False), ({**stereo, "records": []}, False),
+                   ({**stereo, "records": [{"scene": "a", "err": "x"}]}, False),
+                   ({**bags, "records": [{"scene": "a", "bag_size": "five", "errors": [1.0]}]}, True),
+                   ({**bags, "records": [{"scene": "a", "bag_size": 5, "errors": [-1.0]}]}, True),
+                   ({**stereo, "records": "abc"}, False), ({**stereo, "identity": {"trial": 2}}, False)):
+        assert _cached_val_records(old, ident, b) is None, old
+    p = tmp_path / "r.json"
+    for text in ("[1, 2]", '{"identity": ', "\x00\x01", '"a string"'):
+        p.write_text(text)
+        assert _read_json(p) is None

@@ -249,11 +249,55 @@ def records_from_test(test: dict) -> list | None:
     return out or None
 
 
-def _read_json(path: Path):
+def _read_json(path: Path) -> dict | None:
+    """A records file of ours as a dict; None when absent, unreadable or not a JSON object (then recomputed)."""
     try:
-        return json.loads(path.read_text())
+        d = json.loads(path.read_text())
     except (OSError, ValueError):
         return None
+    return d if isinstance(d, dict) else None
+
+
+def _error_value(e) -> float:
+    """A stored rotation/translation error (deg): a number >= 0, inf, or None/"inf" for a failed pair."""
+    v = _err(e)
+    if isinstance(e, bool) or not (v >= 0):  # NaN and negatives are no error
+        raise ValueError(f"error {e!r}")
+    return v
+
+
+def _cached_runs(old: dict | None, ident, runs: int) -> list | None:
+    """Per-run pair records cached in a ``records/<study>-test.json`` for this identity, or None when there are
+    none or they are not of the shape this module writes (cut short, hand-edited: recomputed, never trusted)."""
+    if not old or old.get("identity") != ident:
+        return None
+    try:
+        out = [[{"scene": str(r["scene"]), "pair": str(r["pair"]), "err": _error_value(r["err"])} for r in run]
+               for run in old["runs"]]
+    except (KeyError, TypeError, ValueError, AttributeError):
+        return None
+    return out if len(out) == int(runs) and all(out) else None
+
+
+def _cached_val_records(old: dict | None, ident, bags: bool) -> list | None:
+    """Validation records cached in ``records/<study>-val.json`` for this identity, checked like
+    :func:`_cached_runs` (stereo: scene, err; multiview bags: scene, bag_size, errors)."""
+    if not old or old.get("identity") != ident or not isinstance(old.get("records"), list) or not old["records"]:
+        return None
+    try:
+        for r in old["records"]:
+            if not isinstance(r, dict) or not isinstance(r["scene"], str):
+                return None
+            if bags:
+                if not isinstance(r["errors"], list) or isinstance(r["bag_size"], bool):
+                    return None
+                int(r["bag_size"])
+                [_error_value(e) for e in r["errors"]]
+            else:
+                _error_value(r["err"])
+    except (KeyError, TypeError, ValueError):
+        return None
+    return old["records"]
 
 
 def _evaluate_runs(frozen: dict, data_root: Path, scene_names: list, split: str, runs: int, cache) -> list:
@@ -282,9 +326,9 @@ def test_records(frozen: dict, test: dict, records_dir: Path, cache) -> tuple[li
     path = records_dir / f"{test['study']}-test.json"
     ident = _plain(test.get("identity"))
     old = _read_json(path)
-    if old and old.get("identity") == ident:
-        runs = [[{**r, "err": _err(r["err"])} for r in run] for run in old["runs"]]
-        return runs, old.get("note", "")
+    cached = _cached_runs(old, ident, len(test["runs"]))
+    if cached is not None:
+        return cached, str(old.get("note", ""))
     fz = {"task": test.get("task", "stereo"), "task_options": test.get("task_options"), "config": frozen["config"]}
     got = _evaluate_runs(fz, Path(test["data"]["root"]), test["data"]["scenes"], "test", len(test["runs"]), cache)
     runs = [[{"scene": r["scene"], "pair": r["pair"], "err": _err(r["err"])} for r in recs] for recs, _ in got]
@@ -316,15 +360,13 @@ def validation_interval(study, frozen: dict, best, records_dir: Path, cache, n_r
     conf = config_for(base, {**fixed, **best.params}, seed=int(attrs.get("seed", 0)))
     path = records_dir / f"{study.study_name}-val.json"
     ident = _plain({"trial": best.number, "config": conf.to_dict(), "fingerprint": attrs.get("data_fingerprint")})
-    old = _read_json(path)
-    if old and old.get("identity") == ident:
-        recs = old["records"]
-    else:
+    task = task_of(attrs)
+    recs = _cached_val_records(_read_json(path), ident, task.records_key == "bag_records")
+    if recs is None:
         fz = {"task": attrs.get("task", "stereo"), "task_options": attrs.get("task_options"), "config": conf.to_dict()}
         (recs, _), = _evaluate_runs(fz, Path(frozen["data"]["root"]), attrs["data"]["val_scenes"], "val", 1, cache)
         from pipeline.fileio import atomic_write
         atomic_write(path, json.dumps(_plain({"study": study.study_name, "identity": ident, "records": recs})))
-    task = task_of(attrs)
     if task.records_key == "bag_records":
         for r in recs:
             r["errors"] = [_err(e) for e in r["errors"]]
