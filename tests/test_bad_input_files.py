@@ -206,6 +206,25 @@ def test_a_real_journal_still_opens(tmp_path):
     assert r.returncode == 0 and "| s " in r.stdout, r.stderr
 
 
+@pytest.mark.parametrize("bad", [b"not json at all\n", b'{"a": 1}\n', b"[1, 2]\n"])
+def test_a_journal_damaged_in_the_middle_names_the_line(bad, tmp_path):
+    """A journal with one damaged record among good ones said "is not an Optuna journal file, or is corrupt (...)"
+    without saying where: the user had a file of thousands of lines to search. Now the first bad line's number."""
+    import optuna
+    from optuna.storages import JournalStorage
+    from optuna.storages.journal import JournalFileBackend
+    j = tmp_path / "good.log"
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    optuna.create_study(study_name="s", storage=JournalStorage(JournalFileBackend(str(j)))).optimize(
+        lambda t: t.suggest_float("x", 0, 1), n_trials=2)
+    lines = j.read_bytes().splitlines(keepends=True)
+    assert len(lines) > 5
+    j.write_bytes(b"".join(lines[:4] + [bad] + lines[4:]))
+    line = one_line_error(tune("studies", "--storage", f"journal:{j}", "--studies-dir", tmp_path / "studies"),
+                          f"journal storage {j} is not an Optuna journal file, or is corrupt")
+    assert "first at line 5)" in line, line
+
+
 def _fifo(tmp: Path) -> Path:
     p = tmp / "fifo.log"
     os.mkfifo(p)

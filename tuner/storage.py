@@ -25,6 +25,7 @@ that fails mid-run (full disk, server gone) into a one-line message.
 """
 from __future__ import annotations
 
+import json
 import os
 import re
 import sqlite3
@@ -513,9 +514,10 @@ def open_storage(url: str | None = None, *, heartbeat: int | None = DEFAULT_HEAR
         except OSError as e:
             raise ImtuneError(f"cannot open journal storage {p}: {e.strerror or e}") from None
         except Exception as e:  # noqa: BLE001 - replaying the file failed: its content is no Optuna journal
+            line = _first_bad_journal_line(p)
             raise ImtuneError(f"journal storage {p} is not an Optuna journal file, or is corrupt "
-                              f"({_journal_fault(e)}); pass the journal:PATH the studies were run with, or a new "
-                              "file name") from None
+                              f"({_journal_fault(e)}{f'; first at line {line}' if line else ''}); pass the "
+                              "journal:PATH the studies were run with, or a new file name") from None
     if heartbeat is not None and int(heartbeat) < 0:
         raise ImtuneError(f"heartbeat must be >= 0 seconds (0 = off), got {heartbeat}")
     hb = int(heartbeat) if heartbeat else None
@@ -644,6 +646,28 @@ def _check_journal_tail(p: Path) -> None:
     raise ImtuneError(f"journal storage {p} ends in a record cut short ({size - keep} bytes without a line end: a "
                       "crash or a full disk mid-write?) that the next record would be glued to, breaking the journal: "
                       f"drop it with `truncate -s {keep} {p}` (the complete records before it are kept), then rerun")
+
+
+def _first_bad_journal_line(p: Path, limit: int = 1 << 30) -> int | None:
+    """1-based number of the first complete line of a journal that is no JSON object with an ``op_code`` (where a
+    user looks first; Optuna's error does not say), or None when every line is one (or the file is over
+    ``limit`` bytes: not scanned)."""
+    try:
+        if p.stat().st_size > limit:
+            return None
+        with open(p, "rb") as f:
+            for n, raw in enumerate(f, 1):
+                if not raw.endswith(b"\n"):
+                    return None  # a last record still being written: the cut-short check's case
+                try:
+                    rec = json.loads(raw)
+                except ValueError:
+                    return n
+                if not isinstance(rec, dict) or "op_code" not in rec:
+                    return n
+    except OSError:
+        return None
+    return None
 
 
 def _journal_fault(e: BaseException) -> str:
