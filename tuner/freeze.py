@@ -69,7 +69,7 @@ def load_test_file(path: Path | str | None, study: str | None = None) -> tuple[d
             or not all(isinstance(r, dict) for r in d.get("runs", [])):
         return None, "not a test result (a JSON object with a list of runs)"
     why = _test_figures_problem(d)
-    if why is None and study is not None and d.get("study") != study:
+    if why is None and study is not None and d.get("study") is not None and d["study"] != study:
         why = f"it holds the test of study {d.get('study')!r}, not {study!r} (copied from another study?)"
     return (None, why) if why else (d, None)
 
