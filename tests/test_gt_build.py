@@ -137,15 +137,10 @@ def test_a_failed_sfm_is_one_line_and_leaves_no_colmap_logs(tmp_path):
     assert glog_files() <= logs
 
 
-def test_a_file_where_the_ground_truth_folder_goes_is_one_line(tmp_path, capsys):
-    """--gt-dir (or $IMTUNE_CACHE/gt) a file: every scene's ground truth read as "not built" -- `tune evaluate`
-    went on without it, without a word -- and `tune data build-gt` built it only to fail writing it ("cannot write
-    ...: Not a directory"). Now one line naming the file in the way, from both, before work."""
-    from tests.conftest import copy_strecha_subset
+def _evaluate_and_build_gt_errors(data, gt_dir, tmp_path, capsys) -> list[str]:
+    """The one error line of `tune evaluate` and of `tune data build-gt` with this --gt-dir (each must exit 2)."""
     from tuner.cli import main
-    data = copy_strecha_subset(tmp_path / "data", ["0003.jpg", "0004.jpg", "0005.jpg"])
-    gt_dir = tmp_path / "gt"
-    gt_dir.write_text("mine")
+    out = []
     for argv in (["evaluate", "--data", str(data), "--num-features", "512", "--jobs", "1", "--gt-dir", str(gt_dir),
                   "--cache", str(tmp_path / "cache"), "--quiet"],
                  ["data", "build-gt", "--data", str(data), "--gt-dir", str(gt_dir), "--quiet"]):
@@ -153,6 +148,19 @@ def test_a_file_where_the_ground_truth_folder_goes_is_one_line(tmp_path, capsys)
         rc = main(argv)
         err = capsys.readouterr().err.strip()
         assert rc == 2 and "\n" not in err, (argv[0], err)
+        out.append(err)
+    return out
+
+
+def test_a_file_where_the_ground_truth_folder_goes_is_one_line(tmp_path, capsys):
+    """--gt-dir (or $IMTUNE_CACHE/gt) a file: every scene's ground truth read as "not built" -- `tune evaluate`
+    went on without it, without a word -- and `tune data build-gt` built it only to fail writing it ("cannot write
+    ...: Not a directory"). Now one line naming the file in the way, from both, before work."""
+    from tests.conftest import copy_strecha_subset
+    data = copy_strecha_subset(tmp_path / "data", ["0003.jpg", "0004.jpg", "0005.jpg"])
+    gt_dir = tmp_path / "gt"
+    gt_dir.write_text("mine")
+    for err in _evaluate_and_build_gt_errors(data, gt_dir, tmp_path, capsys):
         assert f": {gt_dir} is a file where a folder should be: move it away" in err, err
         assert gt_dir.read_text() == "mine"
 
@@ -180,17 +188,10 @@ def test_a_folder_where_the_ground_truth_goes_is_one_line(tmp_path, capsys):
     scene's co-visibility (other pairs, other numbers) without a word, and `tune data build-gt` built it (SfM: hours)
     only to fail writing it ("cannot write ...: Is a directory"). Now one line naming it from both, before work."""
     from tests.conftest import copy_strecha_subset
-    from tuner.cli import main
     data = copy_strecha_subset(tmp_path / "data", ["0003.jpg", "0004.jpg", "0005.jpg"])
     gt_dir = tmp_path / "gt"
     where = gt_path(load_scene(data, "fountain-P11"), gt_dir)
     (where / "inside").mkdir(parents=True)
-    for argv in (["evaluate", "--data", str(data), "--num-features", "512", "--jobs", "1", "--gt-dir", str(gt_dir),
-                  "--cache", str(tmp_path / "cache"), "--quiet"],
-                 ["data", "build-gt", "--data", str(data), "--gt-dir", str(gt_dir), "--quiet"]):
-        capsys.readouterr()
-        rc = main(argv)
-        err = capsys.readouterr().err.strip()
-        assert rc == 2 and "\n" not in err, (argv[0], err)
+    for err in _evaluate_and_build_gt_errors(data, gt_dir, tmp_path, capsys):
         assert err.startswith(f"tune: error: ground truth {where} is a folder") and "move it away" in err, err
         assert (where / "inside").is_dir() and sorted(p.name for p in where.parent.iterdir()) == ["gt.h5"]
