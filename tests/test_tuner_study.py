@@ -297,8 +297,14 @@ def test_results_says_when_studies_were_tested_on_different_test_sets(two_studie
                                                        for n in ("sift-2048-degensac-stereo", "sift-2048-magsac++-stereo"))}
     if len(sets) == 1:  # as the fixture made them (another test of this module may retest one on other pairs)
         assert "test set" not in same.stdout and "different test sets" not in same.stderr
-    tune("test", "--study", "sift-2048-magsac++-stereo", "--studies-dir", str(d), "--scenes", "entry-P10",
-         "--runs", "1", "--max-pairs", "3", "--quiet", cache=tuner_cache, check=True)
+    earlier = json.loads((d / "sift-2048-magsac++-stereo" / "test.json").read_text())
+    t = tune("test", "--study", "sift-2048-magsac++-stereo", "--studies-dir", str(d), "--scenes", "entry-P10",
+             "--runs", "1", "--max-pairs", "3", "--quiet", cache=tuner_cache, check=True)
+    # the earlier test (another test set) is kept aside, not replaced, and said
+    kept = list((d / "sift-2048-magsac++-stereo").glob("earlier-*/test.json"))
+    assert len(kept) == 1 and json.loads(kept[0].read_text()) == earlier
+    said = [ln for ln in t.stderr.splitlines() if "earlier test.json" in ln]
+    assert len(said) == 1 and str(kept[0]) in said[0] and "Herz-Jesus-P8" in said[0], t.stderr
     r = tune("results", "--studies-dir", str(d), "--format", "json", cache=tuner_cache, check=True)
     warn = [ln for ln in r.stderr.splitlines() if "different test sets" in ln]
     assert len(warn) == 1 and "entry-P10 (3 pairs)" in warn[0] and "Herz-Jesus-P8 (" in warn[0], r.stderr

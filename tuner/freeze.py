@@ -346,6 +346,16 @@ def check_study_outputs(studies_dir: Path | str, name: str) -> Path:
 EARLIER_PREFIX = "earlier-"
 
 
+def _new_earlier_folder(d: Path) -> Path:
+    """``d/earlier-<UTC time>`` (``-2``, ``-3``, ... when taken): a name not yet used."""
+    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    dest, k = d / f"{EARLIER_PREFIX}{stamp}", 1
+    while dest.exists():
+        k += 1
+        dest = d / f"{EARLIER_PREFIX}{stamp}-{k}"
+    return dest
+
+
 def set_aside_earlier_outputs(studies_dir: Path | str, name: str) -> Path | None:
     """A new study ``name`` is being created while its folder still holds the outputs of an earlier study of that
     name that the storage no longer has (optuna.db deleted or replaced, or another ``--storage`` using this studies
@@ -359,12 +369,7 @@ def set_aside_earlier_outputs(studies_dir: Path | str, name: str) -> Path | None
         return None
     if not entries:
         return None
-    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
-    dest = d / f"{EARLIER_PREFIX}{stamp}"
-    k = 1
-    while dest.exists():
-        k += 1
-        dest = d / f"{EARLIER_PREFIX}{stamp}-{k}"
+    dest = _new_earlier_folder(d)
     try:
         dest.mkdir()
         for e in entries:
@@ -512,8 +517,37 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
         "identity": ident,
     })
     if out_path is not None:
+        prev, _ = load_test_file(out_path, frozen["study"])
+        if prev is not None and (prev.get("data") or {}).get("fingerprint") != vs.fingerprint:
+            # another test set (`tune test --scenes` on one scene after the full test): kept, never replaced
+            kept = keep_earlier_file(out_path)
+            out["earlier_test"] = {"path": str(kept), "scenes": (prev.get("data") or {}).get("scenes"),
+                                   "pairs": (prev.get("data") or {}).get("pairs")}
         atomic_write(out_path, json.dumps(out, indent=2))
     return out
+
+
+def keep_earlier_file(path: Path) -> Path:
+    """Move ``path`` into ``<its folder>/earlier-<UTC time>/`` (:data:`EARLIER_PREFIX`); returns where it went."""
+    path = Path(path)
+    dest = _new_earlier_folder(path.parent)
+    try:
+        dest.mkdir()
+        path.rename(dest / path.name)
+    except OSError as e:
+        raise ImtuneError(f"cannot keep the earlier {path} aside in {dest} ({e.strerror or e}): move it away, then "
+                          "rerun") from None
+    return dest / path.name
+
+
+def earlier_test_line(result: dict) -> str | None:
+    """The warning line for a test result that set an earlier test.json of another test set aside, or None."""
+    e = result.get("earlier_test")
+    if not e:
+        return None
+    what = ", ".join(e.get("scenes") or []) or "other scenes"
+    return (f"the study's earlier test.json measured another test set ({what}; {e.get('pairs')} pairs): kept at "
+            f"{e.get('path')}, not replaced")
 
 
 def test_summary(result: dict) -> dict:

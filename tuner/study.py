@@ -749,4 +749,7 @@ def tune(s: TuneSettings) -> dict:
                                      max_pairs=s.max_pairs, progress=s.progress, reuse=not s.retest, jobs=s.jobs,
                                      workers=s.workers, reference=s.reference, ci_resamples=s.ci_resamples,
                                      gt_dir=s.gt_dir)
+    from tuner.freeze import earlier_test_line
+    if earlier_test_line(out["test"]):
+        s.warn(earlier_test_line(out["test"]))
     return out

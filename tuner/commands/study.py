@@ -436,6 +436,9 @@ def run_test_cmd(args) -> int:
         result = run_test(frozen, study_data_root(frozen, root), sdir, **kw)
     for note in result.get("notes") or []:
         print(f"warning: test {note}", file=sys.stderr, flush=True)
+    from tuner.freeze import earlier_test_line
+    if earlier_test_line(result):
+        _warn(earlier_test_line(result))
     held_in = [n for n in (_scenes(args.scenes) or []) if n in ((frozen.get("data") or {}).get("val_scenes") or [])]
     if held_in:  # as `tune run` warns for --test-scenes
         print(f"warning: test scene {', '.join(held_in)} is also a validation scene of study {args.study}: its test "
