@@ -202,8 +202,8 @@ def _load(path: Path, base: PipelineConfig | None) -> ConfigFile:
     where = str(path)
     if "config_common" in d:
         conf = config_from_imc(d, where)
-        return ConfigFile(conf, f"{d['config_common'].get('json_label') or path.stem}: {config_label(conf)}", "imc",
-                          path=path)
+        common = d["config_common"] or {}  # null is read as {} (the defaults), as config_from_imc reads it
+        return ConfigFile(conf, f"{common.get('json_label') or path.stem}: {config_label(conf)}", "imc", path=path)
     if isinstance(d.get("config"), dict):
         conf = pipeline_from_dict(d["config"], base, where)
         if "study" in d and "trial" in d:  # a frozen.yaml

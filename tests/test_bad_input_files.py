@@ -819,6 +819,17 @@ def test_integral_floats_in_a_config_are_integers(tmp_path, data3):
     assert (type(conf.feature.num_features), type(conf.geometry.max_iters), type(conf.geometry.seed)) == (int,) * 3
 
 
+
+def test_imc_method_with_config_common_null_is_read_as_empty(tmp_path, data3):
+    """``"config_common": null`` was taken as no section when reading the method, then an internal error
+    (AttributeError: 'NoneType' object has no attribute 'get') when labelling it."""
+    f = tmp_path / "m.json"
+    f.write_text('{"config_common": null, %s}\n' % (_IMC_STEREO % ""))
+    r = tune("evaluate", "--config", f, "--data", data3, "--num-features", "512", "--quiet", "--jobs", "1",
+             "--ci", "none", env={"IMTUNE_CACHE": str(tmp_path / "cache")})
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert f"config {f} (m: sift" in r.stdout.splitlines()[0], r.stdout[:500]
+
 # -- tune plot --out that cannot be written ---------------------------------------------------------------
 
 @pytest.mark.parametrize("page", [["--study", "plots-a"], ["--pareto", "plots-a"]])
