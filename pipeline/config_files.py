@@ -125,6 +125,10 @@ def config_from_imc(method: dict, where: str = "IMC method") -> PipelineConfig:
         raise ImtuneError(f"{where}: {e}") from None
 
 
+#: the benchmark's matcher.symmetric.reduce values (its validator takes these two) -> imtune strategies
+IMC_REDUCE = {"both": "both", "any": "either"}
+
+
 def _section(d: dict, key: str, what: str) -> dict:
     v = d.get(key)
     if v is None:
@@ -153,6 +157,7 @@ def _imc(method: dict) -> PipelineConfig:
         ratio = 1.0  # IMC's r above 1 tests nothing, as r = 1 (nan is no number > 1: MatchConfig rejects it)
     sym = _section(m, "symmetric", f"{key}.matcher.symmetric")
     strategy = str(sym.get("reduce", "both")) if sym.get("enabled", True) else "uni"
+    strategy = IMC_REDUCE.get(strategy.lower(), strategy)
     mc = MatchConfig(ratio=float(ratio) if isinstance(ratio, int) and not isinstance(ratio, bool) else ratio,
                      strategy=strategy, fginn="fginn" in str(filt.get("type", "")),
                      method="flann" if m.get("flann") else "exact")

@@ -120,6 +120,23 @@ def test_imc_method_json(data, cache, tmp_path):
     assert c["feature"]["num_features"] == 256 and out["stereo"]["NF"] <= 256
 
 
+
+def test_imc_method_json_reduce_any_is_the_union(data, cache, tmp_path):
+    """The benchmark's symmetric matching takes reduce "both" (mutual) or "any" (the union of both directions:
+    imtune's either); "any" was refused as "unknown matching strategy 'any'"."""
+    imc = tmp_path / "method.json"
+    method = {"config_common": {"descriptor": "sift", "num_keypoints": 256},
+              "config_phototourism_stereo": {"matcher": {"filtering": {"type": "snn_ratio_pairwise", "threshold": 0.9},
+                                                         "symmetric": {"enabled": True, "reduce": "any"}},
+                                             "geom": {"method": "cmp-degensac-f", "threshold": 0.75, "max_iter": 1000}}}
+    imc.write_text(json.dumps(method))
+    union = ok(evaluate(data, cache, "--config", str(imc)))
+    assert union["config"]["matching"]["strategy"] == "either"
+    method["config_phototourism_stereo"]["matcher"]["symmetric"]["reduce"] = "both"
+    imc.write_text(json.dumps(method))
+    mutual = ok(evaluate(data, cache, "--config", str(imc)))
+    assert mutual["config"]["matching"]["strategy"] == "both" and union["stereo"]["NM"] > mutual["stereo"]["NM"]
+
 def test_feature_option_changes_the_extracted_features(data, cache, tmp_path):
     """SIFT at the paper's lowered contrast threshold (1e-5) fills the 2048 budget on these 1536 x 1024
     images; at contrast_threshold=0.1 far fewer DoG extrema pass. From the command line and from a file."""
