@@ -127,6 +127,8 @@ def config_from_imc(method: dict, where: str = "IMC method") -> PipelineConfig:
 
 #: the benchmark's matcher.symmetric.reduce values (its validator takes these two) -> imtune strategies
 IMC_REDUCE = {"both": "both", "any": "either"}
+#: the benchmark's outlier_filter methods -> imtune pre-filters (cne: listed, needs trained weights)
+IMC_OUTLIER_FILTERS = {"none": "none", "cne-bp-nd": "cne"}
 
 
 def _section(d: dict, key: str, what: str) -> dict:
@@ -161,6 +163,12 @@ def _imc(method: dict) -> PipelineConfig:
     mc = MatchConfig(ratio=float(ratio) if isinstance(ratio, int) and not isinstance(ratio, bool) else ratio,
                      strategy=strategy, fginn="fginn" in str(filt.get("type", "")),
                      method="flann" if m.get("flann") else "exact")
+    of = _section(task, "outlier_filter", f"{key}.outlier_filter")
+    of_method = str(of.get("method", "none")).lower()
+    if of_method not in IMC_OUTLIER_FILTERS:
+        raise ImtuneError(f"{key}.outlier_filter: method {of.get('method')!r} is not supported "
+                          f"(supported: {', '.join(IMC_OUTLIER_FILTERS)})")
+    mc = dataclasses.replace(mc, prefilter=IMC_OUTLIER_FILTERS[of_method])
     gc = GeometryConfig(**imc_geom_to_config(task.get("geom") or {}))
     return PipelineConfig(feature=fc, matching=mc, geometry=gc)
 

@@ -790,6 +790,13 @@ BAD_CONFIG_VALUES = {  # name: (file name, text, what the error line says)
                                      '{"method": "cmp-degensac-f", "threshold": "x"}}}', "inlier threshold must be a number"),
     "imc-max-iter-fraction": ("m.json", '{"config_common": {}, "config_phototourism_stereo": {"geom": '
                                         '{"method": "cmp-degensac-f", "max_iter": 1000.5}}}', "max-iters must be an integer"),
+    # the outlier filter was ignored: the method evaluated without its CNe, unsaid
+    "imc-outlier-filter-cne": ("m.json", '{"config_common": {}, %s}' % (_IMC_STEREO % ', "outlier_filter": '
+                                                                         '{"method": "cne-bp-nd"}'),
+                               "cne needs trained weights"),
+    "imc-outlier-filter-unknown": ("m.json", '{"config_common": {}, %s}' % (_IMC_STEREO % ', "outlier_filter": '
+                                                                             '{"method": "magic"}'),
+                                   "outlier_filter: method 'magic' is not supported (supported: none, cne-bp-nd)"),
 }
 
 
