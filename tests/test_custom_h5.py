@@ -169,6 +169,8 @@ def test_bad_features(mini, good, tmp_path, cache_dir, file, key, fn, needle):
     (lambda a: None, "no key"),
     (lambda a: a[:1], "(2, M)"),
     (lambda a: a.astype(np.float32) + 0.5, "integers"),
+    # a match given twice counted twice in NM and NI (and weighed twice by the estimator), unsaid
+    (lambda a: np.hstack([a, a[:, 2:5]]), "3 duplicate matches"),
 ])
 def test_bad_matches(mini, good, tmp_path, cache_dir, mutate, needle):
     byo, scene_dir = copy_of(good, tmp_path)

@@ -15,7 +15,7 @@ pre-filter, if set, still applies, then the estimator. The indices refer to *all
 keypoint count (checked: a count mismatch is an error, never a silent misalignment).
 
 Errors (one line naming the file and key): missing file, missing pair key, wrong shape, non-integer
-indices, an index out of range.
+indices, an index out of range, a match listed twice.
 """
 from __future__ import annotations
 
@@ -122,6 +122,11 @@ def _read_pair(path: Path, name_i: str, name_j: str) -> tuple[np.ndarray, str]:
         if not (np.issubdtype(a.dtype, np.floating) and np.all(np.isfinite(a)) and np.all(a == np.round(a))):
             raise ImtuneError(f"{path}: key {key!r}: match indices must be integers, got {a.dtype}")
     a = a.astype(np.int64)
+    uniq, first, counts = np.unique(a.T, axis=0, return_index=True, return_counts=True)
+    if len(uniq) < a.shape[1]:  # each copy counted in NM and NI and weighed again by the estimator
+        d = int(np.argmin(np.where(counts > 1, first, a.shape[1])))
+        raise ImtuneError(f"{path}: key {key!r}: {a.shape[1] - len(uniq)} duplicate matches (e.g. {int(uniq[d, 0])}, "
+                          f"{int(uniq[d, 1])} listed {int(counts[d])} times): list each match once")
     if swap:
         a = a[::-1]
     _MEMO[memo] = (np.ascontiguousarray(a.T), key)
