@@ -535,6 +535,20 @@ def test_a_fixed_gamma_says_no_gamma_max_was_calibrated(tiny, tmp_path, capsys):
     assert "Gamma_max = None" not in html and "Gamma_max not calibrated (max_iters fixed)" in html
 
 
+
+def test_fix_max_iters_calibrated_pins_gamma_to_the_calibrated_gamma_max(tiny, tmp_path, capsys):
+    """--fix max_iters=calibrated (accepted by the --fix check, documented in tuner/space.py) made no
+    calibration, then 'internal error: TypeError: int() argument must be ... not NoneType'."""
+    import yaml
+    st = tmp_path / "st"
+    rc, out, err = _cli(["run", "--data", tiny, *FAST, "--studies-dir", st, "--fix", "max_iters=calibrated",
+                         "--calibration-pairs", "1", "--no-test", "--n-trials", "1", "--study", "calibrated-gamma"],
+                        capsys)
+    assert rc == 0, err
+    frozen = yaml.safe_load((st / "calibrated-gamma" / "frozen.yaml").read_text())
+    gmax = frozen["budget"]["gamma_max"]
+    assert isinstance(gmax, int) and frozen["fixed"]["max_iters"] == frozen["config"]["geometry"]["max_iters"] == gmax
+
 # ------------------------------------------------------------------------------ viz --bag on stereo figures
 
 @pytest.mark.parametrize("extra, what", [([], "--task stereo draws stereo pairs"),

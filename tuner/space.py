@@ -121,6 +121,8 @@ class SearchSpace:
     @property
     def needs_calibration(self) -> bool:
         p = self.params.get("max_iters")
+        if self.fixed.get("max_iters") == CALIBRATED:  # --fix max_iters=calibrated: Gamma_max(B) itself
+            return True
         return p is not None and (p.high == CALIBRATED or p.low == CALIBRATED)
 
     def resolve(self, gamma_max: int | None) -> "SearchSpace":
