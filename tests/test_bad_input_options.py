@@ -549,6 +549,16 @@ def test_fix_max_iters_calibrated_pins_gamma_to_the_calibrated_gamma_max(tiny, t
     gmax = frozen["budget"]["gamma_max"]
     assert isinstance(gmax, int) and frozen["fixed"]["max_iters"] == frozen["config"]["geometry"]["max_iters"] == gmax
 
+
+def test_pareto_span_without_a_pareto_objective_is_refused(tiny, tmp_path, capsys):
+    """--pareto-span sizes a pareto study's Gamma range; on an mAA10 study it was ignored, unsaid. One line before
+    any work (no storage made)."""
+    st = tmp_path / "st"
+    rc, _, err = _cli(["run", "--data", tiny, *FAST, "--studies-dir", st, "--pareto-span", "2", "--no-test",
+                       "--n-trials", "1", "--fix", "max_iters=500"], capsys)
+    _one_line_error(rc, err, "--pareto-span 2 applies to a pareto study only", "add --objective pareto")
+    assert not (st / "optuna.db").exists()
+
 # ------------------------------------------------------------------------------ viz --bag on stereo figures
 
 @pytest.mark.parametrize("extra, what", [([], "--task stereo draws stereo pairs"),

@@ -126,8 +126,8 @@ def register(sub) -> None:
                    help="mAA10: maximize mAA(10°) within the budget B; pareto: a two-objective study (maximize "
                         "mAA(10°), minimize median estimator seconds per pair; no pruning), named <default>-pareto; "
                         "`tune plot` draws its front, freeze takes its best trial within B")
-    t.add_argument("--pareto-span", type=positive_float, default=4.0,
-                   help="pareto: search Gamma up to Gamma_max(span x B), so that the front reaches past B")
+    t.add_argument("--pareto-span", type=positive_float, default=None,
+                   help="pareto: search Gamma up to Gamma_max(span x B), so that the front reaches past B (default 4)")
     add_multiview_options(ap)
     add_ci_options(ap)
     add_jobs_option(t)
@@ -223,7 +223,10 @@ def _jsonable(o):
 
 def settings_from_args(args):
     """TuneSettings from the `tune run` options."""
-    from tuner.study import TuneSettings
+    from tuner.study import PARETO_SPAN, TuneSettings
+    if args.pareto_span is not None and args.objective != "pareto":  # it was ignored, unsaid
+        raise ImtuneError(f"--pareto-span {args.pareto_span:g} applies to a pareto study only: add --objective pareto, "
+                          "or drop --pareto-span")
     base = build_config(args, ratio=1.0, threshold=0.5, max_iters=1000,
                         seed=args.seed if args.seed is not None else 0)
     from tuner.options import multiview_config
@@ -242,7 +245,8 @@ def settings_from_args(args):
         calibration_pairs=args.calibration_pairs, recalibrate=args.recalibrate, progress=not quiet,
         test=not args.no_test, test_runs=args.test_runs, retest=args.retest, multiview=mv, workers=args.workers,
         jobs=args.jobs, warm_start=list(args.warm_start),
-        gt_dir=args.gt_dir, objective=args.objective, pareto_span=args.pareto_span, select=args.select,
+        gt_dir=args.gt_dir, objective=args.objective,
+        pareto_span=PARETO_SPAN if args.pareto_span is None else args.pareto_span, select=args.select,
         reference=resolve_reference(args.reference, _studies_dir(args)), ci_resamples=ci_resamples(args))
 
 
