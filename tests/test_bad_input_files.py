@@ -124,6 +124,18 @@ def test_a_device_or_folder_as_config_file_is_never_read(tmp_path):
     one_line_error(tune("evaluate", "--config", tmp_path), str(tmp_path), "is a folder")
 
 
+
+def test_a_folder_named_splits_yaml_is_named_not_skipped(tmp_path, data3):
+    """A folder at <data>/splits.yaml was skipped as if there were no splits file: the default split was used
+    (here fountain-P11 tuned on) without a word of the folder."""
+    import shutil
+    data = tmp_path / "data"
+    shutil.copytree(data3, data)
+    (data / "splits.yaml" / "inside").mkdir(parents=True)
+    r = tune("data", "scenes", "--data", data)
+    one_line_error(r, f"splits file {data / 'splits.yaml'} is a folder")
+    assert (data / "splits.yaml" / "inside").is_dir()
+
 @pytest.mark.parametrize("text,needle,hint", [
     ("feature: sift\nmax_iters: 1e5\n", "max-iters must be a number, got '1e5'", "write 1.0e+5 or 100000"),
     ("geometry: {ransac: degensac, threshold: 5e-1}\n", "got '5e-1'", "write 5.0e-1 or 0.5"),

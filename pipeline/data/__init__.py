@@ -9,6 +9,7 @@ A root whose sub-folders are scenes of different formats is "mixed"; each scene 
 """
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from types import ModuleType
 
@@ -139,7 +140,7 @@ def default_splits(data_root: str | Path) -> dict[str, list[str]]:
     scenes = list(cat)
     if not scenes:
         raise ImtuneError(f"no dataset recognised in {root} (formats: {', '.join(FORMATS)})")
-    if (root / SPLITS_FILE).is_file():
+    if os.path.lexists(root / SPLITS_FILE):  # a folder (or a broken link) there is named, not skipped for the default
         return _read_splits(root / SPLITS_FILE, scenes)
     val = [s for s in STRECHA_VAL if cat.get(s) == strecha.NAME]
     if not val:
