@@ -136,6 +136,15 @@ def test_a_folder_named_splits_yaml_is_named_not_skipped(tmp_path, data3):
     one_line_error(r, f"splits file {data / 'splits.yaml'} is a folder")
     assert (data / "splits.yaml" / "inside").is_dir()
 
+
+def test_a_folder_named_imtune_yaml_is_named_not_skipped(tmp_path, data3):
+    """A folder at ./imtune.yaml was skipped for the next rule (the project's imtune.yaml, the download location,
+    ../shared/data): another data folder was used without a word of it."""
+    cwd = tmp_path / "cwd"
+    (cwd / "imtune.yaml" / "inside").mkdir(parents=True)
+    r = tune("data", "scenes", env={"IMTUNE_DATA": None}, cwd=cwd)
+    one_line_error(r, f"project configuration {cwd / 'imtune.yaml'} is a folder")
+
 @pytest.mark.parametrize("text,needle,hint", [
     ("feature: sift\nmax_iters: 1e5\n", "max-iters must be a number, got '1e5'", "write 1.0e+5 or 100000"),
     ("geometry: {ransac: degensac, threshold: 5e-1}\n", "got '5e-1'", "write 5.0e-1 or 0.5"),

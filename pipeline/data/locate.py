@@ -66,7 +66,7 @@ def project_config() -> tuple[dict, Path | None]:
     """The first ``imtune.yaml`` found (cwd, then project root), parsed (:func:`pipeline.fileio.load_yaml`), and its
     path."""
     for p in (Path.cwd() / CONFIG_FILE, PROJECT_ROOT / CONFIG_FILE):
-        if p.is_file():
+        if os.path.lexists(p):  # a folder (or a broken link) there is named, not skipped for the next rule
             from pipeline.fileio import load_yaml, read_text
             text = read_text(p, "project configuration")
             try:
