@@ -160,9 +160,15 @@ def _imc(method: dict) -> PipelineConfig:
     sym = _section(m, "symmetric", f"{key}.matcher.symmetric")
     strategy = str(sym.get("reduce", "both")) if sym.get("enabled", True) else "uni"
     strategy = IMC_REDUCE.get(strategy.lower(), strategy)
-    mc = MatchConfig(ratio=float(ratio) if isinstance(ratio, int) and not isinstance(ratio, bool) else ratio,
+    def num(v):  # an integer as the float field it fills; anything else as written (MatchConfig checks it)
+        return float(v) if isinstance(v, int) and not isinstance(v, bool) else v
+    ddf = _section(m, "descriptor_distance_filter", f"{key}.matcher.descriptor_distance_filter")
+    extra = {"distance_threshold": num(ddf["threshold"])} if ddf.get("threshold") is not None else {}
+    if "fginn" in str(filt.get("type", "")) and filt.get("fginn_radius") is not None:
+        extra["fginn_px"] = num(filt["fginn_radius"])
+    mc = MatchConfig(ratio=num(ratio),
                      strategy=strategy, fginn="fginn" in str(filt.get("type", "")),
-                     method="flann" if m.get("flann") else "exact")
+                     method="flann" if m.get("flann") else "exact", **extra)
     of = _section(task, "outlier_filter", f"{key}.outlier_filter")
     of_method = str(of.get("method", "none")).lower()
     if of_method not in IMC_OUTLIER_FILTERS:

@@ -137,6 +137,22 @@ def test_imc_method_json_reduce_any_is_the_union(data, cache, tmp_path):
     mutual = ok(evaluate(data, cache, "--config", str(imc)))
     assert mutual["config"]["matching"]["strategy"] == "both" and union["stereo"]["NM"] > mutual["stereo"]["NM"]
 
+
+def test_imc_method_json_fginn_radius_and_distance_filter_are_used(data, cache, tmp_path):
+    """The matcher's filtering.fginn_radius and descriptor_distance_filter.threshold were read as nothing: FGINN at
+    10 px and no distance filter, unsaid."""
+    imc = tmp_path / "method.json"
+    imc.write_text(json.dumps({"config_common": {"descriptor": "sift", "num_keypoints": 256},
+                               "config_phototourism_stereo": {
+                                   "matcher": {"filtering": {"type": "fginn_ratio_pairwise", "threshold": 0.9,
+                                                             "fginn_radius": 15},
+                                               "descriptor_distance_filter": {"threshold": 150},
+                                               "symmetric": {"enabled": True, "reduce": "both"}},
+                                   "geom": {"method": "cmp-degensac-f", "threshold": 0.75, "max_iter": 1000}}}))
+    out = ok(evaluate(data, cache, "--config", str(imc)))
+    m = out["config"]["matching"]
+    assert (m["fginn"], m["fginn_px"], m["distance_threshold"]) == (True, 15.0, 150.0), m
+
 def test_feature_option_changes_the_extracted_features(data, cache, tmp_path):
     """SIFT at the paper's lowered contrast threshold (1e-5) fills the 2048 budget on these 1536 x 1024
     images; at contrast_threshold=0.1 far fewer DoG extrema pass. From the command line and from a file."""
