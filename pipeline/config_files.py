@@ -127,6 +127,8 @@ def config_from_imc(method: dict, where: str = "IMC method") -> PipelineConfig:
 
 #: the benchmark's matcher.symmetric.reduce values (its validator takes these two) -> imtune strategies
 IMC_REDUCE = {"both": "both", "any": "either"}
+#: the benchmark's matcher.filtering types (with num_nn 1 its snn_ratio_vs_last compares with the second neighbour)
+IMC_FILTERING = ("none", "snn_ratio_pairwise", "snn_ratio_vs_last", "fginn_ratio_pairwise")
 #: the benchmark's outlier_filter methods -> imtune pre-filters (cne: listed, needs trained weights)
 IMC_OUTLIER_FILTERS = {"none": "none", "cne-bp-nd": "cne"}
 
@@ -154,6 +156,16 @@ def _imc(method: dict) -> PipelineConfig:
     fc = FeatureConfig(name=name, num_features=common.get("num_keypoints", 8000))
     m = _section(task, "matcher", f"{key}.matcher")
     filt = _section(m, "filtering", f"{key}.matcher.filtering")
+    ftype = str(filt.get("type", "none")).lower()
+    if ftype not in IMC_FILTERING:  # was no ratio test at all (an unknown type) or the pairwise one, unsaid
+        raise ImtuneError(f"{key}.matcher.filtering: type {filt.get('type')!r} is not supported "
+                          f"(supported: {', '.join(IMC_FILTERING)})")
+    if str(m.get("distance", "l2")).lower() == "l1":
+        raise ImtuneError(f"{key}.matcher: distance 'L1' is not supported (imtune matches float descriptors by L2, "
+                          "binary ones by Hamming)")
+    if m.get("num_nn", 1) != 1:  # the benchmark then keeps up to num_nn matches per keypoint
+        raise ImtuneError(f"{key}.matcher: num_nn {m['num_nn']!r} is not supported (imtune keeps the nearest "
+                          "neighbour only: num_nn 1)")
     ratio = filt.get("threshold", 1.0) if "ratio" in str(filt.get("type", "")) else 1.0
     if isinstance(ratio, (int, float)) and not isinstance(ratio, bool) and ratio > 1.0:
         ratio = 1.0  # IMC's r above 1 tests nothing, as r = 1 (nan is no number > 1: MatchConfig rejects it)

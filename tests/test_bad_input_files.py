@@ -815,6 +815,14 @@ BAD_CONFIG_VALUES = {  # name: (file name, text, what the error line says)
     "imc-outlier-filter-cne": ("m.json", '{"config_common": {}, %s}' % (_IMC_STEREO % ', "outlier_filter": '
                                                                          '{"method": "cne-bp-nd"}'),
                                "cne needs trained weights"),
+    # an unknown filtering type was no ratio test at all, L1 was L2, num_nn 3 one neighbour: each unsaid
+    "imc-filtering-type-unknown": ("m.json", '{"config_common": {}, %s}' % (_IMC_STEREO % ', "matcher": {"filtering": '
+                                                                             '{"type": "snn_ratio", "threshold": 0.8}}'),
+                                   "filtering: type 'snn_ratio' is not supported"),
+    "imc-distance-l1": ("m.json", '{"config_common": {}, %s}' % (_IMC_STEREO % ', "matcher": {"distance": "L1"}'),
+                        "matcher: distance 'L1' is not supported"),
+    "imc-num-nn-3": ("m.json", '{"config_common": {}, %s}' % (_IMC_STEREO % ', "matcher": {"num_nn": 3}'),
+                     "matcher: num_nn 3 is not supported"),
     "imc-outlier-filter-unknown": ("m.json", '{"config_common": {}, %s}' % (_IMC_STEREO % ', "outlier_filter": '
                                                                              '{"method": "magic"}'),
                                    "outlier_filter: method 'magic' is not supported (supported: none, cne-bp-nd)"),
