@@ -136,6 +136,22 @@ def test_cli_custom_features_and_matches(mini, good, tmp_path):
     assert len(r.stderr.strip().splitlines()) == 1
 
 
+def test_cli_custom_matches_say_no_ratio_test_and_refuse_matcher_options(mini, good, tmp_path):
+    """Imported matches skip the matcher, yet the run was labelled (and recorded) with the default r 0.85, and a
+    typed --ratio / --fginn / --strategy / --matcher was accepted and ignored."""
+    base = ["evaluate", "--feature", f"custom:{good}", "--matches", f"custom:{good}", "--num-features", str(K),
+            "--max-iters", "2000", "--data", str(mini), "--scenes", SCENE, "--quiet", "--ci", "none"]
+    env = {"IMTUNE_CACHE": str(tmp_path / "c")}
+    r = tune(*base, "--json", env=env)
+    assert r.returncode == 0, r.stderr
+    m = json.loads(r.stdout)["config"]["matching"]
+    assert (m["ratio"], m["strategy"], m["fginn"], m["distance_threshold"]) == (1.0, "both", False, None), m
+    for opt in (["--ratio", "0.8"], ["--fginn"], ["--strategy", "uni"], ["--matcher", "flann"]):
+        r = tune(*base, *opt, env=env)
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1, r.stderr
+        assert f"{opt[0]} does not apply with --matches custom:DIR" in lines[0] and "drop it" in lines[0], lines
+
 def _corrupt(path: Path, key: str, fn):
     with h5py.File(path, "a") as f:
         a = f[key][()]

@@ -63,6 +63,10 @@ def add_pipeline_options(ap: argparse.ArgumentParser, tuning: bool = False) -> N
     o.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
+#: the matcher's options (argparse dests) -> their values when imported matches skip the matcher (r = 1: no test)
+MATCHER_OPTIONS = {"ratio": 1.0, "strategy": "both", "distance_threshold": None, "fginn": False, "matcher": "exact"}
+
+
 def build_config(args: argparse.Namespace, **overrides) -> PipelineConfig:
     """PipelineConfig from parsed options; ``overrides`` (ratio, threshold, max_iters, strategy, ...)
     win over the options. Validates names against the registries (one-line error if unknown)."""
@@ -83,6 +87,12 @@ def build_config(args: argparse.Namespace, **overrides) -> PipelineConfig:
     custom_matches = parse_matches_source(v.get("matches"))
     if custom_matches and not str(v["feature"]).startswith(PREFIX):
         raise ImtuneError("--matches custom:DIR needs --feature custom:DIR (the match indices refer to those keypoints)")
+    if custom_matches:  # the matcher is skipped: its options were ignored, and r=0.85 shown for a run with no ratio test
+        typed = [o for o in MATCHER_OPTIONS if o in explicit_options(args) and o not in overrides]
+        if typed:
+            raise ImtuneError(f"--{typed[0].replace('_', '-')} does not apply with --matches custom:DIR: imported matches "
+                              "skip the matcher (no ratio test, strategy, distance threshold, FGINN); drop it")
+        v.update(MATCHER_OPTIONS)
     fc = FeatureConfig(name=v["feature"], num_features=int(v["num_features"]), low_threshold=not v["no_low_threshold"],
                        upright=bool(v["upright"] or v["upright_plus"]), upright_plus=bool(v["upright_plus"]),
                        clahe=v["clahe"], mr_size=v["mr_size"], max_side=int(v["max_side"]),
