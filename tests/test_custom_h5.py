@@ -152,6 +152,19 @@ def test_cli_custom_matches_say_no_ratio_test_and_refuse_matcher_options(mini, g
         assert r.returncode == 2 and len(lines) == 1, r.stderr
         assert f"{opt[0]} does not apply with --matches custom:DIR" in lines[0] and "drop it" in lines[0], lines
 
+@pytest.mark.parametrize("fix", ["ratio=0.7", "strategy=either"])
+def test_run_with_custom_matches_refuses_a_matcher_fix(fix, mini, good, tmp_path):
+    """--fix ratio=0.7 with --matches said "--fix ratio is given twice (ratio=0.7 and ratio=1.0)": given once by the
+    user, the other pin was the one --matches makes. Now the cause, before any work (no storage made)."""
+    st = tmp_path / "st"
+    r = tune("run", "--feature", f"custom:{good}", "--matches", f"custom:{good}", "--num-features", str(K),
+             "--data", str(mini), "--studies-dir", str(st), "--fix", fix, "--fix", "max_iters=1000", "--n-trials", "1",
+             "--no-test", "--quiet", env={"IMTUNE_CACHE": str(tmp_path / "c")})
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert f"--fix {fix} does not apply with --matches custom:DIR" in lines[0] and "drop it" in lines[0], lines
+    assert not (st / "optuna.db").exists()
+
 def _corrupt(path: Path, key: str, fn):
     with h5py.File(path, "a") as f:
         a = f[key][()]

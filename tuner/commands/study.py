@@ -227,6 +227,10 @@ def settings_from_args(args):
     if args.pareto_span is not None and args.objective != "pareto":  # it was ignored, unsaid
         raise ImtuneError(f"--pareto-span {args.pareto_span:g} applies to a pareto study only: add --objective pareto, "
                           "or drop --pareto-span")
+    pinned = [f for f in args.fix if f.partition("=")[0].strip() in ("ratio", "strategy")]
+    if getattr(args, "matches", None) and pinned:  # was "--fix ratio is given twice (ratio=0.7 and ratio=1.0)"
+        raise ImtuneError(f"--fix {pinned[0].strip()} does not apply with --matches custom:DIR: imported matches skip the "
+                          "matcher (ratio and strategy are fixed at r=1 both); drop it")
     base = build_config(args, ratio=1.0, threshold=0.5, max_iters=1000,
                         seed=args.seed if args.seed is not None else 0)
     from tuner.options import multiview_config
