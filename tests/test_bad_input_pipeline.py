@@ -54,6 +54,20 @@ def _damage(kind: str):
     return setup
 
 
+def _float_tiff(tmp: Path):
+    """The second image saved as a 32-bit float TIFF (a valid file libjpeg / libpng never see): it was "unreadable or
+    corrupt image" after OpenCV's own WARN line, two lines blaming the file."""
+    import cv2
+    data = _tiny_data(tmp)
+    scene = data / "fountain-P11"
+    p = scene / "images" / IMAGES[1]
+    tif = p.with_suffix(".tiff")
+    assert cv2.imwrite(str(tif), cv2.imread(str(p)).astype(np.float32) / 255)
+    p.unlink()
+    (scene / "gt_dense_cameras" / f"{IMAGES[1]}.camera").rename(scene / "gt_dense_cameras" / f"{tif.name}.camera")
+    return ["evaluate", "--data", str(data), *FAST, "--cache", str(tmp / "cache")], {}, f"image {tif} holds float32 samples"
+
+
 def _evaluate(*args, needle):
     def setup(tmp: Path):
         return ["evaluate", "--data", str(_tiny_data(tmp)), *FAST, "--cache", str(tmp / "cache"), *args], {}, needle
@@ -163,6 +177,7 @@ CASES = {
     "jpeg-middle-random": _damage("random"),
     "jpeg-truncated": _damage("truncated"),
     "jpeg-truncated-end-marker-appended": _damage("truncated-eoi"),
+    "float-tiff": _float_tiff,
     # item 6 (cache half): the cache folder is a file, or lies under one
     "cache-is-a-file": _cache_file("file"),
     "cache-under-a-file": _cache_file("under"),

@@ -63,8 +63,17 @@ def load_image(path: str | Path, max_side: int | None = 1024, gray: bool = True)
     check_image_bytes(path, data)
     check_jpeg_decode(path, data)
     flags = (cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR) | cv2.IMREAD_IGNORE_ORIENTATION
-    img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags)
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)  # its WARN line was a second line of the error
+    try:
+        img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags)
+    finally:
+        cv2.utils.logging.setLogLevel(level)
     if img is None or img.size == 0:
+        raw = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED) if img is None else None
+        if raw is not None and raw.size:  # decodes as stored, not as 8-bit: a 32-bit float TIFF was "corrupt"
+            raise ImtuneError(f"image {path} holds {raw.dtype} samples ({raw.shape[2] if raw.ndim == 3 else 1} "
+                              "channel(s)), which OpenCV does not convert to 8-bit: save it as 8- or 16-bit PNG / JPEG")
         raise ImtuneError(f"unreadable or corrupt image: {path}")
     if img.dtype != np.uint8:  # 16-bit PNG / TIFF
         img = (img / (np.iinfo(img.dtype).max / 255.0)).round().astype(np.uint8) if img.dtype.kind == "u" else \
