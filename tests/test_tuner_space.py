@@ -96,6 +96,10 @@ BAD = [
     ("params: {ratio: {low: 0.6, high: 1.0}}\nfeatures: {binary: {eta: {low: 1}}}", "unknown parameter features.binary.eta"),
     ("params: {ratio: {low: 0.6, high: 1.0}}\ncalibration: {ratio: 3}", "calibration.ratio"),
     ("params: {ratio: {low: 0.6, high: 1.0, grid: [0.5]}}", "grid value 0.5 outside"),
+    # Optuna moved high to 0.9 and took off-step grid values, with UserWarnings (file, line, source) on stderr
+    ("params: {ratio: {low: 0.6, high: 1.0, step: 0.3}}", "params.ratio: step 0.3 does not divide [0.6, 1.0]"),
+    ("params: {ratio: {low: 0.6, high: 0.9, step: 0.1, grid: [0.75]}}", "grid value 0.75 is not low 0.6 + a multiple"),
+    ("params: {max_iters: {low: 1000, high: 2000, step: 2.5}}", "step must be an integer for an int parameter"),
     ("params:\n  ratio: {low: 0.6, high: 1.0\n  threshold: 1", "invalid YAML (line"),
     ("params: {ratio: !!python/object/apply:os.system ['true']}", "invalid YAML"),
 ]
@@ -111,6 +115,18 @@ def test_bad_space_is_one_line_error(tmp_path, text, needle):
     assert str(p) in msg
     assert "\n" not in msg
 
+
+def test_default_grid_with_a_step_lies_on_the_step(tmp_path):
+    """The default grid (5 values over the range) ignored step: 0.675, 0.75, ... off Optuna's distribution, each a
+    UserWarning ('out of range of the parameter') and a trial at a value the space does not hold."""
+    import warnings
+    p = write(tmp_path, "params: {ratio: {low: 0.6, high: 0.9, step: 0.1}, threshold: 0.5, max_iters: 1000}")
+    space = load_space(p, feature="sift", estimator="degensac")
+    assert space.grid()["ratio"] == [0.6, 0.7, 0.8, 0.9]
+    dist = space.distributions()["ratio"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert all(dist._contains(dist.to_internal_repr(v)) for v in space.grid()["ratio"])
 
 def test_scalar_pins_and_categorical_strategy(tmp_path):
     p = write(tmp_path, """

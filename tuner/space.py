@@ -94,6 +94,8 @@ class Param:
         import numpy as np
         lo, hi = float(self.low), float(self.high)
         vals = np.geomspace(lo, hi, DEFAULT_GRID_POINTS) if self.log else np.linspace(lo, hi, DEFAULT_GRID_POINTS)
+        if self.step:  # on the step's values (a value between them is out of Optuna's distribution)
+            vals = sorted({lo + round((v - lo) / self.step) * self.step for v in vals})
         if self.type == "int":
             return sorted({int(round(v)) for v in vals})
         return [float(f"{v:.4g}") for v in vals]
@@ -197,6 +199,12 @@ def _check_value(name: str, value, where: str):
     return leaf(name, where).check(value, where)
 
 
+def _on_step(v, low, step) -> bool:
+    """``v`` is ``low`` + a whole number of ``step`` (to rounding)."""
+    k = (v - low) / step
+    return abs(k - round(k)) <= 1e-9 * max(1.0, abs(k))
+
+
 def _check_param(name: str, d, where: str):
     """A validated Param, or a fixed value when ``d`` is a scalar."""
     w = f"{where}: params.{name}"
@@ -251,6 +259,12 @@ def _check_param(name: str, d, where: str):
         high = high if high == CALIBRATED else int(high)
     if low != CALIBRATED and high != CALIBRATED and low > high:
         raise ImtuneError(f"{w}: low {low} > high {high}")
+    if step is not None and t == "int" and float(step) != int(step):
+        raise ImtuneError(f"{w}: step must be an integer for an int parameter, got {step!r}")
+    stepped = step is not None and CALIBRATED not in (low, high)
+    if stepped and not _on_step(high, low, step):  # Optuna moved high (and off-step grid values), with warnings
+        raise ImtuneError(f"{w}: step {step} does not divide [{low}, {high}]: make high - low a multiple of step "
+                          f"(e.g. high {low + math.floor((high - low) / step) * step:.6g})")
     if low == CALIBRATED and high != CALIBRATED:
         raise ImtuneError(f"{w}: low is 'calibrated' but high is not")
     for k, v in (("low", low), ("high", high)):
@@ -271,6 +285,8 @@ def _check_param(name: str, d, where: str):
             g = _check_value(name, _num(w, "grid value", g), f"{w}.grid")
             if (low != CALIBRATED and g < low) or (high != CALIBRATED and g > high):
                 raise ImtuneError(f"{w}: grid value {g} outside [{low}, {high}]")
+            if stepped and not _on_step(g, low, step):
+                raise ImtuneError(f"{w}: grid value {g} is not low {low} + a multiple of step {step}")
             checked.append(g)
         grid = checked
     return Param(name=name, type=t, low=low, high=high, log=log, step=step, grid=grid)
