@@ -571,3 +571,21 @@ def test_viz_bag_without_the_multiview_task_is_refused(extra, what, tiny, tmp_pa
                        "--out", out, "--cache", tmp_path / "cache", *extra], capsys)
     _one_line_error(rc, err, "--bag 5:0", what, "add --task multiview")
     assert not out.exists()
+
+
+@pytest.mark.parametrize("what", ["config", "study", "compare"])
+def test_viz_pipeline_option_beside_a_configuration_is_refused(what, tiny, tmp_path, capsys):
+    """`tune viz --config FILE --ratio 0.5` (or --study / --compare with a pipeline option) drew the file's or the
+    study's settings and ignored the typed option, unsaid. One line naming it, before any figure."""
+    conf = tmp_path / "a.yaml"
+    conf.write_text("feature: sift\nnum_features: 256\nratio: 0.8\n")
+    st = tmp_path / "st"
+    (st / "X").mkdir(parents=True)
+    (st / "X" / "frozen.yaml").write_text("study: X\ntrial: 0\nconfig:\n  feature: {name: sift, num_features: 256}\n")
+    src, opt = {"config": (["--config", conf], ["--ratio", "0.5"]), "study": (["--study", "X"], ["--num-features", "512"]),
+                "compare": (["--compare", conf, "X"], ["--ransac", "magsac"])}[what]
+    out = tmp_path / "figs"
+    rc, _, err = _cli(["viz", "--data", tiny, *src, *opt, "--studies-dir", st, "--out", out, "--cache",
+                       tmp_path / "cache"], capsys)
+    _one_line_error(rc, err, f"{opt[0]} does not apply with --{what}", "drop it")
+    assert not out.exists()

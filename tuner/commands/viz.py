@@ -74,6 +74,8 @@ def register(sub) -> None:
     f.add_argument("--layout", default="horizontal", choices=["horizontal", "vertical"],
                    help="images side by side (default) or one above the other")
     f.add_argument("--no-depth", action="store_true", help="epipolar distance even where depth maps exist")
+    from tuner.options import track_explicit
+    track_explicit(ap)  # a pipeline option typed beside --study / --config / --compare is refused, not ignored
     ap.set_defaults(func=run)
 
 
@@ -160,6 +162,14 @@ def viz(args: argparse.Namespace) -> dict:
         raise ImtuneError(f"give only one of --study, --config and --compare (got {got})")
     if args.width < 320:
         raise ImtuneError(f"--width must be at least 320 px, got {args.width}")
+    from tuner.options import OPTION_FIELDS, explicit_options
+    typed = [o for o in OPTION_FIELDS if o in explicit_options(args)]
+    if chosen and typed:  # the figures were drawn with the file's / study's settings, the typed one ignored, unsaid
+        drawn = {"study": "the study's frozen settings", "config": "the file's settings",
+                 "compare": "each configuration's settings"}[chosen[0]]
+        raise ImtuneError(f"--{typed[0].replace('_', '-')} does not apply with --{chosen[0]}: tune viz draws {drawn} "
+                          "as they are; drop it, or give the pipeline options alone (without --study / --config / "
+                          "--compare)")
     sdir = studies_dir(args.studies_dir)
     if args.compare:
         sources = [resolve_source(s, sdir) for s in args.compare]
