@@ -198,3 +198,20 @@ def test_imc2022_errors(tmp_path):
     covis.write_text(covis.read_text() + f"{IDS[0]}-99999999_1,0.5,\n")
     with pytest.raises(ImtuneError, match="pair_covisibility.csv, line 5.*99999999_1"):
         load_imc2022(tmp_path / "imc")
+
+
+@pytest.mark.parametrize("extra,needle", [
+    (lambda: f"{IDS[1]}-{IDS[0]},0.42,", "lines 2 and 5: the pair"),  # listed again, the other way round
+    (lambda: f"{IDS[0]}-{IDS[1]},0.42,", "lines 2 and 5: the pair"),  # listed again as it was
+    (lambda: f"{IDS[2]}-{IDS[2]},1.0,", "line 5: pair"),  # an image with itself
+])
+def test_imc2022_pair_listed_twice_or_with_itself_is_refused(tmp_path, extra, needle):
+    """pair_covisibility.csv listing a pair twice (either order) evaluated it twice: it counted twice in every mAA
+    (5 pairs evaluated for 3 images); an image paired with itself has no relative pose to estimate."""
+    write_imc2022(tmp_path / "imc")
+    covis = tmp_path / "imc" / "train" / "british_museum" / "pair_covisibility.csv"
+    covis.write_text(covis.read_text() + extra() + "\n")
+    with pytest.raises(ImtuneError) as e:
+        load_imc2022(tmp_path / "imc")
+    msg = str(e.value)
+    assert str(covis) in msg and needle in msg and "\n" not in msg, msg

@@ -106,9 +106,16 @@ def load_imc2022(root: Path, scene: str | None = None, verify: bool = True) -> S
     covis_path = sdir / COVIS
     if covis_path.is_file():
         pairs = []
+        first_line: dict[frozenset, int] = {}  # {idA, idB} -> the line that listed the pair first
         for line, row in _read_csv(covis_path, ("pair", "covisibility")):
             where = f"{covis_path}, line {line}"
             a, b = split_pair_key(row["pair"], set(id_to_name), where)
+            if a == b:  # no relative pose to estimate
+                raise ImtuneError(f"{where}: pair {row['pair']!r} pairs image {a} with itself: remove the line")
+            if frozenset((a, b)) in first_line:  # it would count twice in every mAA (as in a pairs file)
+                raise ImtuneError(f"{covis_path}, lines {first_line[frozenset((a, b))]} and {line}: the pair {a}-{b} is "
+                                  "listed twice (in either order): keep one of the lines")
+            first_line[frozenset((a, b))] = line
             c = float(parse_floats(row["covisibility"], 1, where)[0])
             pairs.append(Pair(id_to_name[a], id_to_name[b], covisibility=c))
     else:
