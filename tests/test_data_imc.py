@@ -215,3 +215,15 @@ def test_imc2022_pair_listed_twice_or_with_itself_is_refused(tmp_path, extra, ne
         load_imc2022(tmp_path / "imc")
     msg = str(e.value)
     assert str(covis) in msg and needle in msg and "\n" not in msg, msg
+
+
+def test_imc2022_image_listed_twice_in_calibration_is_refused(tmp_path):
+    """A second calibration.csv row for an image_id replaced the first one's K, R, t without a word."""
+    write_imc2022(tmp_path / "imc")
+    calib = tmp_path / "imc" / "train" / "british_museum" / "calibration.csv"
+    lines = calib.read_text().splitlines()
+    calib.write_text("\n".join(lines + [lines[1]]) + "\n")
+    with pytest.raises(ImtuneError) as e:
+        load_imc2022(tmp_path / "imc")
+    msg = str(e.value)
+    assert f"{calib}, lines 2 and 5: image_id {IDS[0]!r} is listed twice" in msg and "\n" not in msg, msg

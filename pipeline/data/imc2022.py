@@ -85,12 +85,17 @@ def load_imc2022(root: Path, scene: str | None = None, verify: bool = True) -> S
     calib_path = sdir / CALIB
     images: dict[str, ImageInfo] = {}
     id_to_name: dict[str, str] = {}
+    id_line: dict[str, int] = {}
     for line, row in _read_csv(calib_path, ("image_id", "camera_intrinsics", "rotation_matrix",
                                             "translation_vector")):
         where = f"{calib_path}, line {line}"
         image_id = row["image_id"]
         if not image_id:
             raise ImtuneError(f"{where}: empty image_id")
+        if image_id in id_line:  # the last row's K, R, t were used, unsaid
+            raise ImtuneError(f"{calib_path}, lines {id_line[image_id]} and {line}: image_id {image_id!r} is listed "
+                              "twice: keep one of the lines")
+        id_line[image_id] = line
         K = check_K(parse_floats(row["camera_intrinsics"], 9, f"{where} (camera_intrinsics)"), where)
         R = check_rotation(parse_floats(row["rotation_matrix"], 9, f"{where} (rotation_matrix)"), where)
         t = parse_floats(row["translation_vector"], 3, f"{where} (translation_vector)")
