@@ -178,6 +178,9 @@ CASES = {
     "jpeg-truncated": _damage("truncated"),
     "jpeg-truncated-end-marker-appended": _damage("truncated-eoi"),
     "float-tiff": _float_tiff,
+    # a pre-filter option given twice: the last one was used, unsaid
+    "prefilter-option-twice": _evaluate("--prefilter", "gms:threshold=1,threshold=2",
+                                        needle="option threshold is given twice"),
     # item 6 (cache half): the cache folder is a file, or lies under one
     "cache-is-a-file": _cache_file("file"),
     "cache-under-a-file": _cache_file("under"),

@@ -249,6 +249,8 @@ def parse_prefilter_spec(spec: str | None) -> tuple[str, tuple]:
         k, eq, val = item.partition("=")
         if not eq or not k.strip():
             raise ImtuneError(f"--prefilter {spec!r}: options are key=value pairs separated by commas")
+        if k.strip() in dict(opts):  # the last one was used, unsaid
+            raise ImtuneError(f"--prefilter {spec!r}: option {k.strip()} is given twice: give it once")
         opts.append((k.strip(), val.strip()))
     opts_t = tuple(sorted(opts))
     if name != "none":
