@@ -181,6 +181,15 @@ CASES = {
     # a pre-filter option given twice: the last one was used, unsaid
     "prefilter-option-twice": _evaluate("--prefilter", "gms:threshold=1,threshold=2",
                                         needle="option threshold is given twice"),
+    # pre-filter options out of range: an internal error inside kornia, or every match kept / dropped unsaid
+    "prefilter-adalam-ransac-iters-0": _evaluate("--prefilter", "adalam:ransac_iters=0",
+                                                 needle="prefilter 'adalam': option ransac_iters must be > 0"),
+    "prefilter-adalam-scale-rate-0": _evaluate("--prefilter", "adalam:scale_rate_threshold=0",
+                                               needle="option scale_rate_threshold must be > 0"),
+    "prefilter-adalam-threads-negative": _evaluate("--prefilter", "adalam:threads=-3",
+                                                   needle="option threads must be >= 0"),
+    "prefilter-gms-threshold-0": _evaluate("--prefilter", "gms:threshold=0",
+                                           needle="prefilter 'gms': option threshold must be > 0"),
     # item 6 (cache half): the cache folder is a file, or lies under one
     "cache-is-a-file": _cache_file("file"),
     "cache-under-a-file": _cache_file("under"),

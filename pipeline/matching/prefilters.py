@@ -84,6 +84,13 @@ class Prefilter(ABC):
         """Boolean mask (M,) over ``matches`` ((M, 2) int [i in image 1, j in image 2])."""
 
 
+def _check_positive(name: str, opts: dict, keys: tuple) -> None:
+    """Each of ``keys`` in ``opts`` is > 0 (one-line ImtuneError naming the pre-filter and the option)."""
+    for k in keys:
+        if not opts[k] > 0:
+            raise ImtuneError(f"prefilter {name!r}: option {k} must be > 0, got {opts[k]}")
+
+
 @PREFILTERS.register("none", "no pre-filter (default)")
 class NoFilter(Prefilter):
     def filter(self, matches, ctx):
@@ -94,6 +101,10 @@ class NoFilter(Prefilter):
 class GMS(Prefilter):
     """GMS (Bian et al., CVPR 2017) through ``cv2.xfeatures2d.matchGMS``."""
     option_defaults = {"rotation": False, "scale": False, "threshold": 6.0}
+
+    def __init__(self, name, options=()):
+        super().__init__(name, options)
+        _check_positive(name, self.opts, ("threshold",))  # <= 0 kept every match, unsaid
 
     @classmethod
     def check_available(cls) -> None:
@@ -147,6 +158,14 @@ class AdaLAM(Prefilter):
         super().__init__(name, options)
         if self.opts["putative"] not in ("tentative", "nn"):
             raise ImtuneError(f"adalam: option putative must be tentative or nn, got {self.opts['putative']!r}")
+        # out of range they were an internal error inside kornia (ransac_iters=0, scale_rate_threshold=0, threads<0)
+        # or a silent nonsense (area_ratio=0 emptied every pair, min_inliers=-5)
+        _check_positive(name, self.opts, ("area_ratio", "search_expansion", "ransac_iters", "min_inliers",
+                                          "min_confidence", "orientation_difference_threshold",
+                                          "scale_rate_threshold", "detected_scale_rate_threshold"))
+        if self.opts["threads"] < 0:
+            raise ImtuneError(f"prefilter {name!r}: option threads must be >= 0 (0: torch's default), "
+                              f"got {self.opts['threads']}")
 
     def _config(self, ctx: PairContext) -> dict:
         import torch
