@@ -188,6 +188,8 @@ CASES = {
                                                needle="option scale_rate_threshold must be > 0"),
     "prefilter-adalam-threads-negative": _evaluate("--prefilter", "adalam:threads=-3",
                                                    needle="option threads must be >= 0"),
+    # a bag size given twice: the last count was used, unsaid
+    "bags-size-twice": _evaluate("--task", "multiview", "--bags", "3:2,3:1", needle="size 3 is given twice"),
     "prefilter-gms-threshold-0": _evaluate("--prefilter", "gms:threshold=0",
                                            needle="prefilter 'gms': option threshold must be > 0"),
     # item 6 (cache half): the cache folder is a file, or lies under one

@@ -39,6 +39,9 @@ def parse_bags(spec: str | dict | None) -> dict[int, int]:
                 raise ImtuneError(f"bad bag spec {tok!r} in {spec!r}: expected SIZE or SIZE:COUNT, e.g. 5:100,10:50")
             size = int(m.group(1))
             count = int(m.group(2)) if m.group(2) else DEFAULT_BAGS.get(size, max(1, 500 // max(size, 1)))
+            if size in dict(items):  # the last one's count was used, unsaid
+                raise ImtuneError(f"bag spec {spec!r}: size {size} is given twice: give each size once "
+                                  "(SIZE:COUNT for its number of bags)")
             items.append((size, count))
     for size, count in items:
         if size < 2:
