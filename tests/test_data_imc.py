@@ -119,6 +119,21 @@ def test_imc_pt2020_errors(tmp_path):
         load_imc_pt2020(tmp_path / "pt")
 
 
+
+def test_imc_pt2020_non_finite_translation_is_refused(tmp_path):
+    """A calibration_<key>.h5 whose T holds a NaN loaded as ground truth (K and R are checked, T was not)."""
+    write_imc_pt2020(tmp_path / "pt")
+    calib = tmp_path / "pt" / "reichstag" / "set_100" / "calibration" / f"calibration_{KEYS[1]}.h5"
+    with h5py.File(calib, "a") as f:
+        T = f["T"][()].astype(np.float64)
+        T.flat[0] = np.nan
+        del f["T"]
+        f["T"] = T
+    with pytest.raises(ImtuneError) as e:
+        load_imc_pt2020(tmp_path / "pt")
+    msg = str(e.value)
+    assert f"calibration file {calib}: non-finite value in T" in msg and "\n" not in msg, msg
+
 # ---------------------------------------------------------------- IMC 2022 ---------------------------------------
 
 IDS = ["92031733_3992238201", "54163059_5716537618", "64223960_5316591967"]

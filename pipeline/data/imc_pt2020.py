@@ -75,6 +75,8 @@ def read_calibration(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         raise ImtuneError(f"calibration file {path}: expected K 3x3, R 3x3, T 3 values "
                           f"(got {K.shape}, {R.shape}, {T.shape})")
     where = f"calibration file {path}"
+    if not np.all(np.isfinite(T)):  # K and R are checked below; a NaN T was ground truth no pose error can meet
+        raise ImtuneError(f"{where}: non-finite value in T")
     return check_K(K, where), check_rotation(R, where), T.reshape(3)
 
 
