@@ -129,3 +129,21 @@ def test_missing_image_file(tmp_path):
     with pytest.raises(ImtuneError, match="view_2.jpg"):
         load_colmap(sdir)
     assert len(load_colmap(sdir, verify=False).images) == 4
+
+
+@pytest.mark.parametrize("focal", ["0", "-100"])
+def test_a_camera_with_no_focal_length_is_refused(tmp_path, focal):
+    """cameras.txt with a focal length of 0 (or < 0), which pycolmap reads without a word, was taken as ground
+    truth K; now the Strecha / IMC check of K, one line naming the model, the camera and an image of it."""
+    sdir = tmp_path / "bridge"
+    write_colmap_text(sdir / "sparse", sdir / "images")
+    cams = (sdir / "sparse" / "cameras.txt").read_text().splitlines()
+    parts = cams[1].split()
+    parts[4] = focal  # camera 1 (PINHOLE): fx
+    cams[1] = " ".join(parts)
+    (sdir / "sparse" / "cameras.txt").write_text("\n".join(cams) + "\n")
+    with pytest.raises(ImtuneError) as e:
+        load_colmap(sdir)
+    msg = str(e.value)
+    assert f"COLMAP model {sdir / 'sparse'}: camera 1 of view_0.jpg: not an intrinsics matrix" in msg, msg
+    assert "\n" not in msg

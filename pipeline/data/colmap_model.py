@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.data._common import pick_scene, scene_dirs
+from pipeline.data._common import check_K, pick_scene, scene_dirs
 from pipeline.data.imagefile import check_image_file
 from pipeline.data.scene import ImageInfo, Scene, all_pairs
 from pipeline.errors import ImtuneError
@@ -104,7 +104,10 @@ def load_colmap(root: Path, scene: str | None = None, model: Path | None = None,
         path = img_dir / im.name
         if verify:
             check_image_file(path)
-        images[im.name] = ImageInfo(name=im.name, path=path, K=np.asarray(cam.calibration_matrix(), float),
+        # a focal length of 0 (cameras.txt) was taken as ground truth; pycolmap refuses NaN, not 0 or < 0
+        K = check_K(np.asarray(cam.calibration_matrix(), float),
+                    f"COLMAP model {mdir}: camera {im.camera_id} of {im.name}")
+        images[im.name] = ImageInfo(name=im.name, path=path, K=K,
                                     R=np.asarray(pose.rotation.matrix(), float),
                                     t=np.asarray(pose.translation, float).reshape(3),
                                     size=(int(cam.width), int(cam.height)))
