@@ -242,3 +242,15 @@ def test_imc2022_image_listed_twice_in_calibration_is_refused(tmp_path):
         load_imc2022(tmp_path / "imc")
     msg = str(e.value)
     assert f"{calib}, lines 2 and 5: image_id {IDS[0]!r} is listed twice" in msg and "\n" not in msg, msg
+
+
+@pytest.mark.parametrize("value", ["5", "-0.2"])
+def test_imc2022_covisibility_outside_0_1_is_refused(tmp_path, value):
+    """A co-visibility is a fraction: 5 passed every --covisibility threshold and -0.2 none, without a word."""
+    write_imc2022(tmp_path / "imc")
+    covis = tmp_path / "imc" / "train" / "british_museum" / "pair_covisibility.csv"
+    covis.write_text(covis.read_text().replace(",0.42,", f",{value},"))
+    with pytest.raises(ImtuneError) as e:
+        load_imc2022(tmp_path / "imc")
+    msg = str(e.value)
+    assert f"{covis}, line 2: covisibility must be in [0, 1], got {value}" in msg and "\n" not in msg, msg

@@ -122,6 +122,8 @@ def load_imc2022(root: Path, scene: str | None = None, verify: bool = True) -> S
                                   "listed twice (in either order): keep one of the lines")
             first_line[frozenset((a, b))] = line
             c = float(parse_floats(row["covisibility"], 1, where)[0])
+            if not 0.0 <= c <= 1.0:  # a fraction: 5 passed every --covisibility, -1 none, unsaid
+                raise ImtuneError(f"{where}: covisibility must be in [0, 1], got {row['covisibility']}")
             pairs.append(Pair(id_to_name[a], id_to_name[b], covisibility=c))
     else:
         pairs = all_pairs(list(images))
