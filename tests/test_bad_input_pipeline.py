@@ -188,6 +188,9 @@ CASES = {
                                                needle="option scale_rate_threshold must be > 0"),
     "prefilter-adalam-threads-negative": _evaluate("--prefilter", "adalam:threads=-3",
                                                    needle="option threads must be >= 0"),
+    # records for the JSON without --json: ignored, unsaid
+    "evaluate-pairs-without-json": _evaluate("--pairs", needle="--pairs adds records to the JSON output only: add --json"),
+    "evaluate-bag-records-without-json": _evaluate("--bag-records", needle="--bag-records adds records to the JSON"),
     # a bag size given twice: the last count was used, unsaid
     "bags-size-twice": _evaluate("--task", "multiview", "--bags", "3:2,3:1", needle="size 3 is given twice"),
     "prefilter-gms-threshold-0": _evaluate("--prefilter", "gms:threshold=0",

@@ -134,6 +134,9 @@ def config_of(args):
 
 
 def run(args) -> int:
+    for flag, on in (("--pairs", args.pairs), ("--bag-records", args.bag_records)):
+        if on and not args.json:  # the records go into the JSON only: without --json it was ignored, unsaid
+            raise ImtuneError(f"{flag} adds records to the JSON output only: add --json (or drop {flag})")
     conf, source = config_of(args)
     data = resolve_data(args.data)
     out = evaluate_config(conf, data, args.scenes, cache_dir=args.cache,
