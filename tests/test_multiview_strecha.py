@@ -95,6 +95,21 @@ def test_table_output_and_bag_cache(small_strecha, capsys):
     assert len(list((cache / "bags").rglob("*.h5"))) == n_entries
 
 
+def test_keep_models_keeps_models_of_cached_bags(small_strecha, tmp_path, capsys):
+    """--keep-models after a run of the same bags read them from the cache: no model kept, not even the folder,
+    without a word. Now those bags are reconstructed, and their database and model kept."""
+    root, cache = small_strecha
+    args = ["evaluate", "--data", str(root), "--task", "multiview", "--num-features", "1024", "--bags", "5:1",
+            "--workers", "1", "--json", "--quiet"]
+    rc, out, err = run_cli(args, capsys)
+    assert rc == 0, err
+    kept = tmp_path / "models"
+    rc, out2, err = run_cli(args + ["--keep-models", str(kept)], capsys)
+    assert rc == 0, err
+    assert json.loads(out2)["multiview"]["bags"] == 1
+    (bag,) = [p for p in kept.iterdir() if p.is_dir()]
+    assert (bag / "database.db").is_file() and list(bag.glob("sparse/*/images.bin")), sorted(kept.rglob("*"))
+
 def test_multiview_without_ground_truth_points_is_a_clear_error(tmp_path, capsys, monkeypatch):
     src = DATA / "strecha" / "fountain-P11"
     if not src.exists():

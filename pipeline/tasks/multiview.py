@@ -433,7 +433,8 @@ class MultiviewTask(Task):
 
     ``mv``: a :class:`MultiviewConfig` (default: the protocol's bags); ``workers``: parallel bag processes (None:
     the CPUs this process may use; <= 1 runs bags in this process); ``use_cache``: reuse bag records whose inputs
-    are unchanged; ``keep_models``: keep every bag's COLMAP database and model under this folder;
+    are unchanged; ``keep_models``: keep every bag's COLMAP database and model under this folder (its bags are
+    then reconstructed, never read from the cache);
     ``progress``: tqdm bars. ``on_step`` is called after each scene."""
 
     name = "multiview"
@@ -530,7 +531,7 @@ class MultiviewTask(Task):
                 t0 = time.perf_counter()
                 keys = [_bag_key(j) for j in jobs] if use_cache else [None] * len(jobs)
                 recs: list[dict | None] = [None] * len(jobs)
-                if use_cache:
+                if use_cache and keep_models is None:  # a cached bag has no model to keep: it is reconstructed
                     for k, key in enumerate(keys):
                         got = cache.get("bags", key)
                         if got is not None:
