@@ -68,6 +68,13 @@ def _float_tiff(tmp: Path):
     return ["evaluate", "--data", str(data), *FAST, "--cache", str(tmp / "cache")], {}, f"image {tif} holds float32 samples"
 
 
+def _keep_models_file(tmp: Path):
+    """--keep-models naming a file: every bag failed ("NotADirectoryError" in its record), mAA 0, exit 0."""
+    (tmp / "a-file").write_text("x")
+    return (["evaluate", "--data", str(_tiny_data(tmp)), *FAST, "--cache", str(tmp / "cache"), "--task", "multiview",
+             "--keep-models", str(tmp / "a-file")], {}, f"--keep-models folder {tmp / 'a-file'} is not a folder")
+
+
 def _evaluate(*args, needle):
     def setup(tmp: Path):
         return ["evaluate", "--data", str(_tiny_data(tmp)), *FAST, "--cache", str(tmp / "cache"), *args], {}, needle
@@ -191,6 +198,7 @@ CASES = {
     # records for the JSON without --json: ignored, unsaid
     "evaluate-pairs-without-json": _evaluate("--pairs", needle="--pairs adds records to the JSON output only: add --json"),
     "evaluate-bag-records-without-json": _evaluate("--bag-records", needle="--bag-records adds records to the JSON"),
+    "keep-models-is-a-file": _keep_models_file,
     # a bag size given twice: the last count was used, unsaid
     "bags-size-twice": _evaluate("--task", "multiview", "--bags", "3:2,3:1", needle="size 3 is given twice"),
     "prefilter-gms-threshold-0": _evaluate("--prefilter", "gms:threshold=0",

@@ -454,6 +454,9 @@ class MultiviewTask(Task):
         self.mv = mv or MultiviewConfig()
         self.workers = workers
         self.use_cache = use_cache
+        if keep_models is not None:  # a file there failed every bag (mAA 0, "NotADirectoryError" per record), unsaid
+            from pipeline.fileio import check_writable_folder
+            check_writable_folder(keep_models, "--keep-models folder", "give a writable folder with --keep-models DIR")
         self.keep_models = keep_models
         self.progress = progress
 
