@@ -149,6 +149,9 @@ def _imc(method: dict) -> PipelineConfig:
     if key is None or not isinstance(method[key], dict):
         raise ImtuneError("IMC method config has no config_<dataset>_stereo section")
     task = method[key]
+    if task.get("use_custom_matches") is True:  # was evaluated with imtune's own matcher instead, unsaid
+        raise ImtuneError(f"{key}.use_custom_matches is true: the method's matches are its own h5 files, not in "
+                          "this file; evaluate them with --feature custom:DIR --matches custom:DIR (IMC h5 layout)")
     name = str(common.get("descriptor") or common.get("keypoint") or "sift").lower()
     name = {"siftdef": "sift", "rootsiftdef": "rootsift"}.get(name, name)
     from pipeline.features import EXTRACTORS

@@ -823,6 +823,9 @@ BAD_CONFIG_VALUES = {  # name: (file name, text, what the error line says)
                         "matcher: distance 'L1' is not supported"),
     "imc-num-nn-3": ("m.json", '{"config_common": {}, %s}' % (_IMC_STEREO % ', "matcher": {"num_nn": 3}'),
                      "matcher: num_nn 3 is not supported"),
+    # the method's own matches were replaced by imtune's matcher (r 1, no ratio test), unsaid
+    "imc-use-custom-matches": ("m.json", '{"config_common": {}, %s}' % (_IMC_STEREO % ', "use_custom_matches": true'),
+                               "use_custom_matches is true: the method's matches are its own h5 files"),
     "imc-outlier-filter-unknown": ("m.json", '{"config_common": {}, %s}' % (_IMC_STEREO % ', "outlier_filter": '
                                                                              '{"method": "magic"}'),
                                    "outlier_filter: method 'magic' is not supported (supported: none, cne-bp-nd)"),
