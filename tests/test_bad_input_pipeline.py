@@ -199,6 +199,8 @@ CASES = {
     "evaluate-pairs-without-json": _evaluate("--pairs", needle="--pairs adds records to the JSON output only: add --json"),
     "evaluate-bag-records-without-json": _evaluate("--bag-records", needle="--bag-records adds records to the JSON"),
     "keep-models-is-a-file": _keep_models_file,
+    "ci-resamples-with-ci-none": _evaluate("--ci", "none", "--ci-resamples", "5000",
+                                           needle="--ci-resamples 5000 does not apply with --ci none"),
     # a bag size given twice: the last count was used, unsaid
     "bags-size-twice": _evaluate("--task", "multiview", "--bags", "3:2,3:1", needle="size 3 is given twice"),
     "prefilter-gms-threshold-0": _evaluate("--prefilter", "gms:threshold=0",

@@ -64,12 +64,17 @@ def add_ci_options(ap) -> None:
     g.add_argument("--ci", type=_ci_kind, default="bootstrap",
                    help="95%% interval of every mAA: bootstrap over pairs stratified by scene (bags for "
                         "multiview), seeded; none = skip")
-    g.add_argument("--ci-resamples", type=_resamples, default=2000, help="bootstrap resamples")
+    g.add_argument("--ci-resamples", type=_resamples, default=None, help="bootstrap resamples (default 2000)")
 
 
 def ci_resamples(args) -> int:
     """The resample count the options ask for (0: no intervals)."""
-    return 0 if getattr(args, "ci", "bootstrap") == "none" else int(getattr(args, "ci_resamples", 2000) or 2000)
+    n = getattr(args, "ci_resamples", None)
+    if getattr(args, "ci", "bootstrap") == "none":
+        if n is not None:  # it was ignored, unsaid
+            raise ImtuneError(f"--ci-resamples {n} does not apply with --ci none (no intervals): drop one of them")
+        return 0
+    return int(n or 2000)
 
 
 def with_ci(v, ci) -> str | None:
