@@ -105,6 +105,23 @@ def test_named_folder_that_does_not_exist_is_an_error_not_a_fall_through(env, mo
         lc.locate()
 
 
+
+@pytest.mark.parametrize("text,needle", [
+    ("dta: mine/strecha\n", "unknown key 'dta' (expected data"),
+    ("data:\n", "data must be the path of the data folder, got None"),
+    ("data: ''\n", "data must be the path of the data folder, got ''"),
+    ("data: [mine, strecha]\n", "data must be the path of the data folder, got ['mine', 'strecha']"),
+])
+def test_imtune_yaml_key_misspelt_or_data_not_a_path_is_an_error(env, monkeypatch, text, needle):
+    """A misspelt key or an empty data: was skipped for the next rule (the download location here), and a list was
+    "data folder .../['mine', 'strecha'] does not exist"."""
+    _set(env / "dh")
+    monkeypatch.setenv(lc.ENV_DATA_HOME, str(env / "dh"))
+    (env / "work" / "imtune.yaml").write_text(text)
+    with pytest.raises(ImtuneError) as e:
+        lc.locate()
+    assert str(e.value).startswith(f"{env / 'work' / 'imtune.yaml'}: ") and needle in str(e.value), str(e.value)
+
 def test_empty_download_folder_is_skipped(env, monkeypatch):
     (env / "dh" / "strecha").mkdir(parents=True)  # what an old interrupted download left
     monkeypatch.setenv(lc.ENV_DATA_HOME, str(env / "dh"))

@@ -75,6 +75,12 @@ def project_config() -> tuple[dict, Path | None]:
                 raise ImtuneError(f"{p}: invalid YAML ({str(e).splitlines()[0]})") from None
             if not isinstance(d, dict):
                 raise ImtuneError(f"{p}: expected a mapping at top level")
+            # a misspelt key or an empty / non-text data: was skipped for the next rule (another data folder), unsaid
+            unknown = [k for k in d if k != "data"]
+            if unknown:
+                raise ImtuneError(f"{p}: unknown key {unknown[0]!r} (expected data: the data folder)")
+            if "data" in d and not (isinstance(d["data"], str) and d["data"].strip()):
+                raise ImtuneError(f"{p}: data must be the path of the data folder, got {d['data']!r}")
             return d, p
     return {}, None
 
