@@ -272,6 +272,20 @@ def test_cli_invalid_space_file(tmp_path, strecha):
     assert "low 0.95 > high 0.7" in r.stderr and str(p) in r.stderr
 
 
+
+@pytest.mark.parametrize("text,extra,needle", [
+    ("params: {}", [], "no parameter is searched"),
+    ("params: {ratio: 0.8, threshold: 0.5}", ["--fix", "max_iters=1000"],
+     "every parameter is fixed (max_iters, ratio, threshold: in the file or by --fix)"),
+])
+def test_cli_space_with_nothing_to_tune_names_the_file(tmp_path, strecha, text, extra, needle):
+    """Was 'search space: every parameter is fixed; nothing to tune', the file unnamed (and for an empty params:
+    untrue)."""
+    p = write(tmp_path, text)
+    r = tune("--studies-dir", str(tmp_path), "--data", str(strecha), "--space", str(p), *extra)
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0, r.stderr
+    assert f"search space {p}: {needle}; nothing to tune" in r.stderr, r.stderr
+
 def test_cli_test_without_study(tmp_path):
     r = tune("test", "--study", "nothing-here", "--studies-dir", str(tmp_path))
     assert r.returncode == 2 and "nothing-here" in r.stderr and r.stderr.strip().count("\n") == 0

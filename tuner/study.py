@@ -479,7 +479,10 @@ def load_study_space(s: TuneSettings, task):
         space.params.pop(k, None)
         space.fixed.pop(k, None)
     if not space.params:
-        raise ImtuneError("search space: every parameter is fixed; nothing to tune")
+        pinned = f"every parameter is fixed ({', '.join(sorted(space.fixed))}: in the file or by --fix)" \
+            if space.fixed else "no parameter is searched"  # the file was not named: the culprit unsaid
+        raise ImtuneError(f"search space {space.source}: {pinned}; nothing to tune: give one a range there, or drop "
+                          "its --fix")
     return space
 
 
