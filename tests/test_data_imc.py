@@ -254,3 +254,21 @@ def test_imc2022_covisibility_outside_0_1_is_refused(tmp_path, value):
         load_imc2022(tmp_path / "imc")
     msg = str(e.value)
     assert f"{covis}, line 2: covisibility must be in [0, 1], got {value}" in msg and "\n" not in msg, msg
+
+
+@pytest.mark.parametrize("how", ["reversed", "self"])
+def test_imc_pt2020_pair_listed_in_both_orders_or_with_itself_is_refused(tmp_path, how):
+    """new-vis-pairs lists that also held a pair as keyB-keyA (after keyA-keyB) evaluated it twice: 6 pairs for the
+    5 listed, one counting twice in every mAA; keyA-keyA has no relative pose to estimate."""
+    write_imc_pt2020(tmp_path / "pt")
+    vis = tmp_path / "pt" / "reichstag" / "set_100" / "new-vis-pairs"
+    a, b = next(iter(THRESHOLDS))
+    keys = list(np.load(vis / "keys-th-0.0.npy"))
+    keys.append(f"{KEYS[b]}-{KEYS[a]}" if how == "reversed" else f"{KEYS[a]}-{KEYS[a]}")
+    np.save(vis / "keys-th-0.0.npy", np.array(keys))
+    with pytest.raises(ImtuneError) as e:
+        load_imc_pt2020(tmp_path / "pt")
+    msg = str(e.value)
+    needle = f"lists the pair {KEYS[a]}-{KEYS[b]} again as {KEYS[b]}-{KEYS[a]}" if how == "reversed" else \
+        f"pairs image {KEYS[a]} with itself"
+    assert f"pair list in {vis}: {needle}" in msg and "\n" not in msg, msg

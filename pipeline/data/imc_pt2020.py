@@ -161,8 +161,14 @@ def load_imc_pt2020(root: Path, scene: str | None = None, verify: bool = True) -
     vis = read_vis_pairs(vis_dir) if vis_dir.is_dir() else []
     if vis:
         pairs = []
+        seen: dict[frozenset, str] = {}
         for key, v in vis:
             a, b = split_pair_key(key, set(key_to_name), f"pair list in {vis_dir}")
+            if a == b or frozenset((a, b)) in seen:  # b-a after a-b was evaluated twice (twice in every mAA)
+                what = (f"pairs image {a} with itself" if a == b else
+                        f"lists the pair {seen[frozenset((a, b))]} again as {key}")
+                raise ImtuneError(f"pair list in {vis_dir}: {what}: remove it from the keys-th-*.npy files")
+            seen[frozenset((a, b))] = key
             pairs.append(Pair(key_to_name[a], key_to_name[b], covisibility=float(v)))
     else:
         pairs = all_pairs(list(images))
