@@ -272,3 +272,19 @@ def test_imc_pt2020_pair_listed_in_both_orders_or_with_itself_is_refused(tmp_pat
     needle = f"lists the pair {KEYS[a]}-{KEYS[b]} again as {KEYS[b]}-{KEYS[a]}" if how == "reversed" else \
         f"pairs image {KEYS[a]} with itself"
     assert f"pair list in {vis}: {needle}" in msg and "\n" not in msg, msg
+
+
+@pytest.mark.parametrize("how", ["image-twice", "cut-short"])
+def test_imc_pt2020_bag_file_with_an_image_twice_or_too_few_is_refused(tmp_path, how):
+    """sub_set/3bag_000.txt listing an image twice (or only 2 images) was a bag of 3 holding 2 distinct images,
+    read as a bag of size 3 without a word."""
+    write_imc_pt2020(tmp_path / "pt")
+    bag = tmp_path / "pt" / "reichstag" / "set_100" / "sub_set" / "3bag_000.txt"
+    lines = bag.read_text().splitlines()
+    lines = lines[:2] + [lines[0]] if how == "image-twice" else lines[:2]
+    bag.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ImtuneError) as e:
+        load_imc_pt2020(tmp_path / "pt")
+    msg = str(e.value)
+    needle = f"image {lines[0]!r} is listed twice" if how == "image-twice" else "2 images in a bag of 3"
+    assert f"bag file {bag}: {needle}" in msg and "\n" not in msg, msg

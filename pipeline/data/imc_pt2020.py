@@ -120,7 +120,12 @@ def read_bags(folder: Path, known: dict[str, str]) -> dict[int, list[tuple[str, 
             name = known.get(entry) or known.get(Path(entry).name) or known.get(Path(entry).stem)
             if name is None:
                 raise ImtuneError(f"bag file {p}: unknown image {entry!r}")
+            if name in names:  # a bag of n with an image twice: a smaller bag reconstructed under size n, unsaid
+                raise ImtuneError(f"bag file {p}: image {entry!r} is listed twice: list each image of the bag once")
             names.append(name)
+        if len(names) != int(m.group(1)):
+            raise ImtuneError(f"bag file {p}: {len(names)} images in a bag of {int(m.group(1))} (its name): "
+                              "is it cut short?")
         found.setdefault(int(m.group(1)), []).append((int(m.group(2)), tuple(names)))
     return {n: [b for _, b in sorted(v)] for n, v in sorted(found.items())}
 
