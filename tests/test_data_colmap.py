@@ -147,3 +147,19 @@ def test_a_camera_with_no_focal_length_is_refused(tmp_path, focal):
     msg = str(e.value)
     assert f"COLMAP model {sdir / 'sparse'}: camera 1 of view_0.jpg: not an intrinsics matrix" in msg, msg
     assert "\n" not in msg
+
+
+def test_two_images_of_one_name_are_refused(tmp_path):
+    """images.txt naming two registered images alike: the later one's pose and observations replaced the earlier's,
+    3 images loaded of 4, without a word."""
+    sdir = tmp_path / "bridge"
+    write_colmap_text(sdir / "sparse", sdir / "images")
+    lines = (sdir / "sparse" / "images.txt").read_text().splitlines()
+    parts = lines[3].split()  # image 2's header line
+    parts[-1] = "view_0.jpg"
+    lines[3] = " ".join(parts)
+    (sdir / "sparse" / "images.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(ImtuneError) as e:
+        load_colmap(sdir)
+    msg = str(e.value)
+    assert f"COLMAP model {sdir / 'sparse'}: images 1 and 2 are both named 'view_0.jpg'" in msg and "\n" not in msg, msg

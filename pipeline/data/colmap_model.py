@@ -101,6 +101,10 @@ def load_colmap(root: Path, scene: str | None = None, model: Path | None = None,
         cam = rec.cameras[im.camera_id]
         pose = im.cam_from_world  # a method in pycolmap 4.x, a property in older versions
         pose = pose() if callable(pose) else pose
+        if im.name in images:  # the later image's pose and points replaced the earlier's, unsaid
+            first = next(i for i, n in id_to_name.items() if n == im.name)
+            raise ImtuneError(f"COLMAP model {mdir}: images {first} and {image_id} are both named {im.name!r}: "
+                              "one image file cannot have two poses")
         path = img_dir / im.name
         if verify:
             check_image_file(path)
