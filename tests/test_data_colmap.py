@@ -163,3 +163,29 @@ def test_two_images_of_one_name_are_refused(tmp_path):
         load_colmap(sdir)
     msg = str(e.value)
     assert f"COLMAP model {sdir / 'sparse'}: images 1 and 2 are both named 'view_0.jpg'" in msg and "\n" not in msg, msg
+
+
+@pytest.mark.parametrize("quat", ["0 0 0 0", "0.0 0.0 0.0 0.0", "twice"])
+def test_an_image_quaternion_that_is_no_rotation(tmp_path, quat):
+    """images.txt with a zero quaternion: pycolmap keeps it and makes it the identity, so the image's ground-truth
+    rotation came out of nothing, unsaid; a non-unit one (the true one x 2) gave a matrix that is no rotation. Now zero or
+    non-finite is one line naming the image, and a non-unit quaternion is normalised (as COLMAP does)."""
+    sdir = tmp_path / "bridge"
+    truth, *_ = write_colmap_text(sdir / "sparse", sdir / "images")
+    lines = (sdir / "sparse" / "images.txt").read_text().splitlines()
+    parts = lines[3].split()  # image 2's header line: id qw qx qy qz ...
+    parts[1:5] = [repr(2 * float(v)) for v in parts[1:5]] if quat == "twice" else quat.split()
+    lines[3] = " ".join(parts)
+    (sdir / "sparse" / "images.txt").write_text("\n".join(lines) + "\n")
+    if quat == "twice":
+        R = load_colmap(sdir).images["view_1.jpg"].R
+        assert np.allclose(R, truth["view_1.jpg"][1], atol=1e-12)  # the rotation written, known
+        return
+    try:
+        load_colmap(sdir)
+    except ImtuneError as e:
+        msg = str(e)
+    else:
+        raise AssertionError("loaded")
+    assert msg.startswith(f"COLMAP model {sdir / 'sparse'}: image 2 (view_1.jpg): its rotation quaternion"), msg
+    assert "\n" not in msg

@@ -76,6 +76,20 @@ def read_model(path: Path):
         raise ImtuneError(f"unreadable COLMAP model {path}: {msg}") from None
 
 
+def _rotation(rot, where: str) -> np.ndarray:
+    """The rotation matrix of a pycolmap Rotation3d read from a model. pycolmap keeps the file's quaternion as it is
+    and turns it into a matrix as if it were a unit one: a zero quaternion became the identity (a ground-truth pose
+    out of nothing, unsaid) and a non-unit one a matrix that is no rotation. A quaternion of another length is
+    normalised, as COLMAP does; a zero or non-finite one is one line naming the image."""
+    from scipy.spatial.transform import Rotation
+    q = np.asarray(rot.quat, float).reshape(4)  # x y z w (Eigen's order)
+    n = float(np.linalg.norm(q)) if np.all(np.isfinite(q)) else float("nan")
+    if not (n > 1e-9):
+        raise ImtuneError(f"{where}: its rotation quaternion (qw qx qy qz = {q[3]:g} {q[0]:g} {q[1]:g} {q[2]:g}) is "
+                          "no rotation: fix images.txt (or re-export the model)")
+    return Rotation.from_quat(q / n).as_matrix()
+
+
 def load_colmap(root: Path, scene: str | None = None, model: Path | None = None, image_dir: Path | None = None,
                 verify: bool = True) -> Scene:
     """Load a COLMAP model as a Scene: registered images (K, R, t, size), 3D points and observations, all pairs
@@ -112,7 +126,7 @@ def load_colmap(root: Path, scene: str | None = None, model: Path | None = None,
         K = check_K(np.asarray(cam.calibration_matrix(), float),
                     f"COLMAP model {mdir}: camera {im.camera_id} of {im.name}")
         images[im.name] = ImageInfo(name=im.name, path=path, K=K,
-                                    R=np.asarray(pose.rotation.matrix(), float),
+                                    R=_rotation(pose.rotation, f"COLMAP model {mdir}: image {image_id} ({im.name})"),
                                     t=np.asarray(pose.translation, float).reshape(3),
                                     size=(int(cam.width), int(cam.height)))
         id_to_name[image_id] = im.name
