@@ -244,6 +244,21 @@ def test_imc2022_image_listed_twice_in_calibration_is_refused(tmp_path):
     assert f"{calib}, lines 2 and 5: image_id {IDS[0]!r} is listed twice" in msg and "\n" not in msg, msg
 
 
+@pytest.mark.parametrize("kind", ["folder", "fifo"])
+def test_imc2022_covisibility_file_that_is_no_file_is_named(tmp_path, kind):
+    """A folder (or a FIFO) at pair_covisibility.csv was read as "no co-visibility file": every pair of the scene
+    evaluated, co-visibility unknown, without a word (a FIFO would have blocked the reader). Now one line naming it."""
+    import os
+    write_imc2022(tmp_path / "imc")
+    covis = tmp_path / "imc" / "train" / "british_museum" / "pair_covisibility.csv"
+    covis.unlink()
+    covis.mkdir() if kind == "folder" else os.mkfifo(covis)
+    with pytest.raises(ImtuneError) as e:
+        load_imc2022(tmp_path / "imc")
+    msg = str(e.value)
+    assert msg.startswith(f"IMC 2022 file {covis} is ") and "\n" not in msg, msg
+
+
 @pytest.mark.parametrize("value", ["5", "-0.2"])
 def test_imc2022_covisibility_outside_0_1_is_refused(tmp_path, value):
     """A co-visibility is a fraction: 5 passed every --covisibility threshold and -0.2 none, without a word."""

@@ -9,6 +9,7 @@ fundamental_matrix; ``train/scaling_factors.csv`` with columns scene, scaling_fa
 from __future__ import annotations
 
 import csv
+import os
 from pathlib import Path
 
 from pipeline.data._common import check_K, check_rotation, parse_floats, pick_scene, scene_dirs, split_pair_key
@@ -41,16 +42,19 @@ def list_scenes(root: Path) -> list[str]:
 
 def _read_csv(path: Path, required: tuple[str, ...]) -> list[tuple[int, dict]]:
     """[(line number, row dict)]; ImtuneError naming the file if unreadable or a column is missing."""
+    import io
+
+    from pipeline.fileio import read_text
+    text = read_text(path, "IMC 2022 file")  # a folder, a FIFO or a device there: one line, never read
     try:
-        with open(path, newline="") as f:
-            reader = csv.DictReader(f)
-            fields = [c.strip() for c in (reader.fieldnames or [])]
-            missing = [c for c in required if c not in fields]
-            if missing:
-                raise ImtuneError(f"{path}: missing column(s) {', '.join(missing)} (found: {', '.join(fields)})")
-            return [(reader.line_num, {k.strip(): (v or "").strip() for k, v in row.items() if k is not None})
-                    for row in reader]
-    except (OSError, UnicodeDecodeError, csv.Error) as e:
+        reader = csv.DictReader(io.StringIO(text, newline=""))
+        fields = [c.strip() for c in (reader.fieldnames or [])]
+        missing = [c for c in required if c not in fields]
+        if missing:
+            raise ImtuneError(f"{path}: missing column(s) {', '.join(missing)} (found: {', '.join(fields)})")
+        return [(reader.line_num, {k.strip(): (v or "").strip() for k, v in row.items() if k is not None})
+                for row in reader]
+    except csv.Error as e:
         raise ImtuneError(f"cannot read {path}: {e}") from None
 
 
@@ -109,7 +113,7 @@ def load_imc2022(root: Path, scene: str | None = None, verify: bool = True) -> S
     if not images:
         raise ImtuneError(f"no images listed in {calib_path}")
     covis_path = sdir / COVIS
-    if covis_path.is_file():
+    if os.path.lexists(covis_path):  # a folder or FIFO there is named, not read as "no co-visibility: every pair"
         pairs = []
         first_line: dict[frozenset, int] = {}  # {idA, idB} -> the line that listed the pair first
         for line, row in _read_csv(covis_path, ("pair", "covisibility")):
