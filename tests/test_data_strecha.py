@@ -178,6 +178,20 @@ def test_missing_image(strecha_copy):
         load_scene(strecha_copy, "fountain-P11")
 
 
+@pytest.mark.parametrize("what", ["image", "camera file"])
+@pytest.mark.parametrize("kind", ["a folder", "a FIFO", "a broken link"])
+def test_something_else_at_an_image_or_camera_files_name_is_named(strecha_copy, what, kind):
+    """A FIFO (or folder, or broken link) at an image's or camera file's name was "image missing for camera file
+    ... expected <that very path>" / "missing camera file": the thing there unnamed. Now one line naming it."""
+    sdir = strecha_copy / "fountain-P11"
+    p = sdir / "images" / "0006.jpg" if what == "image" else sdir / "gt_dense_cameras" / "0006.jpg.camera"
+    p.unlink()
+    {"a folder": p.mkdir, "a FIFO": lambda: os.mkfifo(p), "a broken link": lambda: p.symlink_to(p.with_name("gone"))}[kind]()
+    with pytest.raises(ImtuneError) as e:
+        load_scene(strecha_copy, "fountain-P11")
+    assert str(e.value) == f"{what} {p} is {kind}, not a file: put the {what} there"
+
+
 def test_truncated_image(strecha_copy):
     img = strecha_copy / "fountain-P11" / "images" / "0007.jpg"
     data = img.read_bytes()

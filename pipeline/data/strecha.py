@@ -6,6 +6,7 @@ width height (px). World-to-camera: R_wc = R^T, t = -R^T C. Image names are the 
 """
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -55,6 +56,23 @@ def write_camera(path: Path, K, dist, R, C, size) -> None:
     Path(path).write_text("\n".join(lines) + "\n")
 
 
+def _not_a_regular_file(p: Path, what: str) -> None:
+    """One line for a folder, FIFO, device or broken link at ``p`` (read as "missing" before, the thing there
+    unnamed); nothing when nothing is there."""
+    import stat
+    try:
+        mode = os.lstat(p).st_mode
+    except OSError:
+        return
+    if stat.S_ISLNK(mode) and not p.exists():
+        kind = "a broken link"
+    else:
+        m = os.stat(p).st_mode
+        kind = ("a folder" if stat.S_ISDIR(m) else "a FIFO" if stat.S_ISFIFO(m) else
+                "a device" if stat.S_ISCHR(m) or stat.S_ISBLK(m) else "not a regular file")
+    raise ImtuneError(f"{what} {p} is {kind}, not a file: put the {what} there")
+
+
 def load_strecha(root: Path, scene: str | None = None, verify: bool = True) -> Scene:
     """Load one Strecha scene (``root`` is the dataset folder, or the scene folder with ``scene`` None).
 
@@ -72,12 +90,14 @@ def load_strecha(root: Path, scene: str | None = None, verify: bool = True) -> S
     cameras = {p.name[: -len(".camera")] for p in cam_dir.glob("*.camera")}
     orphans = sorted(cameras - set(names))
     if orphans:
+        _not_a_regular_file(img_dir / orphans[0], "image")
         raise ImtuneError(f"image missing for camera file {cam_dir / (orphans[0] + '.camera')}: "
                           f"expected {img_dir / orphans[0]}")
     images: dict[str, ImageInfo] = {}
     for n in names:
         cam_path = cam_dir / f"{n}.camera"
         if not cam_path.is_file():
+            _not_a_regular_file(cam_path, "camera file")
             raise ImtuneError(f"missing camera file for image {img_dir / n}: expected {cam_path}")
         cam = read_camera(cam_path)
         path = img_dir / n
