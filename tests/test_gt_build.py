@@ -165,6 +165,29 @@ def test_a_file_where_the_ground_truth_folder_goes_is_one_line(tmp_path, capsys)
         assert gt_dir.read_text() == "mine"
 
 
+@pytest.mark.parametrize("cache", ["/dev/null", "file"])
+def test_a_cache_that_is_no_folder_is_blamed_not_the_ground_truth(tmp_path, capsys, monkeypatch, cache):
+    """IMTUNE_CACHE=/dev/null (or a file): the ground truth's default place is inside the cache, and the line said
+    "ground truth /dev/null/gt/...: /dev/null is a file where a folder should be: move it away, or give another
+    folder with --gt-dir": the wrong setting, and /dev/null to move away. Now it names the cache setting."""
+    from tests.conftest import copy_strecha_subset
+    data = copy_strecha_subset(tmp_path / "data", ["0003.jpg", "0004.jpg", "0005.jpg"])
+    if cache == "file":
+        cache = tmp_path / "cachefile"
+        cache.write_text("mine")
+    monkeypatch.setenv("IMTUNE_CACHE", str(cache))
+    monkeypatch.delenv("IMTUNE_GT", raising=False)
+    from tuner.cli import main
+    for argv in (["evaluate", "--data", str(data), "--num-features", "512", "--jobs", "1", "--quiet"],
+                 ["data", "build-gt", "--data", str(data), "--quiet"]):
+        capsys.readouterr()
+        rc = main(argv)
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and "\n" not in err, (argv[0], err)
+        assert err.startswith(f"tune: error: cache folder {cache} is not a folder, and the ground truth goes in "
+                              f"{cache}/gt: give a folder with --cache DIR or $IMTUNE_CACHE"), err
+
+
 def test_checking_a_camera_model_keeps_sigterm_for_tune():
     """GTConfig checks its camera model against pycolmap's list: loading pycolmap there must not hand SIGTERM to
     glog's failure handler (a stack trace and death by signal instead of tune's one line and exit 143; a bare

@@ -476,10 +476,19 @@ def _not_a_file(p: Path) -> ImtuneError | None:
         return ImtuneError(f"ground truth {p} is {'a folder' if p.is_dir() else 'not a regular file'}, not the file "
                            "it should be: move it away, then build the ground truth again with `tune data build-gt`")
     blocker = None if p.exists() else next((q for q in p.parents if q.exists() and not q.is_dir()), None)
-    if blocker is not None:
-        return ImtuneError(f"ground truth {p}: {blocker} is a file where a folder should be: move it away, or give "
-                           "another folder with --gt-dir (or $IMTUNE_GT)")
-    return None
+    if blocker is None:
+        return None
+    from pipeline.cache import default_cache_dir
+    cache = default_cache_dir()
+    if not os.environ.get("IMTUNE_GT") and cache / "gt" in p.parents and (blocker == cache or blocker in cache.parents):
+        # the ground truth's default place is inside the cache: the cache setting is the culprit (/dev/null is
+        # nothing to "move away")
+        return ImtuneError(f"cache folder {cache} is not a folder{'' if blocker == cache else f' ({blocker} is a file)'}"
+                           f", and the ground truth goes "
+                           f"in {cache / 'gt'}: give a folder with --cache DIR or $IMTUNE_CACHE (or --gt-dir for the "
+                           "ground truth)")
+    return ImtuneError(f"ground truth {p}: {blocker} is a file where a folder should be: move it away, or give "
+                       "another folder with --gt-dir (or $IMTUNE_GT)")
 
 
 def find_ground_truth(scene, gt_dir: Path | str | None = None) -> Path | None:
