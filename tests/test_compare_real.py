@@ -68,8 +68,12 @@ def test_a_configuration_compared_with_itself(setup, capsys):
     assert code == 0, err
     o = json.loads(out)["overall"]
     assert o["difference"] == 0.0 and o["ci"] == [0.0, 0.0] and o["p_value"] == 1.0
+    # said, not left to be read as a finding (a study and a file of its own settings look different)
+    said = [ln for ln in err.splitlines() if "same configuration" in ln]
+    assert len(said) == 1 and "sift-degensac and " in said[0] and "difference is 0 by construction" in said[0], err
     code, out, err = run(capsys, f["degensac"], f["degensac"], *setup["common"])
     assert code == 0, err
+    assert err.count("same configuration") == 1
     assert "no significant difference" in out and "| A better" not in out and "| B better" not in out
 
 
