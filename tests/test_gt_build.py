@@ -188,6 +188,25 @@ def test_a_cache_that_is_no_folder_is_blamed_not_the_ground_truth(tmp_path, caps
                               f"{cache}/gt: give a folder with --cache DIR or $IMTUNE_CACHE"), err
 
 
+def test_a_camera_model_the_build_does_not_use_is_said(tmp_path, capsys):
+    """`tune data build-gt --camera-model PINHOLE` on posed images (--method poses, or auto on Strecha) was accepted
+    and unused, unsaid. Now --method poses refuses it in one line; auto warns naming the scenes it does not apply to."""
+    from tests.conftest import copy_strecha_subset
+    from tuner.cli import main
+    data = copy_strecha_subset(tmp_path / "data", ["0003.jpg", "0004.jpg", "0005.jpg"])
+    common = ["data", "build-gt", "--data", str(data), "--gt-dir", str(tmp_path / "gt"), "--quiet",
+              "--num-features", "1024", "--camera-model", "PINHOLE"]
+    capsys.readouterr()
+    rc = main([*common, "--method", "poses"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err == ("tune: error: --camera-model is for --method sfm only (poses triangulates with each "
+                               "image's known K): drop it, or use --method sfm"), err
+    assert not (tmp_path / "gt").exists()
+    rc = main(common)
+    err = capsys.readouterr().err.strip()
+    assert rc == 0 and err.startswith("warning: --camera-model PINHOLE is not used for fountain-P11: "), err
+
+
 def test_checking_a_camera_model_keeps_sigterm_for_tune():
     """GTConfig checks its camera model against pycolmap's list: loading pycolmap there must not hand SIGTERM to
     glog's failure handler (a stack trace and death by signal instead of tune's one line and exit 143; a bare

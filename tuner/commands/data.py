@@ -41,7 +41,7 @@ def register(sub) -> None:
     g.add_argument("--num-features", type=int, default=8192, help="COLMAP SIFT keypoints per image")
     g.add_argument("--max-image-size", type=positive_int, default=3200,
                    help="COLMAP extracts on images resized to this (px)")
-    g.add_argument("--camera-model", default="SIMPLE_PINHOLE", help="COLMAP camera model for sfm (SIMPLE_PINHOLE, "
+    g.add_argument("--camera-model", default=None, help="COLMAP camera model for sfm (default SIMPLE_PINHOLE; "
                    "PINHOLE, SIMPLE_RADIAL, ...; distortion is not kept in the scene)")
     g.add_argument("--gt-dir", default=None, help="where ground truth is written (default $IMTUNE_GT, $IMTUNE_CACHE/gt or ~/.cache/imtune/gt)")
     g.add_argument("--force", action="store_true", help="rebuild even if a ground truth with these settings exists")
@@ -127,11 +127,21 @@ def run_build_gt(args) -> int:
     from pipeline.data.ground_truth import GTConfig, build_ground_truth
     from tuner.evaluate import load_scenes
     root = resolve_data(args.data)
+    if args.camera_model is not None and args.method == "poses":  # accepted and unused, unsaid
+        raise ImtuneError("--camera-model is for --method sfm only (poses triangulates with each image's known K): "
+                          "drop it, or use --method sfm")
     conf = GTConfig(method=args.method, num_features=args.num_features, max_image_size=args.max_image_size,
-                    camera_model=args.camera_model)
+                    **({"camera_model": args.camera_model} if args.camera_model is not None else {}))
     scenes = load_scenes(root, args.scenes, split="all", ground_truth=False)
     if not scenes:  # was exit 0 with nothing printed: it looked like a build that found nothing to do
         raise ImtuneError(f"no scenes in {root} to build ground truth for (see `tune data scenes --data {root}`)")
+    if args.camera_model is not None:
+        from pipeline.data.ground_truth import choose_method
+        posed = [sc.name for sc in scenes if choose_method(sc, args.method) == "poses"]
+        if posed:
+            print(f"warning: --camera-model {args.camera_model} is not used for {', '.join(posed)}: their images have "
+                  "known poses and K (--method auto triangulates with them); --method sfm reconstructs with it",
+                  file=sys.stderr, flush=True)
     report = {}
     for sc in scenes:
         t0 = time.perf_counter()
