@@ -224,7 +224,26 @@ def load_config_file(path: str | Path, base: PipelineConfig | None = None) -> Co
     """A configuration from a file (see the module docstring); one-line ImtuneError if invalid."""
     cf = _load(Path(path), base)
     check_names(cf.conf, str(path))
+    check_custom_matches(cf.conf, str(path))
     return cf
+
+
+#: the matcher's fields when imported matches skip it (no ratio test): what a run with custom_matches is recorded as
+SKIPPED_MATCHER = {"ratio": 1.0, "strategy": "both", "distance_threshold": None, "fginn": False, "method": "exact"}
+
+
+def check_custom_matches(conf: PipelineConfig, where: str) -> PipelineConfig:
+    """A configuration with ``matching.custom_matches`` whose matcher fields say something else than "skipped"
+    (ratio 0.8, ...) was run without that ratio test and recorded, labelled and compared as r 0.8: one line naming
+    ``where`` and the field."""
+    m = conf.matching
+    if m.custom_matches:
+        for k, v in SKIPPED_MATCHER.items():
+            if getattr(m, k) != v:
+                raise ImtuneError(f"{where}: matching.{k} {getattr(m, k)!r} with custom_matches: imported matches skip "
+                                  f"the matcher (no ratio test, strategy, distance threshold, FGINN); drop it or set "
+                                  f"{k}: {'null' if v is None else str(v).lower()}")
+    return conf
 
 
 def _load(path: Path, base: PipelineConfig | None) -> ConfigFile:

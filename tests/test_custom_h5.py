@@ -10,6 +10,7 @@ import cv2
 import h5py
 import numpy as np
 import pytest
+import yaml
 
 from pipeline.cache import H5Cache
 from pipeline.config import FeatureConfig, GeometryConfig, MatchConfig, PipelineConfig
@@ -151,6 +152,28 @@ def test_cli_custom_matches_say_no_ratio_test_and_refuse_matcher_options(mini, g
         lines = r.stderr.strip().splitlines()
         assert r.returncode == 2 and len(lines) == 1, r.stderr
         assert f"{opt[0]} does not apply with --matches custom:DIR" in lines[0] and "drop it" in lines[0], lines
+
+@pytest.mark.parametrize("field,value", [("ratio", 0.8), ("strategy", "uni"), ("fginn", True), (None, None)])
+def test_a_config_file_with_custom_matches_and_a_ratio_is_said(field, value, mini, good, tmp_path):
+    """A config file with matching.custom_matches and ratio 0.8 ran without that ratio test (imported matches skip
+    the matcher) and was recorded and labelled r 0.8. Now one line naming the file and the field; without one
+    (the defaults: r 1, both) it runs."""
+    f = tmp_path / "cm.yaml"
+    matching = {"custom_matches": str(good), **({field: value} if field else {})}
+    f.write_text(yaml.safe_dump({"config": {"feature": {"name": f"custom:{good}", "num_features": K},
+                                            "matching": matching,
+                                            "geometry": {"ransac": "degensac", "max_iters": 2000}}}))
+    r = tune("evaluate", "--config", str(f), "--data", str(mini), "--scenes", SCENE, "--quiet", "--ci", "none",
+             "--json", env={"IMTUNE_CACHE": str(tmp_path / "c")})
+    if field is None:
+        assert r.returncode == 0, r.stderr
+        assert json.loads(r.stdout)["config"]["matching"]["ratio"] == 1.0
+        return
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert lines[0].startswith(f"tune: error: {f}: matching.{field} {value!r} with custom_matches: imported matches "
+                               "skip the matcher"), lines
+
 
 @pytest.mark.parametrize("fix", ["ratio=0.7", "strategy=either"])
 def test_run_with_custom_matches_refuses_a_matcher_fix(fix, mini, good, tmp_path):
