@@ -195,6 +195,15 @@ def test_imc2022_round_trip(tmp_path):
     assert load_imc2022(tmp_path / "imc" / "train" / "taj_mahal").name == "taj_mahal"
 
 
+def _imc2022_error(root: Path) -> str:
+    """The one-line error load_imc2022(root) raises."""
+    with pytest.raises(ImtuneError) as e:
+        load_imc2022(root)
+    msg = str(e.value)
+    assert "\n" not in msg, msg
+    return msg
+
+
 def test_imc2022_errors(tmp_path):
     write_imc2022(tmp_path / "imc")
     sdir = tmp_path / "imc" / "train" / "british_museum"
@@ -226,9 +235,7 @@ def test_imc2022_pair_listed_twice_or_with_itself_is_refused(tmp_path, extra, ne
     write_imc2022(tmp_path / "imc")
     covis = tmp_path / "imc" / "train" / "british_museum" / "pair_covisibility.csv"
     covis.write_text(covis.read_text() + extra() + "\n")
-    with pytest.raises(ImtuneError) as e:
-        load_imc2022(tmp_path / "imc")
-    msg = str(e.value)
+    msg = _imc2022_error(tmp_path / "imc")
     assert str(covis) in msg and needle in msg and "\n" not in msg, msg
 
 
@@ -238,9 +245,7 @@ def test_imc2022_image_listed_twice_in_calibration_is_refused(tmp_path):
     calib = tmp_path / "imc" / "train" / "british_museum" / "calibration.csv"
     lines = calib.read_text().splitlines()
     calib.write_text("\n".join(lines + [lines[1]]) + "\n")
-    with pytest.raises(ImtuneError) as e:
-        load_imc2022(tmp_path / "imc")
-    msg = str(e.value)
+    msg = _imc2022_error(tmp_path / "imc")
     assert f"{calib}, lines 2 and 5: image_id {IDS[0]!r} is listed twice" in msg and "\n" not in msg, msg
 
 
@@ -253,9 +258,7 @@ def test_imc2022_covisibility_file_that_is_no_file_is_named(tmp_path, kind):
     covis = tmp_path / "imc" / "train" / "british_museum" / "pair_covisibility.csv"
     covis.unlink()
     covis.mkdir() if kind == "folder" else os.mkfifo(covis)
-    with pytest.raises(ImtuneError) as e:
-        load_imc2022(tmp_path / "imc")
-    msg = str(e.value)
+    msg = _imc2022_error(tmp_path / "imc")
     assert msg.startswith(f"IMC 2022 file {covis} is ") and "\n" not in msg, msg
 
 
@@ -265,9 +268,7 @@ def test_imc2022_covisibility_outside_0_1_is_refused(tmp_path, value):
     write_imc2022(tmp_path / "imc")
     covis = tmp_path / "imc" / "train" / "british_museum" / "pair_covisibility.csv"
     covis.write_text(covis.read_text().replace(",0.42,", f",{value},"))
-    with pytest.raises(ImtuneError) as e:
-        load_imc2022(tmp_path / "imc")
-    msg = str(e.value)
+    msg = _imc2022_error(tmp_path / "imc")
     assert f"{covis}, line 2: covisibility must be in [0, 1], got {value}" in msg and "\n" not in msg, msg
 
 
