@@ -175,3 +175,19 @@ def test_test_interval_and_self_comparison():
     assert same["difference"] == 0.0 and same["p_value"] == 1.0 and not same["significant"]
     assert "no significant difference" in sel.comparison_text({"label": "x", "mAA10": 0.5, "comparison": same})
     assert sel.pair_errors([{"scene": "A", "bag": 1, "errors": [1.0]}]) is None
+
+
+def test_a_flat_optimum_frozen_by_best_points_to_one_se():
+    """A 'best' pick among many tied trials is a pick by noise (the README main job once froze eta 0.75 px this way,
+    22 of 26 trials tied: test 0.606 against the defaults' 0.679, where `--select one-se` gave 0.692). The frozen
+    table now says so when more than half the trials tie, and names the command."""
+    from tuner.commands.study import _frozen_notes
+    flat = {"trials": 22, "of": 26, "interval": [0.804, 0.956], "params": {}}
+    f = {"study": "s1", "selection": {"rule": "best", "best_trial": 33, "best_value": 0.887, "note": ""},
+         "robustness": flat}
+    lines = _frozen_notes(f).strip().splitlines()
+    assert lines[-1].startswith("the optimum is flat (22 of 26 trials tie") and \
+        "`tune test --study s1 --select one-se`" in lines[-1], lines
+    for other in ({**f, "robustness": {**flat, "trials": 13}},  # half: not flat enough to say
+                  {**f, "selection": {**f["selection"], "rule": "one-se"}}):  # already the centre
+        assert "the optimum is flat" not in _frozen_notes(other)

@@ -323,6 +323,12 @@ def _frozen_notes(f: dict) -> str:
                      + f"): {sel.get('note', '')}")
     if "robustness" in f:
         lines.append(flat_text(f.get("robustness")))
+        flat = f.get("robustness") or {}
+        if sel.get("rule") == "best" and flat.get("of") and flat.get("trials", 0) > flat["of"] / 2:
+            # most trials tie with the best: which one wins is noise, and a noise pick can fail on the test scenes
+            lines.append(f"the optimum is flat ({flat['trials']} of {flat['of']} trials tie with the best within its "
+                         f"interval): `tune test --study {f.get('study')} --select one-se` freezes the trial at the "
+                         "centre of the tied ones instead (README: --select)")
     return ("\n" + "\n".join(lines)) if lines else ""
 
 
