@@ -185,9 +185,8 @@ class H5Cache:
             if stat.S_ISDIR(st.st_mode):
                 raise IsADirectoryError(errno.EISDIR, "Is a directory", str(p))
             if not stat.S_ISREG(st.st_mode):
-                raise _NotAFile("a FIFO" if stat.S_ISFIFO(st.st_mode) else "a socket" if stat.S_ISSOCK(st.st_mode)
-                                else "a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode)
-                                else "not a regular file")
+                from pipeline.fileio import file_kind
+                raise _NotAFile(file_kind(st.st_mode))
             ident.append((st.st_dev, st.st_ino))
             data = fh.read()
         if not data:

@@ -31,6 +31,15 @@ class FileWriteError(ImtuneError):
         return self.errno in (_errno.ENOSPC, _errno.EDQUOT)
 
 
+def file_kind(mode: int) -> str:
+    """What a non-regular file's ``st_mode`` is, for a message: "a folder", "a FIFO", "a socket", "a device", or
+    "not a regular file"."""
+    import stat
+    return ("a folder" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode) else
+            "a socket" if stat.S_ISSOCK(mode) else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else
+            "not a regular file")
+
+
 def read_text(path: Path | str, what: str = "file") -> str:
     """The text of a file the user gave (a configuration, search space, frozen.yaml, imtune.yaml, splits.yaml, ...),
     decoded as UTF-8 (a BOM is dropped). One-line ImtuneError naming ``what`` and the file when it is not a regular

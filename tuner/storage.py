@@ -582,9 +582,8 @@ def _check_journal_path(p: Path) -> None:
     except OSError as e:  # e.g. a file where a folder of the path should be
         raise ImtuneError(f"cannot open journal storage {p}: {e.strerror or e}") from None
     if not stat.S_ISREG(mode):
-        kind = ("a folder" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode) else
-                "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "a socket" if stat.S_ISSOCK(mode) else
-                "not a regular file")
+        from pipeline.fileio import file_kind
+        kind = file_kind(mode)
         raise ImtuneError(f"journal storage {p} is {kind}, not a file; give journal: the path of a journal file "
                           "(a new name creates one)")
     # Optuna skips a last line that is no JSON (a record another worker is still writing), so a one-line text file

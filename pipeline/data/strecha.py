@@ -67,9 +67,8 @@ def _not_a_regular_file(p: Path, what: str) -> None:
     if stat.S_ISLNK(mode) and not p.exists():
         kind = "a broken link"
     else:
-        m = os.stat(p).st_mode
-        kind = ("a folder" if stat.S_ISDIR(m) else "a FIFO" if stat.S_ISFIFO(m) else
-                "a device" if stat.S_ISCHR(m) or stat.S_ISBLK(m) else "not a regular file")
+        from pipeline.fileio import file_kind
+        kind = file_kind(os.stat(p).st_mode)
     raise ImtuneError(f"{what} {p} is {kind}, not a file: put the {what} there")
 
 
