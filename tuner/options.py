@@ -11,6 +11,7 @@ import functools
 import math
 
 from pipeline.config import SEED_MAX, FeatureConfig, GeometryConfig, MatchConfig, PipelineConfig
+from pipeline.config_files import SKIPPED_MATCHER
 from pipeline.errors import ImtuneError
 from tuner.argtypes import (count_int, nonnegative_float, positive_float, positive_int, probability_float, ratio_float,
                             iters_int, scene_list, seed_int, unit_float)
@@ -63,8 +64,9 @@ def add_pipeline_options(ap: argparse.ArgumentParser, tuning: bool = False) -> N
     o.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
-#: the matcher's options (argparse dests) -> their values when imported matches skip the matcher (r = 1: no test)
-MATCHER_OPTIONS = {"ratio": 1.0, "strategy": "both", "distance_threshold": None, "fginn": False, "matcher": "exact"}
+#: the matcher's options (argparse dests) -> their values when imported matches skip the matcher (r = 1: no test):
+#: pipeline.config_files.SKIPPED_MATCHER under the option names (--matcher sets MatchConfig.method)
+MATCHER_OPTIONS = {("matcher" if k == "method" else k): v for k, v in SKIPPED_MATCHER.items()}
 
 
 def build_config(args: argparse.Namespace, **overrides) -> PipelineConfig:
