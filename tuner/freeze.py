@@ -346,13 +346,24 @@ def check_study_outputs(studies_dir: Path | str, name: str) -> Path:
 EARLIER_PREFIX = "earlier-"
 
 
-def _new_earlier_folder(d: Path) -> Path:
-    """``d/earlier-<UTC time>`` (``-2``, ``-3``, ... when taken): a name not yet used."""
+def _move_to_earlier(d: Path, entries: list, what: str, fix: str) -> Path:
+    """Move ``entries`` (paths in ``d``) into a new ``d/earlier-<UTC time>`` (``-2``, ``-3``, ... when taken);
+    returns that folder. An entry gone meanwhile is skipped; any other failure is one line: ``what`` could not be
+    set aside ..., move it away, ``fix``."""
     stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
     dest, k = d / f"{EARLIER_PREFIX}{stamp}", 1
     while dest.exists():
         k += 1
         dest = d / f"{EARLIER_PREFIX}{stamp}-{k}"
+    try:
+        dest.mkdir()
+        for e in entries:
+            try:
+                Path(e).rename(dest / Path(e).name)
+            except FileNotFoundError:
+                pass
+    except OSError as e:
+        raise ImtuneError(f"{what} could not be set aside in {dest} ({e.strerror or e}): move it away, {fix}") from None
     return dest
 
 
@@ -369,19 +380,9 @@ def set_aside_earlier_outputs(studies_dir: Path | str, name: str) -> Path | None
         return None
     if not entries:
         return None
-    dest = _new_earlier_folder(d)
-    try:
-        dest.mkdir()
-        for e in entries:
-            try:
-                e.rename(dest / e.name)
-            except FileNotFoundError:  # another worker creating the same study moved it first
-                pass
-    except OSError as e:
-        raise ImtuneError(f"study folder {d} holds an earlier study's outputs ({', '.join(x.name for x in entries)})"
-                          f" that could not be set aside ({e.strerror or e}): move them away, or name a new study "
-                          "with --study") from None
-    if not any(dest.iterdir()):
+    dest = _move_to_earlier(d, entries, f"study folder {d} holds an earlier study's outputs "
+                                        f"({', '.join(x.name for x in entries)}) that", "or name a new study with --study")
+    if not any(dest.iterdir()):  # another worker creating the same study moved them first
         dest.rmdir()
         return None
     return dest
@@ -530,14 +531,7 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
 def keep_earlier_file(path: Path) -> Path:
     """Move ``path`` into ``<its folder>/earlier-<UTC time>/`` (:data:`EARLIER_PREFIX`); returns where it went."""
     path = Path(path)
-    dest = _new_earlier_folder(path.parent)
-    try:
-        dest.mkdir()
-        path.rename(dest / path.name)
-    except OSError as e:
-        raise ImtuneError(f"cannot keep the earlier {path} aside in {dest} ({e.strerror or e}): move it away, then "
-                          "rerun") from None
-    return dest / path.name
+    return _move_to_earlier(path.parent, [path], f"the earlier {path}", "then rerun") / path.name
 
 
 def earlier_test_line(result: dict) -> str | None:
