@@ -60,11 +60,11 @@ def run(args) -> int:
             print(f"warning: {spec} is a {task} study: it tuned {tuned} only; on these stereo pairs it "
                   f"runs with its file's eta {src.conf.geometry.threshold:g} px and Gamma {src.conf.geometry.max_iters} "
                   "as they are, untuned", file=sys.stderr)
+    import sys
     seen: dict = {}
     for spec, src in zip(args.sources, sources):  # the same configuration twice: a difference of 0 by construction
         key = json.dumps(src.conf.to_dict(), sort_keys=True, default=str)
         if key in seen:
-            import sys
             print(f"warning: {spec} and {seen[key]} are the same configuration: their difference is 0 by "
                   "construction (same pairs, same seeds), not a finding", file=sys.stderr)
         seen.setdefault(key, spec)
