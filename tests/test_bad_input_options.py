@@ -544,10 +544,20 @@ def test_fix_max_iters_calibrated_pins_gamma_to_the_calibrated_gamma_max(tiny, t
     rc, out, err = _cli(["run", "--data", tiny, *FAST, "--studies-dir", st, "--fix", "max_iters=calibrated",
                          "--calibration-pairs", "1", "--no-test", "--n-trials", "1", "--study", "calibrated-gamma"],
                         capsys)
-    assert rc == 0, err
-    frozen = yaml.safe_load((st / "calibrated-gamma" / "frozen.yaml").read_text())
-    gmax = frozen["budget"]["gamma_max"]
-    assert isinstance(gmax, int) and frozen["fixed"]["max_iters"] == frozen["config"]["geometry"]["max_iters"] == gmax
+    # Gamma_max(B) is the cap whose median time is at the budget: the one trial pinned there may time just over
+    # it on a loaded machine (CI's other test process), a clean "no feasible trial" stop, not the bug. The pin is
+    # checked in the storage either way; the frozen file too when the trial was within budget.
+    assert rc == 0 or (rc == 2 and "no feasible completed trial yet" in err and "internal error" not in err), err
+    import optuna
+    study = optuna.load_study(study_name="calibrated-gamma", storage=f"sqlite:///{st / 'optuna.db'}")
+    gmax = study.user_attrs["budget"]["gamma_max"]
+    assert isinstance(gmax, int) and gmax > 0
+    assert study.user_attrs["search_space_resolved"]["fixed"]["max_iters"] == gmax
+    assert [t.state.name for t in study.trials] == ["COMPLETE"]
+    if rc == 0:
+        frozen = yaml.safe_load((st / "calibrated-gamma" / "frozen.yaml").read_text())
+        assert frozen["budget"]["gamma_max"] == gmax
+        assert frozen["fixed"]["max_iters"] == frozen["config"]["geometry"]["max_iters"] == gmax
 
 
 def test_pareto_span_without_a_pareto_objective_is_refused(tiny, tmp_path, capsys):
