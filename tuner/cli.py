@@ -202,6 +202,7 @@ def _interrupted(e: KeyboardInterrupt, args) -> int:
     """One line and exit 130 (Ctrl-C) / 143 (SIGTERM). What an interruption leaves, as the command says it
     (``on_interrupt`` in its parser's defaults): a study's completed trials are kept and it resumes; a test run
     or a calibration is written only when it finishes."""
+    _stop_children()
     note = getattr(args, "on_interrupt", None)
     kept = f"; {note}" if note else ""
     if isinstance(e, Terminated):
@@ -209,6 +210,15 @@ def _interrupted(e: KeyboardInterrupt, args) -> int:
         return 128 + signal.SIGTERM
     print(f"tune: interrupted{kept}", file=sys.stderr)
     return 130
+
+
+def _stop_children() -> None:
+    """After an interruption, no worker outlives the command: the pools kill theirs as the interrupt passes; this
+    kills any they could not know of (a Ctrl-C between CPython's spawn of a pool worker and its recording), which
+    the interpreter's exit would otherwise join, waiting for its work to end."""
+    import multiprocessing as mp
+    from pipeline.tasks.pool import kill_processes
+    kill_processes(mp.active_children())
 
 
 def _user_error(e: ImtuneError, args, url: str | None) -> int:

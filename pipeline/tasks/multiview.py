@@ -290,7 +290,7 @@ def _pool_pass(jobs, indices, results, workers, bar, fn):
     except BrokenProcessPool:
         # Python 3.11's executor then joins the surviving workers, which may sit idle on the call
         # queue forever (it is only fixed in 3.12, where broken pools kill their workers): kill them.
-        kill_processes(list((getattr(ex, "_processes", None) or procs).values()))
+        kill_processes(list({**procs, **(getattr(ex, "_processes", None) or {})}.values()))
     except KeyboardInterrupt:  # Ctrl-C / SIGTERM: the workers stop now, not after the bags in flight and queued
         kill_executor(ex, list(procs.values()))
         raise

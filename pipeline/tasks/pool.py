@@ -164,13 +164,19 @@ def kill_processes(procs) -> None:
 
 
 def kill_executor(ex, procs=None) -> None:
-    """Stop a ProcessPoolExecutor now (Ctrl-C, a broken pool): kill its processes (``procs``, default the
-    executor's own), shut it down without waiting for its items, and wait (at most 5 s) for its manager thread.
+    """Stop a ProcessPoolExecutor now (Ctrl-C, a broken pool): kill its processes (its own and ``procs``),
+    shut it down without waiting for its items, and wait (at most 5 s) for its manager thread.
     That wait: Python 3.11's exit hook wakes every live manager thread through a pipe that the thread closes as it
     ends, without a lock between the two (3.12 added one), so a Ctrl-C that exits while the thread is ending printed
     "Exception ignored in: <module 'threading'> ... OSError: [Errno 9] Bad file descriptor" after
-    "tune: interrupted". Once the thread has ended, its wake-up is closed and the hook skips it."""
-    kill_processes(list((getattr(ex, "_processes", None) or {}).values()) if procs is None else procs)
+    "tune: interrupted". Once the thread has ended, its wake-up is closed and the hook skips it.
+
+    ``procs`` (the caller's record of the workers, kept because a broken 3.11 executor forgets its own) adds to the
+    executor's processes, never replaces them: a Ctrl-C landing inside ``submit`` after it spawned a worker and
+    before the caller recorded it left that worker running its bag, and the exit waited for it (over a minute for
+    a multiview trial's COLMAP bag on a loaded machine, after "tune: interrupted")."""
+    own = list((getattr(ex, "_processes", None) or {}).values())
+    kill_processes(own + [p for p in (procs or []) if p not in own])
     try:
         ex.shutdown(wait=False, cancel_futures=True)
     except Exception:  # noqa: BLE001 - a broken executor

@@ -1,0 +1,51 @@
+"""Stopping worker pools: no worker outlives a Ctrl-C, even one its caller never recorded. Real processes
+(spawn), real ProcessPoolExecutor; no mocks."""
+import argparse
+import multiprocessing as mp
+import time
+from concurrent.futures import ProcessPoolExecutor
+
+from pipeline.tasks.pool import kill_executor, kill_processes
+
+
+def _dead(pid: int) -> bool:
+    """Gone or a zombie, read from /proc: ``Process.is_alive()`` can say True for a killed worker while the
+    executor's manager thread is reaping it (two threads waiting on one child)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] in ("Z", "X")
+    except FileNotFoundError:
+        return True
+
+
+def test_kill_executor_kills_the_workers_its_caller_never_recorded():
+    """A Ctrl-C landing inside ``submit`` after the executor spawned a worker, before the caller recorded it
+    (multiview's ``_pool_pass``, the pair pool's ``_submit``): kill_executor was given the stale record and killed
+    only those, the unrecorded worker ran its bag on and the exit waited for it (CI: a multiview study's SIGINT
+    still running 60 s after "tune: interrupted")."""
+    ex = ProcessPoolExecutor(max_workers=2, mp_context=mp.get_context("spawn"))
+    futures = [ex.submit(time.sleep, 120) for _ in range(4)]
+    procs = list(ex._processes.values())
+    try:
+        assert [p.is_alive() for p in procs] == [True, True]  # spawned by the submits, working or starting
+        kill_executor(ex, [])  # the caller's record: empty, as when the interrupt came before it was updated
+        deadline = time.time() + 30  # left alive, a worker sleeps its 120 s
+        while time.time() < deadline and not all(_dead(p.pid) for p in procs):
+            time.sleep(0.1)
+        assert [_dead(p.pid) for p in procs] == [True, True]
+    finally:
+        kill_processes(procs)
+
+
+def test_an_interruption_leaves_no_child_process_behind():
+    """Whatever child a pool could not know of (CPython records a spawned worker a moment after starting it), the
+    CLI's interruption handling kills: the interpreter's exit would otherwise join it, waiting for its work."""
+    from tuner.cli import _interrupted
+    p = mp.get_context("spawn").Process(target=time.sleep, args=(120,))
+    p.start()
+    try:
+        assert p.is_alive()
+        assert _interrupted(KeyboardInterrupt(), argparse.Namespace(on_interrupt="x")) == 130
+        assert _dead(p.pid)
+    finally:
+        kill_processes([p])
