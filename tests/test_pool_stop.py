@@ -24,7 +24,8 @@ def test_kill_executor_kills_the_workers_its_caller_never_recorded():
     only those, the unrecorded worker ran its bag on and the exit waited for it (CI: a multiview study's SIGINT
     still running 60 s after "tune: interrupted")."""
     ex = ProcessPoolExecutor(max_workers=2, mp_context=mp.get_context("spawn"))
-    futures = [ex.submit(time.sleep, 120) for _ in range(4)]
+    for _ in range(4):
+        ex.submit(time.sleep, 120)
     procs = list(ex._processes.values())
     try:
         assert [p.is_alive() for p in procs] == [True, True]  # spawned by the submits, working or starting
