@@ -75,6 +75,27 @@ def _keep_models_file(tmp: Path):
              "--keep-models", str(tmp / "a-file")], {}, f"--keep-models folder {tmp / 'a-file'} is not a folder")
 
 
+def _zero_baseline(kind: str):
+    """A ground-truth pair whose cameras share one centre (a camera file copied to another image; a pairs-list line
+    with zero translation): its pair error was the angle of rounding noise (80 deg) or inf, counted in mAA, exit 0."""
+    def setup(tmp: Path):
+        data = _tiny_data(tmp)
+        scene = data / "fountain-P11"
+        if kind == "strecha":
+            import shutil
+            shutil.copy(scene / "images" / IMAGES[0], scene / "images" / "0009.jpg")
+            shutil.copy(scene / "gt_dense_cameras" / f"{IMAGES[1]}.camera", scene / "gt_dense_cameras" / "0009.jpg.camera")
+            needle = f"pair {IMAGES[1]}|0009.jpg has no baseline"
+        else:
+            K = "1000 0 768 0 1000 512 0 0 1"
+            (scene / "pairs_with_gt.txt").write_text(f"{IMAGES[0]} {IMAGES[1]} 0 0 {K} {K} 1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1\n")
+            import shutil
+            shutil.rmtree(scene / "gt_dense_cameras")
+            needle = f"pair {IMAGES[0]}|{IMAGES[1]} has no baseline"
+        return ["evaluate", "--data", str(data), *FAST, "--cache", str(tmp / "cache")], {}, needle
+    return setup
+
+
 def _evaluate(*args, needle):
     def setup(tmp: Path):
         return ["evaluate", "--data", str(_tiny_data(tmp)), *FAST, "--cache", str(tmp / "cache"), *args], {}, needle
@@ -205,6 +226,9 @@ CASES = {
     "bags-size-twice": _evaluate("--task", "multiview", "--bags", "3:2,3:1", needle="size 3 is given twice"),
     "prefilter-gms-threshold-0": _evaluate("--prefilter", "gms:threshold=0",
                                            needle="prefilter 'gms': option threshold must be > 0"),
+    # a ground-truth pair without baseline: its error was rounding noise or inf, counted in mAA, unsaid
+    "strecha-cameras-share-a-centre": _zero_baseline("strecha"),
+    "pairs-list-zero-translation": _zero_baseline("pairs"),
     # item 6 (cache half): the cache folder is a file, or lies under one
     "cache-is-a-file": _cache_file("file"),
     "cache-under-a-file": _cache_file("under"),

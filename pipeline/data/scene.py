@@ -90,6 +90,28 @@ class Scene:
                 return f"no ground-truth pose for {p.i if self.images[p.i].R is None else p.j}"
         return None
 
+    def zero_baseline(self, pairs: list[Pair] | None = None) -> str | None:
+        """Why a pair cannot be scored (None when every pair can): the first pair whose ground-truth cameras share
+        one centre, so that its translation direction is undefined and every estimate's error there is inf or the
+        angle of rounding noise (a camera file or a pairs-list line duplicated). Zero: the centres (the listed
+        translation) closer than 1e-6 x the scene's scale (the centres' norms, at least 1)."""
+        for p in (self.pairs if pairs is None else pairs):
+            if p.t is not None:
+                gap = float(np.linalg.norm(p.t))
+                scale = 1.0
+            else:
+                a, b = self.images[p.i], self.images[p.j]
+                if a.R is None or b.R is None or a.t is None or b.t is None:
+                    continue
+                ca, cb = (-np.asarray(x.R, float).T @ np.asarray(x.t, float).reshape(3) for x in (a, b))
+                gap = float(np.linalg.norm(ca - cb))
+                scale = max(1.0, float(np.linalg.norm(ca)), float(np.linalg.norm(cb)))
+            if gap <= 1e-6 * scale:
+                return (f"pair {p.key} has no baseline in the ground truth (the two cameras' centres coincide): its "
+                        "translation direction is undefined and every method's pose error there would be inf or "
+                        "rounding noise; correct the pose of one image, or remove one of them (or the pair's line)")
+        return None
+
     def select_pairs(self, min_covisibility: float | None = 0.1) -> list[Pair]:
         """The protocol's pairs: co-visibility >= threshold where known, all listed pairs otherwise."""
         from pipeline.config import check_covisibility

@@ -118,7 +118,9 @@ class Task(abc.ABC):
         if not units:
             return f"nothing for the {self.name} task to evaluate (no pairs with {self.options() or 'its options'})"
         why = scene.missing_ground_truth(units)
-        return f"no ground truth to evaluate against ({why})" if why else None
+        if why:
+            return f"no ground truth to evaluate against ({why})"
+        return scene.zero_baseline(units)
 
     def scene_notes(self, scene) -> list[str]:
         """What a user must know about how this task evaluates ``scene`` where it cannot follow its options as

@@ -38,7 +38,7 @@ import numpy as np
 from pipeline.cache import H5Cache, make_key
 from pipeline.config import PipelineConfig
 from pipeline.data.bags import DEFAULT_BAGS, MIN_POINTS, scene_bags
-from pipeline.data.scene import Scene
+from pipeline.data.scene import Pair, Scene
 from pipeline.errors import ImtuneError
 from pipeline.metrics.pose import accuracy_curve, mean_average_accuracy, pose_error_deg
 from pipeline.tasks.base import TASKS, Task, TaskResult
@@ -374,6 +374,10 @@ def scene_jobs(scene: Scene, conf: PipelineConfig, mv: MultiviewConfig, cache: H
     if missing:
         raise ImtuneError(f"scene {scene.name}: no ground-truth pose for image {missing[0]} (multiview needs poses)")
     names = sorted({n for b in bags.values() for bag in b for n in bag}, key=order.__getitem__)
+    bag_pairs = {(x, y) for lst in bags.values() for bag in lst for k, x in enumerate(bag) for y in bag[k + 1:]}
+    why = scene.zero_baseline([Pair(x, y) for x, y in sorted(bag_pairs)])
+    if why:  # a bag's pair errors there were inf or rounding noise
+        raise ImtuneError(f"scene {scene.name}: {why}")
     feats = {n: image_features(cache, scene.images[n], conf.feature)
              for n in tqdm(names, desc=f"{scene.name}: features", disable=not progress, leave=False)}
     use_points = mv.pair_min_points > 0 and scene.observations is not None

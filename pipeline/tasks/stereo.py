@@ -310,6 +310,9 @@ class StereoTask(Task):
             if why:
                 raise ImtuneError(f"scene {scene.name} has no ground truth to evaluate against ({why}); "
                                   f"build it first: tune data build-gt --data {scene.root}")
+            why = scene.zero_baseline(pairs)
+            if why:
+                raise ImtuneError(f"scene {scene.name}: {why}")
             out.append(pairs)
         return out
 
