@@ -249,6 +249,16 @@ def _reproj_stats(e: np.ndarray) -> dict:
             "p90_px": float(np.percentile(e, 90)), "p99_px": float(np.percentile(e, 99))}
 
 
+def check_poses_scene(scene) -> None:
+    """ImtuneError when triangulating with known poses cannot give ``scene`` a ground truth: fewer than 3 images
+    (COLMAP's triangulator keeps no point seen in only two images; the empty ground truth it gave had co-visibility
+    0 for the one pair, which hid it from every stereo evaluation)."""
+    if len(scene.images) < 3:
+        raise ImtuneError(f"scene {scene.name}: ground truth from known poses needs at least 3 images, it has "
+                          f"{len(scene.images)} (COLMAP triangulates no point seen in only two images); without it "
+                          "its pairs are evaluated as listed (co-visibility unknown): leave it out with --scenes")
+
+
 def build_from_poses(scene, conf: GTConfig = GTConfig(), work: Path | None = None, progress=None) -> GroundTruth:
     """Triangulate 3D points of a scene with known K, R, t (held fixed); see the module docstring."""
     from pipeline.colmap_db import import_pycolmap
@@ -260,8 +270,7 @@ def build_from_poses(scene, conf: GTConfig = GTConfig(), work: Path | None = Non
     if bad:
         raise ImtuneError(f"scene {scene.name}: image {bad[0]} has no known pose/intrinsics "
                           f"(use method 'sfm' to reconstruct from the images)")
-    if len(scene.images) < 2:
-        raise ImtuneError(f"scene {scene.name}: needs at least 2 images, has {len(scene.images)}")
+    check_poses_scene(scene)
     quiet(3)  # our own one-line errors say why a build failed
     own = work is None
     work = Path(tempfile.mkdtemp(prefix="imtune-gt-")) if own else Path(work)
@@ -297,6 +306,9 @@ def build_from_poses(scene, conf: GTConfig = GTConfig(), work: Path | None = Non
         K = {n: np.asarray(scene.images[n].K, float) for n in names}
         R = {n: np.asarray(scene.images[n].R, float) for n in names}
         t = {n: np.asarray(scene.images[n].t, float).reshape(3) for n in names}
+        if not len(pts):  # written, it hid every pair of the scene (co-visibility 0) from the stereo task
+            raise ImtuneError(f"scene {scene.name}: triangulating with the known poses gave no 3D point (too few "
+                              "matches seen in 3 or more of its images): no ground truth written")
         err = reprojection_errors(pts, obs, K, R, t)
         meta = {"reprojection": _reproj_stats(err), "seconds": secs, "registered": len(names), "dropped": [],
                 "points": int(len(pts))}

@@ -142,6 +142,10 @@ def run_build_gt(args) -> int:
             print(f"warning: --camera-model {args.camera_model} is not used for {', '.join(posed)}: their images have "
                   "known poses and K (--method auto triangulates with them); --method sfm reconstructs with it",
                   file=sys.stderr, flush=True)
+    from pipeline.data.ground_truth import check_poses_scene, choose_method
+    for sc in scenes:  # before any scene is built (a build takes minutes)
+        if choose_method(sc, args.method) == "poses":
+            check_poses_scene(sc)
     report = {}
     for sc in scenes:
         t0 = time.perf_counter()
