@@ -224,6 +224,8 @@ CASES = {
                                            needle="--ci-resamples 5000 does not apply with --ci none"),
     # a bag size given twice: the last count was used, unsaid
     "bags-size-twice": _evaluate("--task", "multiview", "--bags", "3:2,3:1", needle="size 3 is given twice"),
+    # bags of 2 images: COLMAP's mapper keeps no model of two, every bag a recorded failure (SR 0, mAA 0), unsaid
+    "bags-of-two-images": _evaluate("--task", "multiview", "--bags", "2:1", needle="bag size must be >= 3, got 2"),
     "prefilter-gms-threshold-0": _evaluate("--prefilter", "gms:threshold=0",
                                            needle="prefilter 'gms': option threshold must be > 0"),
     # a ground-truth pair without baseline: its error was rounding noise or inf, counted in mAA, unsaid

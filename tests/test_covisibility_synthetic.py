@@ -132,6 +132,16 @@ def test_parse_bags():
             parse_bags(bad)
 
 
+def test_no_bag_of_two_images():
+    """COLMAP's mapper keeps no model of two images (a real 2-image bag with 923 verified matches: "no initial pair"),
+    so a bag of 2 was a recorded failure every time, SR 0 and mAA 0 unsaid: --bags 2 is refused, and a scene of 2
+    images (a larger size clipped to it) gets no bag."""
+    with pytest.raises(ImtuneError, match="bag size must be >= 3, got 2"):
+        parse_bags("2:5,5:10")
+    scene = synthetic_scene(n_images=2)
+    assert sample_bags(list(scene.images), {n: o[0] for n, o in scene.observations.items()}, {5: 10}, min_points=0) == {}
+
+
 def test_breakdown_by_covisibility_bins():
     recs = [{"err": 0.5, "covisibility": 0.05}, {"err": 3.0, "covisibility": 0.15}, {"err": math.inf, "covisibility": 0.65},
             {"err": 20.0, "covisibility": 0.45}, {"err": 1.5, "covisibility": None}]

@@ -18,6 +18,7 @@ from pipeline.errors import ImtuneError
 #: bag size -> number of bags (the paper's protocol)
 DEFAULT_BAGS: dict[int, int] = {5: 100, 10: 50, 25: 25}
 MIN_POINTS = 100
+MIN_BAG = 3  # COLMAP's incremental mapper returns no model of 2 images, however well matched
 ENUMERATE_LIMIT = 5000  # enumerate every subset when there are at most this many, else sample
 
 
@@ -44,8 +45,9 @@ def parse_bags(spec: str | dict | None) -> dict[int, int]:
                                   "(SIZE:COUNT for its number of bags)")
             items.append((size, count))
     for size, count in items:
-        if size < 2:
-            raise ImtuneError(f"bag size must be >= 2, got {size}")
+        if size < MIN_BAG:  # a bag of 2 was a recorded failure every time: SR 0, mAA 0, unsaid
+            raise ImtuneError(f"bag size must be >= {MIN_BAG}, got {size} (COLMAP's mapper keeps no model of two "
+                              "images: every such bag would fail)")
         if count < 1:
             raise ImtuneError(f"number of bags must be >= 1, got {count} for size {size}")
     if not items:
@@ -90,7 +92,7 @@ def sample_bags(names: list[str], point_sets: dict[str, np.ndarray] | None, bags
     out: dict[int, list[tuple[str, ...]]] = {}
     for size in sorted(spec):
         k = min(int(size), len(names))
-        if k < 2 or k in out:
+        if k < MIN_BAG or k in out:
             continue
         target = int(spec[size])
         total = math.comb(len(names), k)
@@ -160,7 +162,7 @@ def scene_bags(scene, bags: dict[int, int] | None = None, min_points: int = MIN_
         wanted = {min(s, len(scene.images)): c for s, c in sorted(spec.items(), reverse=True)}
         out = {}
         for size, lst in sorted(scene.bags.items()):
-            if size not in wanted:
+            if size not in wanted or size < MIN_BAG:
                 continue
             ok = [tuple(b) for b in lst if set(b) <= names]
             if ok:

@@ -37,7 +37,7 @@ import numpy as np
 
 from pipeline.cache import H5Cache, make_key
 from pipeline.config import PipelineConfig
-from pipeline.data.bags import DEFAULT_BAGS, MIN_POINTS, scene_bags
+from pipeline.data.bags import DEFAULT_BAGS, MIN_BAG, MIN_POINTS, scene_bags
 from pipeline.data.scene import Pair, Scene
 from pipeline.errors import ImtuneError
 from pipeline.metrics.pose import accuracy_curve, mean_average_accuracy, pose_error_deg
@@ -366,6 +366,9 @@ def scene_jobs(scene: Scene, conf: PipelineConfig, mv: MultiviewConfig, cache: H
     from pipeline.metrics.covisibility import common_points
     from pipeline.tasks.prepare import image_features, pair_knn, tentative_matches
     bags = scene_bags(scene, mv.bag_spec, min_points=mv.min_points, seed=mv.bag_seed)
+    if not bags and len(scene.images) < MIN_BAG:
+        raise ImtuneError(f"scene {scene.name}: {len(scene.images)} images, and a multiview bag needs at least "
+                          f"{MIN_BAG} (COLMAP's mapper keeps no model of two images); leave it out with --scenes")
     if not bags:
         raise ImtuneError(f"scene {scene.name}: no valid bag (each image must see >= {mv.min_points} of the bag's "
                           f"3D points; {len(scene.images)} images)")
@@ -477,8 +480,8 @@ class MultiviewTask(Task):
 
     def check_scene(self, scene: Scene) -> str | None:
         """Bags need ground-truth poses and either the scene's own bags or 3D points to sample them from."""
-        if len(scene.images) < 2:
-            return "nothing for the multiview task to evaluate (fewer than 2 images)"
+        if len(scene.images) < MIN_BAG:
+            return f"nothing for the multiview task to evaluate (fewer than {MIN_BAG} images, the smallest bag)"
         if not scene.bags and scene.observations is None:
             return "no ground truth to evaluate against (no multiview bags and no 3D points to sample them from)"
         missing = [n for n, im in scene.images.items() if im.R is None]
