@@ -128,6 +128,23 @@ def test_default_grid_with_a_step_lies_on_the_step(tmp_path):
         warnings.simplefilter("error")
         assert all(dist._contains(dist.to_internal_repr(v)) for v in space.grid()["ratio"])
 
+
+def test_a_step_with_a_calibrated_high_ends_on_the_step(tmp_path):
+    """max_iters {low: 1000, high: calibrated, step: 7000} with Gamma_max 1,000,000 (off the step): Optuna moved high to
+    995,000 itself, printing its UserWarning twice (file and line, two lines each) on `tune run`'s stderr. Now high is
+    the largest low + k step <= Gamma_max, and the calibrated grid value with it."""
+    import warnings
+    p = write(tmp_path, "params: {ratio: 0.8, threshold: 0.5, "
+                        "max_iters: {low: 1000, high: calibrated, step: 7000, grid: [8000, calibrated]}}")
+    space = load_space(p, feature="sift", estimator="degensac").resolve(1_000_000)
+    g = space.params["max_iters"]
+    assert (g.low, g.high) == (1000, 995_000) and space.grid()["max_iters"] == [8000, 995_000]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        dist = space.distributions()["max_iters"]
+    assert dist.high == 995_000
+
+
 def test_scalar_pins_and_categorical_strategy(tmp_path):
     p = write(tmp_path, """
         params:

@@ -128,7 +128,8 @@ class SearchSpace:
         return p is not None and (p.high == CALIBRATED or p.low == CALIBRATED)
 
     def resolve(self, gamma_max: int | None) -> "SearchSpace":
-        """A copy with ``calibrated`` replaced by ``gamma_max`` (the low bound clipped to it)."""
+        """A copy with ``calibrated`` replaced by ``gamma_max`` (the low bound clipped to it; with a ``step``, the
+        largest value low + k step <= gamma_max)."""
         out = copy.deepcopy(self)
         p = out.params.get("max_iters")
         if p is not None and out.needs_calibration:
@@ -140,6 +141,9 @@ class SearchSpace:
             if p.low == CALIBRATED:
                 p.low = g
             p.low = min(int(p.low), g)
+            if p.step and p.high == g:  # Gamma_max off the step: Optuna moved high itself, with two UserWarnings
+                g = p.low + (g - p.low) // int(p.step) * int(p.step)
+                p.high = g
             if p.grid is not None:
                 p.grid = [g if v == CALIBRATED else int(v) for v in p.grid]
                 p.grid = [v for v in p.grid if p.low <= v <= p.high] or [g]
