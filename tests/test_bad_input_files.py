@@ -513,6 +513,17 @@ def test_build_gt_non_positive_image_size_is_refused(size, tmp_path, data3):
 
 
 
+@pytest.mark.parametrize("scenes,needle", [(",", "',' names no scene"),
+                                           ("fountain-P11,fountain-P11", "scene 'fountain-P11' is named twice")])
+def test_build_gt_scenes_naming_no_scene_is_refused(scenes, needle, tmp_path, data3):
+    """`tune data build-gt --scenes ,` built every scene of the data (minutes each) without a word: the list named none;
+    the other commands' --scenes refused it. Now the same one line, before any build."""
+    r = tune("data", "build-gt", "--data", data3, "--gt-dir", tmp_path / "gt", "--num-features", "256", "--quiet",
+             "--scenes", scenes, env={"IMTUNE_CACHE": str(tmp_path / "cache")})
+    one_line_error(r, "argument --scenes: ", needle)
+    assert not (tmp_path / "gt").exists()
+
+
 @pytest.mark.parametrize("json_out", [False, True])
 def test_build_gt_on_a_folder_without_scenes_is_one_line(json_out, tmp_path):
     """An empty folder (or one of other files) was exit 0 with nothing printed: a build that did nothing, unsaid."""

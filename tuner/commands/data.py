@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pipeline.data.locate import resolve_data
 from pipeline.errors import ImtuneError
-from tuner.argtypes import positive_int
+from tuner.argtypes import positive_int, scene_list
 
 DATA_HELP = "data folder (default: $IMTUNE_DATA, imtune.yaml, else strecha in the download location or ../shared/data)"
 
@@ -35,7 +35,7 @@ def register(sub) -> None:
                                     "$IMTUNE_CACHE/gt (or --gt-dir), never into the data folder; `tune evaluate` "
                                     "picks it up.")
     g.add_argument("--data", default=None, help=DATA_HELP)
-    g.add_argument("--scenes", default=None, help="comma-separated scene names (default: all)")
+    g.add_argument("--scenes", type=scene_list, default=None, help="comma-separated scene names (default: all)")
     g.add_argument("--method", default="auto", choices=["auto", "poses", "sfm"],
                    help="auto: poses when every image has K, R, t, else sfm")
     g.add_argument("--num-features", type=int, default=8192, help="COLMAP SIFT keypoints per image")
