@@ -599,3 +599,17 @@ def test_viz_pipeline_option_beside_a_configuration_is_refused(what, tiny, tmp_p
                        tmp_path / "cache"], capsys)
     _one_line_error(rc, err, f"{opt[0]} does not apply with --{what}", "drop it")
     assert not out.exists()
+
+
+@pytest.mark.parametrize("opts, needle", [
+    (["--worst", "0", "--best", "0", "--random", "0"], "--worst 0 --best 0 --random 0 selects no pair to draw"),
+    (["--no-gallery", "--gallery", "g.html"], "--gallery g.html does not apply with --no-gallery"),
+])
+def test_viz_options_that_draw_nothing_or_contradict_are_refused(opts, needle, tiny, tmp_path, capsys):
+    """`tune viz --worst 0 --best 0 --random 0` evaluated every pair, then wrote an empty gallery, exit 0; --gallery
+    beside --no-gallery was ignored. One line each, before any feature is computed (nothing written)."""
+    out = tmp_path / "figs"
+    rc, _, err = _cli(["viz", "--data", tiny, "--feature", "sift", "--num-features", "256", "--quiet", "--out", out,
+                       "--cache", tmp_path / "cache", *opts], capsys)
+    _one_line_error(rc, err, needle)
+    assert not out.exists() and not (tmp_path / "cache").exists()

@@ -129,6 +129,21 @@ def _scenes_for(args, src: Source | None) -> tuple[Path, list[str] | None, float
     return root, names, min_cov
 
 
+def _check_something_to_draw(args: argparse.Namespace, tasks: list[str]) -> None:
+    """One line, before any pair is evaluated, for options that draw nothing (every pair was evaluated, then an empty
+    gallery written, exit 0) or contradict each other (--gallery with --no-gallery: ignored)."""
+    if args.no_gallery and args.gallery:
+        raise ImtuneError(f"--gallery {args.gallery} does not apply with --no-gallery (no gallery is written): drop "
+                          "one of them")
+    if _pair_specs(args):
+        return
+    if args.compare and args.num == 0:
+        raise ImtuneError("--num 0 selects no pair to compare: give a count, or --pairs")
+    if not args.compare and tasks == ["stereo"] and args.worst + args.best + args.random == 0:
+        raise ImtuneError("--worst 0 --best 0 --random 0 selects no pair to draw: give one of them a count, or "
+                          "--pairs / --pair")
+
+
 def _check_outputs(args: argparse.Namespace, out_dir: Path, gallery: Path | None) -> None:
     """The PNG folder and the gallery's folder can be written (or created): a file in the way (``--out`` naming
     an existing file), a read-only or full disk is one line naming the folder, before any work; nothing is
@@ -190,6 +205,7 @@ def viz(args: argparse.Namespace) -> dict:
         what = "tune viz --compare draws stereo pairs" if args.compare else f"--task {args.task} draws stereo pairs"
         raise ImtuneError(f"--bag {args.bag[0]} selects a multiview bag, but {what}; add --task multiview "
                           "(or --task both), or drop --bag")
+    _check_something_to_draw(args, task_list(args.task))
     study = next((s.study for s in sources if s.study), None)  # a comparison goes to its study's gallery
     if args.out:
         out_dir = Path(args.out).expanduser().resolve()
