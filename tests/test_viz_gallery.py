@@ -254,3 +254,33 @@ def test_a_gallery_manifest_that_is_a_folder_is_one_line_before_drawing(data3, s
         assert (out / name / "inside").is_dir() and not list(out.glob("*.png"))
         (out / name / "inside").rmdir()
         (out / name).rmdir()
+
+
+def test_pairs_whose_image_names_end_alike_get_their_own_figures(scannet, tmp_path, monkeypatch, capsys):
+    """A pairs list naming images in folders (ScanNet's scene0707_00/color/15.jpg, scene0708_00/color/15.jpg): the
+    figure's name took the file names only, so the worst and the best pair were one PNG, the first overwritten and
+    the gallery showing the best pair's figure as the worst. Now folders are in the name (flat names unchanged), and
+    names still alike get -2, -3."""
+    import shutil
+    monkeypatch.setenv("IMTUNE_CACHE", str(tmp_path / "cache"))
+    rows = (scannet / "pairs_with_gt.txt").read_text().splitlines()[:2]
+    scene = tmp_path / "data" / "sc"
+    lines = []
+    for folder, row in zip("ab", rows):
+        n1, n2, rest = row.split(maxsplit=2)
+        (scene / "images" / folder).mkdir(parents=True)
+        shutil.copy(scannet / "images" / n1, scene / "images" / folder / "1.jpg")
+        shutil.copy(scannet / "images" / n2, scene / "images" / folder / "2.jpg")
+        lines.append(f"{folder}/1.jpg {folder}/2.jpg {rest}")
+    (scene / "pairs_with_gt.txt").write_text("\n".join(lines) + "\n")
+    out = tmp_path / "figs"
+    assert main(["viz", "--data", str(tmp_path / "data"), "--num-features", "256", "--worst", "1", "--best", "1",
+                 "--random", "0", "--out", str(out), "--quiet", "--json"]) == 0
+    figs = json.loads(capsys.readouterr().out)["figures"]
+    assert sorted(f["pair"] for f in figs) == ["a/1.jpg|a/2.jpg", "b/1.jpg|b/2.jpg"]
+    assert len({f["png"] for f in figs}) == 2 and len(list(out.glob("*.png"))) == 2
+    from pipeline.viz.batch import _png_path
+    sc = Scene("s", tmp_path, {})
+    used = {}
+    names = [_png_path(out, "", sc, Pair(i, "x.jpg"), "h", used).name for i in ("1.jpg", "1.png", "1.jpg")]
+    assert names == ["s_1_x_h.png", "s_1_x_h-2.png", "s_1_x_h.png"]

@@ -45,7 +45,20 @@ def _slug(text: str) -> str:
 
 
 def _stem(name: str) -> str:
-    return _slug(Path(name).stem)
+    """An image name without its extension, folders kept ("scene0707_00/color/15.jpg" -> "scene0707_00_color_15"):
+    the file name alone made the figures of two pairs one PNG, the first overwritten."""
+    return _slug(str(Path(name).with_suffix("")))
+
+
+def _png_path(out_dir: Path, prefix: str, sc, pair, tag: str, used: dict) -> Path:
+    """``<prefix><scene>_<image i>_<image j>_<tag>.png`` in ``out_dir``, numbered (-2, -3, ...) where another pair of
+    this run already has that name (names alike once slugged: "a b.jpg" / "a_b.jpg", "1.jpg" / "1.png")."""
+    base = f"{prefix}{_slug(sc.name)}_{_stem(pair.i)}_{_stem(pair.j)}_{tag}"
+    png, k = out_dir / f"{base}.png", 1
+    while used.setdefault(png, (sc.name, pair.key)) != (sc.name, pair.key):
+        k += 1
+        png = out_dir / f"{base}-{k}.png"
+    return png
 
 
 def _num(v):
@@ -118,9 +131,9 @@ def render_pairs(scenes: list[Scene], conf: PipelineConfig, out_dir: str | Path,
             sc = by[rec["scene"]]
             pair = next(p for p in sc.pairs if p.key == rec["pair"])
             todo.append((sc, pair, reason, res.pairs.get((sc.name, pair.key))))
-    results = []
+    results, used = [], {}
     for sc, pair, reason, *pm in _progress(todo, "figures", progress):
-        png = out_dir / f"{_slug(sc.name)}_{_stem(pair.i)}_{_stem(pair.j)}_{h}.png"
+        png = _png_path(out_dir, "", sc, pair, h, used)
         r = render_pair(sc, pair, conf, cache, png, width=opts.width, max_lines=opts.max_lines, layout=opts.layout,
                         label=label, use_depth=opts.use_depth, seed=opts.seed, pm=pm[0] if pm else None)
         r = _clean(r)
@@ -161,7 +174,7 @@ def render_compare(scenes: list[Scene], confs: list[tuple[PipelineConfig, str]],
             raise ImtuneError(f"no evaluation pairs in {', '.join(s.name for s in scenes)} to compare")
     hashes = [config_hash(c, 8) for c, _ in confs]
     panel_w = max(320, (opts.width - 16 * (len(confs) - 1)) // len(confs))
-    results = []
+    results, used = [], {}
     for sc, pair in _progress(todo, "comparisons", progress):
         panels, figs = [], []
         for k, ((c, lab), hsh) in enumerate(zip(confs, hashes)):
@@ -171,7 +184,7 @@ def render_compare(scenes: list[Scene], confs: list[tuple[PipelineConfig, str]],
             figs.append(r["figure"].image)
             panels.append(dict(_clean(r), label=lab, config=hsh))
         img = side_by_side(figs, gap=16)
-        png = out_dir / f"compare_{_slug(sc.name)}_{_stem(pair.i)}_{_stem(pair.j)}_{'_'.join(hashes)}.png"
+        png = _png_path(out_dir, "compare_", sc, pair, "_".join(hashes), used)
         save_png(img, png)
         results.append({"section": "compare", "scene": sc.name, "pair": pair.key, "png": str(png), "panels": panels,
                         "config": "_".join(hashes)})
