@@ -613,3 +613,25 @@ def test_viz_options_that_draw_nothing_or_contradict_are_refused(opts, needle, t
                        "--cache", tmp_path / "cache", *opts], capsys)
     _one_line_error(rc, err, needle)
     assert not out.exists() and not (tmp_path / "cache").exists()
+
+
+def test_test_reference_of_another_task_says_what_it_never_tuned(tiny, tmp_path, capsys):
+    """`tune test --reference MV` (or `tune run --reference MV`) with MV a multiview study: the stereo test was compared
+    with MV's r and its untuned eta 0.5 px and Gamma 1000, labelled like any tuned study, unsaid (`tune compare`
+    says so). Now one warning line naming them."""
+    import yaml
+    sdir = tmp_path / "studies"
+    config = {"feature": {"name": "sift", "num_features": 256}, "matching": {"ratio": 0.74},
+              "geometry": {"ransac": "degensac", "threshold": 0.5, "max_iters": 1000}}
+    for name, task, params in (("mv", "multiview", {"ratio": 0.74}), ("s", "stereo", {"ratio": 0.74, "threshold": 0.5})):
+        (sdir / name).mkdir(parents=True)
+        (sdir / name / "frozen.yaml").write_text(yaml.safe_dump({
+            "study": name, "trial": 0, "task": task, "params": params, "config": config,
+            "data": {"root": str(tiny), "test_scenes": ["fountain-P11"]}}))
+    rc, out, err = _cli(["test", "--study", "s", "--reference", "mv", "--runs", "1", "--cache", tmp_path / "cache",
+                         "--studies-dir", sdir, "--quiet", "--ci-resamples", "200", "--jobs", "1"], capsys)
+    assert rc == 0, err
+    warnings = [ln for ln in err.splitlines() if "--reference" in ln]
+    assert warnings == ["warning: --reference mv is a multiview study: it tuned ratio for the multiview task, not for "
+                        "the stereo test it is compared on; its eta 0.5 px, Gamma 1000 were never tuned and run as "
+                        "they are"], err

@@ -231,6 +231,24 @@ def reference_spec(value: str | None) -> str:
     return "none" if str(value).strip().lower() == "none" else str(value)
 
 
+def reference_task_note(reference, task_name: str) -> str | None:
+    """The warning for ``--reference`` naming a study (or its frozen.yaml) of another task than the one tested: its
+    settings were tuned for that task, and the parameters this task uses that it never tuned run as they are (a
+    multiview study's eta 0.5 px and Gamma 1000 on stereo pairs). None otherwise."""
+    frozen = getattr(reference, "frozen", None) or {}
+    other = frozen.get("task") or "stereo"
+    if not frozen or other == task_name:
+        return None
+    from tuner.protocol import LEAVES, searchable, value_of
+    tuned = list(frozen.get("params") or {})
+    untuned = [f"{LEAVES[p].label} {value_of(reference.conf, p):g}{' ' + LEAVES[p].unit if p == 'threshold' else ''}"
+               for p in searchable(task_name) if p not in searchable(other)]
+    name = reference.study or getattr(reference, "path", None) or "the reference"
+    tail = f"; its {', '.join(untuned)} were never tuned and run as they are" if untuned else ""
+    return (f"--reference {name} is a {other} study: it tuned {', '.join(tuned) or 'nothing'} for the {other} task, "
+            f"not for the {task_name} test it is compared on{tail}")
+
+
 def reference_config(frozen: dict, spec, task=None):
     """(PipelineConfig, label) of the reference a test run is compared with; None for "none".
 

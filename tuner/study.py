@@ -569,6 +569,9 @@ def setup_study(s: TuneSettings) -> StudyContext:
                "(tuned on the scene they measure); choose other --test-scenes for a fair test")
     for note in vs.notes:
         s.warn(f"validation {note}")
+    from tuner.select import reference_task_note
+    if s.test and reference_task_note(s.reference, task.name):
+        s.warn(reference_task_note(s.reference, task.name))
     s.say(f"validation: {', '.join(vs.scene_names)} ({vs.n_pairs} pairs) from {s.data_root}")
     vs.prepare(base, cache, progress=s.progress)
     if created:

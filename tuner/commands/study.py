@@ -450,6 +450,9 @@ def run_test_cmd(args) -> int:
         result = run_test(frozen, study_data_root(frozen, root), sdir, **kw)
     for note in result.get("notes") or []:
         print(f"warning: test {note}", file=sys.stderr, flush=True)
+    from tuner.select import reference_task_note
+    if reference_task_note(kw["reference"], frozen.get("task") or "stereo"):
+        _warn(reference_task_note(kw["reference"], frozen.get("task") or "stereo"))
     from tuner.freeze import earlier_test_line
     if earlier_test_line(result):
         _warn(earlier_test_line(result))
