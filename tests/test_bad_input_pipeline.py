@@ -226,6 +226,12 @@ CASES = {
     "bags-size-twice": _evaluate("--task", "multiview", "--bags", "3:2,3:1", needle="size 3 is given twice"),
     # bags of 2 images: COLMAP's mapper keeps no model of two, every bag a recorded failure (SR 0, mAA 0), unsaid
     "bags-of-two-images": _evaluate("--task", "multiview", "--bags", "2:1", needle="bag size must be >= 3, got 2"),
+    # a multiview option without the multiview task: ignored, the stereo task run, unsaid
+    "evaluate-bags-on-stereo": _evaluate("--bags", "5:10", needle="--bags is an option of the multiview task, and only "
+                                         "the stereo task runs here (--task stereo): add --task multiview"),
+    "evaluate-mv-intrinsics-on-stereo": _evaluate("--task", "stereo", "--mv-intrinsics", "fixed",
+                                                  needle="--mv-intrinsics is an option of the multiview task"),
+    "run-workers-on-stereo": _study("run", "--workers", "2", needle="--workers is an option of the multiview task"),
     "prefilter-gms-threshold-0": _evaluate("--prefilter", "gms:threshold=0",
                                            needle="prefilter 'gms': option threshold must be > 0"),
     # a ground-truth pair without baseline: its error was rounding noise or inf, counted in mAA, unsaid

@@ -245,6 +245,25 @@ def add_multiview_options(ap: argparse.ArgumentParser) -> None:
     g.add_argument("--gt-dir", default=None, help="built ground truth folder (default $IMTUNE_GT, $IMTUNE_CACHE/gt or ~/.cache/imtune/gt)")
 
 
+#: the multiview task's options (dest -> default): given while no multiview task runs, each was ignored, unsaid
+MULTIVIEW_ONLY = {"bags": None, "bag_min_points": 100, "bag_seed": 0, "mv_intrinsics": "colmap", "workers": None,
+                  "keep_models": None, "bag_records": False}
+
+
+def check_multiview_only(args: argparse.Namespace, tasks: list[str]) -> None:
+    """One-line ImtuneError for a multiview option (``--bags``, ``--workers``, ...) given while ``tasks`` (the task
+    names that run) hold no multiview task."""
+    if "multiview" in tasks:
+        return
+    typed = explicit_options(args)
+    for dest, default in MULTIVIEW_ONLY.items():
+        if hasattr(args, dest) and (dest in typed or getattr(args, dest) != default):
+            flag = "--" + dest.replace("_", "-")
+            raise ImtuneError(f"{flag} is an option of the multiview task, and only the {' and '.join(tasks)} task "
+                              f"runs here (--task {getattr(args, 'task', None) or tasks[0]}): add --task multiview, or "
+                              f"drop {flag}")
+
+
 def multiview_config(args: argparse.Namespace, **overrides):
     """MultiviewConfig from parsed options (see ``add_multiview_options``)."""
     from pipeline.data.bags import parse_bags

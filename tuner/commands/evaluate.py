@@ -143,6 +143,9 @@ def run(args) -> int:
         if on and not args.json:  # the records go into the JSON only: without --json it was ignored, unsaid
             raise ImtuneError(f"{flag} adds records to the JSON output only: add --json (or drop {flag})")
     conf, source = config_of(args)
+    from pipeline.tasks import task_list
+    from tuner.options import check_multiview_only
+    check_multiview_only(args, task_list(args.task))
     data = resolve_data(args.data)
     out = evaluate_config(conf, data, args.scenes, cache_dir=args.cache,
                           min_covisibility=args.covisibility, progress=not (args.quiet or args.json),

@@ -233,7 +233,8 @@ def settings_from_args(args):
                           "matcher (ratio and strategy are fixed at r=1 both); drop it")
     base = build_config(args, ratio=1.0, threshold=0.5, max_iters=1000,
                         seed=args.seed if args.seed is not None else 0)
-    from tuner.options import multiview_config
+    from tuner.options import check_multiview_only, multiview_config
+    check_multiview_only(args, [args.task])
     quiet = bool(args.quiet or args.json)
     mv = multiview_config(args, seed=args.seed if args.seed is not None else 0)
     return TuneSettings(

@@ -206,6 +206,8 @@ def viz(args: argparse.Namespace) -> dict:
         raise ImtuneError(f"--bag {args.bag[0]} selects a multiview bag, but {what}; add --task multiview "
                           "(or --task both), or drop --bag")
     _check_something_to_draw(args, task_list(args.task))
+    from tuner.options import check_multiview_only
+    check_multiview_only(args, task_list(args.task))
     study = next((s.study for s in sources if s.study), None)  # a comparison goes to its study's gallery
     if args.out:
         out_dir = Path(args.out).expanduser().resolve()
