@@ -321,10 +321,14 @@ def test_a_pinned_gamma_above_the_calibrated_gamma_max_warns(tiny, tmp_path, cap
 
 
 
+TWO_IMAGES_NO_BAG = ("tune: error: validation scene 'fountain-P11': nothing for the multiview task to evaluate (fewer "
+                     "than 3 images, the smallest bag)")
+
+
 def test_a_fix_the_task_does_not_use_is_said_not_silently_dropped(tiny, tmp_path, capsys):
     """`--task multiview --fix threshold=1` was dropped without a word (COLMAP runs its own RANSAC): the user
-    believed eta pinned. The run stops at its preflight, after the warning: this data has no multiview ground truth
-    for the validation scene (and --test-scenes nosuch would stop it next)."""
+    believed eta pinned. The run stops at its preflight, after the warning: the validation scene's 2 images make no
+    multiview bag (and --test-scenes nosuch would stop it next)."""
     rc, out, err = _cli(["run", "--data", tiny, *FAST, "--task", "multiview", "--studies-dir", tmp_path / "st",
                          "--fix", "threshold=1.0", "--fix", "max_iters=100",
                          "--test-scenes", "nosuch"], capsys)
@@ -332,7 +336,20 @@ def test_a_fix_the_task_does_not_use_is_said_not_silently_dropped(tiny, tmp_path
     assert rc == 2 and len(lines) == 2, err
     assert lines[0] == ("warning: --fix threshold, max_iters: the multiview task does not use them (it uses ratio, "
                         "strategy); ignored"), err
-    assert lines[1].startswith("tune: error: validation scene 'fountain-P11' has no ground truth"), err
+    assert lines[1].startswith(TWO_IMAGES_NO_BAG), err
+
+
+def test_stereo_options_of_a_multiview_run_are_said_not_silently_dropped(tiny, tmp_path, capsys):
+    """`tune run --task multiview --max-pairs 2 --budget 0.1` ran every bag, untimed, without a word (COLMAP reconstructs
+    whole bags with its own RANSAC): the user believed the run cut short and budgeted. One warning line, as for a --fix
+    the task does not use; the run then stops at its preflight (2 images make no multiview bag)."""
+    rc, out, err = _cli(["run", "--data", tiny, *FAST, "--task", "multiview", "--studies-dir", tmp_path / "st",
+                         "--max-pairs", "2", "--budget", "0.1", "--test-scenes", "nosuch"], capsys)
+    lines = err.strip().splitlines()
+    assert rc == 2 and len(lines) == 2, err
+    assert lines[0] == ("warning: --max-pairs, --budget: the multiview task does not use them (COLMAP reconstructs "
+                        "each bag whole, with its own RANSAC, untimed; --bags sets the work); ignored"), err
+    assert lines[1].startswith(TWO_IMAGES_NO_BAG), err
 
 
 def test_a_fix_given_twice_with_two_values_is_one_line(tiny, tmp_path, capsys):

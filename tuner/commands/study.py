@@ -51,6 +51,22 @@ def _no_storage_for_calibrate(value: str):
                                      "run with that --studies-dir reuses it)")
 
 
+#: `tune run` options of the stereo task's pairs and estimator budget (dest -> default)
+STEREO_ONLY = {"max_pairs": None, "chunk_pairs": 12, "budget": 0.5, "test_budget": 1.0, "calibration_pairs": 8,
+               "recalibrate": False}
+
+
+def _warn_stereo_only(args) -> None:
+    """One warning line for stereo options given to a multiview run (it reconstructs whole bags with COLMAP's own,
+    untimed RANSAC: --max-pairs, --budget, ... were ignored, unsaid), as for a --fix the task does not use."""
+    if args.task == "stereo":
+        return
+    given = ["--" + d.replace("_", "-") for d, v in STEREO_ONLY.items() if getattr(args, d, v) != v]
+    if given:
+        _warn(f"{', '.join(given)}: the {args.task} task does not use {'it' if len(given) == 1 else 'them'} "
+              "(COLMAP reconstructs each bag whole, with its own RANSAC, untimed; --bags sets the work); ignored")
+
+
 def resolve_reference(value: str | None, sdir):
     """``--reference``: "paper" (None), "none", or a config file / study resolved to its Source."""
     from tuner.select import reference_spec
@@ -235,6 +251,7 @@ def settings_from_args(args):
                         seed=args.seed if args.seed is not None else 0)
     from tuner.options import check_multiview_only, multiview_config
     check_multiview_only(args, [args.task])
+    _warn_stereo_only(args)
     quiet = bool(args.quiet or args.json)
     mv = multiview_config(args, seed=args.seed if args.seed is not None else 0)
     return TuneSettings(
