@@ -337,3 +337,27 @@ def test_a_mirror_password_in_the_url_is_sent_as_basic_auth_and_never_shown(tmp_
     assert rc == 2 and len(err) == 1 and err[0].startswith("tune: error: download failed: http://imtune:***@"), err
     for shown in (cap.out, cap.err):
         assert "p@ss" not in shown and "p%40ss" not in shown and "s3cret" not in shown, shown
+
+
+def test_an_empty_folder_or_a_file_at_the_data_set_is_not_ready(server, tmp_path, monkeypatch, capsys):
+    """`tune data download strecha` with an empty folder at <dest>/strecha (a user's mkdir, an emptied copy) said
+    "already in ...", "ready", exit 0, nothing downloaded; with a file there too. Now an empty folder is downloaded
+    into, and a file is one line naming it."""
+    from tuner.cli import main
+    mirror, base = server
+    _mirror_strecha(mirror)
+    monkeypatch.setattr(dl, "STRECHA_LONG_SIDE", 64)
+    dest = tmp_path / "data"
+    (dest / "strecha").mkdir(parents=True)
+    assert main(["data", "download", "strecha", "--dest", str(dest), "--base-url", base, "--quiet"]) == 0
+    assert (dest / "strecha" / "entry-P10" / "images" / "0009.jpg").is_file()
+    _no_leftovers(dest)
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "strecha").write_text("mine")
+    capsys.readouterr()
+    assert main(["data", "download", "strecha", "--dest", str(other), "--base-url", base, "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (f"tune: error: {other / 'strecha'} is a file where the data set's folder goes: move it away, or "
+                   "give --dest another folder"), err
+    assert (other / "strecha").read_text() == "mine"

@@ -365,6 +365,25 @@ def _remove_if_empty(dirs: list[Path]) -> None:
             break
 
 
+def downloaded(final: Path) -> bool:
+    """``final`` (``<dest>/<name>``) holds a data set: a folder with something in it. An empty folder is none (it was
+    "ready", nothing downloaded); a file or a FIFO there is a one-line ImtuneError naming it (it was "ready" too)."""
+    final = Path(final)
+    try:
+        st = final.stat()
+    except FileNotFoundError:
+        return False
+    except OSError as e:
+        raise ImtuneError(f"cannot read {final}: {e.strerror or e}") from None
+    import stat
+    if not stat.S_ISDIR(st.st_mode):
+        from pipeline.fileio import file_kind
+        kind = "a file" if stat.S_ISREG(st.st_mode) else file_kind(st.st_mode)
+        raise ImtuneError(f"{final} is {kind} where the data set's folder goes: move it away, or give --dest another "
+                          "folder")
+    return any(final.iterdir())
+
+
 def download(name: str, dest: str | Path | None = None, base_url: str | None = None, *, force: bool = False,
              quiet: bool = False, on_connected: Callable[[], None] | None = None) -> Path:
     """Download data set ``name`` (a key of SOURCES) into ``<dest>/<name>`` and return that folder.
@@ -382,7 +401,7 @@ def download(name: str, dest: str | Path | None = None, base_url: str | None = N
     dest = Path(dest).expanduser()
     final = dest / name
     base = base_url_of(base_url)  # a mistyped mirror: one line, before anything is created
-    if final.exists() and not force:
+    if not force and downloaded(final):
         return final
     created = _missing_parents(dest)
     try:

@@ -55,12 +55,12 @@ def run_download(args) -> int:
     import sys
     from pathlib import Path
 
-    from pipeline.data.download import NET_HINT, NetworkError, describe_source, download
+    from pipeline.data.download import NET_HINT, NetworkError, describe_source, download, downloaded
     from pipeline.data.locate import DEFAULT_SET, download_home, locate
     from pipeline.errors import ImtuneError
     dest = Path(args.dest).expanduser().resolve() if args.dest else download_home()[0]
     target = dest / args.name
-    if target.exists() and not args.force:
+    if not args.force and downloaded(target):
         print(f"{args.name}: already in {target} (--force downloads it again)", file=sys.stderr)
     elif not args.quiet:
         print(f"{args.name}: {describe_source(args.name, args.base_url)} -> {target}", file=sys.stderr, flush=True)
