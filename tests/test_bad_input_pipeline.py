@@ -226,6 +226,10 @@ CASES = {
     "bags-size-twice": _evaluate("--task", "multiview", "--bags", "3:2,3:1", needle="size 3 is given twice"),
     # bags of 2 images: COLMAP's mapper keeps no model of two, every bag a recorded failure (SR 0, mAA 0), unsaid
     "bags-of-two-images": _evaluate("--task", "multiview", "--bags", "2:1", needle="bag size must be >= 3, got 2"),
+    # an extractor option given twice: the last one was used, unsaid
+    "feature-option-twice": _evaluate("--feature-option", "edge_threshold=10", "--feature-option", "edge_threshold=12",
+                                      needle="--feature-option edge_threshold is given twice (edge_threshold=10 and "
+                                             "edge_threshold=12)"),
     # a multiview option without the multiview task: ignored, the stereo task run, unsaid
     "evaluate-bags-on-stereo": _evaluate("--bags", "5:10", needle="--bags is an option of the multiview task, and only "
                                          "the stereo task runs here (--task stereo): add --task multiview"),

@@ -98,7 +98,7 @@ def build_config(args: argparse.Namespace, **overrides) -> PipelineConfig:
     fc = FeatureConfig(name=v["feature"], num_features=int(v["num_features"]), low_threshold=not v["no_low_threshold"],
                        upright=bool(v["upright"] or v["upright_plus"]), upright_plus=bool(v["upright_plus"]),
                        clahe=v["clahe"], mr_size=v["mr_size"], max_side=int(v["max_side"]),
-                       options=tuple(sorted(dict(v.get("feature_option") or ()).items())))
+                       options=tuple(sorted(feature_options(v.get("feature_option")).items())))
     mc = MatchConfig(ratio=float(v["ratio"]), strategy=v["strategy"], distance_threshold=v["distance_threshold"],
                      fginn=bool(v["fginn"]), method=v["matcher"], prefilter=prefilter,
                      prefilter_options=prefilter_options, custom_matches=custom_matches)
@@ -140,6 +140,17 @@ def feature_option(text: str) -> tuple:
     if not sep or not key.strip() or not value.strip():
         raise argparse.ArgumentTypeError(f"expected KEY=VALUE (e.g. edge_threshold=10), got {text!r}")
     return key.strip(), option_value(value)
+
+
+def feature_options(pairs) -> dict:
+    """``--feature-option`` (key, value) pairs as a dict; one-line ImtuneError for a key given twice with two values
+    (the last one was used, unsaid), as for ``--fix`` and a pre-filter option."""
+    out: dict = {}
+    for key, value in pairs or ():
+        if key in out and out[key] != value:
+            raise ImtuneError(f"--feature-option {key} is given twice ({key}={out[key]} and {key}={value}): give it once")
+        out[key] = value
+    return out
 
 
 def check_feature_options(conf: PipelineConfig, where: str) -> None:
