@@ -512,6 +512,8 @@ def test_other_samplers(tmp_path, tuner_cache, sampler):
     r = tune(*quick(tmp_path, "--sampler", sampler, "--space", str(space), "--no-test", "--json", *n, pairs=4),
              cache=tuner_cache, check=True)
     out = json.loads(r.stdout)
+    # CMA-ES printed Optuna's "Constraints have been set, but CmaEsSampler will not use them" after every trial
+    assert "Warning" not in r.stderr and "optuna_warn" not in r.stderr, r.stderr
     st = load(f"sqlite:///{tmp_path}/optuna.db", out["study"])
     params = [(t.params["ratio"], t.params["threshold"]) for t in st.trials]
     if sampler == "grid":  # the whole 2 x 2 grid, each point once, Gamma at the cap

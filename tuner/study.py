@@ -192,6 +192,9 @@ def make_sampler(name: str, seed: int | None, space, startup_trials: int | None 
             import cmaes  # noqa: F401
         except ImportError:
             raise ImtuneError("sampler cmaes needs the `cmaes` package: pip install cmaes") from None
+        # its UserWarning "Constraints have been set, but CmaEsSampler will not use them" came after every trial (two
+        # lines of file and line each): no sampler here is given the budget constraint (TPE neither); freeze reads it
+        warnings.filterwarnings("ignore", message="Constraints have been set, but CmaEsSampler", category=UserWarning)
         return optuna.samplers.CmaEsSampler(seed=seed, n_startup_trials=int(startup_trials or 1),
                                             warn_independent_sampling=False)
     return optuna.samplers.GridSampler(space.grid(), seed=seed)
