@@ -248,6 +248,24 @@ def test_budget_and_alignment_errors(mini, good, tmp_path, cache_dir):
                         min_covisibility=None)
 
 
+@pytest.mark.parametrize("file,kind", [("scales.h5", "folder"), ("orientations.h5", "folder"),
+                                       ("descriptors.h5", "folder"), ("keypoints.h5", "FIFO")])
+def test_something_else_at_an_h5_name_is_named_not_read_as_absent(mini, good, tmp_path, cache_dir, file, kind):
+    """A folder at scales.h5 / orientations.h5 was read as no file: AdaLAM ran without scales (or orientations),
+    unsaid; at descriptors.h5 it was "without descriptors.h5"; a FIFO at keypoints.h5 was "file not found". Now one
+    line naming it."""
+    import os
+    byo, scene_dir = copy_of(good, tmp_path)
+    (scene_dir / file).unlink()
+    os.mkfifo(scene_dir / file) if kind == "FIFO" else (scene_dir / file).mkdir()
+    sc = load_scene(mini, SCENE)
+    c = conf(f"custom:{byo}")
+    c = PipelineConfig(c.feature, MatchConfig(ratio=0.85, prefilter="adalam"), c.geometry)
+    with pytest.raises(ImtuneError) as e:
+        evaluate_stereo([sc], c, H5Cache(cache_dir), min_covisibility=None)
+    assert str(e.value) == f"{scene_dir / file} is a {kind}, not an h5 file: move it away, or put the file there"
+
+
 def test_cli_bad_input_one_line(mini, good, tmp_path):
     byo, scene_dir = copy_of(good, tmp_path)
     _corrupt(scene_dir / "keypoints.h5", "0006", lambda a: None)

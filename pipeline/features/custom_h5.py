@@ -136,10 +136,28 @@ def _descriptor_dims(path: Path) -> dict[str, int]:
     return _DIMS[memo]
 
 
+def _present(path: Path) -> bool:
+    """``path`` is a regular file (False when nothing is there). A folder, a FIFO or a broken link at its name is a
+    one-line ImtuneError naming it: read as absent, a folder at scales.h5 ran AdaLAM without scales, unsaid."""
+    import stat
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        if path.is_symlink():
+            raise ImtuneError(f"{path} is a broken link: point it at the h5 file, or remove it") from None
+        return False
+    except OSError as e:
+        raise ImtuneError(f"{path}: cannot read ({e.strerror or e})") from None
+    if not stat.S_ISREG(st.st_mode):
+        from pipeline.fileio import file_kind
+        raise ImtuneError(f"{path} is {file_kind(st.st_mode)}, not an h5 file: move it away, or put the file there")
+    return True
+
+
 def _read(path: Path, name: str, required: bool = True) -> np.ndarray | None:
     """The dataset of image ``name`` in ``path`` (None when the file is absent and not required)."""
     import h5py
-    if not path.is_file():
+    if not _present(path):
         if required:
             raise ImtuneError(f"{path}: file not found")
         return None
@@ -236,7 +254,7 @@ class CustomFeatures(Extractor):
 
     def _descriptors(self, folder: Path, name: str, key: str, n: int) -> tuple[np.ndarray, bool]:
         path = folder / "descriptors.h5"
-        if not path.is_file():  # allowed with custom matches (the matcher is skipped)
+        if not _present(path):  # allowed with custom matches (the matcher is skipped)
             return np.zeros((n, 0), np.float32), False
         d = _read(path, name)
         if d.ndim != 2 or d.shape[0] != n:
