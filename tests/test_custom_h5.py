@@ -298,3 +298,20 @@ def test_match_file_per_task(mini, good, tmp_path, cache_dir):
     multi, _ = tentative_matches(tab, mc, fi, fj, task="multiview")
     assert len(stereo) == 10 and len(multi) == 20
     np.testing.assert_array_equal(stereo, full[:, :10][::-1].T)  # key "0004-0003": rows swapped to (0003, 0004)
+
+
+@pytest.mark.parametrize("name,task", [("matches_multiview.h5", "multiview"), ("matches_stereo_0.h5", "stereo")])
+def test_a_folder_at_a_task_match_file_is_named_not_passed_over(name, task, mini, good, tmp_path, cache_dir):
+    """A folder at matches_multiview.h5 (or matches_stereo_0.h5) was passed over for matches.h5: the task got the
+    other file's matches, unsaid. Now one line naming it."""
+    from pipeline.tasks.prepare import pair_knn, tentative_matches
+    byo, scene_dir = copy_of(good, tmp_path)
+    (scene_dir / name).mkdir()
+    sc = load_scene(mini, SCENE)
+    cache = H5Cache(cache_dir)
+    fc = FeatureConfig(name=f"custom:{byo}", num_features=K)
+    fi, fj = image_features(cache, sc.images["0003.jpg"], fc), image_features(cache, sc.images["0004.jpg"], fc)
+    mc = MatchConfig(custom_matches=str(byo))
+    with pytest.raises(ImtuneError) as e:
+        tentative_matches(pair_knn(cache, fi, fj, mc)[0], mc, fi, fj, task=task)
+    assert str(e.value) == f"{scene_dir / name} is a folder, not an h5 file: move it away, or put the file there"

@@ -136,7 +136,7 @@ def _descriptor_dims(path: Path) -> dict[str, int]:
     return _DIMS[memo]
 
 
-def _present(path: Path) -> bool:
+def h5_file_present(path: Path) -> bool:
     """``path`` is a regular file (False when nothing is there). A folder, a FIFO or a broken link at its name is a
     one-line ImtuneError naming it: read as absent, a folder at scales.h5 ran AdaLAM without scales, unsaid."""
     import stat
@@ -157,7 +157,7 @@ def _present(path: Path) -> bool:
 def _read(path: Path, name: str, required: bool = True) -> np.ndarray | None:
     """The dataset of image ``name`` in ``path`` (None when the file is absent and not required)."""
     import h5py
-    if not _present(path):
+    if not h5_file_present(path):
         if required:
             raise ImtuneError(f"{path}: file not found")
         return None
@@ -254,7 +254,7 @@ class CustomFeatures(Extractor):
 
     def _descriptors(self, folder: Path, name: str, key: str, n: int) -> tuple[np.ndarray, bool]:
         path = folder / "descriptors.h5"
-        if not _present(path):  # allowed with custom matches (the matcher is skipped)
+        if not h5_file_present(path):  # allowed with custom matches (the matcher is skipped)
             return np.zeros((n, 0), np.float32), False
         d = _read(path, name)
         if d.ndim != 2 or d.shape[0] != n:

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import ImtuneError
-from pipeline.features.custom_h5 import PREFIX, folder_for, image_keys, parse_custom
+from pipeline.features.custom_h5 import PREFIX, folder_for, h5_file_present, image_keys, parse_custom
 from pipeline.matching.knn import KnnTables
 
 STEREO_FILES = ("matches_stereo_0.h5", "matches_stereo.h5", "matches.h5")
@@ -70,8 +70,8 @@ def match_file(root: Path | str, image_path, scene: str | None = None, task: str
     """The match file of the scene holding ``image_path`` under ``root``."""
     names = STEREO_FILES if task == "stereo" else MULTIVIEW_FILES
     folder = folder_for(Path(root), image_path, scene, marker=names, what=" or ".join(names))
-    for n in names:
-        if (folder / n).is_file():
+    for n in names:  # a folder or FIFO at a preferred name is said, not passed over for the next (matches.h5)
+        if h5_file_present(folder / n):
             return folder / n
     raise ImtuneError(f"{folder}: none of {', '.join(names)}")  # pragma: no cover - folder_for found one
 
