@@ -652,3 +652,15 @@ def test_test_reference_of_another_task_says_what_it_never_tuned(tiny, tmp_path,
     assert warnings == ["warning: --reference mv is a multiview study: it tuned ratio for the multiview task, not for "
                         "the stereo test it is compared on; its eta 0.5 px, Gamma 1000 were never tuned and run as "
                         "they are"], err
+
+
+def test_viz_gallery_not_named_html_is_refused_and_the_file_kept(tiny, tmp_path, capsys):
+    """`tune viz --gallery studies/S/frozen.yaml` (a slip for --config) wrote the gallery's HTML over the study's frozen
+    settings (or over a test.json, an image), exit 0. Now one line before any work, the file untouched."""
+    victim = tmp_path / "frozen.yaml"
+    victim.write_text("study: S\n")
+    rc, _, err = _cli(["viz", "--data", tiny, "--feature", "sift", "--num-features", "256", "--quiet", "--worst", "1",
+                       "--best", "0", "--random", "0", "--out", tmp_path / "figs", "--cache", tmp_path / "cache",
+                       "--gallery", victim], capsys)
+    _one_line_error(rc, err, f"--gallery {victim}: tune viz writes the gallery as an HTML page", "name it .html")
+    assert victim.read_text() == "study: S\n" and not (tmp_path / "cache").exists()

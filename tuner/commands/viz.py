@@ -157,6 +157,10 @@ def _check_outputs(args: argparse.Namespace, out_dir: Path, gallery: Path | None
                               "give --gallery a file in a writable folder, or --no-gallery")
     if gallery is not None and gallery.is_dir():
         raise ImtuneError(f"--gallery {gallery} is a folder; give the path of an HTML file")
+    if gallery is not None and args.gallery and gallery.suffix.lower() not in (".html", ".htm"):
+        # --gallery studies/S/frozen.yaml (or test.json, an image) was overwritten by the gallery's HTML
+        raise ImtuneError(f"--gallery {args.gallery}: tune viz writes the gallery as an HTML page (over what is "
+                          f"there); name it .html, e.g. {Path(args.gallery).with_suffix('.html')}")
     from pipeline.viz.gallery import MANIFEST
     if gallery is not None and gallery.with_name(MANIFEST).is_dir():  # found after every figure was drawn
         raise ImtuneError(f"{gallery.with_name(MANIFEST)} is a folder where the gallery keeps its list of figures: "
