@@ -986,3 +986,21 @@ def test_non_finite_extractor_or_prefilter_option_in_a_file_is_one_line(text, ne
     r = tune("evaluate", "--config", f, "--data", data3, "--quiet", "--jobs", "1", "--ci", "none",
              env={"IMTUNE_CACHE": str(tmp_path / "cache")})
     one_line_error(r, needle, "must be a finite number")
+
+
+@pytest.mark.parametrize("attr", ["budget", "pipeline", "search_space_resolved"])
+def test_a_study_without_its_imtune_attributes_is_one_line(attr, tmp_path, data3):
+    """A study marked as imtune's whose attribute budget (pipeline, search_space_resolved) is gone (edited in the
+    dashboard or by SQL, or written by another version): `tune test` was 'internal error: KeyError: 'budget''. Now
+    one line naming the study and the attribute."""
+    import sqlite3
+    sd = tmp_path / "studies"
+    env = {"IMTUNE_CACHE": str(tmp_path / "cache")}
+    r = tune("run", "--data", data3, "--studies-dir", sd, "--study", "s", "--num-features", "256", "--n-trials", "1",
+             "--jobs", "1", "--no-test", "--quiet", env=env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    with sqlite3.connect(sd / "optuna.db") as c:
+        c.execute("DELETE FROM study_user_attributes WHERE key = ?", (attr,))
+    r = tune("test", "--study", "s", "--studies-dir", sd, "--data", data3, "--runs", "1", "--reference", "none",
+             "--jobs", "1", "--quiet", env=env)
+    one_line_error(r, f"study 's' lacks its imtune attribute {attr} (edited, or written by another version of imtune)")

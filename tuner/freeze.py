@@ -147,6 +147,11 @@ def frozen_from_study(study, select: str | None = None) -> dict:
     attrs = study.user_attrs
     if not attrs.get("imtune"):
         raise ImtuneError(f"study {study.study_name!r} was not created by imtune")
+    missing = [k for k in ("pipeline", "budget", "search_space_resolved") if not isinstance(attrs.get(k), dict)]
+    if missing:  # edited (the dashboard, SQL) or of another version: was "internal error: KeyError: 'budget'"
+        raise ImtuneError(f"study {study.study_name!r} lacks its imtune attribute{'s' * (len(missing) > 1)} "
+                          f"{', '.join(missing)} (edited, or written by another version of imtune): it cannot be "
+                          "frozen; evaluate its frozen.yaml with `tune evaluate --config`, or run a new study with --study")
     optimum = best_feasible(study)
     best, selection = sel.select_trial(study, sel.check_rule(select or attrs.get("select")))
     if best is None:
