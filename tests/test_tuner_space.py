@@ -95,6 +95,10 @@ BAD = [
     ("- just\n- a list", "expected a mapping"),
     ("params: {ratio: {low: 0.6, high: 1.0}}\nfeatures: {binary: {eta: {low: 1}}}", "unknown parameter features.binary.eta"),
     ("params: {ratio: {low: 0.6, high: 1.0}}\ncalibration: {ratio: 3}", "calibration.ratio"),
+    # a misspelt family or feature applied to no feature: its ranges were never searched, unsaid
+    ("params: {ratio: {low: 0.6, high: 1.0}}\nfeatures: {sfit: {ratio: {low: 0.9}}}",
+     "features.sfit: not a feature family (binary, float, learned) nor a feature name (did you mean 'sift'?)"),
+    ("params: {ratio: {low: 0.6, high: 1.0}}\nfeatures: {binray: {ratio: {low: 0.9}}}", "(did you mean 'binary'?)"),
     ("params: {ratio: {low: 0.6, high: 1.0, grid: [0.5]}}", "grid value 0.5 outside"),
     # Optuna moved high to 0.9 and took off-step grid values, with UserWarnings (file, line, source) on stderr
     ("params: {ratio: {low: 0.6, high: 1.0, step: 0.3}}", "params.ratio: step 0.3 does not divide [0.6, 1.0]"),

@@ -296,6 +296,21 @@ def _check_param(name: str, d, where: str):
     return Param(name=name, type=t, low=low, high=high, log=log, step=step, grid=grid)
 
 
+def _check_feature_key(path: Path, key) -> None:
+    """A ``features:`` key is a family (binary, float, learned) or a feature name: a misspelt one (``sfit``) applied
+    to no feature, its ranges never searched, unsaid."""
+    if key in FAMILIES or str(key).startswith("custom:"):
+        return
+    from pipeline.features import EXTRACTORS
+    try:
+        EXTRACTORS.get(str(key))
+    except ImtuneError:
+        from pipeline.registry import did_you_mean
+        raise ImtuneError(f"search space {path}: features.{key}: not a feature family ({', '.join(FAMILIES)}) nor "
+                          f"a feature name{did_you_mean(str(key), list(FAMILIES) + EXTRACTORS.names())} (see `tune "
+                          "list`)") from None
+
+
 def read_yaml(path: Path) -> dict:
     """Parse one search-space file (yaml.safe_load) and check its top-level shape."""
     from pipeline.fileio import load_yaml, read_text
@@ -324,6 +339,7 @@ def read_yaml(path: Path) -> dict:
     for fam, over in feats.items():
         if not isinstance(over, dict):
             raise ImtuneError(f"search space {path}: features.{fam} must be a mapping of parameter -> range")
+        _check_feature_key(path, fam)
         for k in over:
             if k not in PARAMS:
                 raise ImtuneError(f"search space {path}: unknown parameter features.{fam}.{k} (expected {', '.join(PARAMS)})")
