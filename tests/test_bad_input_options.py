@@ -664,3 +664,20 @@ def test_viz_gallery_not_named_html_is_refused_and_the_file_kept(tiny, tmp_path,
                        "--gallery", victim], capsys)
     _one_line_error(rc, err, f"--gallery {victim}: tune viz writes the gallery as an HTML page", "name it .html")
     assert victim.read_text() == "study: S\n" and not (tmp_path / "cache").exists()
+
+
+def test_test_workers_of_a_stereo_study_is_refused(tiny, tmp_path, capsys):
+    """`tune test --study S --workers 2` (multiview bag processes) of a stereo study ran the test with --workers
+    ignored, unsaid. One line before any work."""
+    import yaml
+    sdir = tmp_path / "studies"
+    (sdir / "s").mkdir(parents=True)
+    (sdir / "s" / "frozen.yaml").write_text(yaml.safe_dump({
+        "study": "s", "trial": 0, "task": "stereo", "params": {"ratio": 0.8},
+        "config": {"feature": {"name": "sift", "num_features": 256}, "geometry": {"ransac": "degensac"}},
+        "data": {"root": str(tiny), "test_scenes": ["fountain-P11"]}}))
+    rc, _, err = _cli(["test", "--study", "s", "--workers", "2", "--runs", "1", "--reference", "none", "--cache",
+                       tmp_path / "cache", "--studies-dir", sdir, "--quiet", "--jobs", "1"], capsys)
+    _one_line_error(rc, err, "--workers is an option of the multiview task (bag processes), and study s is a stereo "
+                             "study: drop --workers")
+    assert not (sdir / "s" / "test.json").exists()

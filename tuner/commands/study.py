@@ -428,6 +428,14 @@ def run_calibrate(args) -> int:
 
 # -- tune test --------------------------------------------------------------------------------------
 
+def _check_test_workers(args, task) -> None:
+    """``tune test --workers N`` (multiview bag processes) of a study of another task: ignored, unsaid."""
+    task = task if isinstance(task, str) else "stereo"
+    if args.workers is not None and task != "multiview":
+        raise ImtuneError(f"--workers is an option of the multiview task (bag processes), and study {args.study} is a "
+                          f"{task} study: drop --workers (--jobs sets its pair processes)")
+
+
 def run_test_cmd(args) -> int:
     import optuna
     from pipeline.cache import H5Cache
@@ -460,11 +468,13 @@ def run_test_cmd(args) -> int:
               test_budget=args.test_budget, progress=not quiet, reuse=args.reuse, workers=args.workers, jobs=args.jobs,
               reference=resolve_reference(args.reference, _studies_dir(args)), ci_resamples=ci_resamples(args))
     if study is not None:
+        _check_test_workers(args, study.user_attrs.get("task"))
         frozen, path = freeze(study, sdir, select=args.select,
                               warn=lambda w: print(f"warning: {w}", file=sys.stderr, flush=True))
         result = run_test_for_study(study, frozen, sdir, data_root=root, **kw)
     else:
         frozen = load_frozen(sdir, args.study)  # no such study in this storage: the frozen file alone
+        _check_test_workers(args, frozen.get("task"))
         result = run_test(frozen, study_data_root(frozen, root), sdir, **kw)
     for note in result.get("notes") or []:
         print(f"warning: test {note}", file=sys.stderr, flush=True)
