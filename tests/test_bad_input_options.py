@@ -681,3 +681,19 @@ def test_test_workers_of_a_stereo_study_is_refused(tiny, tmp_path, capsys):
     _one_line_error(rc, err, "--workers is an option of the multiview task (bag processes), and study s is a stereo "
                              "study: drop --workers")
     assert not (sdir / "s" / "test.json").exists()
+
+
+def test_test_max_pairs_of_a_multiview_study_is_said(tiny, tmp_path, capsys):
+    """`tune test --study MV --max-pairs 2` tested every bag, the option ignored, unsaid. One warning line (the test
+    then stops here: 2 images make no multiview bag)."""
+    import yaml
+    sdir = tmp_path / "studies"
+    (sdir / "mv").mkdir(parents=True)
+    (sdir / "mv" / "frozen.yaml").write_text(yaml.safe_dump({
+        "study": "mv", "trial": 0, "task": "multiview", "params": {"ratio": 0.8},
+        "config": {"feature": {"name": "sift", "num_features": 256}, "geometry": {"ransac": "degensac"}},
+        "data": {"root": str(tiny), "test_scenes": ["fountain-P11"]}}))
+    rc, _, err = _cli(["test", "--study", "mv", "--max-pairs", "2", "--runs", "1", "--reference", "none", "--cache",
+                       tmp_path / "cache", "--studies-dir", sdir, "--quiet"], capsys)
+    assert err.splitlines()[0] == ("warning: --max-pairs: the multiview task does not use it (COLMAP reconstructs each "
+                                   "bag whole, with its own RANSAC, untimed); ignored"), err

@@ -429,11 +429,16 @@ def run_calibrate(args) -> int:
 # -- tune test --------------------------------------------------------------------------------------
 
 def _check_test_workers(args, task) -> None:
-    """``tune test --workers N`` (multiview bag processes) of a study of another task: ignored, unsaid."""
+    """``tune test --workers N`` (multiview bag processes) of a study of another task, or ``--max-pairs`` /
+    ``--test-budget`` of a multiview study: each was ignored, unsaid."""
     task = task if isinstance(task, str) else "stereo"
     if args.workers is not None and task != "multiview":
         raise ImtuneError(f"--workers is an option of the multiview task (bag processes), and study {args.study} is a "
                           f"{task} study: drop --workers (--jobs sets its pair processes)")
+    given = [f for f, v in (("--max-pairs", args.max_pairs), ("--test-budget", args.test_budget)) if v is not None]
+    if given and task == "multiview":  # as for tune run --task multiview (_warn_stereo_only)
+        _warn(f"{', '.join(given)}: the multiview task does not use {'it' if len(given) == 1 else 'them'} (COLMAP "
+              "reconstructs each bag whole, with its own RANSAC, untimed); ignored")
 
 
 def run_test_cmd(args) -> int:
