@@ -697,3 +697,14 @@ def test_test_max_pairs_of_a_multiview_study_is_said(tiny, tmp_path, capsys):
                        tmp_path / "cache", "--studies-dir", sdir, "--quiet"], capsys)
     assert err.splitlines()[0] == ("warning: --max-pairs: the multiview task does not use it (COLMAP reconstructs each "
                                    "bag whole, with its own RANSAC, untimed); ignored"), err
+
+
+@pytest.mark.parametrize("extra, why", [([], "without --study (or a frozen.yaml) naming its scenes"),
+                                        (["--scenes", "fountain-P11"], "beside --scenes")])
+def test_viz_split_that_chooses_nothing_is_refused(extra, why, tiny, tmp_path, capsys):
+    """`tune viz --split val` picks a study's validation scenes: without a study, or beside --scenes, it was ignored
+    (the data's scenes, or the named ones, drawn), unsaid. One line before any work."""
+    rc, _, err = _cli(["viz", "--data", tiny, "--feature", "sift", "--num-features", "256", "--quiet", "--split", "val",
+                       "--out", tmp_path / "figs", "--cache", tmp_path / "cache", *extra], capsys)
+    _one_line_error(rc, err, f"--split val chooses a study's validation or test scenes, and does not apply {why}")
+    assert not (tmp_path / "cache").exists()

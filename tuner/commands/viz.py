@@ -201,6 +201,11 @@ def viz(args: argparse.Namespace) -> dict:
         from pipeline.config_files import config_label
         sources = [Source(conf, config_label(conf))]
     primary = sources[0]
+    if "split" in explicit_options(args) and (args.scenes or not (primary.frozen or {}).get("data")):
+        # the split picks a study's scenes: beside --scenes, or for settings without a study's data, it was ignored
+        why = "beside --scenes" if args.scenes else "without --study (or a frozen.yaml) naming its scenes"
+        raise ImtuneError(f"--split {args.split} chooses a study's validation or test scenes, and does not apply {why}: "
+                          "drop it")
     if args.task is None:  # a multiview study's frozen r drawn as stereo pairs with an untuned eta 0.5, unsaid
         args.task = ((primary.frozen or {}).get("task") or "stereo") if not args.compare else "stereo"
     from pipeline.tasks import task_list
