@@ -119,8 +119,8 @@ def test_viz_of_a_multiview_study_draws_its_bags_by_default(tmp_path):
     r = tune("run", "--task", "multiview", "--data", data, "--num-features", "512", "--n-trials", "1", "--no-test",
              "--bags", "3:1", "--workers", "1", "--quiet", "--study", "mv", env=env)
     assert r.returncode == 0, r.stderr[-2000:]
-    common = ["viz", "--study", "mv", "--data", data, "--split", "val", "--workers", "1", "--quiet"]
-    r = tune(*common, "--out", tmp_path / "v1", env=env)
+    common = ["viz", "--study", "mv", "--data", data, "--split", "val", "--quiet"]
+    r = tune(*common, "--workers", "1", "--out", tmp_path / "v1", env=env)  # bag processes: multiview only
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.startswith("multiview fountain-P11 bag 3#0") and list((tmp_path / "v1").glob("bag_*.png")), r.stdout
     r = tune(*common, "--task", "stereo", "--out", tmp_path / "v2", env=env)
