@@ -708,3 +708,21 @@ def test_viz_split_that_chooses_nothing_is_refused(extra, why, tiny, tmp_path, c
                        "--out", tmp_path / "figs", "--cache", tmp_path / "cache", *extra], capsys)
     _one_line_error(rc, err, f"--split val chooses a study's validation or test scenes, and does not apply {why}")
     assert not (tmp_path / "cache").exists()
+
+
+@pytest.mark.parametrize("opts, needle", [
+    (["--num", "5"], "--num does not apply here: --worst / --best / --random pick the pairs of one configuration"),
+    (["--pairs", "0004.jpg|0005.jpg", "--worst", "3"], "--worst does not apply here: --pairs / --pair name the pairs"),
+    (["--task", "multiview", "--random", "4"], "--random does not apply here: --task multiview draws multiview bags"),
+    (["--compare", "a.yaml", "a.yaml", "--best", "1"], "--best does not apply here: --compare draws the --num pairs"),
+])
+def test_viz_pair_choices_that_do_not_apply_are_refused(opts, needle, tiny, tmp_path, capsys):
+    """`tune viz --num 5` without --compare, --worst beside --pairs, --random with --task multiview, --best with
+    --compare: each was ignored (other pairs, or none, drawn), unsaid. One line before any work."""
+    (tmp_path / "a.yaml").write_text("feature: sift\nnum_features: 256\n")
+    opts = [str(tmp_path / o) if o == "a.yaml" else o for o in opts]
+    pipeline = [] if "--compare" in opts else ["--feature", "sift", "--num-features", "256"]
+    rc, _, err = _cli(["viz", "--data", tiny, *pipeline, "--quiet", "--out", tmp_path / "figs", "--cache",
+                       tmp_path / "cache", *opts], capsys)
+    _one_line_error(rc, err, needle, "drop it")
+    assert not (tmp_path / "cache").exists()

@@ -135,6 +135,16 @@ def _check_something_to_draw(args: argparse.Namespace, tasks: list[str]) -> None
     if args.no_gallery and args.gallery:
         raise ImtuneError(f"--gallery {args.gallery} does not apply with --no-gallery (no gallery is written): drop "
                           "one of them")
+    from tuner.options import explicit_options
+    typed = [o for o in ("worst", "best", "random", "sample_seed", "num") if o in explicit_options(args)]
+    picks = "--compare draws the --num pairs on which A and B differ most" if args.compare else \
+        "--worst / --best / --random pick the pairs of one configuration"
+    for o in typed:  # each was ignored, unsaid, where the pairs are chosen otherwise
+        no_pairs = "stereo" not in tasks and not args.compare
+        if _pair_specs(args) or no_pairs or (args.compare and o != "num") or (not args.compare and o == "num"):
+            how = "--pairs / --pair name the pairs" if _pair_specs(args) else \
+                f"--task {args.task} draws multiview bags (--bag)" if no_pairs else picks
+            raise ImtuneError(f"--{o.replace('_', '-')} does not apply here: {how}; drop it")
     if _pair_specs(args):
         return
     if args.compare and args.num == 0:
