@@ -304,3 +304,27 @@ def test_imc_pt2020_bag_file_with_an_image_twice_or_too_few_is_refused(tmp_path,
     msg = str(e.value)
     needle = f"image {lines[0]!r} is listed twice" if how == "image-twice" else "2 images in a bag of 3"
     assert f"bag file {bag}: {needle}" in msg and "\n" not in msg, msg
+
+
+@pytest.mark.parametrize("where,kind,needle", [
+    ("new-vis-pairs", "file", "pair list folder {p} is a file, not a folder"),
+    ("sub_set", "file", "bag folder {p} is a file, not a folder"),
+    (f"depth_maps/{KEYS[0]}.h5", "folder", "depth map {p} is a folder, not a file"),
+    ("new-vis-pairs", "broken link", "pair list folder {p} is a broken link"),
+])
+def test_imc_pt2020_something_else_at_an_optional_name_is_said(tmp_path, where, kind, needle):
+    """A file at new-vis-pairs/ (an archive not unpacked) was read as no pair list: every pair evaluated, co-visibility
+    unknown, unsaid; a file at sub_set/: no bags; a folder at a depth map: no depth. Now one line naming it."""
+    import shutil
+    write_imc_pt2020(tmp_path / "pt")
+    p = tmp_path / "pt" / "reichstag" / "set_100" / where
+    shutil.rmtree(p) if p.is_dir() else p.unlink()
+    if kind == "file":
+        p.write_bytes(b"PK\x03\x04")
+    elif kind == "folder":
+        p.mkdir()
+    else:
+        p.symlink_to(tmp_path / "nowhere")
+    with pytest.raises(ImtuneError) as e:
+        load_scene(tmp_path / "pt", "reichstag")
+    assert needle.format(p=p) in str(e.value) and "\n" not in str(e.value)

@@ -130,6 +130,28 @@ def read_bags(folder: Path, known: dict[str, str]) -> dict[int, list[tuple[str, 
     return {n: [b for _, b in sorted(v)] for n, v in sorted(found.items())}
 
 
+def _optional(p: Path, folder: bool, what: str) -> bool:
+    """``p`` is there as a folder (``folder``) or a regular file: True; nothing there: False. Anything else at its
+    name (a file at new-vis-pairs/, a folder at a depth map) is a one-line ImtuneError: it was read as absent (every
+    pair evaluated with co-visibility unknown, no bags, no depth), unsaid."""
+    import os
+    import stat
+    try:
+        os.lstat(p)
+    except FileNotFoundError:
+        return False
+    try:
+        mode = os.stat(p).st_mode
+    except OSError:
+        raise ImtuneError(f"{what} {p} is a broken link: point it at the {what}, or remove it") from None
+    if stat.S_ISDIR(mode) if folder else stat.S_ISREG(mode):
+        return True
+    from pipeline.fileio import file_kind
+    kind = "a file" if stat.S_ISREG(mode) else file_kind(mode)
+    raise ImtuneError(f"{what} {p} is {kind}, not a {'folder' if folder else 'file'}: put the {what} there, or move "
+                      "it away")
+
+
 def load_imc_pt2020(root: Path, scene: str | None = None, verify: bool = True) -> Scene:
     """Load one IMC-PT 2020 scene (the official set_100 subset): K, R, t per image, depth-map paths, pairs with
     co-visibility (all pairs with unknown co-visibility when new-vis-pairs/ is absent), and bags if present."""
@@ -160,10 +182,10 @@ def load_imc_pt2020(root: Path, scene: str | None = None, verify: bool = True) -
             size = image_size(path)
         depth = sdir / "depth_maps" / f"{key}.h5"
         images[fn] = ImageInfo(name=fn, path=path, K=K, R=R, t=t, size=size,
-                               depth_path=depth if depth.is_file() else None)
+                               depth_path=depth if _optional(depth, False, "depth map") else None)
         key_to_name[key] = fn
     vis_dir = sdir / "new-vis-pairs"
-    vis = read_vis_pairs(vis_dir) if vis_dir.is_dir() else []
+    vis = read_vis_pairs(vis_dir) if _optional(vis_dir, True, "pair list folder") else []
     if vis:
         pairs = []
         seen: dict[frozenset, str] = {}
@@ -178,7 +200,7 @@ def load_imc_pt2020(root: Path, scene: str | None = None, verify: bool = True) -
     else:
         pairs = all_pairs(list(images))
     bags = None
-    if (sdir / "sub_set").is_dir():
+    if _optional(sdir / "sub_set", True, "bag folder"):
         known = {**key_to_name, **{n: n for n in images}, **{f"images/{n}": n for n in images}}
         bags = read_bags(sdir / "sub_set", known) or None
     return Scene(name=name, root=sdir, images=images, pairs=pairs, bags=bags, source=NAME)
