@@ -125,6 +125,14 @@ def _space(text: str, needle: str):
     return setup
 
 
+def _strategy_beside_a_searching_space(tmp: Path):
+    """--strategy uni with a --space that searches the strategy: the study searched it, uni ignored, unsaid."""
+    f = tmp / "space.yaml"
+    f.write_text("params:\n  ratio: {low: 0.6, high: 1.0}\n  strategy: {type: categorical, choices: [both, either]}\n")
+    needle = f"--strategy uni does not apply: the search space {f} searches the strategy (both, either)"
+    return _study("run", "--space", str(f), "--strategy", "uni", needle=needle)(tmp)
+
+
 def _config(name: str, text: str, needle: str):
     def setup(tmp: Path):
         f = tmp / name
@@ -230,6 +238,10 @@ CASES = {
     "feature-option-twice": _evaluate("--feature-option", "edge_threshold=10", "--feature-option", "edge_threshold=12",
                                       needle="--feature-option edge_threshold is given twice (edge_threshold=10 and "
                                              "edge_threshold=12)"),
+    # --strategy where the study searches or pins the strategy: ignored, unsaid
+    "strategy-beside-a-searching-space": _strategy_beside_a_searching_space,
+    "strategy-beside-fix-strategy": _study("run", "--fix", "strategy=either", "--strategy", "uni",
+                                           needle="--strategy uni does not apply: the strategy is pinned to either"),
     # a multiview option without the multiview task: ignored, the stereo task run, unsaid
     "evaluate-bags-on-stereo": _evaluate("--bags", "5:10", needle="--bags is an option of the multiview task, and only "
                                          "the stereo task runs here (--task stereo): add --task multiview"),

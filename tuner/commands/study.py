@@ -51,6 +51,25 @@ def _no_storage_for_calibrate(value: str):
                                      "run with that --studies-dir reuses it)")
 
 
+def _check_strategy(args, base) -> None:
+    """``--strategy X`` beside a search space that searches the strategy, or pins another one (in the file or by
+    --fix): the study searched (or pinned) it and X was ignored, unsaid."""
+    if args.strategy == "both":  # the default: nothing typed to lose
+        return
+    from pipeline.tasks import TASKS
+    from tuner.space import SPACES_DIR, load_space
+    task_file = TASKS.get(args.task).space_file
+    path = args.space or (SPACES_DIR / task_file if task_file else None)
+    space = load_space(path, feature=base.feature.name, estimator=base.geometry.ransac, fixes=args.fix)
+    if "strategy" in space.params:
+        raise ImtuneError(f"--strategy {args.strategy} does not apply: the search space {space.source} searches the "
+                          f"strategy ({', '.join(space.params['strategy'].choices)}); drop --strategy, or pin it with "
+                          f"--fix strategy={args.strategy}")
+    if space.fixed.get("strategy") not in (None, args.strategy):
+        raise ImtuneError(f"--strategy {args.strategy} does not apply: the strategy is pinned to "
+                          f"{space.fixed['strategy']} (in {space.source} or by --fix); drop one of them")
+
+
 #: `tune run` options of the stereo task's pairs and estimator budget (dest -> default)
 STEREO_ONLY = {"max_pairs": None, "chunk_pairs": 12, "budget": 0.5, "test_budget": 1.0, "calibration_pairs": 8,
                "recalibrate": False}
@@ -249,6 +268,7 @@ def settings_from_args(args):
                           "matcher (ratio and strategy are fixed at r=1 both); drop it")
     base = build_config(args, ratio=1.0, threshold=0.5, max_iters=1000,
                         seed=args.seed if args.seed is not None else 0)
+    _check_strategy(args, base)
     from tuner.options import check_multiview_only, multiview_config
     check_multiview_only(args, [args.task])
     _warn_stereo_only(args)
