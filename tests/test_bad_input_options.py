@@ -340,15 +340,16 @@ def test_a_fix_the_task_does_not_use_is_said_not_silently_dropped(tiny, tmp_path
 
 
 def test_stereo_options_of_a_multiview_run_are_said_not_silently_dropped(tiny, tmp_path, capsys):
-    """`tune run --task multiview --max-pairs 2 --budget 0.1` ran every bag, untimed, without a word (COLMAP reconstructs
-    whole bags with its own RANSAC): the user believed the run cut short and budgeted. One warning line, as for a --fix
-    the task does not use; the run then stops at its preflight (2 images make no multiview bag)."""
+    """`tune run --task multiview --max-pairs 2 --budget 0.1 --covisibility 0.3` ran every bag, untimed, without a word
+    (COLMAP reconstructs whole bags with its own RANSAC): the user believed the run cut short and budgeted. One warning
+    line, as for a --fix the task does not use; the run then stops at its preflight (2 images make no multiview bag)."""
     rc, out, err = _cli(["run", "--data", tiny, *FAST, "--task", "multiview", "--studies-dir", tmp_path / "st",
-                         "--max-pairs", "2", "--budget", "0.1", "--test-scenes", "nosuch"], capsys)
+                         "--max-pairs", "2", "--budget", "0.1", "--covisibility", "0.3", "--test-scenes", "nosuch"],
+                        capsys)
     lines = err.strip().splitlines()
     assert rc == 2 and len(lines) == 2, err
-    assert lines[0] == ("warning: --max-pairs, --budget: the multiview task does not use them (COLMAP reconstructs "
-                        "each bag whole, with its own RANSAC, untimed; --bags sets the work); ignored"), err
+    assert lines[0] == ("warning: --max-pairs, --budget, --covisibility: the multiview task does not use them (COLMAP "
+                        "reconstructs each bag whole, with its own RANSAC, untimed; --bags sets the work); ignored"), err
     assert lines[1].startswith(TWO_IMAGES_NO_BAG), err
 
 

@@ -72,7 +72,7 @@ def _check_strategy(args, base) -> None:
 
 #: `tune run` options of the stereo task's pairs and estimator budget (dest -> default)
 STEREO_ONLY = {"max_pairs": None, "chunk_pairs": 12, "budget": 0.5, "test_budget": 1.0, "calibration_pairs": 8,
-               "recalibrate": False}
+               "recalibrate": False, "covisibility": 0.1}
 
 
 def _warn_stereo_only(args) -> None:
