@@ -727,3 +727,13 @@ def test_viz_pair_choices_that_do_not_apply_are_refused(opts, needle, tiny, tmp_
                        tmp_path / "cache", *opts], capsys)
     _one_line_error(rc, err, needle, "drop it")
     assert not (tmp_path / "cache").exists()
+
+
+def test_evaluate_estimator_options_of_a_multiview_evaluation_are_said(tiny, tmp_path, capsys):
+    """`tune evaluate --task multiview --threshold 2 --ransac magsac`: COLMAP runs its own RANSAC, the options were
+    ignored (and shown in the configuration line as if used), unsaid. One warning line first (here the evaluation
+    then stops: 2 images make no multiview bag)."""
+    rc, _, err = _cli(["evaluate", "--data", tiny, "--task", "multiview", "--num-features", "256", "--threshold", "2",
+                       "--ransac", "magsac", "--quiet", "--cache", tmp_path / "cache"], capsys)
+    assert err.splitlines()[0] == ("warning: --ransac, --threshold: the multiview task does not use them (COLMAP "
+                                   "reconstructs each bag whole, with its own RANSAC); ignored"), err

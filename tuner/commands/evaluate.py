@@ -138,6 +138,20 @@ def config_of(args):
                   + (f"; overridden on the command line: {', '.join(used)}" if used else ""))
 
 
+def _warn_estimator_options(args, tasks: list[str]) -> None:
+    """One warning line for estimator options typed when no stereo task runs: the multiview task's COLMAP runs its
+    own RANSAC, so --threshold / --max-iters / --confidence / --ransac were ignored, unsaid."""
+    if "stereo" in tasks:
+        return
+    typed = [o for o in ("ransac", "threshold", "max_iters", "confidence", "covisibility")
+             if o in explicit_options(args)]
+    if typed:
+        import sys
+        flags = ", ".join("--" + o.replace("_", "-") for o in typed)
+        print(f"warning: {flags}: the {' and '.join(tasks)} task does not use {'it' if len(typed) == 1 else 'them'} "
+              "(COLMAP reconstructs each bag whole, with its own RANSAC); ignored", file=sys.stderr, flush=True)
+
+
 def run(args) -> int:
     for flag, on in (("--pairs", args.pairs), ("--bag-records", args.bag_records)):
         if on and not args.json:  # the records go into the JSON only: without --json it was ignored, unsaid
@@ -146,6 +160,7 @@ def run(args) -> int:
     from pipeline.tasks import task_list
     from tuner.options import check_multiview_only
     check_multiview_only(args, task_list(args.task))
+    _warn_estimator_options(args, task_list(args.task))
     data = resolve_data(args.data)
     out = evaluate_config(conf, data, args.scenes, cache_dir=args.cache,
                           min_covisibility=args.covisibility, progress=not (args.quiet or args.json),
