@@ -95,15 +95,21 @@ class Scene:
         one centre, so that its translation direction is undefined and every estimate's error there is inf or the
         angle of rounding noise (a camera file or a pairs-list line duplicated). Zero: the centres (the listed
         translation) closer than 1e-6 x the scene's scale (the centres' norms, at least 1)."""
+        centres: dict[str, np.ndarray | None] = {}
+
+        def centre(n: str):
+            if n not in centres:
+                im = self.images[n]
+                ok = im.R is not None and im.t is not None
+                centres[n] = -np.asarray(im.R, float).T @ np.asarray(im.t, float).reshape(3) if ok else None
+            return centres[n]
         for p in (self.pairs if pairs is None else pairs):
             if p.t is not None:
-                gap = float(np.linalg.norm(p.t))
-                scale = 1.0
+                gap, scale = float(np.linalg.norm(p.t)), 1.0
             else:
-                a, b = self.images[p.i], self.images[p.j]
-                if a.R is None or b.R is None or a.t is None or b.t is None:
+                ca, cb = centre(p.i), centre(p.j)
+                if ca is None or cb is None:
                     continue
-                ca, cb = (-np.asarray(x.R, float).T @ np.asarray(x.t, float).reshape(3) for x in (a, b))
                 gap = float(np.linalg.norm(ca - cb))
                 scale = max(1.0, float(np.linalg.norm(ca)), float(np.linalg.norm(cb)))
             if gap <= 1e-6 * scale:
