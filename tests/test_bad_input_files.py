@@ -11,6 +11,7 @@ frozen.yaml.
 """
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -1004,3 +1005,19 @@ def test_a_study_without_its_imtune_attributes_is_one_line(attr, tmp_path, data3
     r = tune("test", "--study", "s", "--studies-dir", sd, "--data", data3, "--runs", "1", "--reference", "none",
              "--jobs", "1", "--quiet", env=env)
     one_line_error(r, f"study 's' lacks its imtune attribute {attr} (edited, or written by another version of imtune)")
+
+
+def test_studies_lists_another_programs_study_without_a_best_maa10(tmp_path, capsys):
+    """`tune studies` on a storage shared with other Optuna work showed a foreign study's best value as its "best
+    mAA10". Now none is shown for it, and one warning line names it."""
+    import optuna
+    from tuner.cli import main
+    url = f"sqlite:///{tmp_path / 'optuna.db'}"
+    optuna.logging.set_verbosity(optuna.logging.ERROR)
+    optuna.create_study(study_name="theirs", storage=url).optimize(lambda t: t.suggest_float("x", 0, 1), n_trials=2)
+    capsys.readouterr()
+    assert main(["studies", "--storage", url, "--json"]) == 0
+    (row,) = json.loads(capsys.readouterr().out)
+    assert row["study"] == "theirs" and row["complete"] == 2 and row["best mAA10"] is None
+    assert main(["studies", "--storage", url]) == 0
+    assert capsys.readouterr().err.strip() == "warning: theirs: not created by imtune (no mAA10 to show)"

@@ -636,11 +636,13 @@ def run_studies(args) -> int:
     from tuner.study import _quiet_optuna, best_feasible, trial_counts
     _quiet_optuna()
     storage = open_storage(args.storage, heartbeat=None, studies_dir=_studies_dir(args), must_exist=True)
-    rows = []
+    rows, foreign = [], []
     for summ in optuna.get_all_study_summaries(storage, include_best_trial=False):
         st = optuna.load_study(study_name=summ.study_name, storage=storage)
         c = trial_counts(st)
-        b = best_feasible(st)
+        b = best_feasible(st) if st.user_attrs.get("imtune") else None
+        if not st.user_attrs.get("imtune"):  # another program's study (a shared PostgreSQL): its value is no mAA10
+            foreign.append(summ.study_name)
         rows.append({"study": summ.study_name, "complete": c["complete"], "pruned": c["pruned"],
                      "infeasible": c["infeasible"], "running": c["running"], "failed": c["fail"],
                      "best mAA10": trial_value(b) if b else None, "best trial": b.number if b else None})
@@ -650,4 +652,6 @@ def run_studies(args) -> int:
         print(render(rows, "markdown"))
     else:
         print("no studies", file=sys.stderr)
+    if foreign and not args.json:
+        _warn(f"{', '.join(foreign)}: not created by imtune (no mAA10 to show)")
     return 0
