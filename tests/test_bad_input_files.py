@@ -1021,3 +1021,17 @@ def test_studies_lists_another_programs_study_without_a_best_maa10(tmp_path, cap
     assert row["study"] == "theirs" and row["complete"] == 2 and row["best mAA10"] is None
     assert main(["studies", "--storage", url]) == 0
     assert capsys.readouterr().err.strip() == "warning: theirs: not created by imtune (no mAA10 to show)"
+
+
+def test_plot_of_another_programs_study_is_one_line(tmp_path, capsys):
+    """`tune plot --study THEIRS` drew a report titled "imtune study THEIRS" with its values as mAA(10). Now one line."""
+    import optuna
+    from tuner.cli import main
+    url = f"sqlite:///{tmp_path / 'optuna.db'}"
+    optuna.logging.set_verbosity(optuna.logging.ERROR)
+    optuna.create_study(study_name="theirs", storage=url).optimize(lambda t: t.suggest_float("x", 0, 1), n_trials=2)
+    capsys.readouterr()
+    assert main(["plot", "--study", "theirs", "--storage", url, "--studies-dir", str(tmp_path / "s")]) == 2
+    assert capsys.readouterr().err.strip() == ("tune: error: study 'theirs' was not created by imtune: no report of "
+                                               "it to draw (optuna-dashboard shows any study: tune dashboard)")
+    assert not list(tmp_path.rglob("report.html"))

@@ -618,6 +618,10 @@ def run_plot(args) -> int:
         from tuner.pareto import write_overlay
         print(str(write_overlay(storage, args.pareto, out)))
         return 0
+    from tuner.study import load_study
+    if not load_study(storage, args.study).user_attrs.get("imtune"):  # its values were drawn and labelled as mAA(10)
+        raise ImtuneError(f"study {args.study!r} was not created by imtune: no report of it to draw (optuna-dashboard "
+                          "shows any study: tune dashboard)")
     path = write_report(storage, args.study, out, studies_dir=sdir)
     print(str(path))
     return 0
