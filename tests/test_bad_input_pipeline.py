@@ -238,6 +238,9 @@ CASES = {
     "feature-option-twice": _evaluate("--feature-option", "edge_threshold=10", "--feature-option", "edge_threshold=12",
                                       needle="--feature-option edge_threshold is given twice (edge_threshold=10 and "
                                              "edge_threshold=12)"),
+    # random trials before a model, for a sampler that has no model: ignored, unsaid
+    "startup-trials-with-random-sampler": _study("run", "--sampler", "random", "--startup-trials", "5",
+                                                 needle="--startup-trials 5 applies to the tpe and cmaes samplers"),
     # --strategy where the study searches or pins the strategy: ignored, unsaid
     "strategy-beside-a-searching-space": _strategy_beside_a_searching_space,
     "strategy-beside-fix-strategy": _study("run", "--fix", "strategy=either", "--strategy", "uni",

@@ -259,6 +259,9 @@ def _jsonable(o):
 def settings_from_args(args):
     """TuneSettings from the `tune run` options."""
     from tuner.study import PARETO_SPAN, TuneSettings
+    if args.startup_trials is not None and args.sampler in ("random", "grid"):  # it was ignored, unsaid
+        raise ImtuneError(f"--startup-trials {args.startup_trials} applies to the tpe and cmaes samplers (random trials "
+                          f"before they model): --sampler {args.sampler} has none; drop --startup-trials")
     if args.pareto_span is not None and args.objective != "pareto":  # it was ignored, unsaid
         raise ImtuneError(f"--pareto-span {args.pareto_span:g} applies to a pareto study only: add --objective pareto, "
                           "or drop --pareto-span")
