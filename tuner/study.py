@@ -130,6 +130,7 @@ class TuneSettings:
     select: str | None = None  # tuner.select rule freezing the study (best | one-se | smooth; None: recorded/default)
     reference: str | None = None  # test runs compared with: None = paper defaults, "none", a config file or study
     ci_resamples: int = 2000  # bootstrap resamples of every mAA's 95% interval (0 = none)
+    unused_options: tuple = ()  # typed options the task does not use (--budget of a multiview run): said, ignored
 
     def make_task(self, **extra):
         """The study's task with these settings' options (each task takes those it knows)."""
@@ -478,6 +479,10 @@ def load_study_space(s: TuneSettings, task):
     if unused:  # dropped below like the rest: a typed pin that does nothing was silently forgotten
         s.warn(f"--fix {', '.join(unused)}: the {task.name} task does not use "
                f"{'it' if len(unused) == 1 else 'them'} (it uses {', '.join(searchable(task))}); ignored")
+    if s.unused_options:  # stereo options of a multiview run, found by the command line (tuner.commands.study)
+        s.warn(f"{', '.join(s.unused_options)}: the {task.name} task does not use "
+               f"{'it' if len(s.unused_options) == 1 else 'them'} (COLMAP reconstructs each bag whole, with its own "
+               "RANSAC, untimed; --bags sets the work); ignored")
     for k in unused_by(task):
         space.params.pop(k, None)
         space.fixed.pop(k, None)

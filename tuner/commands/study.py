@@ -75,15 +75,12 @@ STEREO_ONLY = {"max_pairs": None, "chunk_pairs": 12, "budget": 0.5, "test_budget
                "recalibrate": False, "covisibility": 0.1}
 
 
-def _warn_stereo_only(args) -> None:
-    """One warning line for stereo options given to a multiview run (it reconstructs whole bags with COLMAP's own,
-    untimed RANSAC: --max-pairs, --budget, ... were ignored, unsaid), as for a --fix the task does not use."""
+def _stereo_only_given(args) -> tuple:
+    """The stereo options given to a multiview run (it reconstructs whole bags with COLMAP's own, untimed RANSAC:
+    --max-pairs, --budget, ... were ignored, unsaid): the run says so with a --fix the task does not use."""
     if args.task == "stereo":
-        return
-    given = ["--" + d.replace("_", "-") for d, v in STEREO_ONLY.items() if getattr(args, d, v) != v]
-    if given:
-        _warn(f"{', '.join(given)}: the {args.task} task does not use {'it' if len(given) == 1 else 'them'} "
-              "(COLMAP reconstructs each bag whole, with its own RANSAC, untimed; --bags sets the work); ignored")
+        return ()
+    return tuple("--" + d.replace("_", "-") for d, v in STEREO_ONLY.items() if getattr(args, d, v) != v)
 
 
 def resolve_reference(value: str | None, sdir):
@@ -274,7 +271,6 @@ def settings_from_args(args):
     _check_strategy(args, base)
     from tuner.options import check_multiview_only, multiview_config
     check_multiview_only(args, [args.task])
-    _warn_stereo_only(args)
     quiet = bool(args.quiet or args.json)
     mv = multiview_config(args, seed=args.seed if args.seed is not None else 0)
     return TuneSettings(
@@ -292,7 +288,8 @@ def settings_from_args(args):
         jobs=args.jobs, warm_start=list(args.warm_start),
         gt_dir=args.gt_dir, objective=args.objective,
         pareto_span=PARETO_SPAN if args.pareto_span is None else args.pareto_span, select=args.select,
-        reference=resolve_reference(args.reference, _studies_dir(args)), ci_resamples=ci_resamples(args))
+        reference=resolve_reference(args.reference, _studies_dir(args)), ci_resamples=ci_resamples(args),
+        unused_options=_stereo_only_given(args))
 
 
 def run(args) -> int:
@@ -459,7 +456,7 @@ def _check_test_workers(args, task) -> None:
         raise ImtuneError(f"--workers is an option of the multiview task (bag processes), and study {args.study} is a "
                           f"{task} study: drop --workers (--jobs sets its pair processes)")
     given = [f for f, v in (("--max-pairs", args.max_pairs), ("--test-budget", args.test_budget)) if v is not None]
-    if given and task == "multiview":  # as for tune run --task multiview (_warn_stereo_only)
+    if given and task == "multiview":  # as tune run --task multiview says (TuneSettings.unused_options)
         _warn(f"{', '.join(given)}: the multiview task does not use {'it' if len(given) == 1 else 'them'} (COLMAP "
               "reconstructs each bag whole, with its own RANSAC, untimed); ignored")
 
