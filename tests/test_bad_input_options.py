@@ -729,11 +729,17 @@ def test_viz_pair_choices_that_do_not_apply_are_refused(opts, needle, tiny, tmp_
     assert not (tmp_path / "cache").exists()
 
 
-def test_evaluate_estimator_options_of_a_multiview_evaluation_are_said(tiny, tmp_path, capsys):
+def test_evaluate_estimator_options_of_a_multiview_evaluation_are_said(tmp_path, capsys):
     """`tune evaluate --task multiview --threshold 2 --ransac magsac`: COLMAP runs its own RANSAC, the options were
-    ignored (and shown in the configuration line as if used), unsaid. One warning line first (here the evaluation
-    then stops: 2 images make no multiview bag)."""
-    rc, _, err = _cli(["evaluate", "--data", tiny, "--task", "multiview", "--num-features", "256", "--threshold", "2",
-                       "--ransac", "magsac", "--quiet", "--cache", tmp_path / "cache"], capsys)
-    assert err.splitlines()[0] == ("warning: --ransac, --threshold: the multiview task does not use them (COLMAP "
-                                   "reconstructs each bag whole, with its own RANSAC); ignored"), err
+    ignored (and shown in the configuration line as if used), unsaid. One warning line, with the task's notes."""
+    from tests.conftest import copy_strecha_subset
+    data = copy_strecha_subset(tmp_path / "data", ["0003.jpg", "0004.jpg", "0005.jpg"])
+    gt = ["--gt-dir", tmp_path / "gt"]
+    rc, _, err = _cli(["data", "build-gt", "--data", data, "--num-features", "1024", "--max-image-size", "1024",
+                       "--quiet", *gt], capsys)
+    assert rc == 0, err
+    rc, _, err = _cli(["evaluate", "--data", data, "--task", "multiview", "--bags", "3:1", "--num-features", "256",
+                       "--threshold", "2", "--ransac", "magsac", "--quiet", "--cache", tmp_path / "cache", *gt], capsys)
+    assert rc == 0, err
+    assert err.strip() == ("warning: --ransac, --threshold: the multiview task does not use them (COLMAP "
+                           "reconstructs each bag whole, with its own RANSAC); ignored"), err

@@ -160,7 +160,6 @@ def run(args) -> int:
     from pipeline.tasks import task_list
     from tuner.options import check_multiview_only
     check_multiview_only(args, task_list(args.task))
-    _warn_estimator_options(args, task_list(args.task))
     data = resolve_data(args.data)
     out = evaluate_config(conf, data, args.scenes, cache_dir=args.cache,
                           min_covisibility=args.covisibility, progress=not (args.quiet or args.json),
@@ -172,6 +171,7 @@ def run(args) -> int:
     for section in out.values():  # the tasks' notes (bag sizes above a scene's images): on stderr, kept in the JSON
         for note in (section.get("notes") or []) if isinstance(section, dict) else []:
             print(f"warning: {note}", file=sys.stderr, flush=True)
+    _warn_estimator_options(args, task_list(args.task))  # with the notes: a run stopped by bad input says that alone
     if args.json:
         print(json.dumps(_jsonable(out), indent=2))
     else:
