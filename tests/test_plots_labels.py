@@ -181,3 +181,35 @@ def test_importances_say_their_method_and_follow_a_known_dependence(tmp_path):
         warnings.simplefilter("error", UserWarning)  # nothing escapes to stderr
         fig = fig_importances(same)
     assert any("equal by construction" in (a.text or "") for a in fig.layout.annotations)
+
+
+def test_breakdown_is_of_the_frozen_trial_not_the_best(tmp_path):
+    """A study frozen with --select one-se: the accuracy-by-scene figure (titled "frozen trial") drew the best
+    trial's validation curve next to the frozen trial's test curves (trial 33 beside trial 16 in a real study).
+    Here one-se provably picks trial 1: all three trials lie within one SE of the best (SE = 0.2 / 1.96 ~ 0.10),
+    and trial 1's r = 0.8 is the centre of r 0.6, 0.8, 1.0 on the search range [0.6, 1.0]."""
+    import optuna
+    from optuna.distributions import FloatDistribution
+    from optuna.trial import create_trial
+
+    from tuner.plots import report_sections
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    st = optuna.create_study(study_name="onese", storage=storage, direction="maximize")
+    for k, v in {"task": "stereo", "feature": "sift", "num_features": 2048, "ransac": "degensac", "imtune": 1,
+                 "select": "one-se", "budget": {"seconds_per_pair": B, "gamma_max": 20000},
+                 "search_space_resolved": {"params": {"ratio": {"type": "float", "low": 0.6, "high": 1.0}},
+                                           "fixed": {}},
+                 "data": {"root": "/data/strecha", "val_scenes": ["fountain-P11"]}}.items():
+        st.set_user_attr(k, v)
+    accs = {0: 0.9, 1: 0.5, 2: 0.3}
+    for i, (r, val) in enumerate([(0.6, 0.90), (0.8, 0.88), (1.0, 0.87)]):
+        st.add_trial(create_trial(
+            value=val, distributions={"ratio": FloatDistribution(0.6, 1.0)}, params={"ratio": r},
+            constraints={"budget": 0.1 - B},
+            user_attrs={"ransac_seconds_median": 0.1, "feasible": True, "mAA10_ci": [val - 0.1, min(1.0, val + 0.1)],
+                        "scenes": {"fountain-P11": {"mAA10": val, "accuracy": [accs[i]] * 10}}}))
+    secs = report_sections(storage, "onese", tmp_path)
+    acc = next(s.fig for s in secs if s.fig is not None and s.title.startswith("Accuracy vs angular threshold"))
+    (tr,) = [t for t in acc.data if "validation" in t.name]
+    assert "trial 1" in tr.name and list(tr.y) == [0.5] * 10, (tr.name, list(tr.y))

@@ -10,7 +10,7 @@ inlier threshold eta and the ratio test r (contour), mAA(10°) against the media
 (with the budget B), mAA(10°) against the iteration cap Gamma, the mAA(10°)-against-eta curves of every
 study of the same task in the storage (best mAA(10°) per eta bin: the paper's inlier-threshold figure),
 for a pareto study (``tune --objective pareto``) its accuracy-cost Pareto front (:mod:`tuner.pareto`),
-and the breakdowns of the frozen (best feasible) trial by scene: accuracy against the angular threshold
+and the breakdowns of the frozen trial (the pick of the study's selection rule, ``--select``) by scene: accuracy against the angular threshold
 (1..10°; stereo pairs, or multiview pairs of the bags) and mAA(10°) by co-visibility bin (stereo) — from
 the trial's user attributes (validation scenes) and, once `tune test` has run, from
 ``<studies dir>/<study>/test.json`` (test scenes, mean over the runs).
@@ -245,8 +245,8 @@ def fig_eta_curves(storage, study):
 
 
 def breakdown_sources(study, best, studies_dir=None) -> list[tuple[str, dict]]:
-    """[(label, {scene: summary with "accuracy" and maybe "covisibility"})]: the best trial's validation
-    scenes, then the test scenes of test.json (per scene, averaged over the runs) when it is there."""
+    """[(label, {scene: summary with "accuracy" and maybe "covisibility"})]: the frozen trial's (``best``)
+    validation scenes, then the test scenes of test.json (per scene, averaged over the runs) when it is there."""
     from tuner.freeze import load_test_file, study_dir
     out = []
     if best is not None and best.user_attrs.get("scenes"):
@@ -335,9 +335,20 @@ def _covisibility_hint(study, sources) -> str:
             f"`tune test --study {name}`")
 
 
+def frozen_trial(study):
+    """The trial the study freezes: its recorded selection rule's pick (``tuner.select``; ``--select one-se`` or
+    ``smooth`` can freeze another trial than the best), the best feasible trial where the rule is unknown."""
+    from tuner.select import select_trial
+    from tuner.study import best_feasible
+    try:
+        return select_trial(study, study.user_attrs.get("select"))[0]
+    except ImtuneError:  # an unknown recorded rule (a newer imtune)
+        return best_feasible(study)
+
+
 def report_sections(storage, study_name: str, studies_dir: Path | str | None = None) -> list[Section]:
     """The report's sections, each a titled figure or a note saying why it is missing and how to fill it."""
-    from tuner.study import best_feasible, load_study
+    from tuner.study import load_study
     study = load_study(storage, study_name)
     trials = _complete(study)
     if not trials:
@@ -377,7 +388,7 @@ def report_sections(storage, study_name: str, studies_dir: Path | str | None = N
             add(f"{METRIC} vs estimator time per pair: Pareto front", lambda: fig_front(study))
     add(f"{METRIC} vs eta across studies", lambda: fig_eta_curves(storage, study),
         f"needs studies with at least 2 trials within budget that search eta: {more}")
-    best = best_feasible(study)
+    best = frozen_trial(study)  # the trial test.json measured (its selection rule), not always the best one
     sources = breakdown_sources(study, best, studies_dir)
     add("Accuracy vs angular threshold, by scene", lambda: fig_accuracy_threshold(sources, task),
         f"no per-scene accuracy stored for the frozen trial (trials of older imtune versions): run "
