@@ -713,3 +713,36 @@ def test_cached_validation_records_of_the_wrong_shape_are_recomputed_not_trusted
     for text in ("[1, 2]", '{"identity": ', "\x00\x01", '"a string"'):
         p.write_text(text)
         assert _read_json(p) is None
+
+
+def test_report_links_only_files_that_exist(tmp_path):
+    """The findings report linked every study's test.json, also a study without one (the multiview study of
+    finding 6 is never tested: its "test" link was dead); a link now names an existing file, and a missing test
+    is said in words."""
+    import html as _html
+
+    from tuner.findings import analysis as A2
+    from tuner.findings.report import write_report
+    rng = np.random.default_rng(0)
+    good = {(sc, i): float(rng.uniform(0.1, 2.0)) for sc in ("s1", "s2") for i in range(10)}
+    bad = {p: e + 6.0 for p, e in good.items()}
+    outcomes = {"defaults": _outcome("d", [bad]), "tuned": _outcome("t", [good])}
+    a = A2.analyse(BY_ID[1], outcomes, n_resamples=200)
+    f = BY_ID[1]
+    out = {"findings": [{"id": 1, "claim": f.claim, "paper": f.paper, "measured": {**a["measured"], "rule": f.rule},
+                         "difference": a["difference"], "ci": a["ci"], "p_value": a["p_value"],
+                         "verdict": a["verdict"], "studies": ["synthetic-d", "synthetic-t"]}], "report": None}
+    sdir = tmp_path / "studies"
+    for n in ("synthetic-d", "synthetic-t"):
+        (sdir / n).mkdir(parents=True)
+        (sdir / n / "frozen.yaml").write_text("study: x\n")
+    (sdir / "synthetic-d" / "test.json").write_text("{}")  # synthetic-t has frozen settings, no test
+    if not (DATA / "strecha").exists():
+        pytest.skip(f"real data not found at {DATA / 'strecha'} (the report's header reads its split)")
+    fs = FindingsSettings(data_root=DATA / "strecha", studies_dir=sdir, quick=True,
+                          storage=f"sqlite:///{tmp_path / 'optuna.db'}", progress=False)
+    page = write_report(out, fs)
+    hrefs = re.findall(r'href="(\.\./[^"]+)"', page.read_text())
+    assert hrefs and "../synthetic-d/test.json" in hrefs
+    dead = [h for h in hrefs if not (page.parent / _html.unescape(h)).exists()]
+    assert not dead, dead

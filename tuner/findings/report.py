@@ -328,9 +328,7 @@ def write_report(out: dict, fs, seconds: float = 0.0) -> Path:
         fig = plot_finding(f)
         div = pio.to_html(fig, full_html=False, include_plotlyjs=first) if fig is not None else ""
         first = first and fig is None
-        links = " ".join(f'<a href="../{html.escape(n)}/{"report.html" if n in reports else "frozen.yaml"}">'
-                         f'{html.escape(n)}</a> (<a href="../{html.escape(n)}/frozen.yaml">frozen</a>, '
-                         f'<a href="../{html.escape(n)}/test.json">test</a>)' for n in f["studies"])
+        links = " ".join(_study_links(n, reports, fs.studies_dir) for n in f["studies"])
         body.append(
             f"<section id='finding-{f['id']}'><h2>{f['id']}. {html.escape(d.title)} — "
             f"<span class='v {f['verdict'].replace(' ', '-')}'>{html.escape(f['verdict'])}</span></h2>"
@@ -353,6 +351,19 @@ def write_report(out: dict, fs, seconds: float = 0.0) -> Path:
     atomic_write(root / "report.md", "\n".join(md))
     atomic_write(root / "findings.json", json.dumps(_jsonable(out), indent=2))
     return report
+
+
+def _study_links(name: str, reports: dict, studies_dir) -> str:
+    """A study's name linked to its report, then its frozen settings and test results: each link to a file that
+    exists (a study never tested, as finding 6's multiview study, has no test.json: it says so instead)."""
+    from tuner.freeze import study_dir
+    folder = study_dir(studies_dir, name)
+    n = html.escape(name)
+    main = "report.html" if name in reports else "frozen.yaml" if (folder / "frozen.yaml").is_file() else None
+    head = f'<a href="../{n}/{main}">{n}</a>' if main else n
+    files = [f'<a href="../{n}/{fn}">{label}</a>' if (folder / fn).is_file() else f"no {label}"
+             for fn, label in (("frozen.yaml", "frozen"), ("test.json", "test"))]
+    return f"{head} ({', '.join(files)})"
 
 
 def _html_table(cols, rows) -> str:
