@@ -746,3 +746,30 @@ def test_report_links_only_files_that_exist(tmp_path):
     assert hrefs and "../synthetic-d/test.json" in hrefs
     dead = [h for h in hrefs if not (page.parent / _html.unescape(h)).exists()]
     assert not dead, dead
+
+
+def test_optimal_threshold_finding_states_its_unit_and_which_interval():
+    """Finding 7's summary said "optimal threshold: sift - rootsift  -0.1158" and "optimum threshold = 0.106, flat
+    region [0.106, 1.645] (... within the optimum's interval [0.575, 0.992])": eta without its unit (px), and an
+    interval of validation mAA(10) that read as one of eta. Known regions: sift's eta 0.5 px (flat 0.4-0.6),
+    rootsift's 1.0 px (flat 0.9-1.2)."""
+    from tuner.findings.report import _compared, _difference_text
+    f = BY_ID[7]
+    outcomes = {}
+    for role in f.studies:
+        eta = 1.0 if role == "rootsift" else 0.5
+        o = StudyOutcome(spec=StudySpec(owner=99, variant=role), name=f"synthetic-{role}", ok=True,
+                         frozen={"params": {"threshold": eta}, "value": 0.8}, attrs={"budget": {}})
+        o.best = ({"threshold": eta}, 0.8)
+        o.trials = [({"threshold": eta * 0.8}, 0.76), ({"threshold": eta}, 0.8), ({"threshold": eta * 1.2}, 0.75),
+                    ({"threshold": eta * 3}, 0.4)]
+        o.val_ci = [0.7, 0.9]
+        outcomes[role] = o
+    a = A.analyse(f, outcomes)
+    res = {"id": 7, "verdict": a["verdict"], "difference": a["difference"], "ci": None, "p_value": None,
+           "measured": {**a["measured"], "rule": f.rule}}
+    assert a["difference"] == pytest.approx(0.5 - 1.0)
+    assert "(px)" in _compared(res), _compared(res)
+    txt = _difference_text(res)
+    assert "optimum threshold = 0.500 px, flat region [0.400, 0.600] px" in txt, txt
+    assert "validation mAA(10) within the optimum's 95% interval [0.700, 0.900]" in txt, txt

@@ -29,6 +29,8 @@ from tuner.findings.definitions import SMALL_GAIN, Finding
 HOLDS, FAILS, UNSURE, NOT_RUN = "holds", "does not hold", "inconclusive", "not run"
 #: the band two flat regions must fit in to count as the same optimum: ("abs", width) or ("ratio", max / min)
 SAME_BAND = {"ratio": ("abs", 0.05), "threshold": ("ratio", 1.5)}
+#: the unit of a region parameter's values (the ratio test r has none)
+UNITS = {"threshold": "px"}
 
 
 def directional(ci, p_value: float | None = None, level: float = DEFAULT_LEVEL) -> str:
@@ -201,7 +203,8 @@ def analyse(f: Finding, outcomes: dict, n_resamples: int = 2000, seed: int = 0) 
         return {**out, "measured": {**measured, "reason": _reason(missing)}, "verdict": NOT_RUN}
     first = [r for r in f.groups[0][1] if r in regions]
     diff = regions[first[0]]["optimum"] - regions[first[1]]["optimum"] if len(first) >= 2 else None
-    measured["key"] = f"optimal {f.region_param}: {first[0]} - {first[1]}" if len(first) >= 2 else None
+    unit = f" ({UNITS[f.region_param]})" if UNITS.get(f.region_param) else ""
+    measured["key"] = f"optimal {f.region_param}{unit}: {first[0]} - {first[1]}" if len(first) >= 2 else None
     return {**out, "measured": measured, "difference": diff, "verdict": combine(statuses, "all")}
 
 

@@ -171,10 +171,12 @@ def _difference_text(f: dict) -> str:
         return f"Not run here: {m.get('reason') or m.get('missing')}"
     if m.get("rule") == "regions":
         parts = []
+        from tuner.findings.analysis import UNITS
+        unit = f" {UNITS[m['parameter']]}" if UNITS.get(m["parameter"]) else ""
         for role, r in (m.get("regions") or {}).items():
-            parts.append(f"{role}: optimum {m['parameter']} = {_num(r['optimum'], 3)}, flat region "
-                         f"{_ci(r['region'], 3)} ({r['trials_within']} of {r['trials']} feasible trials within the "
-                         f"optimum's interval {_ci(r['validation_ci'], 3)})")
+            parts.append(f"{role}: optimum {m['parameter']} = {_num(r['optimum'], 3)}{unit}, flat region "
+                         f"{_ci(r['region'], 3)}{unit} ({r['trials_within']} of {r['trials']} feasible trials with "
+                         f"validation mAA(10) within the optimum's 95% interval {_ci(r['validation_ci'], 3)})")
         for g in m.get("groups") or []:
             parts.append(f"{g['group']}: {g['status']}" + (f" (missing: {', '.join(g['missing'])})" if g["missing"] else ""))
         return "; ".join(parts)
