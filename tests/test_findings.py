@@ -773,3 +773,25 @@ def test_optimal_threshold_finding_states_its_unit_and_which_interval():
     txt = _difference_text(res)
     assert "optimum threshold = 0.500 px, flat region [0.400, 0.600] px" in txt, txt
     assert "validation mAA(10) within the optimum's 95% interval [0.700, 0.900]" in txt, txt
+
+
+def test_a_combined_verdict_names_the_relation_that_decided_it():
+    """Finding 2's summary row read "inconclusive | degensac - cv-ransac | +0.2458 | [+0.1125, +0.3750] | 0.002": a
+    difference that the stated rule calls significant beside an 'inconclusive' verdict, which came from another
+    relation (magsac vs gcransac). Synthetic records: every claimed '>' clearly holds except magsac vs gcransac,
+    whose errors are identical (difference exactly 0) -> inconclusive, and the row must say which relation decided."""
+    from tuner.findings.report import _compared
+    rng = np.random.default_rng(1)
+    base = {(sc, i): float(rng.uniform(0.1, 1.0)) for sc in ("s1", "s2") for i in range(30)}
+    # degrees added to every pair's error: degensac best ... cv-ransac worst; gcransac's errors are magsac's
+    level = {"degensac": 0.0, "magsac": 2.0, "gcransac": 2.0, "pyransac": 4.0, "cv-ransac": 12.0}
+    f = BY_ID[2]
+    outcomes = {r: _outcome(r, [{p: e + level[r] for p, e in base.items()}]) for r in f.studies}
+    a = A.analyse(f, outcomes, n_resamples=500)
+    assert a["verdict"] == "inconclusive"
+    assert a["ci"][0] > 0 and a["p_value"] < 0.05  # the key (degensac - cv-ransac) alone would hold
+    res = {"id": 2, "verdict": a["verdict"], "difference": a["difference"], "ci": a["ci"], "p_value": a["p_value"],
+           "measured": {**a["measured"], "rule": f.rule}}
+    text = _compared(res)
+    assert text.startswith("degensac - cv-ransac") and "magsac - gcransac: inconclusive" in text, text
+    assert "degensac - gcransac" not in text, text  # a relation that holds did not decide it

@@ -172,6 +172,10 @@ def analyse(f: Finding, outcomes: dict, n_resamples: int = 2000, seed: int = 0) 
                     if c is not None:
                         c["status"] = s
                 st = combine(statuses, f.combine)
+                if directional(key["ci"], key["p_value"]) != st:  # the key alone says otherwise: name the deciders
+                    measured["decided_by"] = [{"a": c["a"], "b": c["b"], "status": s} for (_, c), s
+                                              in zip(computed, statuses) if c is not None and
+                                              (s == FAILS if st == FAILS else s != HOLDS if st == UNSURE else True)]
         measured["relative_difference"] = key["relative"]
         measured["relative_to"] = key["a"]  # the role the relative difference divides by (A of "B vs A")
         extra = _extras(f, outcomes)

@@ -162,7 +162,11 @@ def _compared(f: dict) -> str:
     key = (f.get("measured") or {}).get("key")
     if f.get("difference") is None or not key:
         return "-"
-    return key.replace(" vs ", " - ", 1) if " vs " in key else key
+    text = key.replace(" vs ", " - ", 1) if " vs " in key else key
+    deciders = (f.get("measured") or {}).get("decided_by")
+    if deciders:  # the verdict combines several relations and the key alone would read otherwise
+        text += "; verdict from " + ", ".join(f"{d['b']} - {d['a']}: {d['status']}" for d in deciders)
+    return text
 
 
 def _difference_text(f: dict) -> str:
