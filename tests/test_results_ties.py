@@ -81,3 +81,23 @@ def test_without_pair_errors_ranks_by_overlapping_intervals_and_says_so(tmp_path
     assert [r["rank"] for r in rows] == [1, 2, 3]
     assert all(r["ties"] == "no interval: ranked by value alone" for r in rows[1:])
     assert rows[0]["mAA10 degensac"] == "0.640"
+
+
+def test_the_results_table_says_it_shows_test_numbers_and_what_they_are(tmp_path):
+    """`tune results` printed a bare table ("mAA10 degensac 0.692 [0.620, 0.758]") saying neither that these are
+    test-set numbers nor on which scenes, how many runs, or what the interval is, while `tune table` (validation)
+    has a caption; the results table now has one too (markdown "Table:" line, LaTeX caption)."""
+    from tuner.reports import render_table
+    rng = np.random.default_rng(5)
+    runs = [pair_errors(rng, 3.0) for _ in range(3)]
+    studies = [make_study(tmp_path, "a", "sift", runs), make_study(tmp_path, "b", "orb", runs[:1] * 3)]
+    for s in studies:
+        s.test.update(scenes=["Herz-Jesus-P8", "entry-P10"], pairs=80)
+    rows, cols = results_rows(studies, studies_dir=tmp_path)
+    md = render_table(rows, cols, "markdown")
+    cap = md.splitlines()[-1]
+    assert cap.startswith("Table: Test results on the test scenes Herz-Jesus-P8, entry-P10 (80 pairs)"), cap
+    for words in ("mean of 3 runs", "95% interval over pairs and runs", "NI: inliers per pair",
+                  "NF: features per image"):
+        assert words in cap, (words, cap)
+    assert "\\caption{Test results on the test scenes" in render_table(rows, cols, "latex")

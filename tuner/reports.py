@@ -429,7 +429,21 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
     cols += ["best"] + (["test set"] if several else []) + ["ties"]
     if fmt == "json":
         cols.append("studies")
-    return rows, cols
+    from tuner.formatting import Columns
+    return rows, Columns(cols, caption=_results_caption(shown, sets, several))
+
+
+def _results_caption(shown: list[StudyInfo], sets: dict, several: bool) -> str:
+    """What the results table shows: test numbers, on which scenes and pairs, over how many runs, with which
+    interval (the settings table says its numbers are the validation scenes'; this one said nothing)."""
+    where = f"the test scenes {next(iter(sets))}" if len(sets) == 1 and not several else \
+        "each study's test scenes (column 'test set')"
+    runs = sorted({int(s.test["runs"]) for s in shown if isinstance((s.test or {}).get("runs"), (int, float))})
+    n = (f"mean of {runs[0]} run{'s' if runs[0] != 1 else ''}" if len(runs) == 1 else
+         f"mean of each study's test runs ({runs[0]}-{runs[-1]})" if runs else "mean of the test runs")
+    return (f"Test results on {where}, {n}: NF: features per image; per estimator NI: inliers per pair and "
+            f"mAA(10°) [95% interval over pairs and runs]; rank by each feature's best mAA(10°), shared with the row "
+            f"above where the difference is not significant (column 'ties').")
 
 
 def _test_set(s: StudyInfo) -> str:
