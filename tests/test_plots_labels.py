@@ -213,3 +213,16 @@ def test_breakdown_is_of_the_frozen_trial_not_the_best(tmp_path):
     acc = next(s.fig for s in secs if s.fig is not None and s.title.startswith("Accuracy vs angular threshold"))
     (tr,) = [t for t in acc.data if "validation" in t.name]
     assert "trial 1" in tr.name and list(tr.y) == [0.5] * 10, (tr.name, list(tr.y))
+
+
+def test_history_legend_explains_the_grey_over_budget_points(tmp_path):
+    """Optuna draws infeasible trials grey and leaves them out of the legend: the history figure showed unexplained
+    grey points (5 over-budget trials of the README job); the legend now names them."""
+    from tuner.plots import INFEASIBLE, fig_history
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    st = _study(storage, "grey", n=12, seed=2)
+    assert any(t.constraints["budget"] > 0 for t in st.trials)  # the helper made some trials over budget
+    fig = fig_history(st)
+    (grey,) = [tr for tr in fig.data if tr.name == INFEASIBLE]
+    assert grey.showlegend is not False
+    assert all(tr.showlegend is not False for tr in fig.data if len(tr.x or ()) > 0)

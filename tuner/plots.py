@@ -114,6 +114,8 @@ def fig_history(study):
              "Infeasible Trial": INFEASIBLE}
     for tr in fig.data:
         tr.name = names.get(tr.name, tr.name)
+        if tr.name == INFEASIBLE:  # Optuna leaves its grey points out of the legend: say what they are
+            tr.showlegend = True
     fig.update_layout(title=f"Optimization history: validation {METRIC} per trial",
                       xaxis_title="trial number", yaxis_title=f"{METRIC} (validation)")
     return fig
