@@ -226,3 +226,21 @@ def test_history_legend_explains_the_grey_over_budget_points(tmp_path):
     (grey,) = [tr for tr in fig.data if tr.name == INFEASIBLE]
     assert grey.showlegend is not False
     assert all(tr.showlegend is not False for tr in fig.data if len(tr.x or ()) > 0)
+
+
+def test_gamma_max_label_sits_on_its_line_on_the_log_axis(tmp_path):
+    """The Gamma figure's x axis is logarithmic, where plotly places an annotation at x = log10(value); the
+    'Gamma_max = ... (budget)' label was given x = Gamma_max itself (10^20000 on this axis), so it never showed
+    beside its red line (the README job's report: a bare dashed line). Gamma_max is 20000 here."""
+    import math as _m
+
+    from tuner.plots import fig_gamma
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    st = _study(storage, "gmax")
+    fig = fig_gamma(st)
+    assert fig.layout.xaxis.type == "log"
+    (line,) = [s for s in fig.layout.shapes if s.x0 == s.x1]
+    assert line.x0 == 20000
+    (label,) = [a for a in fig.layout.annotations if "Gamma_max" in (a.text or "")]
+    assert label.text == "Gamma_max = 20k (budget)"
+    assert label.x == pytest.approx(_m.log10(20000))

@@ -205,8 +205,11 @@ def fig_gamma(study):
     gmax = (study.user_attrs.get("budget") or {}).get("gamma_max")
     if gmax:
         gammas.append(gmax)
-        fig.add_vline(x=float(gmax), line_dash="dash", line_color="red",
-                      annotation_text=f"Gamma_max = {_fmt_tick(float(gmax))} (budget)")
+        fig.add_vline(x=float(gmax), line_dash="dash", line_color="red")
+        # the label placed by hand: on a log axis an annotation's x is log10 (add_vline's label is not: it landed
+        # at 10^Gamma_max, off the figure)
+        fig.add_annotation(x=math.log10(float(gmax)), xref="x", y=1.0, yref="y domain", xanchor="right",
+                           yanchor="top", showarrow=False, text=f"Gamma_max = {_fmt_tick(float(gmax))} (budget)")
     fig.update_layout(title=f"Validation {METRIC} vs RANSAC iteration cap Gamma",
                       xaxis=dict(title="iteration cap Gamma (iterations, log scale)", **_log_axis(gammas)),
                       yaxis_title=f"{METRIC} (validation)")
