@@ -231,3 +231,20 @@ def test_a_quick_study_beside_the_main_one_does_not_replace_its_settings():
     empty = StudyInfo(**{**empty.__dict__, "best": None})
     rows, _ = settings_rows([a, b, empty], "json")
     assert rows[0]["studies"]["degensac"]["study"] == "b"
+
+
+def test_frozen_table_states_the_budget_statistic_of_the_frozen_trial():
+    """The frozen-settings table printed "budget | 0.5 s/pair" and, in the validation row, "ransac_seconds 0.5769"
+    (the mean over pairs) for a trial within budget: the budget is on the median (0.3415 s here), which the table
+    never showed, so a feasible optimum read as over budget. The budget row now gives the frozen trial's median
+    and names the mean as such."""
+    from tuner.commands.study import frozen_table
+    f = {"study": "x", "trial": 16, "task": "stereo", "task_options": {"min_covisibility": 0.1, "max_pairs": None},
+         "params": {"max_iters": 65992, "ratio": 0.8524, "threshold": 0.4496}, "fixed": {"strategy": "both"},
+         "budget": {"seconds_per_pair": 0.5, "statistic": "median estimator seconds per pair", "gamma_max": 190000},
+         "validation": {"mAA10": 0.8509, "mAA10_ci": [0.7525, 0.94], "mAA5": 0.8473, "pairs": 55, "NF": 8000.0,
+                        "NM": 1437.3, "NI": 1282.8, "failed": 0, "match_seconds": 0.0932, "ransac_seconds": 0.5769,
+                        "ransac_seconds_median": 0.3415, "ransac_seconds_p90": 1.607}}
+    text = frozen_table(f)
+    budget = next(ln for ln in text.splitlines() if ln.startswith("| budget"))
+    assert "median 0.342 s/pair" in budget and "mean 0.577" in budget, budget

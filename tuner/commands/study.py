@@ -339,8 +339,13 @@ def frozen_table(f: dict) -> str:
     if "max_iters" in f["params"] or task.budget_seconds(v) is not None:
         from tuner.formatting import gamma_max_text
         gmax = b.get("gamma_max")
+        used = ""  # the frozen trial's budget statistic: the mean beside a budget read as over it when it is not
+        if v.get("ransac_seconds_median") is not None:
+            used = f"; frozen trial: median {v['ransac_seconds_median']:.3g} s/pair (the budget statistic)"
+            if v.get("ransac_seconds") is not None:
+                used += f", mean {v['ransac_seconds']:.3g}"
         rows.append({"parameter": "budget", "value": f"{b.get('seconds_per_pair')} s/pair",
-                     "": gamma_max_text(gmax, f.get("fixed"))})
+                     "": gamma_max_text(gmax, f.get("fixed")) + used})
     others = ", ".join(f"{k} {_fmt(v.get(k))}" for k in task.columns if k not in ("mAA10",) and v.get(k) is not None)
     obj = v.get(task.objective)
     rows.append({"parameter": f"validation {task.objective}",
