@@ -248,3 +248,36 @@ def test_frozen_table_states_the_budget_statistic_of_the_frozen_trial():
     text = frozen_table(f)
     budget = next(ln for ln in text.splitlines() if ln.startswith("| budget"))
     assert "median 0.342 s/pair" in budget and "mean 0.577" in budget, budget
+
+
+def test_a_study_with_another_strategy_or_pinned_settings_gets_its_own_row():
+    """One storage holds the main SIFT + DEGENSAC study ('both', everything tuned) and `tune findings`' variants of
+    the same feature and estimator: 'uni' / 'either' matching, OpenCV RANSAC at OpenCV's defaults (eta 3 px and
+    Gamma 1000 pinned, confidence 0.99). The tables grouped rows by feature and count alone and showed, per
+    estimator, the study with the best validation value: an 'either' study that validated higher took the 'sift'
+    row's eta, Gamma and test mAA(10), unsaid. Now such a study is its own row, its variant in the feature name."""
+    from tuner.reports import results_rows
+
+    def variant(st, name, strategy="both", fixed=None, confidence=0.999999):
+        st.attrs.update(pipeline={"matching": {"strategy": strategy},
+                                  "geometry": {"ransac": st.ransac, "confidence": confidence}},
+                        search_space_resolved={"params": {}, "fixed": dict(fixed or {})})
+        return StudyInfo(**{**st.__dict__, "name": name})
+    main = variant(info("sift", 8000, "degensac", 0.80, 0.85, 0.5, 48213), "sift-8000-degensac-stereo")
+    either = variant(info("sift", 8000, "degensac", 0.86, 0.70, 1.5, 2000), "findings-4-either", strategy="either")
+    tuned_cv = variant(info("sift", 8000, "cv-ransac", 0.70, 0.80, 0.4, 9000), "findings-1-tuned")
+    defaults = variant(info("sift", 8000, "cv-ransac", 0.75, 0.86, 3.0, 1000), "findings-1-defaults",
+                       fixed={"threshold": 3.0, "max_iters": 1000}, confidence=0.99)
+    rows, _ = settings_rows([either, main, defaults, tuned_cv], "json")
+    by = {r["feature"]: r for r in rows}
+    assert set(by) == {"sift", "sift+either", "sift+eta3px+Gamma1000+conf0.99"}, set(by)
+    assert (by["sift"]["eta degensac"], by["sift"]["Gamma degensac"]) == (0.5, 48213)
+    assert (by["sift"]["eta cv-ransac"], by["sift"]["Gamma cv-ransac"]) == (0.4, 9000)
+    assert by["sift+either"]["eta degensac"] == 1.5 and by["sift+either"]["eta cv-ransac"] is None
+    tests = {main.name: 0.6, either.name: 0.9, tuned_cv.name: 0.5, defaults.name: 0.2}
+    tested = [StudyInfo(**{**s.__dict__, "test": {"NF": 8000, "NI": 100.0, "mAA10": tests[s.name]}})
+              for s in (either, main, defaults, tuned_cv)]
+    rows, _ = results_rows(tested, "json")
+    by = {r["feature"]: r for r in rows}
+    assert by["sift"]["mAA10 degensac"] == 0.6 and by["sift"]["mAA10 cv-ransac"] == 0.5
+    assert by["sift+either"]["mAA10 degensac"] == 0.9

@@ -88,10 +88,39 @@ def _frozen_trial(study):
         return best_feasible(study)
 
 
+def row_feature(s: StudyInfo) -> str:
+    """The feature column of a study's row: its feature label plus what it pins that the protocol tunes or fixes
+    otherwise: a matching strategy other than 'both' ("sift+uni"), parameters pinned with --fix ("+eta3px",
+    "+Gamma1000", "+r0.8") and a RANSAC confidence other than 0.999999 ("+conf0.99"). Such a study (a `tune
+    findings` variant beside the main study) is another method and gets its own row: grouped by feature alone, the
+    best-validated of them gave the 'sift' row its eta, Gamma and test mAA(10), unsaid."""
+    from pipeline.config import GeometryConfig
+    a = s.attrs or {}
+    pipe = a.get("pipeline") or {}
+    space = a.get("search_space_resolved") or {}
+    searched = set(space.get("params") or {})
+    fixed = dict(space.get("fixed") or {})
+    tags = []
+    strategy = fixed.pop("strategy", None) or (pipe.get("matching") or {}).get("strategy")
+    if strategy and strategy != "both" and "strategy" not in searched:
+        tags.append(str(strategy))
+    names = {"threshold": ("eta", "px"), "max_iters": ("Gamma", ""), "ratio": ("r", "")}
+    order = ("ratio", "threshold", "max_iters")  # r, eta, Gamma as the paper lists them; then the rest
+    for k, v in sorted(fixed.items(), key=lambda kv: (order.index(kv[0]) if kv[0] in order else 3, kv[0])):
+        sym, unit = names.get(k, (k, ""))
+        val = f"{int(v)}" if k == "max_iters" and isinstance(v, (int, float)) else \
+            (f"{v:g}" if isinstance(v, (int, float)) and not isinstance(v, bool) else str(v))
+        tags.append(f"{sym}{val}{unit}")
+    conf = (pipe.get("geometry") or {}).get("confidence")
+    if isinstance(conf, (int, float)) and conf != GeometryConfig.confidence:
+        tags.append(f"conf{conf:g}")
+    return s.feature + "".join(f"+{t}" for t in tags)
+
+
 def _groups(studies: list[StudyInfo]):
     groups: dict[tuple, list[StudyInfo]] = {}
     for s in studies:
-        groups.setdefault((s.feature, s.num_features), []).append(s)
+        groups.setdefault((row_feature(s), s.num_features), []).append(s)
     return dict(sorted(groups.items(), key=lambda kv: (kv[0][1], kv[0][0])))
 
 
