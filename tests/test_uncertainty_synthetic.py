@@ -296,3 +296,25 @@ def test_a_difference_the_sign_flip_test_does_not_confirm_is_no_significant_diff
         ranked = rank_with_ties([("A", a), ("B", b)], n_resamples=4000)
         assert [r["name"] for r in ranked] == ["B", "A"]
         assert ranked[1]["shared"] is (not significant) and ranked[1]["rank"] == (1 if not significant else 2)
+
+
+def test_a_shared_rank_is_shared_with_the_ranks_leader_not_through_a_chain():
+    """`tune results` on the quick findings storage gave 14 of 15 rows rank 1, from 0.804 down to 0.471: each row was
+    compared only with the row directly above it, so small steps chained a tie from the top to far below it. Known
+    truth on 60 pairs of one scene: A solves all (score 1), B fails 3 of them, C fails those 3 and 3 more. A - B and
+    B - C each rest on 3 differing pairs (exact sign-flip p = 2 / 2^3 = 0.25: not significant); A - C on 6 pairs all
+    one way (p = 2 / 2^6 = 0.031, and a bootstrap resample of 60 pairs drops all 6 failures with probability
+    0.9^60 < 0.002): significant. So B shares A's rank and C does not (competition rank 3)."""
+    pairs = [("s", f"p{i}") for i in range(60)]
+    a = [{"scene": s, "pair": p, "err": 0.5} for s, p in pairs]
+    b = [dict(r, err=math.inf if i < 3 else 0.5) for i, r in enumerate(a)]
+    c = [dict(r, err=math.inf if i < 6 else 0.5) for i, r in enumerate(a)]
+    ranks = rank_with_ties([("C", c), ("A", a), ("B", b)], n_resamples=4000)
+    assert [(r["name"], r["rank"]) for r in ranks] == [("A", 1), ("B", 1), ("C", 3)], \
+        [(r["name"], r["rank"], r["note"]) for r in ranks]
+    assert "rank shared with A" in ranks[1]["note"] and not ranks[2]["shared"]
+    # the intervals-only fallback the same way: z overlaps y, y overlaps x, z does not overlap x
+    by_ci = rank_by_intervals([{"name": "x", "mAA10": 0.60, "mAA10_ci": [0.55, 0.65]},
+                               {"name": "y", "mAA10": 0.52, "mAA10_ci": [0.47, 0.57]},
+                               {"name": "z", "mAA10": 0.44, "mAA10_ci": [0.39, 0.49]}])
+    assert [(r["name"], r["rank"]) for r in by_ci] == [("x", 1), ("y", 1), ("z", 3)]

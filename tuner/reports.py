@@ -373,8 +373,8 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
     Each mAA(10) is shown as ``value [lo, hi]`` (95% interval) where one is known: from the test runs' pair
     errors in ``<studies_dir>/<study>/test.json`` (:func:`pipeline.metrics.uncertainty.combine_runs_interval`:
     pairs resampled within scenes, widened by the run-to-run variation), else the test summary's
-    ``mAA10_ci``. Ranks: each feature (by its best estimator's study) is compared with the one above it; it
-    shares that rank when the difference is not significant — by the paired bootstrap on the common test
+    ``mAA10_ci``. Ranks: each feature (by its best estimator's study) is compared with the first (best) feature of
+    the rank above it; it shares that rank when the difference is not significant — by the paired bootstrap on the common test
     pairs (:func:`~pipeline.metrics.uncertainty.rank_with_ties`) where both have pair errors, else when their
     intervals overlap (:func:`~pipeline.metrics.uncertainty.rank_by_intervals`, unpaired and conservative).
     The ``ties`` column says which rule shared a rank, or that no interval was available. ``--format json``
@@ -432,19 +432,20 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
         ranked = rank_by_intervals([{"name": str(i), "mAA10": rows[i]["_best"][0], "mAA10_ci": rows[i]["_best"][3]}
                                     for i in scored])
         rule = "95% intervals overlap (no pair errors in test.json: unpaired)"
-    order = []
+    order, leader = [], None  # leader: the first row of the current rank, which every row sharing it is compared with
     for r in ranked:
         i = int(r["name"])
         rows[i]["rank"] = r["rank"]
         if r["shared"]:
-            above = name[int(order[-1])]
-            rows[i]["ties"] = f"rank shared with {above}: not significantly different ({rule})"
+            rows[i]["ties"] = f"rank shared with {name[leader]}: not significantly different ({rule})"
         elif "no common pairs" in r.get("note", ""):
-            rows[i]["ties"] = f"not compared with {name[int(order[-1])]}: no common test pairs"
+            rows[i]["ties"] = f"not compared with {name[leader]}: no common test pairs"
         elif rows[i]["_best"][3] is None and rule.startswith("95%"):
             rows[i]["ties"] = "no interval: ranked by value alone"
         else:
             rows[i]["ties"] = ""
+        if not r["shared"]:
+            leader = i
         order.append(i)
     for rank, i in enumerate([i for i in range(len(rows)) if i not in order], len(order) + 1):
         rows[i]["rank"], rows[i]["ties"] = rank, "no test mAA"
@@ -471,8 +472,8 @@ def _results_caption(shown: list[StudyInfo], sets: dict, several: bool) -> str:
     n = (f"mean of {runs[0]} run{'s' if runs[0] != 1 else ''}" if len(runs) == 1 else
          f"mean of each study's test runs ({runs[0]}-{runs[-1]})" if runs else "mean of the test runs")
     return (f"Test results on {where}, {n}: NF: features per image; per estimator NI: inliers per pair and "
-            f"mAA(10°) [95% interval over pairs and runs]; rank by each feature's best mAA(10°), shared with the row "
-            f"above where the difference is not significant (column 'ties').")
+            f"mAA(10°) [95% interval over pairs and runs]; rank by each feature's best mAA(10°), shared with the "
+            f"rank's first row where the difference to it is not significant (column 'ties').")
 
 
 def _test_set(s: StudyInfo) -> str:

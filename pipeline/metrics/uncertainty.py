@@ -330,16 +330,16 @@ def rank_with_ties(items, tau: int = 10, n_resamples: int = DEFAULT_RESAMPLES, s
     items: ``[(name, records), ...]`` or ``[{"name", "records"}, ...]``, records as for
     :func:`paired_bootstrap` (several runs' records may be concatenated: they are averaged per pair).
     The methods are ordered by mAA(tau) (highest first; ties keep the given order); each one is compared
-    with the one directly above it by :func:`paired_bootstrap` (that one as A, this one as B) and shares
-    its rank when the difference is not significant (its CI contains 0, or the sign-flip test does not confirm it:
-    ``significant``). Ranks are competition ranks (1, 1, 3): a method that
-    differs significantly from the one above gets its position. Sharing is chained: C can share rank 1
-    with B, which shares it with A, even if A and C differ significantly (the note says whom each row
-    ties with). Two methods without a common pair are not compared (no shared rank; the note says so).
+    by :func:`paired_bootstrap` with the *leader* of the rank above it (the first, best method holding that rank;
+    it as A, this one as B) and shares that rank when the difference is not significant (its CI contains 0, or
+    the sign-flip test does not confirm it: ``significant``). Ranks are competition ranks (1, 1, 3): a method
+    that differs significantly from the leader gets its position and leads a new rank. Comparing with the leader,
+    not the row directly above, keeps small steps from chaining a tie from the top far down (C sharing rank 1
+    through B though A and C differ significantly: 14 of 15 rows at rank 1 in a real table). Two methods without
+    a common pair are not compared (no shared rank; the note says so).
 
-    Returns, best first: ``[{"name", "rank", "mAA<tau>", "shared": bool (rank shared with the row
-    above), "comparison": paired_bootstrap overall figures against the row above (None for the first),
-    "note": str}, ...]``."""
+    Returns, best first: ``[{"name", "rank", "mAA<tau>", "shared": bool (rank shared with the rank's leader),
+    "comparison": paired_bootstrap overall figures against that leader (None for the first), "note": str}, ...]``."""
     tau = int(tau)
     named = [_item(it) for it in items]
     vals = []
@@ -355,9 +355,10 @@ def rank_with_ties(items, tau: int = 10, n_resamples: int = DEFAULT_RESAMPLES, s
         name, recs = named[i]
         row = {"name": name, "rank": pos + 1, f"mAA{tau}": vals[i], "shared": False, "comparison": None, "note": ""}
         if out:
-            above = out[-1]
+            lead = next(k for k, r in enumerate(out) if r["rank"] == out[-1]["rank"])  # the rank's leader
+            above = out[lead]
             try:
-                cmp = paired_bootstrap(named[order[pos - 1]][1], recs, tau=tau, n_resamples=n_resamples, seed=seed,
+                cmp = paired_bootstrap(named[order[lead]][1], recs, tau=tau, n_resamples=n_resamples, seed=seed,
                                        level=level)
             except ValueError:  # evaluated on different pairs: nothing to pair, never a shared rank
                 row["note"] = f"not compared with {above['name']}: no common pairs"
@@ -379,8 +380,8 @@ def rank_with_ties(items, tau: int = 10, n_resamples: int = DEFAULT_RESAMPLES, s
 
 def rank_by_intervals(items: Sequence[Mapping], key: str = "mAA10") -> list[dict]:
     """Rank with ties when only intervals are known (no pair records to pair): each method shares the
-    rank of the one above when their ``<key>_ci`` intervals overlap. Conservative (overlapping 95%
-    intervals can still hide a significant paired difference: two methods on the same pairs are
+    rank above it when its ``<key>_ci`` interval overlaps that of the rank's leader (as :func:`rank_with_ties`).
+    Conservative (overlapping 95% intervals can still hide a significant paired difference: two methods on the same pairs are
     positively correlated, which only the paired test uses). items: ``{"name", key, key + "_ci"}``;
     an item without an interval never shares. Same return shape as :func:`rank_with_ties`
     (``comparison`` is None)."""
@@ -391,7 +392,8 @@ def rank_by_intervals(items: Sequence[Mapping], key: str = "mAA10") -> list[dict
         row = {"name": str(it["name"]), "rank": pos + 1, key: float(it[key]), "shared": False, "comparison": None,
                "note": ""}
         if out:
-            above = items[order[pos - 1]]
+            lead = next(k for k, r in enumerate(out) if r["rank"] == out[-1]["rank"])  # the rank's leader
+            above = items[order[lead]]
             ci, ci_above = it.get(f"{key}_ci"), above.get(f"{key}_ci")
             if ci and ci_above and ci[1] >= ci_above[0]:
                 row["rank"], row["shared"] = out[-1]["rank"], True
