@@ -281,3 +281,18 @@ def test_a_study_with_another_strategy_or_pinned_settings_gets_its_own_row():
     by = {r["feature"]: r for r in rows}
     assert by["sift"]["mAA10 degensac"] == 0.6 and by["sift"]["mAA10 cv-ransac"] == 0.5
     assert by["sift+either"]["mAA10 degensac"] == 0.9
+
+
+def test_frozen_table_rounds_the_validation_figures_as_every_table_does():
+    """The frozen table's validation row read "validation mAA10 | 0.851 [0.753, 0.940] | ... mAA5 0.8473 ...
+    match_seconds 0.09316": mAA(5) to 4 digits beside mAA(10) to 3 in one row; every other table shows an mAA to 3
+    decimals and seconds to 3 significant digits (tuner.formatting)."""
+    from tuner.commands.study import frozen_table
+    f = {"study": "x", "trial": 1, "task": "stereo", "params": {"ratio": 0.85}, "fixed": {},
+         "budget": {"seconds_per_pair": 0.5},
+         "validation": {"mAA10": 0.85091, "mAA10_ci": [0.75254, 0.94], "mAA5": 0.84727, "pairs": 55, "NF": 8000.0,
+                        "NM": 1437.3, "NI": 1282.8, "failed": 0, "match_seconds": 0.093162, "ransac_seconds": 0.57693,
+                        "ransac_seconds_median": 0.3415}}
+    row = next(ln for ln in frozen_table(f).splitlines() if ln.startswith("| validation mAA10"))
+    assert "0.851 [0.753, 0.940]" in row and "mAA5 0.847," in row, row
+    assert "match_seconds 0.0932," in row and "NM 1437," in row, row

@@ -346,7 +346,9 @@ def frozen_table(f: dict) -> str:
                 used += f", mean {v['ransac_seconds']:.3g}"
         rows.append({"parameter": "budget", "value": f"{b.get('seconds_per_pair')} s/pair",
                      "": gamma_max_text(gmax, f.get("fixed")) + used})
-    others = ", ".join(f"{k} {_fmt(v.get(k))}" for k in task.columns if k not in ("mAA10",) and v.get(k) is not None)
+    from tuner.formatting import format_value  # each figure at its column's precision, as every table shows it
+    others = ", ".join(f"{k} {format_value(k, v.get(k))}" for k in task.columns
+                       if k not in ("mAA10",) and v.get(k) is not None)
     obj = v.get(task.objective)
     rows.append({"parameter": f"validation {task.objective}",
                  "value": with_ci(obj, v.get(f"{task.objective}_ci")) if obj is not None else _fmt(obj),
