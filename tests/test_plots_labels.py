@@ -244,3 +244,26 @@ def test_gamma_max_label_sits_on_its_line_on_the_log_axis(tmp_path):
     (label,) = [a for a in fig.layout.annotations if "Gamma_max" in (a.text or "")]
     assert label.text == "Gamma_max = 20k (budget)"
     assert label.x == pytest.approx(_m.log10(20000))
+
+
+def test_a_multiview_report_does_not_ask_for_an_eta_it_never_searches(tmp_path):
+    """A multiview study (COLMAP runs its own RANSAC; only r is searched) had its 'mAA vs eta across studies' section
+    say "needs studies with at least 2 trials within budget that search eta: run more trials", a hint no number of
+    trials can satisfy; it now says the task does not search eta."""
+    import optuna
+    from optuna.distributions import FloatDistribution
+    from optuna.trial import create_trial
+
+    from tuner.plots import report_sections
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    st = optuna.create_study(study_name="mv", storage=storage, direction="maximize")
+    for k, v in {"task": "multiview", "feature": "sift", "num_features": 2048, "ransac": "degensac", "imtune": 1,
+                 "budget": {"seconds_per_pair": B}, "data": {"root": "/data/strecha", "val_scenes": ["fountain-P11"]}}.items():
+        st.set_user_attr(k, v)
+    for i, r in enumerate((0.8, 0.85, 0.9)):
+        st.add_trial(create_trial(value=0.9 + 0.01 * i, distributions={"ratio": FloatDistribution(0.6, 1.0)},
+                                  params={"ratio": r}, user_attrs={"feasible": True}))
+    sec = next(s for s in report_sections(storage, "mv", tmp_path) if "eta across studies" in s.title)
+    assert sec.fig is None and "run more trials" not in sec.note, sec.note
+    assert "multiview" in sec.note and "does not search eta" in sec.note, sec.note

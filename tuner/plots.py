@@ -391,8 +391,13 @@ def report_sections(storage, study_name: str, studies_dir: Path | str | None = N
         if len(study.directions) > 1:  # a pareto study (tune --objective pareto): its accuracy-cost front
             from tuner.pareto import fig_front
             add(f"{METRIC} vs estimator time per pair: Pareto front", lambda: fig_front(study))
-    add(f"{METRIC} vs eta across studies", lambda: fig_eta_curves(storage, study),
-        f"needs studies with at least 2 trials within budget that search eta: {more}")
+    if "threshold" not in TASKS.get(task).uses:  # no number of trials brings an eta to a task that has none
+        sections.append(Section(f"{METRIC} vs eta across studies", None,
+                                f"{task} study: the task does not search eta (COLMAP runs its own RANSAC)"
+                                if task == "multiview" else f"{task} study: the task does not search eta"))
+    else:
+        add(f"{METRIC} vs eta across studies", lambda: fig_eta_curves(storage, study),
+            f"needs studies with at least 2 trials within budget that search eta: {more}")
     best = frozen_trial(study)  # the trial test.json measured (its selection rule), not always the best one
     sources = breakdown_sources(study, best, studies_dir)
     add("Accuracy vs angular threshold, by scene", lambda: fig_accuracy_threshold(sources, task),
