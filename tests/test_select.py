@@ -191,3 +191,23 @@ def test_a_flat_optimum_frozen_by_best_points_to_one_se():
     for other in ({**f, "robustness": {**flat, "trials": 13}},  # half: not flat enough to say
                   {**f, "selection": {**f["selection"], "rule": "one-se"}}):  # already the centre
         assert "the optimum is flat" not in _frozen_notes(other)
+
+
+def test_tune_studies_names_the_frozen_trial_beside_the_best(tmp_path):
+    """`tune studies` listed "best mAA10 0.8873 | best trial 33" for the README job's study, frozen with --select
+    one-se at trial 16: nothing said which trial the study freezes (its report, test.json and tables use 16). Now a
+    'frozen trial' column (with the rule) beside the best. PLATEAU frozen by one-se is trial 2 (see above)."""
+    import json
+
+    from tests.test_bad_input_files import tune
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    mem = make_study(PLATEAU)
+    st = optuna.create_study(study_name="plateau", storage=storage, direction="maximize")
+    for k, v in {**mem.user_attrs, "select": "one-se"}.items():
+        st.set_user_attr(k, v)
+    for t in mem.trials:
+        st.add_trial(t)
+    r = tune("studies", "--storage", storage, "--studies-dir", tmp_path / "studies", "--json")
+    assert r.returncode == 0, r.stderr[-2000:]
+    (row,) = json.loads(r.stdout)
+    assert row["best trial"] == 0 and row["frozen trial"] == 2 and row["frozen by"] == "one-se", row

@@ -654,9 +654,13 @@ def run_studies(args) -> int:
         b = best_feasible(st) if st.user_attrs.get("imtune") else None
         if not st.user_attrs.get("imtune"):  # another program's study (a shared PostgreSQL): its value is no mAA10
             foreign.append(summ.study_name)
+        from tuner.plots import frozen_trial
+        rule = st.user_attrs.get("select") or "best"
+        fz = frozen_trial(st) if st.user_attrs.get("imtune") else None  # --select one-se / smooth freeze another
         rows.append({"study": summ.study_name, "complete": c["complete"], "pruned": c["pruned"],
                      "infeasible": c["infeasible"], "running": c["running"], "failed": c["fail"],
-                     "best mAA10": trial_value(b) if b else None, "best trial": b.number if b else None})
+                     "best mAA10": trial_value(b) if b else None, "best trial": b.number if b else None,
+                     "frozen trial": fz.number if fz else None, "frozen by": rule if fz else None})
     if args.json:
         print(json.dumps(_jsonable(rows), indent=2))
     elif rows:
