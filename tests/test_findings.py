@@ -795,3 +795,21 @@ def test_a_combined_verdict_names_the_relation_that_decided_it():
     text = _compared(res)
     assert text.startswith("degensac - cv-ransac") and "magsac - gcransac: inconclusive" in text, text
     assert "degensac - gcransac" not in text, text  # a relation that holds did not decide it
+
+
+def test_the_printed_summary_has_a_header_the_p_value_and_the_claim():
+    """`tune findings` printed bare lines (" 1  holds  +0.3208 [+0.1541, +0.4834]  (tuned - defaults)"): no header
+    saying the numbers are test mAA(10) differences with 95% intervals, no p-value (half of the stated rule), no
+    claim; the reader had to open the report to know what was measured. Now a header line, p, and the finding."""
+    from tuner.findings.report import summary_lines
+    rng = np.random.default_rng(0)
+    good = {(sc, i): float(rng.uniform(0.1, 2.0)) for sc in ("s1", "s2") for i in range(30)}
+    bad = {p: e + 6.0 for p, e in good.items()}
+    f = BY_ID[1]
+    a = A.analyse(f, {"defaults": _outcome("d", [bad]), "tuned": _outcome("t", [good])}, n_resamples=500)
+    res = {"id": 1, "claim": f.claim, "verdict": a["verdict"], "difference": a["difference"], "ci": a["ci"],
+           "p_value": a["p_value"], "measured": {**a["measured"], "rule": f.rule}, "studies": []}
+    head, line = summary_lines([res])
+    assert "verdict" in head and "test mAA(10)" in head and "95% CI" in head and "p" in head.split(), head
+    assert line.split()[:2] == ["1", "holds"], line
+    assert f"p {res['p_value']:.3f}" in line and "tuned - defaults" in line and f.title in line, line

@@ -54,7 +54,7 @@ def _scenes(v):
 
 def run(args) -> int:
     from tuner.findings import FindingsSettings, parse_only, run_findings
-    from tuner.findings.report import _compared, _jsonable
+    from tuner.findings.report import _jsonable, summary_lines
     from tuner.options import resolve_data
     from tuner.storage import default_studies_dir
     only = parse_only(args.only)
@@ -69,11 +69,7 @@ def run(args) -> int:
     if args.json:
         print(json.dumps(_jsonable(out), indent=2))
         return 0
-    for f in out["findings"]:
-        ci = f"[{f['ci'][0]:+.4f}, {f['ci'][1]:+.4f}]" if f.get("ci") else ""
-        d = f"{f['difference']:+.4f} {ci}" if isinstance(f.get("difference"), (int, float)) else ""
-        why = (f.get("measured") or {}).get("reason") if not d else None
-        of = f"  ({_compared(f)})" if d else ""
-        print(f"{f['id']:>2}  {f['verdict']:<14} {d}{of}{why or ''}".rstrip())
+    for line in summary_lines(out["findings"]):
+        print(line)
     print(f"report: {out['report']}")
     return 0

@@ -169,6 +169,25 @@ def _compared(f: dict) -> str:
     return text
 
 
+def summary_lines(findings: list[dict]) -> list[str]:
+    """What `tune findings` prints: a header, then per finding its verdict, the key difference (test mAA(10) B - A,
+    or the optimal values of findings 6 and 7) with its 95% CI and p, what it is a difference of, and the claim."""
+    head = (f"{'#':>2}  {'verdict':<14} {'difference [95% CI]':<27} {'p':<7} difference of (test mAA(10) B - A "
+            "unless named) | finding")
+    out = [head]
+    for f in findings:
+        num = isinstance(f.get("difference"), (int, float))
+        d = f"{f['difference']:+.4f}" if num else ""
+        if num and f.get("ci"):
+            d += f" [{f['ci'][0]:+.4f}, {f['ci'][1]:+.4f}]"
+        p = f"p {f['p_value']:.3f}" if num and isinstance(f.get("p_value"), (int, float)) else ""
+        why = (f.get("measured") or {}).get("reason") if not num else None
+        title = BY_ID[f["id"]].title if f.get("id") in BY_ID else ""
+        tail = f"{_compared(f)} | {title}" if num else (f"{why} | {title}" if why else title)
+        out.append(f"{f['id']:>2}  {f['verdict']:<14} {d:<27} {p:<7} {tail}".rstrip())
+    return out
+
+
 def _difference_text(f: dict) -> str:
     m = f["measured"]
     if f["verdict"] == "not run":
