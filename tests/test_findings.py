@@ -813,3 +813,16 @@ def test_the_printed_summary_has_a_header_the_p_value_and_the_claim():
     assert "verdict" in head and "test mAA(10)" in head and "95% CI" in head and "p" in head.split(), head
     assert line.split()[:2] == ["1", "holds"], line
     assert f"p {res['p_value']:.3f}" in line and "tuned - defaults" in line and f.title in line, line
+
+
+def test_the_study_table_labels_its_mAA5_as_test_and_counts_runs_in_words():
+    """Each finding's study table had "test mAA(10)" beside a bare "mAA(5)" (also a test figure, unsaid) and notes
+    such as "24 test pairs x 1 runs"."""
+    from tuner.findings.report import STUDY_COLS, _study_rows
+    rng = np.random.default_rng(0)
+    good = {(sc, i): float(rng.uniform(0.1, 2.0)) for sc in ("s1", "s2") for i in range(12)}
+    f = BY_ID[1]
+    a = A.analyse(f, {"defaults": _outcome("d", [good]), "tuned": _outcome("t", [good])}, n_resamples=200)
+    assert "test mAA(5)" in STUDY_COLS and "mAA(5)" not in [c for c in STUDY_COLS if not c.startswith("test")]
+    notes = [r[-1] for r in _study_rows({"id": 1, "measured": a["measured"]})]
+    assert notes and all("x 1 run;" in n or n.endswith("x 1 run") for n in notes), notes

@@ -144,11 +144,12 @@ def _study_rows(f: dict) -> list[list[str]]:
         rows.append([role, s["study"], _num(s.get("mAA10")), _ci(s.get("mAA10_ci")), _num(s.get("mAA5")), ps,
                      f"Gamma_max {format(s['gamma_max'], ',') if s.get('gamma_max') else '-'}; "
                      f"{s.get('trials', 0)} feasible trials; "
-                     f"{s.get('pairs') or '-'} test pairs x {s.get('test_runs') or '-'} runs{cost}"])
+                     f"{s.get('pairs') or '-'} test pairs x {s.get('test_runs') or '-'} "
+                     f"run{'' if s.get('test_runs') == 1 else 's'}{cost}"])
     return rows
 
 
-STUDY_COLS = ["role", "study", "test mAA(10)", "95% CI", "mAA(5)", "frozen parameters", "notes"]
+STUDY_COLS = ["role", "study", "test mAA(10)", "95% CI", "test mAA(5)", "frozen parameters", "notes"]
 
 
 def _md_table(cols, rows) -> str:
