@@ -211,3 +211,14 @@ def test_tune_studies_names_the_frozen_trial_beside_the_best(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     (row,) = json.loads(r.stdout)
     assert row["best trial"] == 0 and row["frozen trial"] == 2 and row["frozen by"] == "one-se", row
+
+
+def test_the_flat_region_line_says_its_interval_is_one_of_validation_mAA():
+    """The flat-region line (`tune` output, report.html, frozen.yaml) read "22 of 26 trials within the optimum's
+    interval [0.804, 0.956]: Gamma 1,232-174,531, r 0.772-0.985, eta 0.166-1.24 px": beside parameter ranges, an
+    interval of what (an r? an eta?) was left unsaid. It is the 95% interval of the optimum's validation mAA(10°)."""
+    st = make_study(PLATEAU)
+    flat = sel.flat_region(st, sel.select_trial(st, "best")[0])
+    text = sel.flat_text(flat)
+    assert "6 of 7 trials with validation mAA(10°) within the optimum's 95% interval [0.700, 0.900]" in text, text
+    assert "validation mAA(10) within the optimum's 95% interval" in flat["note"], flat["note"]

@@ -191,7 +191,8 @@ def flat_region(study, optimum, objective: str = "mAA10") -> dict | None:
                         "share_of_range": round(normalise(hi, p) - normalise(lo, p), 4)}
     return {"interval": ci, "optimum_trial": optimum.number, "trials": len(inside), "of": len(cands),
             "params": params,
-            "note": f"{len(inside)} of {len(cands)} completed feasible trials lie within the optimum's 95% interval "
+            "note": f"{len(inside)} of {len(cands)} completed feasible trials have a validation mAA(10) within the "
+                    f"optimum's 95% interval "
                     f"[{ci[0]:.3f}, {ci[1]:.3f}]"}
 
 
@@ -205,7 +206,8 @@ def flat_text(flat: dict | None) -> str:
         fmt = (lambda v: f"{int(round(v)):,}") if name == "max_iters" else (lambda v: f"{v:.3g}")
         parts.append(f"{sym} {fmt(r['min'])}-{fmt(r['max'])}{(' ' + unit) if unit else ''} "
                      f"({100 * r['share_of_range']:.0f}% of its range)")
-    return (f"flat region: {flat['trials']} of {flat['of']} trials within the optimum's interval "
+    return (f"flat region: {flat['trials']} of {flat['of']} trials with validation mAA(10°) within the optimum's 95% "
+            f"interval "
             f"[{flat['interval'][0]:.3f}, {flat['interval'][1]:.3f}]" + (": " + ", ".join(parts) if parts else ""))
 
 
