@@ -102,3 +102,20 @@ def test_bad_input_is_one_line_and_exit_2(setup, capsys, tmp_path, argv, culprit
     assert code == 2
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("tune: error:") and culprit in lines[0], err
+
+
+def test_a_scene_a_study_was_tuned_on_is_named_in_a_warning(setup, capsys):
+    """`tune compare` evaluates on every scene of the data by default, the validation scenes included: a tuned study
+    was compared on the very pairs it was tuned on (favoured there), and nothing said so. Now one warning per study
+    names the scenes that are its validation scenes."""
+    studies = setup["root"] / "studies"
+    (studies / "tuned-on-entry").mkdir(parents=True, exist_ok=True)
+    (studies / "tuned-on-entry" / "frozen.yaml").write_text(yaml.safe_dump(
+        {"study": "tuned-on-entry", "trial": 3, "config": DEGENSAC,
+         "data": {"val_scenes": ["entry-P10"], "test_scenes": ["Herz-Jesus-P8"]}}))
+    code, out, err = run(capsys, setup["files"]["opencv"], "tuned-on-entry", *setup["common"])
+    assert code == 0, err
+    warn = [ln for ln in err.splitlines() if "validation scene" in ln]
+    assert len(warn) == 1 and "tuned-on-entry" in warn[0] and "entry-P10" in warn[0], err
+    code, out, err = run(capsys, setup["files"]["opencv"], "sift-degensac", *setup["common"])  # no val scenes known
+    assert code == 0 and "validation scene" not in err, err

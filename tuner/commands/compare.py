@@ -71,6 +71,12 @@ def run(args) -> int:
     data = resolve_data(args.data)
     res = compare(sources, data, args.scenes, cache_dir=args.cache, min_covisibility=args.covisibility,
                   progress=not (args.quiet or args.json), n_resamples=args.ci_resamples, seed=args.seed)
+    for spec, src in zip(args.sources, sources):  # a tuned study measured on its own validation pairs is favoured
+        tuned_on = sorted(set(res["scenes"]) & set(((src.frozen or {}).get("data") or {}).get("val_scenes") or []))
+        if tuned_on:
+            what = "is a validation scene" if len(tuned_on) == 1 else "are validation scenes"
+            print(f"warning: {', '.join(tuned_on)} {what} of {spec}: it was tuned on these pairs, so its numbers there are not held out (give --scenes "
+                  "its test scenes for a fair comparison)", file=sys.stderr)
     if args.json:
         objs = [{"a": c["a"], "b": c["b"], "overall": c["overall"], "scenes": c["scenes"],
                  "verdict_rule": res["verdict_rule"]} for c in res["comparisons"]]
