@@ -826,3 +826,21 @@ def test_the_study_table_labels_its_mAA5_as_test_and_counts_runs_in_words():
     assert "test mAA(5)" in STUDY_COLS and "mAA(5)" not in [c for c in STUDY_COLS if not c.startswith("test")]
     notes = [r[-1] for r in _study_rows({"id": 1, "measured": a["measured"]})]
     assert notes and all("x 1 run;" in n or n.endswith("x 1 run") for n in notes), notes
+
+
+def test_finding_2s_order_uses_shared_ranks_not_bare_greater_than_signs():
+    """Finding 2's 'Paper vs here' line read "test mAA(10) order here: degensac > gcransac > magsac > cv-ransac >
+    pyransac": a strict '>' between estimators the paired test cannot tell apart (degensac - gcransac p 0.40). With
+    magsac's and gcransac's errors identical, the line must show them tied (the ranking with ties), never
+    'magsac > gcransac' or 'gcransac > magsac'."""
+    from tuner.findings.report import paper_comparison
+    rng = np.random.default_rng(1)
+    base = {(sc, i): float(rng.uniform(0.1, 1.0)) for sc in ("s1", "s2") for i in range(30)}
+    level = {"degensac": 0.0, "magsac": 2.0, "gcransac": 2.0, "pyransac": 4.0, "cv-ransac": 12.0}
+    f = BY_ID[2]
+    outcomes = {r: _outcome(r, [{p: e + level[r] for p, e in base.items()}]) for r in f.studies}
+    a = A.analyse(f, outcomes, n_resamples=500)
+    txt = paper_comparison({"id": 2, "measured": a["measured"]})
+    order = txt.split("test mAA(10) order here: ")[1]
+    assert "magsac > gcransac" not in order and "gcransac > magsac" not in order, order
+    assert ("magsac ~ gcransac" in order or "gcransac ~ magsac" in order) and order.startswith("degensac > "), order

@@ -110,11 +110,21 @@ def paper_comparison(f: dict) -> str | None:
             m["paper_comparison"] = {"paper": dict(paper), "ours": g, "ours_frozen": frozen,
                                      "what": "Gamma_max at 0.5 s (paper: Table 14's optimal Gamma); ours_frozen: "
                                              "the frozen Gamma"}
-            order = sorted((r for r in st if maa(r) is not None), key=lambda r: -maa(r))
+            ranking = m.get("ranking")
+            if ranking:  # '>' only where the paired test separates them: shared ranks are '~'
+                groups: list[list[str]] = []
+                for row in ranking:
+                    if groups and row.get("shared"):
+                        groups[-1].append(row["name"])
+                    else:
+                        groups.append([row["name"]])
+                order = " > ".join(" ~ ".join(g) for g in groups) + " ('~': not significantly different)"
+            else:
+                order = " > ".join(sorted((r for r in st if maa(r) is not None), key=lambda r: -maa(r)))
             txt = ("Gamma at 0.5 s: paper " + ", ".join(f"{r} {v // 1000}k" for r, v in paper.items())
                    + "; here Gamma_max " + ", ".join(f"{r} {v:,}" if v else f"{r} -" for r, v in g.items())
                    + "; frozen Gamma " + ", ".join(f"{r} {int(v):,}" if v else f"{r} -" for r, v in frozen.items())
-                   + "; test mAA(10) order here: " + " > ".join(order))
+                   + "; test mAA(10) order here: " + order)
     elif f["id"] == 4:
         r = {k: ((s.get("params") or {}).get("ratio")) for k, s in st.items() if s.get("ok")}
         if r:
