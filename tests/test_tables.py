@@ -296,3 +296,17 @@ def test_frozen_table_rounds_the_validation_figures_as_every_table_does():
     row = next(ln for ln in frozen_table(f).splitlines() if ln.startswith("| validation mAA10"))
     assert "0.851 [0.753, 0.940]" in row and "mAA5 0.847," in row, row
     assert "match_seconds 0.0932," in row and "NM 1437," in row, row
+
+
+def test_the_test_table_says_its_seconds_are_per_pair_means():
+    """`tune test` printed columns match_seconds / ransac_seconds (0.588 for entry-P10) under a line "within the 1.0
+    s/pair test budget: yes" without saying they are per pair, nor that they are means while the budget is on the
+    median (0.437 there): a reader could not tell the unit, nor why a mean above B can be within it."""
+    from tuner.commands.study import test_table
+    sc = {"pairs": 45, "NF": 8000.0, "NM": 1394.8, "NI": 1094.8, "mAA5": 0.36, "mAA10": 0.463, "failed": 0.0,
+          "match_seconds": 0.0869, "ransac_seconds": 0.588, "ransac_seconds_median": 0.437}
+    t = {"task": "stereo", "trial": 16, "runs": [{}, {}, {}], "std": {"mAA10": 0.005},
+         "budget": {"test_seconds_per_pair": 1.0, "within_budget": True},
+         "mean": {**sc, "scenes": {"entry-P10": dict(sc)}}}
+    text = test_table(t)
+    assert "seconds per pair" in text and "mean over the pairs" in text and "median" in text, text

@@ -396,6 +396,11 @@ def test_table(t: dict) -> str:
         head += (f"; within the {b.get('test_seconds_per_pair')} s/pair test budget: "
                  f"{'yes' if b.get('within_budget') else 'no'}")
     tail = []
+    if "ransac_seconds" in cols or "match_seconds" in cols:  # the unit, and which statistic the budget reads
+        med = m.get("ransac_seconds_median")
+        tail.append("match_seconds, ransac_seconds: seconds per pair, mean over the pairs"
+                    + (f" (the budget is on the median estimator time: {med:.3g} s/pair)"
+                       if isinstance(med, (int, float)) else ""))
     if t.get("interval"):
         tail.append(f"intervals: 95%, over pairs and runs ({t['interval'].get('resamples')} resamples; "
                     "tuner.select.TEST_INTERVAL_NOTE, test.json 'interval')")
