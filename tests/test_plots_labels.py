@@ -290,3 +290,15 @@ def test_a_multiview_report_header_states_no_estimator_budget(tmp_path):
     head = page[page.index("<h1>"):page.index("</p>")]
     assert "budget B = 0.5" not in head and "Gamma_max" not in head, head
     assert "no estimator budget" in head, head
+
+
+def test_contour_legend_names_its_black_and_grey_points(tmp_path):
+    """The eta-r contour drew trials as black and grey dots (Optuna's 'Feasible Trial' / 'Infeasible Trial', hidden
+    from the legend): nothing said the grey ones are over budget, never frozen. The legend now names both."""
+    from tuner.plots import FEASIBLE, INFEASIBLE, fig_contour
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    st = _study(storage, "dots", n=12, seed=2)
+    fig = fig_contour(st)
+    dots = {tr.name: tr for tr in fig.data if tr.type == "scatter" and len(tr.x or ()) > 0}
+    assert set(dots) == {FEASIBLE, INFEASIBLE}, set(dots)
+    assert all(tr.showlegend is not False for tr in dots.values())

@@ -162,7 +162,12 @@ def fig_contour(study):
             fig.update_layout({ax: dict(title=PARAM_LABELS["threshold"], **_log_axis(etas))})
         elif name in PARAM_LABELS:
             fig.update_layout({ax: dict(title=PARAM_LABELS[name])})
-    fig.update_layout(title=f"Validation {METRIC} over inlier threshold eta and ratio test r")
+    for tr in fig.data:  # Optuna's dots, hidden from the legend: say what black and grey mean
+        if tr.type == "scatter" and tr.name in ("Feasible Trial", "Infeasible Trial"):
+            tr.name = FEASIBLE if tr.name == "Feasible Trial" else INFEASIBLE
+            tr.showlegend = bool(tr.x is not None and len(tr.x))
+    fig.update_layout(title=f"Validation {METRIC} over inlier threshold eta and ratio test r",
+                      legend=dict(orientation="h", yanchor="top", y=-0.15, xanchor="left", x=0))
     return fig
 
 
