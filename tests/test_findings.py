@@ -845,3 +845,17 @@ def test_finding_2s_order_uses_shared_ranks_not_bare_greater_than_signs():
     order = txt.split("test mAA(10) order here: ")[1]
     assert "magsac > gcransac" not in order and "gcransac > magsac" not in order, order
     assert ("magsac ~ gcransac" in order or "gcransac ~ magsac" in order) and order.startswith("degensac > "), order
+
+
+def test_finding_7s_flat_regions_are_drawn_on_a_log_eta_axis():
+    """Finding 7's figure drew eta on a linear axis: MAGSAC's region (0.57-9.7 px) squeezed the others (0.1-1.6 px)
+    into the left sixth of the plot, where their optima could not be told apart; eta is searched on a log scale,
+    and the figure now uses one."""
+    from tuner.findings.report import plot_finding
+    regions = {"sift": {"optimum": 0.106, "region": [0.106, 1.645]},
+               "magsac": {"optimum": 7.999, "region": [0.574, 9.697]}}
+    fig = plot_finding({"id": 7, "measured": {"rule": "regions", "parameter": "threshold", "regions": regions}})
+    assert fig.layout.xaxis.type == "log" and fig.layout.xaxis.title.text == "inlier threshold eta (px, log scale)"
+    fig6 = plot_finding({"id": 6, "measured": {"rule": "regions", "parameter": "ratio",
+                                               "regions": {"sift": {"optimum": 0.85, "region": [0.6, 0.99]}}}})
+    assert fig6.layout.xaxis.type != "log"

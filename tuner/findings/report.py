@@ -241,9 +241,12 @@ def plot_finding(f: dict):
                                      name=f"{role}: flat region", showlegend=False))
             fig.add_trace(go.Scatter(x=[r["optimum"]], y=[role], mode="markers", marker={"size": 10, "color": "crimson"},
                                      name=f"{role}: optimum", showlegend=False))
-        sym = {"ratio": "ratio test r", "threshold": "inlier threshold eta (px)"}.get(m["parameter"], m["parameter"])
+        sym = {"ratio": "ratio test r", "threshold": "inlier threshold eta (px, log scale)"}.get(m["parameter"],
+                                                                                               m["parameter"])
         fig.update_layout(title=f"Finding {f['id']}: flat regions of the optimal {m['parameter']} (dot: optimum)",
                           xaxis_title=sym, yaxis_title="study", height=300 + 20 * len(regs))
+        if m["parameter"] == "threshold":  # searched on a log scale: 0.1 px and 10 px regions side by side
+            fig.update_xaxes(type="log")
         return fig
     st = [(role, s) for role, s in (m.get("studies") or {}).items() if s.get("ok") and s.get("mAA10") is not None]
     if not st:
