@@ -310,3 +310,10 @@ def test_the_test_table_says_its_seconds_are_per_pair_means():
          "mean": {**sc, "scenes": {"entry-P10": dict(sc)}}}
     text = test_table(t)
     assert "seconds per pair" in text and "mean over the pairs" in text and "median" in text, text
+
+
+def test_a_ratio_just_below_one_is_not_printed_as_no_ratio_test():
+    """r is printed to 2 decimals (as in the paper's tables), so the quick findings' DoG+MKD optimum r = 0.9964 read
+    "1.00" in `tune table`: r = 1 is the protocol's "no ratio test", which that study did not use."""
+    assert format_value("r", 0.9964) == "0.996" and format_value("r_multiview", 0.998) == "0.998"
+    assert format_value("r", 1.0) == "1.00" and format_value("r", 0.8512) == "0.85"

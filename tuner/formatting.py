@@ -6,8 +6,8 @@ paper expects.
     print(render(with_mean_row(rows, cols), "latex", cols))
 
 Precision is chosen by column name (:func:`column_kind`): counts (NF, NM, NI, NL, features, Gamma, pairs,
-bags, rank, ...) as integers; mAA to 3 decimals; the ratio test r to 2 decimals; the inlier threshold eta,
-seconds and ATE to 3 significant digits; SR / RC (percentages) to 1 decimal; TL to 2 decimals. Other
+bags, rank, ...) as integers; mAA to 3 decimals; the ratio test r to 2 decimals (more when an r < 1 would
+read 1.00, the protocol's "no ratio test"); the inlier threshold eta, seconds and ATE to 3 significant digits; SR / RC (percentages) to 1 decimal; TL to 2 decimals. Other
 numbers keep the ``digits`` of :func:`render`.
 
 LaTeX (``fmt="latex"``) is ready to paste: a ``table`` float with ``\\caption`` (when the columns carry
@@ -88,8 +88,11 @@ def format_value(column: str, v, digits: int = 4) -> str:
             return str(int(round(v)))
         if kind == "maa":
             return f"{v:.3f}"
-        if kind == "ratio":
-            return f"{v:.2f}"
+        if kind == "ratio":  # 2 decimals as in the paper, more where they would turn r < 1 into 1.00 (no test)
+            d = 2
+            while v < 1.0 and float(f"{v:.{d}f}") >= 1.0 and d < 6:
+                d += 1
+            return f"{v:.{d}f}"
         if kind == "pct":
             return f"{v:.1f}"
         if kind == "tl":
