@@ -859,3 +859,17 @@ def test_finding_7s_flat_regions_are_drawn_on_a_log_eta_axis():
     fig6 = plot_finding({"id": 6, "measured": {"rule": "regions", "parameter": "ratio",
                                                "regions": {"sift": {"optimum": 0.85, "region": [0.6, 0.99]}}}})
     assert fig6.layout.xaxis.type != "log"
+
+
+def test_paper_vs_here_says_which_set_each_number_is_from():
+    """'Paper vs here' set the paper's -29.3% (finding 1) and +10-15% (finding 3), both measured on the paper's
+    validation set (Sec. 5.1), beside ours, measured on the test scenes, without saying so."""
+    from tuner.findings.report import paper_comparison
+    rng = np.random.default_rng(0)
+    good = {(sc, i): float(rng.uniform(0.1, 2.0)) for sc in ("s1", "s2") for i in range(12)}
+    worse = {p: e + 3.0 for p, e in good.items()}
+    for fid, roles in ((1, ("defaults", "tuned")), (3, ("gamma1000", "tuned"))):
+        a = A.analyse(BY_ID[fid], {roles[0]: _outcome("a", [worse]), roles[1]: _outcome("b", [good])},
+                      n_resamples=200)
+        txt = paper_comparison({"id": fid, "measured": a["measured"]})
+        assert "paper (validation)" in txt and "here (test)" in txt, txt

@@ -92,13 +92,14 @@ def paper_comparison(f: dict) -> str | None:
         ours = (maa("defaults") - maa("tuned")) / maa("tuned")
         paper = pn["relative_change_of_defaults"]
         m["paper_comparison"] = {"paper": paper, "ours": ours, "what": "relative mAA(10) change of the defaults vs tuned"}
-        txt = f"relative mAA(10) of the defaults vs tuned: paper {100 * paper:+.1f}%, here {100 * ours:+.1f}%"
+        txt = (f"relative mAA(10) of the defaults vs tuned: paper (validation) {100 * paper:+.1f}%, "
+               f"here (test) {100 * ours:+.1f}%")
     elif f["id"] == 3 and maa("tuned") is not None and maa("gamma1000"):
         ours = (maa("tuned") - maa("gamma1000")) / maa("gamma1000")
         lo, hi = pn["relative_gain"]
         m["paper_comparison"] = {"paper": [lo, hi], "ours": ours, "what": "relative gain of lifting Gamma = 1000"}
-        txt = (f"relative gain of lifting Gamma = 1000: paper +{100 * lo:.0f}% to +{100 * hi:.0f}%, "
-               f"here {100 * ours:+.1f}%")
+        txt = (f"relative gain of lifting Gamma = 1000: paper (validation) +{100 * lo:.0f}% to +{100 * hi:.0f}%, "
+               f"here (test) {100 * ours:+.1f}%")
     elif f["id"] == 2:
         g = {r: s.get("gamma_max") for r, s in st.items() if s.get("ok")}
         if g:
