@@ -873,3 +873,22 @@ def test_paper_vs_here_says_which_set_each_number_is_from():
                       n_resamples=200)
         txt = paper_comparison({"id": fid, "measured": a["measured"]})
         assert "paper (validation)" in txt and "here (test)" in txt, txt
+
+
+def test_a_p_value_below_a_thousandth_is_not_printed_as_zero():
+    """The sign-flip p-value is never 0 (p = (1 + hits) / (1 + resamples): 1 / 2001 at least), but printed to 3
+    decimals it read "p = 0.000" (summary table, Measured line, printed summary) for a clear difference; the README
+    writes such a p as "< 0.001", and so do the findings outputs now."""
+    from tuner.findings.report import _difference_text, summary_lines
+    pairs = [("s1", i) for i in range(40)] + [("s2", i) for i in range(40)]
+    good = {p: 0.5 for p in pairs}
+    bad = {p: 5.5 for p in pairs}  # score 0.5 (within 6..10 degrees) against 1.0
+    f = BY_ID[1]
+    a = A.analyse(f, {"defaults": _outcome("d", [bad]), "tuned": _outcome("t", [good])}, n_resamples=2000)
+    assert a["p_value"] == pytest.approx(1 / 2001)  # every sign pattern but the observed one gives a smaller |sum|
+    res = {"id": 1, "claim": f.claim, "verdict": a["verdict"], "difference": a["difference"], "ci": a["ci"],
+           "p_value": a["p_value"], "measured": {**a["measured"], "rule": f.rule}, "studies": []}
+    line = summary_lines([res])[1]
+    text = _difference_text(res)
+    for s in (line, text):
+        assert "p 0.000" not in s and "p = 0.000" not in s and "< 0.001" in s, s

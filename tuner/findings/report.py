@@ -45,6 +45,19 @@ def _num(v, d=4):
     return str(v)
 
 
+def _p(v) -> str:
+    """A p-value to 3 decimals; below 0.001 "< 0.001" (the sign-flip p is never 0: at least 1 / (1 + resamples))."""
+    if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v < 0.001:
+        return "< 0.001"
+    return _num(v, 3)
+
+
+def _p_is(v) -> str:
+    """"p = 0.005" or "p < 0.001"."""
+    t = _p(v)
+    return f"p {t}" if t.startswith("<") else f"p = {t}"
+
+
 def _ci(ci, d=4):
     return "-" if not ci else f"[{_num(float(ci[0]), d)}, {_num(float(ci[1]), d)}]"
 
@@ -192,7 +205,7 @@ def summary_lines(findings: list[dict]) -> list[str]:
         d = f"{f['difference']:+.4f}" if num else ""
         if num and f.get("ci"):
             d += f" [{f['ci'][0]:+.4f}, {f['ci'][1]:+.4f}]"
-        p = f"p {f['p_value']:.3f}" if num and isinstance(f.get("p_value"), (int, float)) else ""
+        p = f"p {_p(f['p_value'])}" if num and isinstance(f.get("p_value"), (int, float)) else ""
         why = (f.get("measured") or {}).get("reason") if not num else None
         title = BY_ID[f["id"]].title if f.get("id") in BY_ID else ""
         tail = f"{_compared(f)} | {title}" if num else (f"{why} | {title}" if why else title)
@@ -216,13 +229,13 @@ def _difference_text(f: dict) -> str:
             parts.append(f"{g['group']}: {g['status']}" + (f" (missing: {', '.join(g['missing'])})" if g["missing"] else ""))
         return "; ".join(parts)
     rel = m.get("relative_difference")
-    txt = (f"{m.get('key')}: difference {_num(f['difference'])} mAA(10), 95% CI {_ci(f['ci'])}, p = "
-           f"{_num(f['p_value'], 3)}")
+    txt = (f"{m.get('key')}: difference {_num(f['difference'])} mAA(10), 95% CI {_ci(f['ci'])}, "
+           f"{_p_is(f['p_value'])}")
     if rel is not None:
         txt += f" ({100 * rel:+.1f}% relative to {m.get('relative_to')})"
     rels = [r for r in m.get("relations") or [] if not m.get("key", "").startswith(f"{r['b']} vs {r['a']}")]
     for r in rels:
-        txt += (f"; {r['b']} vs {r['a']}: {_num(r['difference'])} {_ci(r['ci'])}, p = {_num(r['p_value'], 3)}"
+        txt += (f"; {r['b']} vs {r['a']}: {_num(r['difference'])} {_ci(r['ci'])}, {_p_is(r['p_value'])}"
                 + (f" -> {r['status']}" if r.get("status") else ""))
     return txt
 
@@ -349,7 +362,7 @@ def write_report(out: dict, fs, seconds: float = 0.0) -> Path:
     if total is not None:  # the header only: findings.json keeps its two keys
         head.append(_compute_line(total))
     verdict_rows = [[f["id"], BY_ID[f["id"]].title, f["verdict"], _compared(f), _num(f["difference"]), _ci(f["ci"]),
-                     _num(f["p_value"], 3)] for f in out["findings"]]
+                     _p(f["p_value"])] for f in out["findings"]]
     vcols = ["#", "finding", "verdict", "difference of", "difference", "95% CI", "p"]
     md = ["# imtune: the paper's findings on this data", "", *[f"- {h}" for h in head], "",
           _md_table(vcols, verdict_rows), ""]
