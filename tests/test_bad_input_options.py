@@ -743,3 +743,22 @@ def test_evaluate_estimator_options_of_a_multiview_evaluation_are_said(tmp_path,
     assert rc == 0, err
     assert err.strip() == ("warning: --ransac, --threshold: the multiview task does not use them (COLMAP "
                            "reconstructs each bag whole, with its own RANSAC); ignored"), err
+
+
+def test_a_resume_with_another_sampler_says_so_and_each_trial_records_its_sampler(tiny, tmp_path, capsys):
+    """Resuming a study with another --sampler was allowed (it changes no measurement) but unsaid: the study's
+    'sampler' attribute kept the creator's (tpe) while this worker drew its trials at random. Now one warning,
+    and every trial records the sampler that drew it."""
+    import optuna
+    st = tmp_path / "st"
+    common = ["run", "--data", tiny, *FAST, "--studies-dir", st, "--fix", "max_iters=500", "--no-test",
+              "--study", "two-samplers"]
+    rc, _, err = _cli([*common, "--n-trials", "1"], capsys)
+    assert rc == 0 and "sampler" not in err, err
+    rc, _, err = _cli([*common, "--n-trials", "2", "--sampler", "random"], capsys)
+    assert rc == 0, err
+    said = [ln for ln in err.splitlines() if "sampler" in ln]
+    assert len(said) == 1 and "created with sampler tpe" in said[0] and "samples with random" in said[0], err
+    study = optuna.load_study(study_name="two-samplers", storage=f"sqlite:///{st / 'optuna.db'}")
+    assert study.user_attrs["sampler"] == "tpe"
+    assert [t.user_attrs.get("sampler") for t in study.trials] == ["tpe", "random"]

@@ -157,6 +157,7 @@ class Objective:
         self.budget = float(budget) if budget is not None else None
         self.prune_over_budget = prune_over_budget
         self.trials_run: list[int] = []
+        self.sampler: str | None = None  # the --sampler of this worker (set by tuner.study.optimize), per trial
 
     def config(self, params: dict) -> PipelineConfig:
         """The pipeline configuration of one trial: the base with the fixed, then the searched values."""
@@ -177,6 +178,8 @@ class Objective:
         params = self.space.suggest(trial)
         conf = self.config(params)
         self.trials_run.append(trial.number)
+        if self.sampler:  # a resume or another worker may sample otherwise than the study's creator
+            trial.set_user_attr("sampler", self.sampler)
 
         def on_step(step: int, n_steps: int, summary: dict) -> None:
             trial.report(float(summary[task.objective]), step)

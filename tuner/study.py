@@ -570,6 +570,10 @@ def setup_study(s: TuneSettings) -> StudyContext:
     created = not stored.get("imtune")
     if not created:
         check_compatible(name, stored, mine)
+        if stored.get("sampler") and stored["sampler"] != s.sampler:  # allowed (a sampler changes no measurement),
+            # but the study's attribute keeps the creator's: each trial records its own (Objective.sampler)
+            s.warn(f"study {name!r} was created with sampler {stored['sampler']}; this worker samples with "
+                   f"{s.sampler} (each trial's 'sampler' attribute says which drew it)")
     test_names = preflight(s, task, stored)  # fail fast, before any calibration: nothing after tuning may stop it
     held_in = [n for n in test_names if n in vs.scene_names]
     if held_in:
@@ -669,6 +673,7 @@ def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
     pruner = make_pruner("none" if getattr(ctx.objective, "pareto", False) else s.pruner)
     study = optuna.load_study(study_name=ctx.name, storage=ctx.storage, sampler=sampler, pruner=pruner)
     ctx.study = study
+    ctx.objective.sampler = s.sampler  # recorded in each trial: a resume may use another sampler than the creator
 
     def finished(st) -> int:
         return len(st.get_trials(deepcopy=False, states=(TrialState.COMPLETE, TrialState.PRUNED)))
