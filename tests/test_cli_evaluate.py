@@ -100,3 +100,32 @@ def test_scene_without_ground_truth_says_so(sacre_coeur, module_cache, tmp_path)
              env={"IMTUNE_CACHE": module_cache, "IMTUNE_GT": str(tmp_path / "no-gt")}, timeout=300)
     assert r.returncode != 0 and "Traceback" not in r.stderr
     assert "no ground truth" in r.stderr and "build-gt" in r.stderr
+
+
+def test_evaluate_config_of_a_study_uses_the_studys_covisibility(tmp_path):
+    """`tune evaluate --config STUDY` of a study tuned on pairs with co-visibility >= 0.3 evaluated every pair
+    >= 0.1 (the command's default): more, harder pairs than the study's, unsaid. Now the study's floor (as
+    tune viz), said in the source line; a typed --covisibility still wins. Real data: 4 fountain-P11 images
+    with their built ground truth (5 pairs >= 0.1, 3 >= 0.3)."""
+    import yaml
+
+    from tests.conftest import copy_strecha_subset
+    data = copy_strecha_subset(tmp_path / "data", ["0000.jpg", "0004.jpg", "0007.jpg", "0010.jpg"])
+    env = {"IMTUNE_CACHE": str(tmp_path / "cache")}
+    st = tmp_path / "st"
+    r = tune("data", "build-gt", "--data", data, "--num-features", "1024", "--max-image-size", "1024", "--quiet",
+             env=env)
+    assert r.returncode == 0, r.stderr
+    r = tune("run", "--data", data, "--num-features", "256", "--jobs", "1", "--quiet", "--covisibility", "0.3",
+             "--fix", "max_iters=500", "--n-trials", "1", "--no-test", "--study", "cov", "--studies-dir", st, env=env)
+    assert r.returncode == 0, r.stderr
+    tuned_on = yaml.safe_load((st / "cov" / "frozen.yaml").read_text())["data"]["pairs"]
+    common = ["evaluate", "--config", "cov", "--studies-dir", st, "--data", data, "--jobs", "1", "--quiet"]
+    r = tune(*common, "--json", env=env)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["stereo"]["pairs"] == tuned_on == 3 and out["config_source"]["min_covisibility"] == 0.3
+    r = tune(*common, env=env)
+    assert r.returncode == 0 and "pairs with co-visibility >= 0.3 (the study's)" in r.stdout, r.stdout + r.stderr
+    r = tune(*common, "--json", "--covisibility", "0.1", env=env)
+    assert r.returncode == 0 and json.loads(r.stdout)["stereo"]["pairs"] == 5, r.stderr

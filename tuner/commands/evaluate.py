@@ -134,8 +134,16 @@ def config_of(args):
         except ImtuneError as e:
             raise ImtuneError(f"--config {args.config}: task: {e}") from None
         args.task = src.frozen["task"]
+    pairs_note = ""
+    if src.frozen and "covisibility" not in explicit_options(args):
+        # the study's pairs: its co-visibility floor, not this command's default 0.1 (a study tuned at 0.3 was
+        # evaluated on more, harder pairs than it reports, unsaid); as tune viz does
+        cov = (src.frozen.get("data") or {}).get("min_covisibility")  # checked by tuner.freeze.FROZEN_SHAPE
+        if cov is not None:
+            args.covisibility = float(cov)
+            pairs_note = f"; pairs with co-visibility >= {float(cov):g} (the study's)"
     return conf, (f"config {args.config} ({src.label})"
-                  + (f"; overridden on the command line: {', '.join(used)}" if used else ""))
+                  + (f"; overridden on the command line: {', '.join(used)}" if used else "") + pairs_note)
 
 
 def _warn_estimator_options(args, tasks: list[str]) -> None:
@@ -167,7 +175,8 @@ def run(args) -> int:
                           gt_dir=args.gt_dir, with_bags=args.bag_records, keep_models=args.keep_models,
                           intermediate=args.intermediate, ci_resamples=ci_resamples(args), jobs=args.jobs)
     if source:
-        out["config_source"] = {"config": args.config, "overridden": sorted(explicit_options(args) & set(OPTION_FIELDS))}
+        out["config_source"] = {"config": args.config, "overridden": sorted(explicit_options(args) & set(OPTION_FIELDS)),
+                                "min_covisibility": args.covisibility}
     for section in out.values():  # the tasks' notes (bag sizes above a scene's images): on stderr, kept in the JSON
         for note in (section.get("notes") or []) if isinstance(section, dict) else []:
             print(f"warning: {note}", file=sys.stderr, flush=True)
