@@ -892,3 +892,23 @@ def test_a_p_value_below_a_thousandth_is_not_printed_as_zero():
     text = _difference_text(res)
     for s in (line, text):
         assert "p 0.000" not in s and "p = 0.000" not in s and "< 0.001" in s, s
+
+
+def test_finding_12_picks_its_learned_feature_on_validation_not_on_the_test():
+    """Finding 12 took the learned feature with the highest *test* mAA(10), then tested that pick on the same test
+    pairs (a maximum of noisy estimates, biased towards the learned side). Synthetic records with known truth: X
+    has the higher test value but the lower validation value; Y (best on validation) must be the one compared."""
+    rng = np.random.default_rng(3)
+    pairs = [("s1", i) for i in range(40)]
+    base = {p: float(rng.uniform(0.5, 3.0)) for p in pairs}
+    better = {p: max(0.1, e - 0.4) for p, e in base.items()}
+    f = BY_ID[12]
+    learned = [b for _, b in f.relations]
+    x, y = learned[0], learned[1]
+    outs = {"rootsift": _outcome("rootsift", [base]), x: _outcome(x, [better]), y: _outcome(y, [base])}
+    outs[x].frozen["value"], outs[y].frozen["value"] = 0.70, 0.80  # validation: y ahead; test: x ahead
+    for other in learned[2:]:
+        outs[other] = StudyOutcome(spec=f.studies[other], name=other, reason=f"{other}: not run here")
+    r = A.analyse(f, outs, n_resamples=300)
+    assert r["measured"]["key"].startswith(f"{y} (the best on validation of"), r["measured"]["key"]
+    assert r["difference"] == 0.0  # y's errors are rootsift's: the test difference is exactly 0

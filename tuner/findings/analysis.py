@@ -23,6 +23,8 @@ Rules (the report states the one each finding uses):
 """
 from __future__ import annotations
 
+import math
+
 from pipeline.metrics.uncertainty import DEFAULT_LEVEL, combine_runs_interval, paired_bootstrap, paired_direction
 from tuner.findings.definitions import SMALL_GAIN, Finding
 
@@ -127,6 +129,14 @@ def study_figures(o, n_resamples: int) -> dict:
     return d
 
 
+def _validation_value(o) -> float:
+    """The validation mAA(10) of a study's frozen trial (the best feasible trial's when no frozen value)."""
+    v = (o.frozen or {}).get("value")
+    if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
+        return float(v)
+    return float(o.best[1]) if o.best else float("-inf")
+
+
 def relation(outcomes: dict, a: str, b: str, n_resamples: int, seed: int = 0) -> dict | None:
     oa, ob = outcomes.get(a), outcomes.get(b)
     if not (oa and ob and oa.ok and ob.ok and oa.test_runs and ob.test_runs):
@@ -148,13 +158,16 @@ def analyse(f: Finding, outcomes: dict, n_resamples: int = 2000, seed: int = 0) 
     out = {"measured": measured, "difference": None, "ci": None, "p_value": None}
     if f.rule in ("better", "small_gain"):
         rels = f.relations
-        if f.pick_best_b:  # the best available B (highest test mAA(10)) against the common A
+        if f.pick_best_b:  # the best available B, chosen on validation, against the common A
             cands = [(r, b) for r in rels if (b := relation(outcomes, *r, n_resamples, seed)) is not None]
             measured["relations"] = [c for _, c in cands]
             if not cands:
                 return {**out, "verdict": NOT_RUN, "measured": {**measured, "reason": _reason(missing)}}
-            key = max(cands, key=lambda c: c[1]["mAA10_b"])[1]
-            measured["key"] = f"{key['b']} (the best of {', '.join(r[1] for r, _ in cands)}) vs {key['a']}"
+            # chosen by its frozen validation mAA(10), as the protocol chooses settings: the highest *test* value,
+            # then tested on those same test pairs, was a maximum of noisy estimates (biased towards B)
+            key = max(cands, key=lambda c: _validation_value(outcomes[c[0][1]]))[1]
+            measured["key"] = (f"{key['b']} (the best on validation of {', '.join(r[1] for r, _ in cands)}) "
+                               f"vs {key['a']}")
             st = small_gain(key["ci"])
         else:
             computed = [(r, relation(outcomes, *r, n_resamples, seed)) for r in rels]
