@@ -912,3 +912,16 @@ def test_finding_12_picks_its_learned_feature_on_validation_not_on_the_test():
     r = A.analyse(f, outs, n_resamples=300)
     assert r["measured"]["key"].startswith(f"{y} (the best on validation of"), r["measured"]["key"]
     assert r["difference"] == 0.0  # y's errors are rootsift's: the test difference is exactly 0
+
+
+def test_the_report_header_says_how_p_is_computed_and_that_studies_share_their_candidates(subset, tmp_path):
+    """The header called p 'two-sided paired sign-flip test' (a Monte Carlo one, whose p cannot go below
+    1 / (1 + resamples)) and never said that every study is seeded alike, so that studies of one space draw the
+    same candidates (in the quick run on the default data, 'both', 'uni' and 'either' drew the same 10)."""
+    from tuner.findings.report import settings_lines
+    lines = settings_lines(FindingsSettings(data_root=subset, studies_dir=tmp_path / "studies", quick=True, seed=5,
+                                            n_resamples=999))
+    p_line = next(ln for ln in lines if ln.startswith("intervals: "))
+    assert "Monte Carlo, 999 sign patterns: p >= 0.001" in p_line
+    seeded = next(ln for ln in lines if ln.startswith("sampling: "))
+    assert "--seed 5" in seeded and "same first (random start-up) candidates" in seeded

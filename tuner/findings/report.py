@@ -84,7 +84,12 @@ def settings_lines(fs) -> list[str]:
         f"(from {split_source})",
         f"storage: {storage_label(fs.storage, fs.studies_dir)}; studies dir: {fs.studies_dir}",
         f"intervals: 95%, stratified bootstrap over test pairs ({fs.n_resamples} resamples, seed {fs.seed}); "
-        "paired differences on the same pairs; p: two-sided paired sign-flip test",
+        f"paired differences on the same pairs; p: two-sided paired sign-flip test (Monte Carlo, {fs.n_resamples} "
+        f"sign patterns: p >= {1 / (1 + fs.n_resamples):.1g})",
+        f"sampling: every study's sampler is seeded from --seed {fs.seed}, so studies searching the same space draw "
+        "the same first (random start-up) candidates: common random numbers, which sharpen their paired "
+        "comparisons; with few trials (--quick) they can share every candidate, and findings 6 and 7 then compare "
+        "optima chosen among the same candidates",
         "paper references: section / figure / table numbers, quotes and numbers checked against the text of "
         "arXiv:2003.01587v5; values only readable off a plot are marked 'not verified'",
     ]
