@@ -290,6 +290,7 @@ def test_a_multiview_report_header_states_no_estimator_budget(tmp_path):
     head = page[page.index("<h1>"):page.index("</p>")]
     assert "budget B = 0.5" not in head and "Gamma_max" not in head, head
     assert "no estimator budget" in head, head
+    assert "trials: 3 complete, 0 pruned" in head and "over budget" not in head, head  # was "(0 over budget)"
 
 
 def test_contour_legend_names_its_black_and_grey_points(tmp_path):

@@ -468,14 +468,16 @@ def write_report(storage, study_name: str, out: Path | str, studies_dir: Path | 
     b = attrs.get("budget") or {}
     from pipeline.tasks import TASKS
     task = attrs.get("task", "stereo")
+    over = f" ({counts['infeasible']} over budget)"
     if task in TASKS and not TASKS.get(task).timed:  # COLMAP's RANSAC: no budget applies, none to state
         budget = f"{task} study: no estimator budget (no estimator of imtune's is timed)"
+        over = ""
     else:
         budget = (f"budget B = {b.get('seconds_per_pair')} s per pair (median estimator time), "
                   + gamma_max_text(b.get("gamma_max"), (attrs.get("search_space_resolved") or {}).get("fixed"),
                                    unit=" iterations"))
     head = [f"<h1>imtune study {html.escape(study_name)}</h1>",
-            "<p>" + html.escape(f"trials: {counts['complete']} complete ({counts['infeasible']} over budget), "
+            "<p>" + html.escape(f"trials: {counts['complete']} complete{over}, "
                                 f"{counts['pruned']} pruned, {counts['fail']} failed; {budget}; "
                                 f"data {attrs.get('data_fingerprint')}; code {attrs.get('code_version')}") + "</p>"]
     if best is not None:

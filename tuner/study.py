@@ -744,7 +744,8 @@ def tune(s: TuneSettings) -> dict:
               "(Optuna prunes single-objective studies only); frozen: the best trial within B on the front")
     run = optimize(ctx, s)
     out = {"study": ctx.name, "storage": storage_label(s.storage, s.studies_dir), "worker": run,
-           "counts": trial_counts(ctx.study), "frozen": None, "frozen_path": None, "test": None, "warnings": []}
+           "counts": trial_counts(ctx.study), "timed": bool(getattr(ctx.objective.task, "timed", True)),
+           "frozen": None, "frozen_path": None, "test": None, "warnings": []}
     if best_feasible(ctx.study) is None:
         raise ImtuneError(f"study {ctx.name!r}: no feasible completed trial yet (all over the "
                           f"{ctx.attrs['budget']['seconds_per_pair']} s budget, pruned or failed); run more trials")

@@ -307,7 +307,8 @@ def run(args) -> int:
 def print_outcome(out: dict) -> None:
     c = out["counts"]
     print(f"study {out['study']}  ({out['storage']})")
-    print(f"trials: {c['complete']} complete ({c['infeasible']} over budget), {c['pruned']} pruned, "
+    over = f" ({c['infeasible']} over budget)" if out.get("timed", True) else ""  # a multiview study has no budget
+    print(f"trials: {c['complete']} complete{over}, {c['pruned']} pruned, "
           f"{c['fail']} failed; this worker ran {len(out['worker']['trials_run'])}")
     f = out.get("frozen")
     if f:
