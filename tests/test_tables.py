@@ -317,3 +317,17 @@ def test_a_ratio_just_below_one_is_not_printed_as_no_ratio_test():
     "1.00" in `tune table`: r = 1 is the protocol's "no ratio test", which that study did not use."""
     assert format_value("r", 0.9964) == "0.996" and format_value("r_multiview", 0.998) == "0.998"
     assert format_value("r", 1.0) == "1.00" and format_value("r", 0.8512) == "0.85"
+
+
+def test_a_one_run_test_says_it_has_no_spread_not_std_0():
+    """`tune test --runs 1` printed "(1 runs, mean; mAA10 std 0)": one run has no spread over runs, and "std 0" read
+    as a perfectly stable result. Three runs keep their std."""
+    from tuner.commands.study import test_table
+    sc = {"pairs": 45, "NF": 8000.0, "NM": 1394.8, "NI": 1094.8, "mAA5": 0.36, "mAA10": 0.463, "failed": 0.0}
+    t = {"task": "stereo", "trial": 16, "runs": [{}], "std": {"mAA10": 0.0},
+         "budget": {"test_seconds_per_pair": 1.0, "within_budget": True},
+         "mean": {**sc, "scenes": {"entry-P10": dict(sc)}}}
+    head = test_table(t).splitlines()[0]
+    assert "(1 run, mean; one run: no spread over runs" in head and "std" not in head, head
+    t = {**t, "runs": [{}, {}, {}], "std": {"mAA10": 0.0107}}
+    assert "(3 runs, mean; mAA10 std 0.0107" in test_table(t).splitlines()[0]
