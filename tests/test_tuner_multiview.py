@@ -180,3 +180,22 @@ def test_using_colmap_keeps_the_sigterm_handler(how, mv_study, tmp_path):
             p.kill()
             p.communicate()
     assert p.returncode == 7 and "Aborted" not in err, (p.returncode, err[-2000:])
+
+
+def test_evaluate_config_of_a_multiview_study_with_task_stereo_says_what_was_never_tuned(mv_study, capsys):
+    """`tune evaluate --config STUDY --task stereo` of a multiview study ran its r with an eta and Gamma never
+    tuned, unsaid (tune test / tune compare warn about the same): one warning line naming what runs untuned."""
+    from tuner.cli import main
+    root, studies = mv_study
+    capsys.readouterr()
+    rc = main(["evaluate", "--config", STUDY, "--studies-dir", str(studies), "--task", "stereo", "--data", str(root),
+               "--scenes", "fountain-P11", "--jobs", "1", "--quiet", "--json"])
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    said = [ln for ln in err.splitlines() if ln.startswith("warning: --config")]
+    assert len(said) == 1 and "is a multiview study" in said[0] and "not for the stereo evaluation" in said[0], err
+    assert "never tuned" in said[0] and "px" in said[0], err
+    capsys.readouterr()
+    assert main(["evaluate", "--config", STUDY, "--studies-dir", str(studies), "--data", str(root), "--scenes",
+                 "fountain-P11", "--workers", "1", "--quiet", "--json"]) == 0  # its own task: nothing to say
+    assert "warning: --config" not in capsys.readouterr().err

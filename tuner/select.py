@@ -233,7 +233,8 @@ def reference_spec(value: str | None) -> str:
     return "none" if str(value).strip().lower() == "none" else str(value)
 
 
-def reference_task_note(reference, task_name: str) -> str | None:
+def reference_task_note(reference, task_name: str, flag: str = "--reference",
+                        use: str = "test it is compared on") -> str | None:
     """The warning for ``--reference`` naming a study (or its frozen.yaml) of another task than the one tested: its
     settings were tuned for that task, and the parameters this task uses that it never tuned run as they are (a
     multiview study's eta 0.5 px and Gamma 1000 on stereo pairs). None otherwise."""
@@ -247,8 +248,8 @@ def reference_task_note(reference, task_name: str) -> str | None:
                for p in searchable(task_name) if p not in searchable(other)]
     name = reference.study or getattr(reference, "path", None) or "the reference"
     tail = f"; its {', '.join(untuned)} were never tuned and run as they are" if untuned else ""
-    return (f"--reference {name} is a {other} study: it tuned {', '.join(tuned) or 'nothing'} for the {other} task, "
-            f"not for the {task_name} test it is compared on{tail}")
+    return (f"{flag} {name} is a {other} study: it tuned {', '.join(tuned) or 'nothing'} for the {other} task, "
+            f"not for the {task_name} {use}{tail}")
 
 
 def reference_config(frozen: dict, spec, task=None):

@@ -127,6 +127,13 @@ def config_of(args):
     from tuner.sources import resolve_source, studies_dir
     src = resolve_source(args.config, studies_dir(getattr(args, "studies_dir", None)))
     conf, used = config_over(src.conf, args, where=f"--config {args.config}")
+    if src.frozen and "task" in explicit_options(args):  # --task over a study of another task: said, as tune test
+        from pipeline.tasks import task_list
+        from tuner.select import reference_task_note
+        for t in task_list(args.task):
+            note = reference_task_note(src, t, flag="--config", use="evaluation")
+            if note:
+                print(f"warning: {note}", file=sys.stderr, flush=True)
     if src.frozen and src.frozen.get("task") and "task" not in explicit_options(args):
         from pipeline.tasks import TASKS
         try:  # the file's task: an unknown one was "unknown task 'foo'" with no word of where it came from
