@@ -258,3 +258,21 @@ def test_ground_truth_from_poses_of_two_images_is_refused_not_written_empty(tmp_
     rc = main(["evaluate", "--data", str(data), "--gt-dir", str(gt_dir), "--num-features", "256", "--jobs", "1",
                "--cache", str(tmp_path / "cache"), "--quiet", "--json"])
     assert rc == 0 and json.loads(capsys.readouterr().out)["stereo"]["pairs"] == 1
+
+
+def test_sfm_ground_truth_on_a_posed_scene_says_it_replaces_the_scenes_poses(tmp_path, capsys):
+    """`tune data build-gt --method sfm` on Strecha (laser-scan poses and K) built an SfM reconstruction whose poses
+    every later command then evaluated against, in place of the scene's own, unsaid. One warning, before the
+    build; --method auto says nothing."""
+    from tests.conftest import copy_strecha_subset
+    from tuner.cli import main
+    data = copy_strecha_subset(tmp_path / "data", ["0003.jpg", "0004.jpg", "0005.jpg", "0006.jpg"])
+    common = ["data", "build-gt", "--data", str(data), "--quiet", "--num-features", "1024", "--max-image-size", "1024"]
+    capsys.readouterr()
+    rc = main([*common, "--gt-dir", str(tmp_path / "gt-sfm"), "--method", "sfm"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 0 and len(err) == 1, err
+    assert err[0].startswith("warning: --method sfm on fountain-P11, whose images have known poses and K"), err
+    assert "in place of them" in err[0] and "--method auto keeps them" in err[0]
+    rc = main([*common, "--gt-dir", str(tmp_path / "gt-auto")])
+    assert rc == 0 and capsys.readouterr().err.strip() == ""

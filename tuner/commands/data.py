@@ -143,6 +143,12 @@ def run_build_gt(args) -> int:
                   "known poses and K (--method auto triangulates with them); --method sfm reconstructs with it",
                   file=sys.stderr, flush=True)
     from pipeline.data.ground_truth import check_poses_scene, choose_method
+    if args.method == "sfm":  # a scene's own poses (Strecha's laser scans) are replaced in every later command
+        posed = [sc.name for sc in scenes if choose_method(sc, "auto") == "poses"]
+        if posed:
+            print(f"warning: --method sfm on {', '.join(posed)}, whose images have known poses and K: every later "
+                  "command evaluates against the SfM reconstruction's poses in place of them (--method auto keeps "
+                  "them; rebuild with it and --force to go back)", file=sys.stderr, flush=True)
     for sc in scenes:  # before any scene is built (a build takes minutes)
         if choose_method(sc, args.method) == "poses":
             check_poses_scene(sc)
