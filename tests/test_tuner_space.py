@@ -319,3 +319,15 @@ def test_cli_dashboard_bad_storage(tmp_path):
 
 def test_spaces_dir_is_packaged():
     assert SPACES_DIR.is_dir() and (SPACES_DIR / "__init__.py").is_file()
+
+
+def test_imtunes_own_space_is_named_by_its_place_in_the_project_not_an_absolute_path(tmp_path):
+    """The default space's label is stored with each study (search_space_source) and named in its warnings: it was
+    the absolute path of the checkout that created the study (a findings rerun elsewhere read
+    '/work/ci/x/search_spaces/degensac.yaml'). A --space file keeps the path it was given."""
+    from tuner.space import load_space
+    assert load_space(feature="sift", estimator="degensac").source == "search_spaces/degensac.yaml"
+    assert load_space(feature="sift", estimator="magsac").source == "search_spaces/magsac.yaml"
+    f = tmp_path / "mine.yaml"
+    f.write_text("params:\n  ratio: {low: 0.7, high: 0.9}\n")
+    assert load_space(f, feature="sift", estimator="degensac").source == str(f)

@@ -437,7 +437,10 @@ def load_space(path: str | Path | None = None, *, feature: str | None = None, es
     naming the file and key on any problem."""
     f = Path(path) if path else default_space_file(estimator or "degensac")
     data = read_yaml(f)
-    space = build_space(data, str(f), feature=feature, estimator=estimator)
+    # imtune's own file by its place in the project: the label is stored with a study, and an absolute path named
+    # the checkout that created it on every other machine reading the storage (/work/ci/x/search_spaces/...)
+    label = str(f) if path else f"{SPACES_DIR.name}/{f.name}"
+    space = build_space(data, label, feature=feature, estimator=estimator)
     for name, value in parse_fixes(fixes).items():
         space.fix(name, value)
     return space
