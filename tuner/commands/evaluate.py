@@ -148,6 +148,7 @@ def config_of(args):
         cov = (src.frozen.get("data") or {}).get("min_covisibility")  # checked by tuner.freeze.FROZEN_SHAPE
         if cov is not None:
             args.covisibility = float(cov)
+            args.covisibility_of_study = True
             pairs_note = f"; pairs with co-visibility >= {float(cov):g} (the study's)"
     return conf, (f"config {args.config} ({src.label})"
                   + (f"; overridden on the command line: {', '.join(used)}" if used else "") + pairs_note)
@@ -182,8 +183,9 @@ def run(args) -> int:
                           gt_dir=args.gt_dir, with_bags=args.bag_records, keep_models=args.keep_models,
                           intermediate=args.intermediate, ci_resamples=ci_resamples(args), jobs=args.jobs)
     if source:
-        out["config_source"] = {"config": args.config, "overridden": sorted(explicit_options(args) & set(OPTION_FIELDS)),
-                                "min_covisibility": args.covisibility}
+        out["config_source"] = {"config": args.config, "overridden": sorted(explicit_options(args) & set(OPTION_FIELDS))}
+        if getattr(args, "covisibility_of_study", False):  # the study's pairs, not the command's default
+            out["config_source"]["min_covisibility"] = args.covisibility
     for section in out.values():  # the tasks' notes (bag sizes above a scene's images): on stderr, kept in the JSON
         for note in (section.get("notes") or []) if isinstance(section, dict) else []:
             print(f"warning: {note}", file=sys.stderr, flush=True)
