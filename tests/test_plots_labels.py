@@ -246,15 +246,11 @@ def test_gamma_max_label_sits_on_its_line_on_the_log_axis(tmp_path):
     assert label.x == pytest.approx(_m.log10(20000))
 
 
-def test_a_multiview_report_does_not_ask_for_an_eta_it_never_searches(tmp_path):
-    """A multiview study (COLMAP runs its own RANSAC; only r is searched) had its 'mAA vs eta across studies' section
-    say "needs studies with at least 2 trials within budget that search eta: run more trials", a hint no number of
-    trials can satisfy; it now says the task does not search eta."""
+def _multiview_study(tmp_path) -> str:
+    """A multiview study "mv" (only r searched, 3 complete trials) in a SQLite storage under tmp_path: its URL."""
     import optuna
     from optuna.distributions import FloatDistribution
     from optuna.trial import create_trial
-
-    from tuner.plots import report_sections
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     storage = f"sqlite:///{tmp_path / 'optuna.db'}"
     st = optuna.create_study(study_name="mv", storage=storage, direction="maximize")
@@ -264,6 +260,15 @@ def test_a_multiview_report_does_not_ask_for_an_eta_it_never_searches(tmp_path):
     for i, r in enumerate((0.8, 0.85, 0.9)):
         st.add_trial(create_trial(value=0.9 + 0.01 * i, distributions={"ratio": FloatDistribution(0.6, 1.0)},
                                   params={"ratio": r}, user_attrs={"feasible": True}))
+    return storage
+
+
+def test_a_multiview_report_does_not_ask_for_an_eta_it_never_searches(tmp_path):
+    """A multiview study (COLMAP runs its own RANSAC; only r is searched) had its 'mAA vs eta across studies' section
+    say "needs studies with at least 2 trials within budget that search eta: run more trials", a hint no number of
+    trials can satisfy; it now says the task does not search eta."""
+    from tuner.plots import report_sections
+    storage = _multiview_study(tmp_path)
     sec = next(s for s in report_sections(storage, "mv", tmp_path) if "eta across studies" in s.title)
     assert sec.fig is None and "run more trials" not in sec.note, sec.note
     assert "multiview" in sec.note and "does not search eta" in sec.note, sec.note
@@ -272,20 +277,8 @@ def test_a_multiview_report_does_not_ask_for_an_eta_it_never_searches(tmp_path):
 def test_a_multiview_report_header_states_no_estimator_budget(tmp_path):
     """The multiview study's report opened with "budget B = 0.5 s per pair (median estimator time), Gamma_max not
     calibrated": a budget its task never applies (no estimator of imtune's is timed; COLMAP runs its own RANSAC)."""
-    import optuna
-    from optuna.distributions import FloatDistribution
-    from optuna.trial import create_trial
-
     from tuner.plots import write_report
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
-    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
-    st = optuna.create_study(study_name="mv", storage=storage, direction="maximize")
-    for k, v in {"task": "multiview", "feature": "sift", "num_features": 2048, "ransac": "degensac", "imtune": 1,
-                 "budget": {"seconds_per_pair": B}, "data": {"root": "/data/strecha", "val_scenes": ["fountain-P11"]}}.items():
-        st.set_user_attr(k, v)
-    for i, r in enumerate((0.8, 0.85, 0.9)):
-        st.add_trial(create_trial(value=0.9 + 0.01 * i, distributions={"ratio": FloatDistribution(0.6, 1.0)},
-                                  params={"ratio": r}, user_attrs={"feasible": True}))
+    storage = _multiview_study(tmp_path)
     page = write_report(storage, "mv", tmp_path / "report.html", studies_dir=tmp_path).read_text()
     head = page[page.index("<h1>"):page.index("</p>")]
     assert "budget B = 0.5" not in head and "Gamma_max" not in head, head
