@@ -54,7 +54,8 @@ def run(args) -> int:
     sources = load_sources(args.sources, sdir)
     for spec, src in zip(args.sources, sources):
         task = (src.frozen or {}).get("task") or "stereo"
-        if task != "stereo":  # its eta and Gamma were never tuned: compared as they are, say so
+        from pipeline.tasks import TASKS
+        if not (task in TASKS and TASKS.get(task).timed):  # eta and Gamma never tuned (multiview): compared as they are, say so
             import sys
             tuned = ", ".join((src.frozen or {}).get("params") or {}) or "nothing"
             print(f"warning: {spec} is a {task} study: it tuned {tuned} only; on these stereo pairs it "

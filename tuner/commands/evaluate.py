@@ -157,7 +157,8 @@ def config_of(args):
 def _warn_estimator_options(args, tasks: list[str]) -> None:
     """One warning line for estimator options typed when no stereo task runs: the multiview task's COLMAP runs its
     own RANSAC, so --threshold / --max-iters / --confidence / --ransac were ignored, unsaid."""
-    if "stereo" in tasks:
+    from pipeline.tasks import TASKS
+    if any(t in TASKS and TASKS.get(t).timed for t in tasks):  # stereo, or a plugin task built on it
         return
     typed = [o for o in ("ransac", "threshold", "max_iters", "confidence", "covisibility")
              if o in explicit_options(args)]
