@@ -106,7 +106,8 @@ def test_evaluate_config_of_a_study_uses_the_studys_covisibility(tmp_path):
     """`tune evaluate --config STUDY` of a study tuned on pairs with co-visibility >= 0.3 evaluated every pair
     >= 0.1 (the command's default): more, harder pairs than the study's, unsaid. Now the study's floor (as
     tune viz), said in the source line; a typed --covisibility still wins. Real data: 4 fountain-P11 images
-    with their built ground truth (5 pairs >= 0.1, 3 >= 0.3)."""
+    with their built ground truth (about 5 pairs >= 0.1, 3 >= 0.3: the triangulated points vary a little
+    between builds, so the counts are compared, not fixed)."""
     import yaml
 
     from tests.conftest import copy_strecha_subset
@@ -124,8 +125,8 @@ def test_evaluate_config_of_a_study_uses_the_studys_covisibility(tmp_path):
     r = tune(*common, "--json", env=env)
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
-    assert out["stereo"]["pairs"] == tuned_on == 3 and out["config_source"]["min_covisibility"] == 0.3
+    assert out["stereo"]["pairs"] == tuned_on and out["config_source"]["min_covisibility"] == 0.3
     r = tune(*common, env=env)
     assert r.returncode == 0 and "pairs with co-visibility >= 0.3 (the study's)" in r.stdout, r.stdout + r.stderr
     r = tune(*common, "--json", "--covisibility", "0.1", env=env)
-    assert r.returncode == 0 and json.loads(r.stdout)["stereo"]["pairs"] == 5, r.stderr
+    assert r.returncode == 0 and json.loads(r.stdout)["stereo"]["pairs"] > tuned_on, r.stderr
