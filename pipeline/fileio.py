@@ -40,6 +40,22 @@ def file_kind(mode: int) -> str:
             "not a regular file")
 
 
+def kind_at(path: Path | str) -> str | None:
+    """What is at ``path``, for a message: None (nothing), "a file" (a regular one, or a link to one), "a broken
+    link", else :func:`file_kind` of it ("a folder", "a FIFO", ...). Any other OSError (permission, a link loop) is a
+    one-line ImtuneError naming ``path``."""
+    import os
+    import stat
+    try:
+        os.lstat(path)
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return "a broken link" if os.path.islink(path) else None
+    except OSError as e:
+        raise ImtuneError(f"cannot read {path}: {e.strerror or e}") from None
+    return "a file" if stat.S_ISREG(mode) else file_kind(mode)
+
+
 def read_text(path: Path | str, what: str = "file") -> str:
     """The text of a file the user gave (a configuration, search space, frozen.yaml, imtune.yaml, splits.yaml, ...),
     decoded as UTF-8 (a BOM is dropped). One-line ImtuneError naming ``what`` and the file when it is not a regular

@@ -368,17 +368,12 @@ def _remove_if_empty(dirs: list[Path]) -> None:
 def downloaded(final: Path) -> bool:
     """``final`` (``<dest>/<name>``) holds a data set: a folder with something in it. An empty folder is none (it was
     "ready", nothing downloaded); a file or a FIFO there is a one-line ImtuneError naming it (it was "ready" too)."""
+    from pipeline.fileio import kind_at
     final = Path(final)
-    try:
-        st = final.stat()
-    except FileNotFoundError:
+    kind = kind_at(final)
+    if kind in (None, "a broken link"):
         return False
-    except OSError as e:
-        raise ImtuneError(f"cannot read {final}: {e.strerror or e}") from None
-    import stat
-    if not stat.S_ISDIR(st.st_mode):
-        from pipeline.fileio import file_kind
-        kind = "a file" if stat.S_ISREG(st.st_mode) else file_kind(st.st_mode)
+    if kind != "a folder":
         raise ImtuneError(f"{final} is {kind} where the data set's folder goes: move it away, or give --dest another "
                           "folder")
     return any(final.iterdir())

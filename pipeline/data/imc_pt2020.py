@@ -134,20 +134,14 @@ def _optional(p: Path, folder: bool, what: str) -> bool:
     """``p`` is there as a folder (``folder``) or a regular file: True; nothing there: False. Anything else at its
     name (a file at new-vis-pairs/, a folder at a depth map) is a one-line ImtuneError: it was read as absent (every
     pair evaluated with co-visibility unknown, no bags, no depth), unsaid."""
-    import os
-    import stat
-    try:
-        os.lstat(p)
-    except FileNotFoundError:
+    from pipeline.fileio import kind_at
+    kind = kind_at(p)
+    if kind is None:
         return False
-    try:
-        mode = os.stat(p).st_mode
-    except OSError:
-        raise ImtuneError(f"{what} {p} is a broken link: point it at the {what}, or remove it") from None
-    if stat.S_ISDIR(mode) if folder else stat.S_ISREG(mode):
+    if kind == "a broken link":
+        raise ImtuneError(f"{what} {p} is a broken link: point it at the {what}, or remove it")
+    if kind == ("a folder" if folder else "a file"):
         return True
-    from pipeline.fileio import file_kind
-    kind = "a file" if stat.S_ISREG(mode) else file_kind(mode)
     raise ImtuneError(f"{what} {p} is {kind}, not a {'folder' if folder else 'file'}: put the {what} there, or move "
                       "it away")
 

@@ -6,7 +6,6 @@ width height (px). World-to-camera: R_wc = R^T, t = -R^T C. Image names are the 
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -58,18 +57,11 @@ def write_camera(path: Path, K, dist, R, C, size) -> None:
 
 def _not_a_regular_file(p: Path, what: str) -> None:
     """One line for a folder, FIFO, device or broken link at ``p`` (read as "missing" before, the thing there
-    unnamed); nothing when nothing is there."""
-    import stat
-    try:
-        mode = os.lstat(p).st_mode
-    except OSError:
-        return
-    if stat.S_ISLNK(mode) and not p.exists():
-        kind = "a broken link"
-    else:
-        from pipeline.fileio import file_kind
-        kind = file_kind(os.stat(p).st_mode)
-    raise ImtuneError(f"{what} {p} is {kind}, not a file: put the {what} there")
+    unnamed); nothing when nothing (or a regular file) is there."""
+    from pipeline.fileio import kind_at
+    kind = kind_at(p)
+    if kind not in (None, "a file"):
+        raise ImtuneError(f"{what} {p} is {kind}, not a file: put the {what} there")
 
 
 def load_strecha(root: Path, scene: str | None = None, verify: bool = True) -> Scene:

@@ -139,18 +139,14 @@ def _descriptor_dims(path: Path) -> dict[str, int]:
 def h5_file_present(path: Path) -> bool:
     """``path`` is a regular file (False when nothing is there). A folder, a FIFO or a broken link at its name is a
     one-line ImtuneError naming it: read as absent, a folder at scales.h5 ran AdaLAM without scales, unsaid."""
-    import stat
-    try:
-        st = path.stat()
-    except FileNotFoundError:
-        if path.is_symlink():
-            raise ImtuneError(f"{path} is a broken link: point it at the h5 file, or remove it") from None
+    from pipeline.fileio import kind_at
+    kind = kind_at(path)
+    if kind is None:
         return False
-    except OSError as e:
-        raise ImtuneError(f"{path}: cannot read ({e.strerror or e})") from None
-    if not stat.S_ISREG(st.st_mode):
-        from pipeline.fileio import file_kind
-        raise ImtuneError(f"{path} is {file_kind(st.st_mode)}, not an h5 file: move it away, or put the file there")
+    if kind == "a broken link":
+        raise ImtuneError(f"{path} is a broken link: point it at the h5 file, or remove it")
+    if kind != "a file":
+        raise ImtuneError(f"{path} is {kind}, not an h5 file: move it away, or put the file there")
     return True
 
 
