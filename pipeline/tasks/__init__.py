@@ -15,7 +15,7 @@ from pipeline.features import load_plugins  # noqa: E402  (after the tasks: a pl
 
 load_plugins()  # $IMTUNE_PLUGINS modules may register tasks too (idempotent)
 
-__all__ = ["TASKS", "Task", "TaskResult", "get_task", "make_task", "task_list", "task_names"]
+__all__ = ["TASKS", "Task", "TaskResult", "get_task", "is_timed", "make_task", "task_list", "task_names"]
 
 
 def get_task(name: str, **options) -> Task:
@@ -31,6 +31,12 @@ def make_task(name: str, **options) -> Task:
     """The task ``name`` built from a pool of options: each task takes the ones its constructor accepts (so a
     caller such as `tune evaluate` can offer every task's options without knowing which task uses which)."""
     return TASKS.get(name).from_options(None, **options)
+
+
+def is_timed(name: str) -> bool:
+    """Task ``name`` times an estimator of ours per pair (stereo, or a plug-in built on it): the estimator and budget
+    options apply to it. False for an untimed task (multiview: COLMAP's own RANSAC) and an unknown name."""
+    return name in TASKS and TASKS.get(name).timed
 
 
 def task_list(spec: str) -> list[str]:

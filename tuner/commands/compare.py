@@ -9,6 +9,7 @@ benchmark method JSON. Python: :func:`tuner.compare.compare`.
 from __future__ import annotations
 
 import json
+import sys
 
 from pipeline.errors import ImtuneError
 from pipeline.metrics.uncertainty import DIRECTION_RULE
@@ -52,16 +53,14 @@ def run(args) -> int:
                           "give A B [C ...], each a study name or a config file")
     sdir = Path(args.studies_dir).expanduser().resolve() if args.studies_dir else default_studies_dir()
     sources = load_sources(args.sources, sdir)
+    from pipeline.tasks import is_timed
     for spec, src in zip(args.sources, sources):
         task = (src.frozen or {}).get("task") or "stereo"
-        from pipeline.tasks import TASKS
-        if not (task in TASKS and TASKS.get(task).timed):  # eta and Gamma never tuned (multiview): compared as they are, say so
-            import sys
+        if not is_timed(task):  # its eta and Gamma were never tuned (multiview): compared as they are, say so
             tuned = ", ".join((src.frozen or {}).get("params") or {}) or "nothing"
             print(f"warning: {spec} is a {task} study: it tuned {tuned} only; on these stereo pairs it "
                   f"runs with its file's eta {src.conf.geometry.threshold:g} px and Gamma {src.conf.geometry.max_iters} "
                   "as they are, untuned", file=sys.stderr)
-    import sys
     seen: dict = {}
     for spec, src in zip(args.sources, sources):  # the same configuration twice: a difference of 0 by construction
         key = json.dumps(src.conf.to_dict(), sort_keys=True, default=str)
@@ -76,8 +75,8 @@ def run(args) -> int:
         tuned_on = sorted(set(res["scenes"]) & set(((src.frozen or {}).get("data") or {}).get("val_scenes") or []))
         if tuned_on:
             what = "is a validation scene" if len(tuned_on) == 1 else "are validation scenes"
-            print(f"warning: {', '.join(tuned_on)} {what} of {spec}: it was tuned on these pairs, so its numbers there are not held out (give --scenes "
-                  "its test scenes for a fair comparison)", file=sys.stderr)
+            print(f"warning: {', '.join(tuned_on)} {what} of {spec}: it was tuned on these pairs, so its numbers there "
+                  "are not held out (give --scenes its test scenes for a fair comparison)", file=sys.stderr)
     if args.json:
         objs = [{"a": c["a"], "b": c["b"], "overall": c["overall"], "scenes": c["scenes"],
                  "verdict_rule": res["verdict_rule"]} for c in res["comparisons"]]

@@ -157,13 +157,12 @@ def config_of(args):
 def _warn_estimator_options(args, tasks: list[str]) -> None:
     """One warning line for estimator options typed when no stereo task runs: the multiview task's COLMAP runs its
     own RANSAC, so --threshold / --max-iters / --confidence / --ransac were ignored, unsaid."""
-    from pipeline.tasks import TASKS
-    if any(t in TASKS and TASKS.get(t).timed for t in tasks):  # stereo, or a plugin task built on it
+    from pipeline.tasks import is_timed
+    if any(is_timed(t) for t in tasks):  # stereo, or a plugin task built on it
         return
     typed = [o for o in ("ransac", "threshold", "max_iters", "confidence", "covisibility")
              if o in explicit_options(args)]
     if typed:
-        import sys
         flags = ", ".join("--" + o.replace("_", "-") for o in typed)
         print(f"warning: {flags}: the {' and '.join(tasks)} task does not use {'it' if len(typed) == 1 else 'them'} "
               "(COLMAP reconstructs each bag whole, with its own RANSAC); ignored", file=sys.stderr, flush=True)

@@ -78,13 +78,9 @@ STEREO_ONLY = {"max_pairs": None, "chunk_pairs": 12, "budget": 0.5, "test_budget
 def _stereo_only_given(args) -> tuple:
     """The stereo options given to a multiview run (it reconstructs whole bags with COLMAP's own, untimed RANSAC:
     --max-pairs, --budget, ... were ignored, unsaid): the run says so with a --fix the task does not use."""
-    from pipeline.tasks import TASKS
-    try:
-        timed = TASKS.get(args.task).timed  # a stereo-derived plugin task (docs/extending.md) uses them all
-    except ImtuneError:
-        return ()  # an unknown task: its own error comes next
-    if timed:
-        return ()
+    from pipeline.tasks import TASKS, is_timed
+    if is_timed(args.task) or args.task not in TASKS:  # a stereo-derived plug-in task uses them all; an unknown
+        return ()  # task's own error comes next
     return tuple("--" + d.replace("_", "-") for d, v in STEREO_ONLY.items() if getattr(args, d, v) != v)
 
 
