@@ -667,16 +667,22 @@ def test_viz_gallery_not_named_html_is_refused_and_the_file_kept(tiny, tmp_path,
     assert victim.read_text() == "study: S\n" and not (tmp_path / "cache").exists()
 
 
+def _frozen_only(sdir, name: str, task: str, root):
+    """A studies folder holding study ``name``'s frozen.yaml alone (``task``, r 0.8, 256 SIFT, DEGENSAC, tested on
+    fountain-P11 of ``root``): ``sdir``."""
+    import yaml
+    (sdir / name).mkdir(parents=True)
+    (sdir / name / "frozen.yaml").write_text(yaml.safe_dump({
+        "study": name, "trial": 0, "task": task, "params": {"ratio": 0.8},
+        "config": {"feature": {"name": "sift", "num_features": 256}, "geometry": {"ransac": "degensac"}},
+        "data": {"root": str(root), "test_scenes": ["fountain-P11"]}}))
+    return sdir
+
+
 def test_test_workers_of_a_stereo_study_is_refused(tiny, tmp_path, capsys):
     """`tune test --study S --workers 2` (multiview bag processes) of a stereo study ran the test with --workers
     ignored, unsaid. One line before any work."""
-    import yaml
-    sdir = tmp_path / "studies"
-    (sdir / "s").mkdir(parents=True)
-    (sdir / "s" / "frozen.yaml").write_text(yaml.safe_dump({
-        "study": "s", "trial": 0, "task": "stereo", "params": {"ratio": 0.8},
-        "config": {"feature": {"name": "sift", "num_features": 256}, "geometry": {"ransac": "degensac"}},
-        "data": {"root": str(tiny), "test_scenes": ["fountain-P11"]}}))
+    sdir = _frozen_only(tmp_path / "studies", "s", "stereo", tiny)
     rc, _, err = _cli(["test", "--study", "s", "--workers", "2", "--runs", "1", "--reference", "none", "--cache",
                        tmp_path / "cache", "--studies-dir", sdir, "--quiet", "--jobs", "1"], capsys)
     _one_line_error(rc, err, "--workers is an option of the multiview task (bag processes), and study s is a stereo "
@@ -687,13 +693,7 @@ def test_test_workers_of_a_stereo_study_is_refused(tiny, tmp_path, capsys):
 def test_test_max_pairs_of_a_multiview_study_is_said(tiny, tmp_path, capsys):
     """`tune test --study MV --max-pairs 2` tested every bag, the option ignored, unsaid. One warning line (the test
     then stops here: 2 images make no multiview bag)."""
-    import yaml
-    sdir = tmp_path / "studies"
-    (sdir / "mv").mkdir(parents=True)
-    (sdir / "mv" / "frozen.yaml").write_text(yaml.safe_dump({
-        "study": "mv", "trial": 0, "task": "multiview", "params": {"ratio": 0.8},
-        "config": {"feature": {"name": "sift", "num_features": 256}, "geometry": {"ransac": "degensac"}},
-        "data": {"root": str(tiny), "test_scenes": ["fountain-P11"]}}))
+    sdir = _frozen_only(tmp_path / "studies", "mv", "multiview", tiny)
     rc, _, err = _cli(["test", "--study", "mv", "--max-pairs", "2", "--runs", "1", "--reference", "none", "--cache",
                        tmp_path / "cache", "--studies-dir", sdir, "--quiet"], capsys)
     assert err.splitlines()[0] == ("warning: --max-pairs: the multiview task does not use it (COLMAP reconstructs each "

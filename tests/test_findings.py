@@ -776,19 +776,24 @@ def test_optimal_threshold_finding_states_its_unit_and_which_interval():
     assert "validation mAA(10) within the optimum's 95% interval [0.700, 0.900]" in txt, txt
 
 
+def _finding_2_with_magsac_equal_to_gcransac() -> dict:
+    """Finding 2 analysed on synthetic records: degrees added to every pair's error, degensac best ... cv-ransac
+    worst; gcransac's errors are magsac's (their difference exactly 0)."""
+    rng = np.random.default_rng(1)
+    base = {(sc, i): float(rng.uniform(0.1, 1.0)) for sc in ("s1", "s2") for i in range(30)}
+    level = {"degensac": 0.0, "magsac": 2.0, "gcransac": 2.0, "pyransac": 4.0, "cv-ransac": 12.0}
+    outcomes = {r: _outcome(r, [{p: e + level[r] for p, e in base.items()}]) for r in BY_ID[2].studies}
+    return A.analyse(BY_ID[2], outcomes, n_resamples=500)
+
+
 def test_a_combined_verdict_names_the_relation_that_decided_it():
     """Finding 2's summary row read "inconclusive | degensac - cv-ransac | +0.2458 | [+0.1125, +0.3750] | 0.002": a
     difference that the stated rule calls significant beside an 'inconclusive' verdict, which came from another
     relation (magsac vs gcransac). Synthetic records: every claimed '>' clearly holds except magsac vs gcransac,
     whose errors are identical (difference exactly 0) -> inconclusive, and the row must say which relation decided."""
     from tuner.findings.report import _compared
-    rng = np.random.default_rng(1)
-    base = {(sc, i): float(rng.uniform(0.1, 1.0)) for sc in ("s1", "s2") for i in range(30)}
-    # degrees added to every pair's error: degensac best ... cv-ransac worst; gcransac's errors are magsac's
-    level = {"degensac": 0.0, "magsac": 2.0, "gcransac": 2.0, "pyransac": 4.0, "cv-ransac": 12.0}
     f = BY_ID[2]
-    outcomes = {r: _outcome(r, [{p: e + level[r] for p, e in base.items()}]) for r in f.studies}
-    a = A.analyse(f, outcomes, n_resamples=500)
+    a = _finding_2_with_magsac_equal_to_gcransac()
     assert a["verdict"] == "inconclusive"
     assert a["ci"][0] > 0 and a["p_value"] < 0.05  # the key (degensac - cv-ransac) alone would hold
     res = {"id": 2, "verdict": a["verdict"], "difference": a["difference"], "ci": a["ci"], "p_value": a["p_value"],
@@ -835,12 +840,7 @@ def test_finding_2s_order_uses_shared_ranks_not_bare_greater_than_signs():
     magsac's and gcransac's errors identical, the line must show them tied (the ranking with ties), never
     'magsac > gcransac' or 'gcransac > magsac'."""
     from tuner.findings.report import paper_comparison
-    rng = np.random.default_rng(1)
-    base = {(sc, i): float(rng.uniform(0.1, 1.0)) for sc in ("s1", "s2") for i in range(30)}
-    level = {"degensac": 0.0, "magsac": 2.0, "gcransac": 2.0, "pyransac": 4.0, "cv-ransac": 12.0}
-    f = BY_ID[2]
-    outcomes = {r: _outcome(r, [{p: e + level[r] for p, e in base.items()}]) for r in f.studies}
-    a = A.analyse(f, outcomes, n_resamples=500)
+    a = _finding_2_with_magsac_equal_to_gcransac()
     txt = paper_comparison({"id": 2, "measured": a["measured"]})
     order = txt.split("test mAA(10) order here: ")[1]
     assert "magsac > gcransac" not in order and "gcransac > magsac" not in order, order
