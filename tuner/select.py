@@ -283,10 +283,11 @@ def reference_config(frozen: dict, spec, task=None):
 
 TEST_INTERVAL_NOTE = (
     "95% interval of the mean over the test runs (pipeline.metrics.uncertainty.combine_runs_interval): a "
-    "percentile bootstrap over pairs stratified by scene of the run-averaged pair scores (this already contains "
-    "the per-pair seed noise), widened by the run-to-run variation shared by all pairs (the variance of the "
-    "runs' mAAs beyond what per-pair noise explains, G / R, with Student's t at Welch-Satterthwaite degrees of "
-    "freedom); the std over runs is reported beside it")
+    "percentile bootstrap over pairs stratified by scene of the run-averaged pair scores, each scene's with two "
+    "pseudo-pairs (one failed, one perfect; the interval centred on the mean) for small and easy scenes (this "
+    "already contains the per-pair seed noise), widened by the run-to-run variation shared by all pairs (the "
+    "variance of the runs' mAAs beyond what per-pair noise explains, G / R, with Student's t at "
+    "Welch-Satterthwaite degrees of freedom); the std over runs is reported beside it")
 
 
 def pair_errors(records: list[dict]) -> list | None:
