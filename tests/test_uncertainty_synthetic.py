@@ -391,3 +391,16 @@ def test_the_paired_difference_interval_covers_at_10_pairs_per_scene(monkeypatch
         lo, hi = paired_bootstrap(a, b, seed=i, n_resamples=500)["ci"]
         covers += lo <= truth <= hi
     assert covers / sims >= 0.925, covers / sims
+
+
+def test_a_multiview_scene_without_bags_counts_as_zero_instead_of_crashing():
+    """bag_intervals(records, scenes=[...]) promises a scene without bags its mAA 0 (as the multiview task's
+    summarize_scene([]) reports it), but divided by its zero bag sizes: ZeroDivisionError at the end of a multiview
+    evaluation. Known truth: every bag of scene a is perfect (mAA 1), b has none: overall 0.5, b exactly [0, 0]."""
+    from pipeline.tasks.multiview import summarize_scene
+    assert summarize_scene([])["mAA10"] == 0.0
+    recs = [{"scene": "a", "bag_size": 5, "errors": [0.1] * 10} for _ in range(30)]
+    ci = bag_intervals(recs, scenes=["a", "b"])
+    assert ci["scenes"]["b"]["mAA10_ci"] == [0.0, 0.0]
+    lo, hi = ci["mAA10_ci"]
+    assert 0.0 < lo <= 0.5 <= hi < 0.6

@@ -230,8 +230,9 @@ def bag_intervals(bag_records: Sequence[Mapping], taus: Sequence[int] = (5, 10),
         for n in names:
             sizes = sorted({s for (sc, s) in groups_of if sc == n}, key=float)
             g = [np.array([maa_from_errors(r["errors"], tau) for r in groups_of[(n, s)]]) for s in sizes]
-            w = [1.0 / len(sizes)] * len(sizes)
-            if not g:  # a scene without bags: mAA 0, a constant (an empty group)
+            if g:
+                w = [1.0 / len(sizes)] * len(sizes)
+            else:  # a scene without bags: mAA 0, a constant (an empty group)
                 g, w = [np.zeros(0)], [1.0]
             out["scenes"][n][key] = stratified_interval(g, w, n_resamples=n_resamples, seed=seed, level=level,
                                                         method=method, pseudo=SCORE_RANGE)
