@@ -222,3 +222,29 @@ def test_the_flat_region_line_says_its_interval_is_one_of_validation_mAA():
     text = sel.flat_text(flat)
     assert "6 of 7 trials with validation mAA(10°) within the optimum's 95% interval [0.700, 0.900]" in text, text
     assert "validation mAA(10) within the optimum's 95% interval" in flat["note"], flat["note"]
+
+
+def test_a_reused_test_result_gets_the_intervals_of_the_current_method():
+    """`tune test` returns an existing test.json for the same trial, configuration and data as is; one written by an
+    earlier imtune kept that version's intervals: for 12 pairs all solved within 1 deg in each of 3 runs the plain
+    bootstrap's [1, 1] (a true mAA(10) of 0.9 gives 12 of 12 such pairs 28% of the time), while `tune results` and
+    `tune findings` recompute from the same pair errors. A reused result whose interval method is not the current
+    one is recomputed from its pair errors (the mean's, per scene, and the reference comparison)."""
+    runs = [[["A", f"p{i}", 0.2] for i in range(12)] for _ in range(3)]
+    ref_runs = [[["A", f"p{i}", "inf"] for i in range(12)] for _ in range(3)]
+    stale = {"lo_hi": [1.0, 1.0]}
+    result = {"runs": [{"pair_errors": r} for r in runs],
+              "mean": {"mAA10": 1.0, "mAA5": 1.0, "mAA10_ci": stale["lo_hi"], "mAA5_ci": stale["lo_hi"],
+                       "scenes": {"A": {"mAA10": 1.0, "mAA10_ci": [1.0, 1.0]}}},
+              "interval": {"method": "percentile bootstrap over pairs (an earlier imtune)", "level": 0.95},
+              "reference": {"label": "paper defaults", "mAA10": 0.0, "mean": {"mAA10": 0.0, "mAA5": 0.0},
+                            "runs": [{"pair_errors": r} for r in ref_runs],
+                            "comparison": {"difference": 1.0, "ci": [1.0, 1.0], "p_value": 0.5, "pairs": 12}}}
+    assert sel.refresh_intervals(result, 500)
+    lo, hi = result["mean"]["mAA10_ci"]
+    assert hi == 1.0 and lo < 0.9, (lo, hi)
+    assert result["mean"]["scenes"]["A"]["mAA10_ci"][0] < 0.9
+    assert result["interval"]["method"] == sel.TEST_INTERVAL_NOTE
+    c = result["reference"]["comparison"]  # 12 of 12 pairs one way: exact sign-flip p = 2 / 2^12
+    assert c["difference"] == 1.0 and c["p_value"] < 0.01 and c["significant"]
+    assert not sel.refresh_intervals(result, 500)  # current: left as is

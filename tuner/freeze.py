@@ -464,6 +464,8 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
              "reference": None if ref is None else ref[0].to_dict()}
     old = _previous_result(out_path, ident, frozen["study"]) if reuse else None
     if old is not None:
+        if sel.refresh_intervals(old, n_ci) and out_path is not None:  # an earlier imtune's intervals
+            atomic_write(out_path, json.dumps(_plain(old), indent=2))
         return old
     cache = cache if cache is not None else H5Cache()
     t_start = time.perf_counter()

@@ -331,6 +331,30 @@ def compare_reference(ref_errors: list, errors: list, n_resamples: int) -> dict 
     return paired_bootstrap(a, b, tau=10, n_resamples=int(n_resamples or 2000))
 
 
+def refresh_intervals(result: dict, n_resamples: int) -> bool:
+    """Recompute a stored test result's intervals from its runs' pair errors when an earlier imtune made them with
+    another method (``interval.method`` is not :data:`TEST_INTERVAL_NOTE`): the mean's (overall, per scene), the
+    reference's and the paired comparison with it. A reused test.json then shows the numbers `tune results` and
+    `tune findings` compute from the same pair errors. Returns whether it changed anything (the caller rewrites
+    the file); False with no interval method recorded, ``n_resamples`` 0 or no pair errors."""
+    iv = result.get("interval")
+    if not isinstance(iv, dict) or iv.get("method") == TEST_INTERVAL_NOTE or not n_resamples:
+        return False
+    errors = [r.get("pair_errors") for r in result.get("runs") or []]
+    new = test_interval(result.setdefault("mean", {}), errors, n_resamples)
+    if new is None:
+        return False
+    result["interval"] = new
+    ref = result.get("reference")
+    if isinstance(ref, dict) and ref.get("runs"):
+        rerr = [r.get("pair_errors") for r in ref["runs"]]
+        test_interval(ref.setdefault("mean", {}), rerr, n_resamples)
+        cmp = compare_reference(rerr, errors, n_resamples)
+        if cmp is not None:
+            ref["comparison"] = cmp
+    return True
+
+
 def comparison_text(ref: dict | None) -> str:
     """One readable line of a test result's ``reference`` section."""
     if not ref:
