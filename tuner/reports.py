@@ -427,7 +427,8 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
     if scored and all(rows[i]["_best"][2] for i in scored):  # pair errors everywhere: paired tests
         ranked = rank_with_ties([(str(i), [x for run in rows[i]["_best"][2] for x in run]) for i in scored],
                                 n_resamples=n_resamples, seed=seed)
-        rule = "paired bootstrap and sign-flip test on the test pairs"
+        rule = ("paired bootstrap and sign-flip test on the test pairs, Bonferroni over the "
+                f"{max(1, len(scored) * (len(scored) - 1) // 2)} pairs of methods")
     else:
         ranked = rank_by_intervals([{"name": str(i), "mAA10": rows[i]["_best"][0], "mAA10_ci": rows[i]["_best"][3]}
                                     for i in scored])
