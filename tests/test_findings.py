@@ -925,3 +925,16 @@ def test_the_report_header_says_how_p_is_computed_and_that_studies_share_their_c
     assert "Monte Carlo, 999 sign patterns: p >= 0.001" in p_line
     seeded = next(ln for ln in lines if ln.startswith("sampling: "))
     assert "--seed 5" in seeded and "same first (random start-up) candidates" in seeded
+
+
+def test_a_p_value_just_below_005_is_not_printed_as_005():
+    """A verdict 'holds' needs p < 0.05; printed to 3 decimals, p = 0.0496 read "p = 0.050" beside "holds" (and
+    `tune compare`'s 3 significant digits printed 0.04996 as "0.05" beside "B better"), a contradiction on the page.
+    The p-value now gets the digits it needs to show on which side of 0.05 it is."""
+    from tuner.findings.report import _p
+    assert _p(0.0496) == "0.0496" and _p(0.04996) == "0.04996"
+    assert _p(0.05) == "0.050" and _p(0.0504) == "0.050" and _p(0.190) == "0.190" and _p(0.0004) == "< 0.001"
+    assert _p(0.0312) == "0.031" and _p(1.0) == "1.000"
+    from pipeline.metrics.uncertainty import format_p  # tune compare, the test report's comparison, rank notes
+    assert format_p(0.04996) == "0.04996" and format_p(0.0496) == "0.0496" and format_p(0.25) == "0.25"
+    assert format_p(0.0499, 0.005) == "0.0499" and format_p(0.00499, 0.005) == "0.00499"

@@ -21,8 +21,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from pipeline.errors import ImtuneError
-from pipeline.metrics.uncertainty import (DEFAULT_LEVEL, DEFAULT_RESAMPLES, DIRECTION_RULE, maa_intervals,
-                                          paired_bootstrap, paired_direction)
+from pipeline.metrics.uncertainty import (DEFAULT_LEVEL, DEFAULT_RESAMPLES, DIRECTION_RULE, format_p,
+                                          maa_intervals, paired_bootstrap, paired_direction)
 
 COMPARISON_KEYS = ("mAA10_a", "mAA10_b", "difference", "ci", "p_value", "significant", "pairs", "dropped_a",
                    "dropped_b")
@@ -130,6 +130,7 @@ def comparison_rows(comp: dict, level: float = DEFAULT_LEVEL) -> list[dict]:
     for name, c in list(comp["scenes"].items()) + [("overall", comp["overall"])]:
         rows.append({"scene": name, "pairs": c["pairs"], "mAA10 A": f"{c['mAA10_a']:.4f}",
                      "mAA10 B": f"{c['mAA10_b']:.4f}", "B - A": f"{c['difference']:+.4f}",
-                     f"{pct} CI": f"[{c['ci'][0]:+.4f}, {c['ci'][1]:+.4f}]", "p": f"{c['p_value']:.3g}",
+                     f"{pct} CI": f"[{c['ci'][0]:+.4f}, {c['ci'][1]:+.4f}]",
+                     "p": format_p(c["p_value"], 1.0 - level),
                      "verdict": verdict(c, level)})
     return rows

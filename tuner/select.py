@@ -365,9 +365,9 @@ def comparison_text(ref: dict | None) -> str:
     if not c:
         return head + f" ({ref.get('note') or 'no paired comparison'})"
     lo, hi = c["ci"]
-    from pipeline.metrics.uncertainty import paired_direction  # the rule of tune findings and tune compare
+    from pipeline.metrics.uncertainty import format_p, paired_direction  # the rule of findings and compare
     verdict = {0: "no significant difference", 1: "frozen settings significantly better",
                -1: "frozen settings significantly WORSE: tuning did not generalise"}[
         paired_direction(c["ci"], c.get("p_value"))]
-    return (f"{head}; frozen - reference {c['difference']:+.3f} [{lo:+.3f}, {hi:+.3f}], p = {c['p_value']:.3g} "
+    return (f"{head}; frozen - reference {c['difference']:+.3f} [{lo:+.3f}, {hi:+.3f}], p = {format_p(c['p_value'])} "
             f"over {c['pairs']} paired pairs: {verdict}")

@@ -47,7 +47,7 @@ from pipeline.metrics.pose import mean_average_accuracy
 __all__ = ["pair_scores", "maa_from_errors", "maa_intervals", "bag_intervals", "paired_bootstrap", "paired_direction",
            "DIRECTION_RULE",
            "rank_with_ties", "rank_by_intervals", "combine_runs_interval", "stratified_interval",
-           "DEFAULT_RESAMPLES", "DEFAULT_LEVEL", "SCORE_RANGE"]
+           "DEFAULT_RESAMPLES", "DEFAULT_LEVEL", "SCORE_RANGE", "format_p"]
 
 DEFAULT_RESAMPLES = 2000
 DEFAULT_LEVEL = 0.95
@@ -347,6 +347,17 @@ def paired_bootstrap(records_a: Sequence[Mapping], records_b: Sequence[Mapping],
     return out
 
 
+def format_p(p: float, alpha: float = 0.05) -> str:
+    """A p-value to 3 significant digits, with as many more as it takes to stay on its side of ``alpha``: 0.04996
+    reads "0.04996", not "0.05" beside a verdict that needs p < 0.05."""
+    p, alpha = float(p), round(float(alpha), 12)  # 1 - 0.95 is 0.05000000000000004
+    for d in range(3, 10):
+        t = f"{p:.{d}g}"
+        if (float(t) < alpha) == (p < alpha):
+            return t
+    return repr(p)
+
+
 #: the rule of :func:`paired_direction` in words (`tune compare` prints it; the findings report states its own)
 DIRECTION_RULE = ("B or A is better only when the 95% CI of B - A excludes 0 and the paired sign-flip test agrees "
                   "(p < 0.05); otherwise no significant difference")
@@ -431,8 +442,9 @@ def rank_with_ties(items, tau: int = 10, n_resamples: int = DEFAULT_RESAMPLES, s
             cmp = {k: v for k, v in cmp.items() if k != "scenes"}
             row["comparison"] = cmp
             lo, hi = cmp["ci"]
-            how = (f"{100 * level_each:.3g}% CI, p={cmp['p_value']:.3g}" if n_pairs_of_methods == 1 else
-                   f"{100 * level_each:.3g}% CI, p={cmp['p_value']:.3g} against {alpha:.2g}: Bonferroni over the "
+            how = (f"{100 * level_each:.3g}% CI, p={format_p(cmp['p_value'], alpha)}" if n_pairs_of_methods == 1 else
+                   f"{100 * level_each:.3g}% CI, p={format_p(cmp['p_value'], alpha)} against {alpha:.2g}: Bonferroni "
+                   f"over the "
                    f"{n_pairs_of_methods} pairs of {len(named)} methods")
             if not cmp["significant"]:
                 row["rank"], row["shared"] = above["rank"], True

@@ -46,9 +46,15 @@ def _num(v, d=4):
 
 
 def _p(v) -> str:
-    """A p-value to 3 decimals; below 0.001 "< 0.001" (the sign-flip p is never 0: at least 1 / (1 + resamples))."""
-    if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v < 0.001:
-        return "< 0.001"
+    """A p-value to 3 decimals; below 0.001 "< 0.001" (the sign-flip p is never 0: at least 1 / (1 + resamples));
+    below 0.05 with as many more decimals as it takes not to read 0.050 (0.0496: a verdict needs p < 0.05)."""
+    if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
+        if v < 0.001:
+            return "< 0.001"
+        if v < 0.05:
+            for d in range(3, 10):
+                if float(f"{v:.{d}f}") < 0.05:
+                    return f"{v:.{d}f}"
     return _num(v, 3)
 
 
