@@ -435,3 +435,11 @@ def test_a_ranking_of_identical_methods_shares_one_rank():
     d = scenes(40)  # B - A about +0.25 on 80 pairs
     best = rank_with_ties([(f"m{k}", method(d)) for k in range(4)] + [("good", method(d, 0.2))], n_resamples=500)
     assert best[0]["name"] == "good" and [r["rank"] for r in best[1:]] == [2] * 4, [(r["name"], r["rank"]) for r in best]
+
+
+def test_p_exactly_005_is_not_significant():
+    """The rule is p < 0.05, but it was computed as p < 1 - 0.95 = 0.05000000000000004: a sign-flip p of exactly
+    0.05 (50 of 1000 sign patterns with --ci-resamples 999) counted as significant, a verdict 'holds'."""
+    from pipeline.metrics.uncertainty import paired_direction
+    assert paired_direction([0.01, 0.1], 0.05) == 0
+    assert paired_direction([0.01, 0.1], 0.0499) == 1 and paired_direction([-0.1, -0.01], 0.01, level=0.99) == 0

@@ -373,7 +373,7 @@ def paired_direction(ci, p_value: float | None = None, level: float = DEFAULT_LE
     lo, hi = float(ci[0]), float(ci[1])
     if lo <= 0.0 <= hi:
         return 0
-    if p_value is not None and not float(p_value) < 1.0 - level:
+    if p_value is not None and not float(p_value) < round(1.0 - level, 12):  # 1 - 0.95 is 0.05000000000000004
         return 0  # the exact sign-flip test does not confirm the bootstrap interval
     return 1 if lo > 0 else -1
 
