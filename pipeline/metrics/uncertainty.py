@@ -15,7 +15,9 @@ Conventions (all functions):
 - ``n_resamples`` bootstrap resamples (default 2000), ``seed`` (default 0: the same inputs always give
   the same interval), ``level`` (default 0.95). Intervals are percentile intervals from
   ``scipy.stats.bootstrap`` (``method="BCa"`` is accepted; it falls back to the percentile interval
-  where BCa is undefined, e.g. when every resample gives the same value).
+  where BCa is undefined, e.g. when every resample gives the same value): for an mAA with the pseudo-scores
+  below, for a paired difference at the expanded level of :func:`stratified_interval`; rankings compare at
+  a Bonferroni level (:func:`rank_with_ties`).
 - Intervals are ``[lo, hi]`` lists of floats; keys are ``mAA5_ci``, ``mAA10_ci`` (one per tau).
 - Small and easy scenes (:data:`SCORE_RANGE`): the mAA intervals (stereo, multiview, repeated runs) take the
   spread of resamples of each scene's (bag group's) scores together with two pseudo-scores at the ends of a
