@@ -8,7 +8,9 @@ Rules (the report states the one each finding uses):
   paired sign-flip test must agree (p < 0.05): then CI above 0 holds, below 0 does not hold; when they
   disagree (the percentile bootstrap is too narrow on a few dozen pairs, the sign-flip test is exact) the
   verdict is inconclusive. A finding with several such relations combines them ("all": holds when every
-  one holds, does not hold when any is reversed; "any": holds when one holds and none is reversed).
+  one holds, does not hold when any is reversed; "any": holds when one holds and none is reversed); the one
+  relation that alone decides (a reversal for "all", a relation that holds for "any") must be significant at the
+  Bonferroni level 0.05 / m over the m relations (``_bonferroni_decider``).
 - ``small_gain`` — the claim "B adds at most a little over A": holds when the upper end of the CI of B - A is
   <= SMALL_GAIN (in mAA(10), 0..1), does not hold when its lower end is above SMALL_GAIN, inconclusive
   otherwise (a CI containing 0 but reaching past the margin says nothing either way).
@@ -148,6 +150,32 @@ def relation(outcomes: dict, a: str, b: str, n_resamples: int, seed: int = 0) ->
             "pairs": pb["pairs"], "dropped": [pb["dropped_a"], pb["dropped_b"]]}
 
 
+def _bonferroni_decider(computed: list, statuses: list[str], how: str, outcomes: dict, n_resamples: int,
+                        seed: int) -> list[str]:
+    """The status that alone decides a combined verdict (``all``: one reversal, does not hold; ``any``: one relation
+    that holds) must be significant at the Bonferroni level over the m relations, 0.05 / m: at 0.05 each, m claimed
+    '>' of which some are truly equal gave a false verdict up to m times as often as the stated 5%. The other way
+    (``all`` holding: every relation holds at 0.05) is an intersection-union test, valid at 0.05 as it is. A status
+    not confirmed at 0.05 / m becomes inconclusive; the relation records ``level`` (the confirming CI level)."""
+    m = sum(1 for _, c in computed if c is not None)
+    decider = FAILS if how == "all" else HOLDS
+    if m < 2 or decider not in statuses:
+        return statuses
+    alpha = (1.0 - DEFAULT_LEVEL) / m
+    resamples = int(min(100_000, max(int(n_resamples), math.ceil(20.0 / alpha))))
+    out = list(statuses)
+    for i, ((roles, c), st) in enumerate(zip(computed, statuses)):
+        if st != decider or c is None:
+            continue
+        oa, ob = outcomes[roles[0]], outcomes[roles[1]]
+        pb = paired_bootstrap(_flat(oa.test_runs), _flat(ob.test_runs), tau=10, n_resamples=resamples, seed=seed,
+                              level=1.0 - alpha)
+        c["level"], c["ci_at_level"], c["p_value_at_level"] = 1.0 - alpha, pb["ci"], pb["p_value"]
+        if directional(pb["ci"], pb["p_value"], 1.0 - alpha) != st:
+            out[i] = UNSURE
+    return out
+
+
 def analyse(f: Finding, outcomes: dict, n_resamples: int = 2000, seed: int = 0) -> dict:
     """{"measured", "difference", "ci", "p_value", "verdict", "rule"} of finding ``f`` from its studies'
     outcomes (role -> StudyOutcome)."""
@@ -181,6 +209,7 @@ def analyse(f: Finding, outcomes: dict, n_resamples: int = 2000, seed: int = 0) 
                 st = small_gain(key["ci"])
             else:
                 statuses = [directional(c["ci"], c["p_value"]) if c is not None else UNSURE for _, c in computed]
+                statuses = _bonferroni_decider(computed, statuses, f.combine, outcomes, n_resamples, seed)
                 for (_, c), s in zip(computed, statuses):
                     if c is not None:
                         c["status"] = s

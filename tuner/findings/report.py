@@ -244,10 +244,17 @@ def _difference_text(f: dict) -> str:
            f"{_p_is(f['p_value'])}")
     if rel is not None:
         txt += f" ({100 * rel:+.1f}% relative to {m.get('relative_to')})"
-    rels = [r for r in m.get("relations") or [] if not m.get("key", "").startswith(f"{r['b']} vs {r['a']}")]
+    def bonferroni(r) -> str:
+        return (f" (deciding alone, tested at the Bonferroni level over the relations: {100 * r['level']:.3g}% CI "
+                f"{_ci(r['ci_at_level'])}, needs p < {1 - r['level']:.3g})" if r.get("level") else "")
+    is_key = [m.get("key", "").startswith(f"{r['b']} vs {r['a']}") for r in m.get("relations") or []]
+    for r, k in zip(m.get("relations") or [], is_key):
+        if k and r.get("level"):
+            txt += f" -> {r.get('status')}{bonferroni(r)}"
+    rels = [r for r, k in zip(m.get("relations") or [], is_key) if not k]
     for r in rels:
         txt += (f"; {r['b']} vs {r['a']}: {_num(r['difference'])} {_ci(r['ci'])}, {_p_is(r['p_value'])}"
-                + (f" -> {r['status']}" if r.get("status") else ""))
+                + (f" -> {r['status']}" if r.get("status") else "") + bonferroni(r))
     return txt
 
 
