@@ -100,19 +100,20 @@ def intervals(sims: int, resamples: int) -> None:
 PAIRED = {"a": (0.5, 0.8, 0.10), "b": (1.2, 0.9, 0.20), "c": (0.0, 0.7, 0.05)}
 
 
-def paired_draw(rng, n, shrink, runs=1, run_sd=0.0):
+def paired_draw(rng, n, shrink, runs=1, run_sd=0.0, with_runs=True):
     """A and B on the same pairs (shared difficulty and shared hard failures), B's errors scaled by ``shrink``;
-    per run, per-pair seed noise (LogNormal(0, 0.4)) and optionally a run effect exp(N(0, run_sd)) on every pair."""
+    per run, per-pair seed noise (LogNormal(0, 0.4)) and optionally a run effect exp(N(0, run_sd)) on every pair
+    of every scene of that run (each configuration's runs their own). ``with_runs``: records carry their run."""
+    base = {s: (rng.lognormal(mu, sigma, n), rng.random(n) < fail) for s, (mu, sigma, fail) in PAIRED.items()}
     a, b = [], []
-    for s, (mu, sigma, fail) in PAIRED.items():
-        difficulty = rng.lognormal(mu, sigma, n)
-        hard = rng.random(n) < fail
-        for sh, out in ((1.0, a), (shrink, b)):
-            for _ in range(runs):
-                g = math.exp(rng.normal(0, run_sd)) if run_sd else 1.0
+    for sh, out in ((1.0, a), (shrink, b)):
+        for k in range(runs):
+            g = math.exp(rng.normal(0, run_sd)) if run_sd else 1.0
+            for s, (difficulty, hard) in base.items():
                 e = sh * difficulty * rng.lognormal(0, 0.4, n) * g
                 e[hard | (rng.random(n) < 0.03)] = np.inf
-                out += [{"scene": s, "pair": f"p{i}", "err": float(x)} for i, x in enumerate(e)]
+                out += [{"scene": s, "pair": f"p{i}", "err": float(x), **({"run": k} if with_runs else {})}
+                        for i, x in enumerate(e)]
     return a, b
 
 
@@ -135,20 +136,22 @@ def paired_truth(shrink: float) -> float:
 def paired(sims: int, resamples: int) -> None:
     print("== paired_bootstrap (3 scenes): rate of p < 0.05 / CI excluding 0 / significant (the verdict rule), "
           "and CI coverage of the true B - A")
-    for n, runs, run_sd in ((10, 1, 0.0), (25, 1, 0.0), (25, 3, 0.0), (25, 3, 0.15)):
+    for n, runs, run_sd, with_runs in ((10, 1, 0.0, True), (25, 1, 0.0, True), (25, 3, 0.0, True),
+                                       (25, 3, 0.15, False), (25, 3, 0.15, True)):
+        print(f"  {n} pairs/scene, {runs} run(s), run effect sd {run_sd}"
+              + ("" if runs == 1 else ", records with their run" if with_runs else ", runs pooled (no run index)"))
         for shrink in (1.0, 0.8, 0.65):
             truth = paired_truth(shrink) if shrink != 1.0 else 0.0
             rng = np.random.default_rng(5)
             rej = excl = sig = cov = 0
             for i in range(sims):
-                a, b = paired_draw(rng, n, shrink, runs, run_sd)
+                a, b = paired_draw(rng, n, shrink, runs, run_sd, with_runs)
                 r = paired_bootstrap(a, b, seed=i, n_resamples=resamples)
                 rej += r["p_value"] < 0.05
                 excl += not (r["ci"][0] <= 0 <= r["ci"][1])
                 sig += r["significant"]
                 cov += r["ci"][0] <= truth <= r["ci"][1]
-            print(f"  {n} pairs/scene, {runs} run(s), run effect sd {run_sd}: true B - A {truth:+.4f}: "
-                  f"p<0.05 {rej / sims:.3f}  CI excludes 0 {excl / sims:.3f}  significant {sig / sims:.3f}  "
+            print(f"    true B - A {truth:+.4f}: p<0.05 {rej / sims:.3f}  CI excludes 0 {excl / sims:.3f}  significant {sig / sims:.3f}  "
                   f"CI coverage {cov / sims:.3f}", flush=True)
 
 

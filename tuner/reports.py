@@ -425,7 +425,8 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
     scored = [i for i, r in enumerate(rows) if r["_best"] is not None]
     name = {i: f"{rows[i]['feature']} ({rows[i]['features']})" for i in range(len(rows))}
     if scored and all(rows[i]["_best"][2] for i in scored):  # pair errors everywhere: paired tests
-        ranked = rank_with_ties([(str(i), [x for run in rows[i]["_best"][2] for x in run]) for i in scored],
+        ranked = rank_with_ties([(str(i), [{**x, "run": k} for k, run in enumerate(rows[i]["_best"][2]) for x in run])
+                                 for i in scored],
                                 n_resamples=n_resamples, seed=seed)
         rule = ("paired bootstrap and sign-flip test on the test pairs, Bonferroni over the "
                 f"{max(1, len(scored) * (len(scored) - 1) // 2)} pairs of methods")

@@ -326,8 +326,8 @@ def compare_reference(ref_errors: list, errors: list, n_resamples: int) -> dict 
     if not ref_errors or not errors or any(e is None for e in list(ref_errors) + list(errors)):
         return None
     from pipeline.metrics.uncertainty import paired_bootstrap
-    a = [x for e in ref_errors for x in _as_records(e)]
-    b = [x for e in errors for x in _as_records(e)]
+    a = [{**x, "run": k} for k, e in enumerate(ref_errors) for x in _as_records(e)]  # run k: the k-th seed of both
+    b = [{**x, "run": k} for k, e in enumerate(errors) for x in _as_records(e)]
     return paired_bootstrap(a, b, tau=10, n_resamples=int(n_resamples or 2000))
 
 

@@ -107,7 +107,9 @@ def group_status(regions: dict, roles, param: str = "ratio") -> tuple[str, list]
 # ------------------------------------------------------------------------------------------ per finding
 
 def _flat(runs) -> list:
-    return [r for run in runs for r in run]
+    """The test runs' records in one list, each with its run index (run k of two studies: the k-th seed), which
+    lets the paired bootstrap see a run effect shared by all pairs (pipeline.metrics.uncertainty.paired_bootstrap)."""
+    return [{**r, "run": k} for k, run in enumerate(runs) for r in run]
 
 
 def study_figures(o, n_resamples: int) -> dict:
