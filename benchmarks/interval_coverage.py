@@ -24,10 +24,11 @@ Measured (2 cores, `--sims 1000` for intervals, 600 for paired / runs / ranking;
   0.696 -> 0.986, middling (0.745, 8 pairs) 0.787 -> 0.987, overall 0.876 -> 0.990; at 33-73 pairs: easy (55)
   0.662 -> 0.994, good (40 / 73) 0.896 / 0.930 -> 0.958 / 0.951, middling / hard 0.934-0.940 -> 0.943-0.949,
   overall 0.934 / 0.942 -> 0.962 / 0.945, width +2-10% there;
-- paired, 10 pairs per scene, one run: type-I error of p < 0.05 0.032 (sign-flip: exact, conservative at this
-  size), of the verdict rule 0.032; CI coverage 0.89-0.90 -> 0.92-0.94; 25 pairs: 0.92-0.93 -> 0.94-0.96;
-  3 runs: type-I 0.058 (0.0445 over 2000 other data sets); with a run effect shared by every pair (sd 0.15 in
-  log error, not modelled by the paired test) type-I 0.14, CI coverage 0.84-0.87 (not fixed);
+- paired (400 data sets), one run: type-I error of the verdict rule 0.040 at 10 pairs per scene, 0.045 at 25
+  (the sign-flip test is exact); CI coverage 0.89-0.90 -> 0.93-0.94 at 10 pairs, 0.92-0.93 -> 0.94-0.95 at 25;
+  three runs, no run effect: type-I 0.035 (runs pooled: 0.058), coverage 0.955; a run effect shared by all
+  pairs of a run (sd 0.15 in log error): runs pooled type-I 0.27, coverage 0.71-0.79 -> with the runs' index
+  0.105, coverage 0.88-0.90 (its variance rests on 2 degrees of freedom: not fully fixed);
 - runs: combine_runs_interval overall 0.95-0.97, per scene 0.92-0.99, with or without a shared run effect;
 - ranking: identical methods split off rank 1 in 0.27 (5 methods) / 0.53 (10) of tables -> 0.025 / 0.017
   (2 methods: 0.033).
