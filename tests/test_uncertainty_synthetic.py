@@ -292,9 +292,11 @@ def test_bca_option_is_close_to_the_percentile_interval_and_survives_degenerate_
 
 
 def test_a_difference_the_sign_flip_test_does_not_confirm_is_no_significant_difference():
-    """Five pairs, B better on each: every bootstrap resample of the difference is > 0 (the CI excludes 0), but the
-    exact sign-flip p of five signs is 2 / 2**5 = 0.0625 >= 0.05. One rule (paired_direction) for verdicts, shared
-    ranks and "significant": not significant, the rank shared. Six such pairs: p = 2 / 64 = 0.031, significant."""
+    """Five pairs, B better on each: every bootstrap resample of the difference is > 0, but the exact sign-flip p of
+    five signs is 2 / 2**5 = 0.0625 >= 0.05 (and the interval of <= 5 pairs is now the whole range, see
+    test_a_paired_interval_on_five_pairs_or_fewer_excludes_no_difference). One rule (paired_direction) for verdicts,
+    shared ranks and "significant": not significant, the rank shared. Six such pairs: p = 2 / 64 = 0.031,
+    significant."""
     from pipeline.metrics.uncertainty import paired_bootstrap, rank_with_ties
 
     def recs(errs):
@@ -302,7 +304,7 @@ def test_a_difference_the_sign_flip_test_does_not_confirm_is_no_significant_diff
     for n, significant in ((5, False), (6, True)):
         a, b = recs([8.0] * n), recs([2.0] * n)  # B: 2 deg on every pair, A: 8 deg
         cmp = paired_bootstrap(a, b, n_resamples=4000)
-        assert cmp["ci"][0] > 0 and cmp["p_value"] == pytest.approx(2 / 2 ** n, abs=0.015), cmp
+        assert (cmp["ci"][0] > 0) is significant and cmp["p_value"] == pytest.approx(2 / 2 ** n, abs=0.015), cmp
         assert cmp["significant"] is significant
         ranked = rank_with_ties([("A", a), ("B", b)], n_resamples=4000)
         assert [r["name"] for r in ranked] == ["B", "A"]
@@ -478,3 +480,24 @@ def test_the_paired_test_of_repeated_runs_accounts_for_a_run_effect():
     a = [dict(r, run=k) for k in range(3) for r in records_from({"s": [0.5, 2.0, 7.0, np.inf]})]
     same = paired_bootstrap(a, [dict(r) for r in a])
     assert same["difference"] == 0.0 and same["ci"] == [0.0, 0.0] and same["p_value"] == 1.0
+
+
+def test_a_paired_interval_on_five_pairs_or_fewer_excludes_no_difference():
+    """On n pairs no paired test at 5% can reject any difference while 2 / 2^n >= 0.05 (n <= 5): the sign flips of
+    n pairs give p >= 0.0625 whatever the data. The bootstrap still printed an interval: one pair, B 0.4 worse,
+    '95% CI [-0.4000, -0.4000]' (p = 1); three pairs each 0.1 better, [+0.1, +0.1] - which happens 1 time in 8 when
+    the true difference is 0 (each pair's sign a coin flip), so that interval excludes the truth far more often
+    than 5%. Inverting the exact test, the interval of a difference of scores on <= 5 pairs is their whole range
+    [-1, 1]; identical inputs stay exactly [0, 0]."""
+    def recs(errs, scene="s"):
+        return [{"scene": scene, "pair": f"p{i}", "err": float(e)} for i, e in enumerate(errs)]
+    one = paired_bootstrap(recs([0.5]), recs([5.0]))
+    assert one["difference"] == pytest.approx(-0.4) and one["ci"] == [-1.0, 1.0] and one["p_value"] == 1.0
+    three = paired_bootstrap(recs([1.5, 1.5, 1.5]), recs([0.5, 0.5, 0.5]))  # each pair +0.1
+    assert three["ci"][0] <= 0.0 <= three["ci"][1] and not three["significant"]
+    assert three["scenes"]["s"]["ci"] == [-1.0, 1.0]
+    same = paired_bootstrap(recs([0.5, 3.0]), recs([0.5, 3.0]))
+    assert same["ci"] == [0.0, 0.0] and same["p_value"] == 1.0
+    # two scenes of 3 pairs: 6 pairs overall, each +0.1: the exact test reaches p = 2 / 64 there
+    six = paired_bootstrap(recs([1.5] * 3) + recs([1.5] * 3, "t"), recs([0.5] * 3) + recs([0.5] * 3, "t"))
+    assert six["scenes"]["t"]["ci"] == [-1.0, 1.0] and six["ci"][0] > 0 and six["significant"]

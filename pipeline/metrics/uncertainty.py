@@ -330,6 +330,11 @@ def _paired_stats(groups_a, groups_b, n_resamples, seed, level, method, run_diff
             ci = [diff - t * math.sqrt(V), diff + t * math.sqrt(V)]
         p = max(p, float(2.0 * stats.t.sf(abs(diff) / math.sqrt(V), df)))
         run_note = {"run_variance": G, "runs": R, "df": df}
+    if d.size and 2.0 / 2.0 ** d.size >= round(1.0 - level, 12):
+        # n pairs whose sign flips cannot give p < 1 - level (n <= 5 at 95%): no paired test rejects any difference,
+        # so the interval from inverting it is the whole range of a score difference (a bootstrap of 1-5 pairs
+        # printed [d, d] for one pair). A hand-written rule: scipy has no interval for this case.
+        ci = [-1.0, 1.0]
     if not np.any(d):  # identical scores: exactly 0, whatever the rounding of maa_b - maa_a
         diff, ci = 0.0, [0.0, 0.0]
     return {"a": maa_a, "b": maa_b, "difference": diff, "ci": [float(ci[0]), float(ci[1])], "p_value": p,
