@@ -317,7 +317,7 @@ def test_findings_1_and_4_end_to_end(subset, tmp_path, monkeypatch, capsys):
     assert "compute recorded by the" in md
     # a relative difference says what it is relative to (A of "B vs A"; it said "the latter")
     if res["findings"][0]["difference"] is not None and res["findings"][0]["measured"].get("relative_difference"):
-        assert "% relative to defaults)" in md and "the latter" not in md
+        assert "relative to defaults)" in md and "% [95% CI " in md and "the latter" not in md
     # each optimum warning (on a bound, Gamma_max at the ceiling, ...) names its study: twenty studies share stderr
     from tuner.freeze import frozen_from_study
     from tuner.diagnostics import optimum_warnings

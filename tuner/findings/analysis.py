@@ -27,7 +27,8 @@ from __future__ import annotations
 
 import math
 
-from pipeline.metrics.uncertainty import DEFAULT_LEVEL, combine_runs_interval, paired_bootstrap, paired_direction
+from pipeline.metrics.uncertainty import (DEFAULT_LEVEL, combine_runs_interval, paired_bootstrap, paired_direction,
+                                          paired_relative)
 from tuner.findings.definitions import SMALL_GAIN, Finding
 
 HOLDS, FAILS, UNSURE, NOT_RUN = "holds", "does not hold", "inconclusive", "not run"
@@ -147,9 +148,10 @@ def relation(outcomes: dict, a: str, b: str, n_resamples: int, seed: int = 0) ->
         return None
     pb = paired_bootstrap(_flat(oa.test_runs), _flat(ob.test_runs), tau=10, n_resamples=n_resamples, seed=seed)
     ma = pb["mAA10_a"]
+    rel = paired_relative(_flat(oa.test_runs), _flat(ob.test_runs), tau=10, n_resamples=n_resamples, seed=seed)
     return {"a": a, "b": b, "mAA10_a": ma, "mAA10_b": pb["mAA10_b"], "difference": pb["difference"],
-            "relative": (pb["difference"] / ma) if ma else None, "ci": pb["ci"], "p_value": pb["p_value"],
-            "pairs": pb["pairs"], "dropped": [pb["dropped_a"], pb["dropped_b"]]}
+            "relative": (pb["difference"] / ma) if ma else None, "relative_ci": rel["ci"], "ci": pb["ci"],
+            "p_value": pb["p_value"], "pairs": pb["pairs"], "dropped": [pb["dropped_a"], pb["dropped_b"]]}
 
 
 def _bonferroni_decider(computed: list, statuses: list[str], how: str, outcomes: dict, n_resamples: int,
@@ -221,6 +223,7 @@ def analyse(f: Finding, outcomes: dict, n_resamples: int = 2000, seed: int = 0) 
                                               in zip(computed, statuses) if c is not None and
                                               (s == FAILS if st == FAILS else s != HOLDS if st == UNSURE else True)]
         measured["relative_difference"] = key["relative"]
+        measured["relative_ci"] = key.get("relative_ci")  # joint bootstrap of the ratio (paired_relative)
         measured["relative_to"] = key["a"]  # the role the relative difference divides by (A of "B vs A")
         extra = _extras(f, outcomes)
         if extra:
@@ -263,6 +266,11 @@ def _reason(missing: dict) -> str:
 def _extras(f: Finding, outcomes: dict) -> dict:
     """Finding-specific figures beside the verdict (they do not change it)."""
     out = {}
+    if f.id == 1:  # the paper's figure is the defaults' change relative to tuned: (defaults - tuned) / tuned
+        od, ot = outcomes.get("defaults"), outcomes.get("tuned")
+        if od and ot and od.ok and ot.ok and od.test_runs and ot.test_runs:
+            r = paired_relative(_flat(ot.test_runs), _flat(od.test_runs), tau=10)
+            out["relative_change_of_defaults"] = {"relative": r["relative"], "ci": r["ci"]}
     if f.id == 2:
         g = {r: (o.attrs.get("budget") or {}).get("gamma_max") for r, o in outcomes.items() if o.ok}
         out["gamma_max"] = g

@@ -101,6 +101,13 @@ def settings_lines(fs) -> list[str]:
     ]
 
 
+def _pct_ci(ci) -> str:
+    """" [95% CI -60.1%, -40.2%]" of a relative difference's interval (paired_relative), "" without one."""
+    if not ci:
+        return ""
+    return f" [95% CI {100 * ci[0]:+.1f}%, {100 * ci[1]:+.1f}%]"
+
+
 def paper_comparison(f: dict) -> str | None:
     """The paper's headline number beside ours, where the paper gives one (findings 1, 2, 3, 4), from the
     measured figures; also stored as ``measured["paper_comparison"]``."""
@@ -115,15 +122,19 @@ def paper_comparison(f: dict) -> str | None:
     if f["id"] == 1 and maa("defaults") is not None and maa("tuned"):
         ours = (maa("defaults") - maa("tuned")) / maa("tuned")
         paper = pn["relative_change_of_defaults"]
-        m["paper_comparison"] = {"paper": paper, "ours": ours, "what": "relative mAA(10) change of the defaults vs tuned"}
+        ci = (m.get("relative_change_of_defaults") or {}).get("ci")
+        m["paper_comparison"] = {"paper": paper, "ours": ours, "ours_ci": ci,
+                                 "what": "relative mAA(10) change of the defaults vs tuned"}
         txt = (f"relative mAA(10) of the defaults vs tuned: paper (validation) {100 * paper:+.1f}%, "
-               f"here (test) {100 * ours:+.1f}%")
+               f"here (test) {100 * ours:+.1f}%{_pct_ci(ci)}")
     elif f["id"] == 3 and maa("tuned") is not None and maa("gamma1000"):
         ours = (maa("tuned") - maa("gamma1000")) / maa("gamma1000")
         lo, hi = pn["relative_gain"]
-        m["paper_comparison"] = {"paper": [lo, hi], "ours": ours, "what": "relative gain of lifting Gamma = 1000"}
+        ci = m.get("relative_ci") if m.get("relative_to") == "gamma1000" else None
+        m["paper_comparison"] = {"paper": [lo, hi], "ours": ours, "ours_ci": ci,
+                                 "what": "relative gain of lifting Gamma = 1000"}
         txt = (f"relative gain of lifting Gamma = 1000: paper (validation) +{100 * lo:.0f}% to +{100 * hi:.0f}%, "
-               f"here (test) {100 * ours:+.1f}%")
+               f"here (test) {100 * ours:+.1f}%{_pct_ci(ci)}")
     elif f["id"] == 2:
         g = {r: s.get("gamma_max") for r, s in st.items() if s.get("ok")}
         if g:
@@ -243,7 +254,7 @@ def _difference_text(f: dict) -> str:
     txt = (f"{m.get('key')}: difference {_num(f['difference'])} mAA(10), 95% CI {_ci(f['ci'])}, "
            f"{_p_is(f['p_value'])}")
     if rel is not None:
-        txt += f" ({100 * rel:+.1f}% relative to {m.get('relative_to')})"
+        txt += f" ({100 * rel:+.1f}%{_pct_ci(m.get('relative_ci'))} relative to {m.get('relative_to')})"
     def bonferroni(r) -> str:
         return (f" (deciding alone, tested at the Bonferroni level over the relations: {100 * r['level']:.3g}% CI "
                 f"{_ci(r['ci_at_level'])}, needs p < {1 - r['level']:.3g})" if r.get("level") else "")
