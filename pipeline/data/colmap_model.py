@@ -4,7 +4,8 @@ Scene layout: ``<scene>/images/`` plus ``<scene>/sparse/`` or ``<scene>/sparse/<
 cameras/images/points3D as ``.bin`` or ``.txt`` (also ``<scene>/dense/{images,sparse}`` as in the IMC-PT training
 archives). With several ``sparse/<n>`` models the one with the most registered images is used. Only registered
 images are kept. K is the camera's calibration matrix (px); lens distortion of non-pinhole models is ignored.
-Poses world-to-camera in model units; ``points3d`` (P, 3) and per-image observations (point indices, xy px).
+Poses world-to-camera in model units; ``points3d`` (P, 3) and per-image observations (point indices, xy px); a model
+without 3D points has none (co-visibility unknown, so every pair is evaluated; ``tune data build-gt`` triangulates).
 """
 from __future__ import annotations
 
@@ -134,6 +135,8 @@ def load_colmap(root: Path, scene: str | None = None, model: Path | None = None,
         raise ImtuneError(f"COLMAP model {mdir} has no registered images")
 
     point_ids = sorted(rec.point3D_ids())
+    if not point_ids:  # poses only: co-visibility unknown (every pair evaluated), not 0 for every pair (none evaluated)
+        return Scene(name=name, root=sdir, images=images, pairs=all_pairs(list(images)), source=NAME)
     index = {pid: k for k, pid in enumerate(point_ids)}
     points3d = np.array([rec.points3D[p].xyz for p in point_ids], dtype=np.float64).reshape(-1, 3)
     observations = {}

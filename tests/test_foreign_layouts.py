@@ -1,0 +1,66 @@
+"""Real Strecha images re-written in the other layouts imtune reads (COLMAP text model, ...), the ground truth computed
+here with numpy straight from the camera files as ../shared/data/README.md defines them: data we do not ship, run
+through the real `tune` CLI as a user would."""
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from tests.conftest import DATA
+from tests.test_bad_input_files import one_line_error, tune
+
+FOUNTAIN = DATA / "strecha" / "fountain-P11"
+EVAL = ("--feature", "sift", "--num-features", "1000", "--ratio", "0.85", "--ransac", "degensac", "--threshold", "0.5",
+        "--max-iters", "5000", "--seed", "1", "--jobs", "1", "--quiet")
+
+
+def read_camera(path: Path):
+    """(K, R world-to-camera, t, (w, h)) of a Strecha .camera file (R_wc = R^T, t = -R^T C)."""
+    v = np.array(path.read_text().split(), float)
+    R_wc = v[12:21].reshape(3, 3).T
+    return v[:9].reshape(3, 3), R_wc, -R_wc @ v[21:24], (int(v[24]), int(v[25]))
+
+
+def _nums(values) -> str:
+    return " ".join(f"{float(v):.17g}" for v in values)
+
+
+def write_colmap_scene(root: Path, names: list[str], points: bool = False) -> Path:
+    """``root/<scene>/images`` + ``sparse/0/{cameras,images,points3D}.txt`` (PINHOLE) of fountain-P11 images."""
+    if not FOUNTAIN.exists():
+        pytest.skip(f"real data not found at {FOUNTAIN} (expected ../shared beside the project)")
+    scene = root / "fountain-colmap"
+    (scene / "images").mkdir(parents=True)
+    model = scene / "sparse" / "0"
+    model.mkdir(parents=True)
+    cams, ims = [], []
+    for k, n in enumerate(names, 1):
+        shutil.copy(FOUNTAIN / "images" / n, scene / "images" / n)
+        K, R, t, (w, h) = read_camera(FOUNTAIN / "gt_dense_cameras" / f"{n}.camera")
+        # COLMAP's principal point is in the pixel-corner convention (top-left pixel centre at 0.5, 0.5)
+        cams.append(f"{k} PINHOLE {w} {h} " + _nums([K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5]))
+        x, y, z, q = Rotation.from_matrix(R).as_quat()
+        ims.append(f"{k} {_nums([q, x, y, z, *t])} {k} {n}\n")
+    (model / "cameras.txt").write_text("\n".join(cams) + "\n")
+    (model / "images.txt").write_text("\n".join(ims) + "\n")
+    (model / "points3D.txt").write_text("")
+    return root
+
+
+def test_colmap_model_without_3d_points_evaluates_every_pair(tmp_path, cache_dir):
+    """A model with poses but no 3D points (points3D.txt empty: known poses written out as a model) has unknown
+    co-visibility; it was taken as 0 for every pair, so `tune evaluate` stopped with "no stereo pairs ... co-visibility
+    >= 0.1". Now every pair is evaluated, as for any scene whose co-visibility is unknown."""
+    root = write_colmap_scene(tmp_path / "data", ["0000.jpg", "0001.jpg", "0002.jpg"])
+    r = tune("evaluate", "--data", root, *EVAL, "--json", "--pairs")
+    assert r.returncode == 0, r.stderr[-2000:]
+    st = json.loads(r.stdout)["stereo"]
+    assert st["pairs"] == 3 and st["failed"] == 0
+    assert all(p["covisibility"] is None for p in st["pair_records"])
+    assert st["mAA10"] > 0.5
