@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.data._common import check_K, pick_scene, scene_dirs
-from pipeline.data.imagefile import check_image_file
+from pipeline.data.imagefile import check_image_file, image_size
 from pipeline.data.scene import ImageInfo, Scene, all_pairs
 from pipeline.errors import ImtuneError
 
@@ -95,7 +95,8 @@ def load_colmap(root: Path, scene: str | None = None, model: Path | None = None,
                 verify: bool = True) -> Scene:
     """Load a COLMAP model as a Scene: registered images (K, R, t, size), 3D points and observations, all pairs
     of registered images (co-visibility unknown: compute it from the points). ``model`` / ``image_dir``
-    override the folders found in the scene. ``verify`` checks every image file exists and is complete."""
+    override the folders found in the scene. ``verify`` checks every image file exists, is complete and has its
+    camera's size."""
     root = Path(root)
     if model is not None:
         sdir, name = root, scene or root.name
@@ -123,6 +124,11 @@ def load_colmap(root: Path, scene: str | None = None, model: Path | None = None,
         path = img_dir / im.name
         if verify:
             check_image_file(path)
+            w, h = image_size(path)
+            if (w, h) != (int(cam.width), int(cam.height)):  # K is for the camera's size: a resized copy made it wrong
+                raise ImtuneError(f"COLMAP model {mdir}: camera {im.camera_id} of {im.name} is {cam.width}x{cam.height}"
+                                  f" px but {path} is {w}x{h}: use the images the model was made from (or rescale "
+                                  "the model's cameras to them)")
         # a focal length of 0 (cameras.txt) was taken as ground truth; pycolmap refuses NaN, not 0 or < 0
         K = check_K(np.asarray(cam.calibration_matrix(), float),
                     f"COLMAP model {mdir}: camera {im.camera_id} of {im.name}")
