@@ -62,13 +62,18 @@ def write_colmap_text(model: Path, images_dir: Path, n_images: int = 4, n_points
     return truth, obs, X, kept
 
 
+def _centre(K):
+    """K written in COLMAP's pixel-corner convention -> imtune's pixel-centre convention (cx, cy - 0.5 px)."""
+    return K - np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
+
+
 def _check(scene, truth, obs, X, kept):
     assert scene.source == "colmap" and len(scene.images) == len(truth)
     n = len(truth)
     assert len(scene.pairs) == n * (n - 1) // 2
     for name, (K, R, t) in truth.items():
         im = scene.images[name]
-        np.testing.assert_allclose(im.K, K, atol=1e-9)
+        np.testing.assert_allclose(im.K, _centre(K), atol=1e-9)
         np.testing.assert_allclose(im.R, R, atol=1e-9)
         np.testing.assert_allclose(im.t, t, atol=1e-9)
         assert im.size == (W, H) and im.path.is_file()
@@ -80,10 +85,10 @@ def _check(scene, truth, obs, X, kept):
         sel = np.isin(seen, kept)
         np.testing.assert_array_equal(np.sort(ids), np.sort(seen[sel]))
         order = np.argsort(ids)
-        np.testing.assert_allclose(xy[order], x[sel][np.argsort(seen[sel])], atol=1e-9)
-        # observations reproject: the model and the poses agree
+        np.testing.assert_allclose(xy[order], x[sel][np.argsort(seen[sel])] - 0.5, atol=1e-9)
+        # observations reproject: the model and the poses agree (both in the pixel-centre convention)
         K, R, t = truth[name]
-        np.testing.assert_allclose(_project(K, R, t, scene.points3d[idx]), xy, atol=1e-6)
+        np.testing.assert_allclose(_project(_centre(K), R, t, scene.points3d[idx]), xy, atol=1e-6)
 
 
 def test_colmap_text_model_round_trips(tmp_path):

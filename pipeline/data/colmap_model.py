@@ -3,7 +3,9 @@
 Scene layout: ``<scene>/images/`` plus ``<scene>/sparse/`` or ``<scene>/sparse/<n>/`` holding
 cameras/images/points3D as ``.bin`` or ``.txt`` (also ``<scene>/dense/{images,sparse}`` as in the IMC-PT training
 archives). With several ``sparse/<n>`` models the one with the most registered images is used. Only registered
-images are kept. K is the camera's calibration matrix (px); lens distortion of non-pinhole models is ignored.
+images are kept. K is the camera's calibration matrix (px); lens distortion of non-pinhole models is ignored. COLMAP's
+pixel coordinates put the top-left pixel's centre at (0.5, 0.5): K's principal point and the observations are moved
+by -0.5 px into imtune's pixel-centre convention (:mod:`pipeline.colmap_db`).
 Poses world-to-camera in model units; ``points3d`` (P, 3) and per-image observations (point indices, xy px); a model
 without 3D points has none (co-visibility unknown, so every pair is evaluated; ``tune data build-gt`` triangulates).
 """
@@ -13,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.colmap_db import PIXEL_OFFSET, K_from_camera
 from pipeline.data._common import check_K, pick_scene, scene_dirs
 from pipeline.data.imagefile import check_image_file, image_size
 from pipeline.data.scene import ImageInfo, Scene, all_pairs
@@ -130,8 +133,7 @@ def load_colmap(root: Path, scene: str | None = None, model: Path | None = None,
                                   f" px but {path} is {w}x{h}: use the images the model was made from (or rescale "
                                   "the model's cameras to them)")
         # a focal length of 0 (cameras.txt) was taken as ground truth; pycolmap refuses NaN, not 0 or < 0
-        K = check_K(np.asarray(cam.calibration_matrix(), float),
-                    f"COLMAP model {mdir}: camera {im.camera_id} of {im.name}")
+        K = check_K(K_from_camera(cam), f"COLMAP model {mdir}: camera {im.camera_id} of {im.name}")
         images[im.name] = ImageInfo(name=im.name, path=path, K=K,
                                     R=_rotation(pose.rotation, f"COLMAP model {mdir}: image {image_id} ({im.name})"),
                                     t=np.asarray(pose.translation, float).reshape(3),
@@ -151,7 +153,7 @@ def load_colmap(root: Path, scene: str | None = None, model: Path | None = None,
         for p2 in rec.images[image_id].points2D:
             if p2.has_point3D() and p2.point3D_id in index:
                 idx.append(index[p2.point3D_id])
-                xy.append(p2.xy)
+                xy.append(np.asarray(p2.xy, float) - PIXEL_OFFSET)
         observations[image_name] = (np.asarray(idx, dtype=np.int64), np.asarray(xy, dtype=np.float64).reshape(-1, 2))
     return Scene(name=name, root=sdir, images=images,
                  pairs=all_pairs(list(images)), points3d=points3d, observations=observations, source=NAME)
