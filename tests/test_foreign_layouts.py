@@ -95,3 +95,45 @@ def test_colmap_model_ground_truth_matches_the_camera_files(tmp_path):
         R, t = scene.relative_pose(p)
         np.testing.assert_allclose(R, Rj @ Ri.T, atol=1e-6)
         np.testing.assert_allclose(t, tj - Rj @ Ri.T @ ti, atol=1e-5)
+
+
+def write_imc_pt2020_scene(root: Path, names: list[str], bags: dict[int, list[list[str]]]) -> Path:
+    """``root/phototourism/<scene>/set_100``: images, calibration_<key>.h5 (K, R, T world-to-camera) of fountain-P11
+    images, and ``sub_set/<n>bag_<k>.txt`` bags; returns the phototourism folder."""
+    import h5py
+    if not FOUNTAIN.exists():
+        pytest.skip(f"real data not found at {FOUNTAIN} (expected ../shared beside the project)")
+    s = root / "phototourism" / "fountain-pt" / "set_100"
+    for sub in ("images", "calibration", "sub_set"):
+        (s / sub).mkdir(parents=True)
+    for n in names:
+        shutil.copy(FOUNTAIN / "images" / n, s / "images" / n)
+        K, R, t, _ = read_camera(FOUNTAIN / "gt_dense_cameras" / f"{n}.camera")
+        with h5py.File(s / "calibration" / f"calibration_{Path(n).stem}.h5", "w") as f:
+            f["K"], f["R"], f["T"] = K, R, t.reshape(3, 1)
+    for size, lst in bags.items():
+        for k, bag in enumerate(lst):
+            (s / "sub_set" / f"{size}bag_{k:03d}.txt").write_text("".join(f"images/{n}\n" for n in bag))
+    return root / "phototourism"
+
+
+def test_imc_pt2020_scene_shipping_some_bag_sizes_names_the_missing_ones(tmp_path, cache_dir, monkeypatch):
+    """An IMC-PT 2020 scene whose sub_set/ ships 5-image bags only: the multiview task (sizes 5, 10, 25) evaluated
+    the 5-bags alone and reported their mean as the mean over the three sizes, while its warning said size 25 ran as
+    one bag of all the images. Now the missing sizes are one line naming them and the two ways out (exit 2); with
+    3D points to sample from (built ground truth), they are sampled."""
+    monkeypatch.setenv("IMTUNE_GT", str(tmp_path / "gt"))
+    names = [f"{k:04d}.jpg" for k in range(6)]
+    data = write_imc_pt2020_scene(tmp_path / "data", names, {5: [names[:5], names[1:]]})
+    mv = ("--feature", "sift", "--num-features", "1000", "--ratio", "0.85", "--jobs", "1", "--workers", "1", "--quiet")
+    one_line_error(tune("evaluate", "--data", data, "--task", "multiview", *mv), "fountain-pt", "size(s) 5",
+                   "not of size(s) 6 (10, 25", "--bags 5", "build-gt")
+    from pipeline.data import load_scene
+    from pipeline.data.bags import scene_bags
+    scene = load_scene(data)
+    assert scene_bags(scene, {5: 10}) == {5: [tuple(names[:5]), tuple(names[1:])]}
+    rng = np.random.default_rng(0)  # 3D points seen by every image: each size can be sampled
+    scene.points3d = rng.normal(size=(200, 3))
+    scene.observations = {n: (np.arange(200), np.zeros((200, 2))) for n in names}
+    bags = scene_bags(scene, {5: 2, 10: 1, 25: 1}, min_points=100)
+    assert bags[5] == [tuple(names[:5]), tuple(names[1:])] and bags[6] == [tuple(names)] and 10 not in bags

@@ -153,23 +153,38 @@ def scene_point_sets(scene) -> dict[str, np.ndarray] | None:
 def scene_bags(scene, bags: dict[int, int] | None = None, min_points: int = MIN_POINTS, seed: int = 0,
                use_existing: bool = True) -> dict[int, list[tuple[str, ...]]]:
     """A scene's bags: the ones it ships (IMC-PT sub_set, or built ground truth) when ``use_existing``
-    (limited to the requested sizes and counts), else sampled from its 3D points.
+    (limited to the requested sizes and counts), else sampled from its 3D points; requested sizes it does not ship
+    are sampled from its 3D points too.
 
-    Raises ImtuneError naming the scene when it has neither bags nor 3D points."""
+    Raises ImtuneError naming the scene when it has neither bags nor 3D points, or ships some requested sizes and has
+    no 3D points to sample the others from."""
     spec = DEFAULT_BAGS if bags is None else bags
+    pts = scene_point_sets(scene)
     if use_existing and scene.bags:
         names = set(scene.images)
         wanted = {min(s, len(scene.images)): c for s, c in sorted(spec.items(), reverse=True)}
+        wanted = {s: c for s, c in wanted.items() if s >= MIN_BAG}
         out = {}
         for size, lst in sorted(scene.bags.items()):
-            if size not in wanted or size < MIN_BAG:
+            if size not in wanted:
                 continue
             ok = [tuple(b) for b in lst if set(b) <= names]
             if ok:
                 out[size] = ok[: wanted[size]]
-        if out:
+        missing = sorted(set(wanted) - set(out))
+        if out and not missing:
             return out
-    pts = scene_point_sets(scene)
+        if pts is not None or min_points <= 0:  # the sizes it does not ship, sampled from its 3D points
+            return dict(sorted({**sample_bags(list(scene.images), pts, {s: wanted[s] for s in missing},
+                                              min_points=min_points, seed=seed), **out}.items()))
+        # the mean over the sizes it ships was reported as the mean over every requested size, unsaid
+        asked = {s: sorted(r for r in spec if min(r, len(scene.images)) == s) for s in missing}
+        said = ", ".join(f"{s}" + ("" if asked[s] == [s] else f" ({', '.join(map(str, asked[s]))} on its "
+                                                                f"{len(scene.images)} images)") for s in missing)
+        shipped = sorted(scene.bags)
+        raise ImtuneError(f"scene {scene.name}: its bags are of size(s) {', '.join(map(str, shipped))}, not of size(s) "
+                          f"{said} as requested: pass --bags {','.join(map(str, shipped))} to evaluate the sizes it "
+                          "ships, or run `tune data build-gt` for it to sample the others from 3D points")
     if pts is None:
         if min_points > 0:
             if any(im.R is None for im in scene.images.values()):  # e.g. a pairs list: relative poses only
