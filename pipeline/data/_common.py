@@ -49,6 +49,18 @@ def check_K(K: np.ndarray, where: str) -> np.ndarray:
     return K
 
 
+def check_principal_point(K: np.ndarray, size: tuple[int, int], image: Path | str) -> None:
+    """ImtuneError naming ``image`` when K's principal point (px) lies outside the image of ``size`` (w, h) px: K is
+    then for another image size (a resized copy of the images, the intrinsics left as they were), which formats that
+    state no image size (pairs lists, IMC-PT, IMC 2022) cannot tell otherwise."""
+    w, h = size
+    cx, cy = float(K[0, 2]), float(K[1, 2])
+    if not (-0.5 <= cx <= w - 0.5 and -0.5 <= cy <= h - 0.5):
+        raise ImtuneError(f"image {image} is {w}x{h} px but the principal point of its intrinsics ({cx:g}, {cy:g}) "
+                          "lies outside it: the intrinsics are for another size (resized images?); use the images "
+                          "they were given for, or scale K to these")
+
+
 def split_pair_key(key: str, known: set[str], where: str) -> tuple[str, str]:
     """Split "idA-idB" into two known ids (ids may themselves contain '-')."""
     parts = key.split("-")

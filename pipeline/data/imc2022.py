@@ -12,7 +12,8 @@ import csv
 import os
 from pathlib import Path
 
-from pipeline.data._common import check_K, check_rotation, parse_floats, pick_scene, scene_dirs, split_pair_key
+from pipeline.data._common import (check_K, check_principal_point, check_rotation, parse_floats, pick_scene,
+                                   scene_dirs, split_pair_key)
 from pipeline.data.imagefile import check_image_file, image_size
 from pipeline.data.scene import ImageInfo, Pair, Scene, all_pairs
 from pipeline.errors import ImtuneError
@@ -108,6 +109,7 @@ def load_imc2022(root: Path, scene: str | None = None, verify: bool = True) -> S
         if verify:
             check_image_file(path)
             size = image_size(path)
+            check_principal_point(K, size, path)
         images[path.name] = ImageInfo(name=path.name, path=path, K=K, R=R, t=t, size=size)
         id_to_name[image_id] = path.name
     if not images:

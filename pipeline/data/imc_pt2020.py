@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.data._common import check_K, check_rotation, pick_scene, split_pair_key, unique
+from pipeline.data._common import check_K, check_principal_point, check_rotation, pick_scene, split_pair_key, unique
 from pipeline.data.imagefile import check_image_file, image_size, list_images
 from pipeline.data.scene import ImageInfo, Pair, Scene, all_pairs
 from pipeline.errors import ImtuneError
@@ -174,6 +174,7 @@ def load_imc_pt2020(root: Path, scene: str | None = None, verify: bool = True) -
         if verify:
             check_image_file(path)
             size = image_size(path)
+            check_principal_point(K, size, path)
         depth = sdir / "depth_maps" / f"{key}.h5"
         images[fn] = ImageInfo(name=fn, path=path, K=K, R=R, t=t, size=size,
                                depth_path=depth if _optional(depth, False, "depth map") else None)

@@ -12,7 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.data._common import check_K, check_rotation, parse_floats, pick_scene, scene_dirs
+from pipeline.data._common import (check_K, check_principal_point, check_rotation, parse_floats, pick_scene,
+                                   scene_dirs)
 from pipeline.data.imagefile import check_image_file, image_size
 from pipeline.data.scene import ImageInfo, Pair, Scene
 from pipeline.errors import ImtuneError
@@ -122,6 +123,8 @@ def load_pairs_with_gt(root: Path, scene: str | None = None, pairs_file: Path | 
                     check_image_file(path)
                     size = image_size(path)
                 images[n] = ImageInfo(name=n, path=path, K=K, size=size)
+            if verify:
+                check_principal_point(K, images[n].size, images[n].path)
         pairs.append(Pair(n0, n1, R=T[:3, :3].copy(), t=T[:3, 3].copy(), K_i=K0, K_j=K1))
     return Scene(name=name, root=sdir, images=images, pairs=pairs, source=NAME)
 
