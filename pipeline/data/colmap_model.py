@@ -3,7 +3,8 @@
 Scene layout: ``<scene>/images/`` plus ``<scene>/sparse/`` or ``<scene>/sparse/<n>/`` holding
 cameras/images/points3D as ``.bin`` or ``.txt`` (also ``<scene>/dense/{images,sparse}`` as in the IMC-PT training
 archives). With several ``sparse/<n>`` models the one with the most registered images is used. Only registered
-images are kept. K is the camera's calibration matrix (px); lens distortion of non-pinhole models is ignored. COLMAP's
+images are kept. K is the camera's calibration matrix (px); a camera whose lens distortion moves its image border by more
+than ``MAX_DISTORTION_PX`` is refused (imtune models pinhole cameras: undistort first). COLMAP's
 pixel coordinates put the top-left pixel's centre at (0.5, 0.5): K's principal point and the observations are moved
 by -0.5 px into imtune's pixel-centre convention (:mod:`pipeline.colmap_db`).
 Poses world-to-camera in model units; ``points3d`` (P, 3) and per-image observations (point indices, xy px); a model
@@ -94,6 +95,23 @@ def _rotation(rot, where: str) -> np.ndarray:
     return Rotation.from_quat(q / n).as_matrix()
 
 
+#: largest displacement (px) lens distortion may cause at an image's border and still be read as a pinhole camera
+MAX_DISTORTION_PX = 0.5
+
+
+def distortion_px(cam) -> float:
+    """How far (px) a pycolmap camera's lens distortion moves the points of its image border (corners and edge
+    midpoints) from where its pinhole part alone puts them; 0 for PINHOLE models, inf where it cannot be undone."""
+    w, h = float(cam.width), float(cam.height)
+    xy = np.array([[x, y] for x in (0.0, w / 2, w) for y in (0.0, h / 2, h) if (x, y) != (w / 2, h / 2)])
+    K = np.asarray(cam.calibration_matrix(), float)
+    with np.errstate(all="ignore"):
+        nrm = np.asarray(cam.cam_from_img(xy), float).reshape(-1, 2)  # undistorted, normalised
+        pin = nrm @ K[:2, :2].T + K[:2, 2]
+        d = np.linalg.norm(pin - xy, axis=1)
+    return float(d.max()) if np.all(np.isfinite(d)) else float("inf")
+
+
 def load_colmap(root: Path, scene: str | None = None, model: Path | None = None, image_dir: Path | None = None,
                 verify: bool = True) -> Scene:
     """Load a COLMAP model as a Scene: registered images (K, R, t, size), 3D points and observations, all pairs
@@ -134,6 +152,12 @@ def load_colmap(root: Path, scene: str | None = None, model: Path | None = None,
                                   "the model's cameras to them)")
         # a focal length of 0 (cameras.txt) was taken as ground truth; pycolmap refuses NaN, not 0 or < 0
         K = check_K(K_from_camera(cam), f"COLMAP model {mdir}: camera {im.camera_id} of {im.name}")
+        moved = distortion_px(cam)
+        if moved > MAX_DISTORTION_PX:  # poses were estimated with the pinhole K alone on distorted images, unsaid
+            raise ImtuneError(f"COLMAP model {mdir}: camera {im.camera_id} ({cam.model.name}) of {im.name} has lens "
+                              f"distortion moving its image border by up to {moved:.3g} px, which imtune does not model "
+                              "(pinhole K): undistort the images and the model first (`colmap image_undistorter`; "
+                              "its output folder reads as is)")
         images[im.name] = ImageInfo(name=im.name, path=path, K=K,
                                     R=_rotation(pose.rotation, f"COLMAP model {mdir}: image {image_id} ({im.name})"),
                                     t=np.asarray(pose.translation, float).reshape(3),
