@@ -1,7 +1,10 @@
-"""SuperGlue / LoFTR "pairs with ground truth" text lists (ScanNet, YFCC100M, ... test pairs).
+"""SuperGlue / LoFTR "pairs with ground truth" text lists (ScanNet, YFCC100M, ... test pairs), and glue-factory's
+``pairs_calibrated.txt`` (the MegaDepth-1500 and ScanNet-1500 lists of LightGlue / glue-factory).
 
-One line per pair: ``name0 name1 rot0 rot1 K0(9) K1(9) T_0to1(16)`` — K row-major in px, T_0to1 the row-major 4x4
-mapping camera-0 coordinates to camera-1 coordinates (translation in the dataset's units: metres for ScanNet).
+One line per pair: ``name0 name1 rot0 rot1 K0(9) K1(9) T_0to1(16)`` (``pairs_with_gt.txt``, 38 fields) or
+``name0 name1 K0(9) K1(9) R(9) t(3)`` / ``name0 name1 K0(9) K1(9) T_0to1(16)`` (``pairs_calibrated.txt``, 32 or 36
+fields) — K row-major in px, T_0to1 = [R | t] the row-major 4x4 mapping camera-0 coordinates to camera-1 coordinates
+(translation in the dataset's units: metres for ScanNet).
 rot0 / rot1 are EXIF rotation codes; only 0 is supported (the intrinsics refer to the stored pixel grid).
 Image names are paths as written, resolved against ``<root>/images/`` first, then ``<root>/``. The scene is the
 folder holding the list; its name is the folder name. Stereo only: images carry K but no absolute pose.
@@ -20,15 +23,22 @@ from pipeline.errors import ImtuneError
 
 NAME = "pairs_with_gt"
 DEFAULT_FILE = "pairs_with_gt.txt"
+CALIBRATED_FILE = "pairs_calibrated.txt"  # glue-factory's lists (MegaDepth-1500, ScanNet-1500)
 _NUMS = 2 + 9 + 9 + 16
+_FIELDS = {2 + _NUMS: "rot0 rot1 K0 K1 T_0to1", 2 + 9 + 9 + 12: "K0 K1 R t", 2 + 9 + 9 + 16: "K0 K1 T_0to1"}
 
 
 def find_pairs_file(folder: Path) -> Path | None:
-    """``pairs_with_gt.txt``, else the single ``*pairs_with_gt*.txt`` in ``folder``; None if there is none."""
+    """``pairs_with_gt.txt``, else ``pairs_calibrated.txt``, else the single ``*pairs_with_gt*.txt`` or
+    ``*pairs_calibrated*.txt`` in ``folder``; None if there is none."""
     folder = Path(folder)
-    if (folder / DEFAULT_FILE).is_file():
-        return folder / DEFAULT_FILE
-    found = sorted(p for p in folder.glob("*pairs_with_gt*.txt") if p.is_file()) if folder.is_dir() else []
+    for name in (DEFAULT_FILE, CALIBRATED_FILE):
+        if (folder / name).is_file():
+            return folder / name
+    if not folder.is_dir():
+        return None
+    found = sorted(p for pattern in ("*pairs_with_gt*.txt", "*pairs_calibrated*.txt") for p in folder.glob(pattern)
+                   if p.is_file())
     return found[0] if len(found) == 1 else None
 
 
@@ -62,8 +72,9 @@ def read_pairs_file(path: Path) -> list[tuple[str, str, np.ndarray, np.ndarray, 
             continue
         where = f"{path}, line {lineno}"
         tokens = line.split()
-        if len(tokens) != 2 + _NUMS:
-            raise ImtuneError(f"{where}: expected 2 names and {_NUMS} numbers, found {len(tokens)} fields")
+        if len(tokens) not in _FIELDS:
+            raise ImtuneError(f"{where}: expected 2 names and {_NUMS} numbers (name0 name1 rot0 rot1 K0 K1 T_0to1), "
+                              f"or 30 or 34 (name0 name1 K0 K1 R t, or K0 K1 T_0to1), found {len(tokens)} fields")
         if tokens[0] == tokens[1]:
             raise ImtuneError(f"{where}: pairs image {tokens[0]} with itself (a pair needs two images): remove the "
                               "line")
@@ -72,11 +83,17 @@ def read_pairs_file(path: Path) -> list[tuple[str, str, np.ndarray, np.ndarray, 
             raise ImtuneError(f"{path}, lines {first_line[key]} and {lineno}: the pair {tokens[0]} {tokens[1]} is "
                               "listed twice (in either order): keep one of the lines")
         first_line[key] = lineno
-        v = parse_floats(" ".join(tokens[2:]), _NUMS, where)
-        if v[0] != 0 or v[1] != 0:
-            raise ImtuneError(f"{where}: EXIF rotation codes {v[0]:g} {v[1]:g} are not supported (only 0)")
-        K0, K1 = check_K(v[2:11], f"{where} (K0)"), check_K(v[11:20], f"{where} (K1)")
-        T = v[20:36].reshape(4, 4)
+        v = parse_floats(" ".join(tokens[2:]), len(tokens) - 2, where)
+        if len(tokens) == 2 + _NUMS:
+            if v[0] != 0 or v[1] != 0:
+                raise ImtuneError(f"{where}: EXIF rotation codes {v[0]:g} {v[1]:g} are not supported (only 0)")
+            v = v[2:]
+        K0, K1 = check_K(v[0:9], f"{where} (K0)"), check_K(v[9:18], f"{where} (K1)")
+        if len(v) == 9 + 9 + 12:  # R (9) t (3)
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = v[18:27].reshape(3, 3), v[27:30]
+        else:
+            T = v[18:34].reshape(4, 4)
         if np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-6:
             raise ImtuneError(f"{where}: T_0to1 last row must be 0 0 0 1")
         check_rotation(T[:3, :3], f"{where} (T_0to1)", tol=1e-3)
