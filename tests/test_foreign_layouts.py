@@ -218,3 +218,16 @@ def test_glue_factory_pairs_calibrated_list_is_read(tmp_path, cache_dir):
     assert r.returncode == 0, r.stderr[-2000:]
     st = json.loads(r.stdout)["stereo"]
     assert st["pairs"] == 3 and st["failed"] == 0 and st["mAA10"] > 0.5
+
+
+def test_strecha_camera_with_lens_distortion_is_refused(tmp_path, cache_dir):
+    """A Strecha camera file's line 4 is its radial distortion (0 0 0 in every published scene: the images are
+    undistorted); a file with distortion had it dropped, the poses estimated with the pinhole K, unsaid. Now one line
+    naming the file and the distortion."""
+    from tests.conftest import copy_strecha_subset
+    root = copy_strecha_subset(tmp_path / "data", ["0000.jpg", "0001.jpg", "0002.jpg"])
+    cam = root / "fountain-P11" / "gt_dense_cameras" / "0001.jpg.camera"
+    rows = cam.read_text().splitlines()
+    rows[3] = "-0.05 0.01 0"
+    cam.write_text("\n".join(rows) + "\n")
+    one_line_error(tune("evaluate", "--data", root, *EVAL), str(cam), "distortion", "-0.05 0.01 0")

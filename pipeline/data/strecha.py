@@ -40,6 +40,10 @@ def read_camera(path: Path) -> dict:
         raise ImtuneError(f"cannot read camera file {path}: {e}") from None
     v = parse_floats(text, 26, f"camera file {path}")
     w, h = v[24], v[25]
+    if np.any(v[9:12] != 0):  # dropped, it had every pose estimated with the pinhole K on distorted images, unsaid
+        raise ImtuneError(f"camera file {path}: radial distortion {' '.join(f'{x:g}' for x in v[9:12])} on line 4, "
+                          "which imtune does not model (pinhole K; Strecha's published images are undistorted, "
+                          "0 0 0): undistort the images and write 0 0 0")
     if w <= 0 or h <= 0 or w != int(w) or h != int(h):
         raise ImtuneError(f"camera file {path}: invalid image size {w:g} x {h:g}")
     return {"K": check_K(v[0:9].reshape(3, 3), f"camera file {path}"), "dist": v[9:12],
