@@ -231,3 +231,34 @@ def test_strecha_camera_with_lens_distortion_is_refused(tmp_path, cache_dir):
     rows[3] = "-0.05 0.01 0"
     cam.write_text("\n".join(rows) + "\n")
     one_line_error(tune("evaluate", "--data", root, *EVAL), str(cam), "distortion", "-0.05 0.01 0")
+
+
+def test_built_ground_truth_belongs_to_the_scene_it_was_built_for(tmp_path, monkeypatch):
+    """Built ground truth was keyed by the scene's name and its images' names and sizes alone: a pairs list of
+    fountain-P11 images (SfM ground truth: `tune data build-gt` reconstructs it) wrote where the Strecha scene of
+    that name reads, and then replaced the Strecha scene's laser-scan K, R, t with the SfM's (K 8 px off, another
+    scale), unsaid; a corrected camera file kept the points triangulated with the old pose. Now each scene's own
+    ground truth as loaded is part of the key; a plain image folder keeps its key."""
+    from pipeline.data import load_scene
+    from pipeline.data.ground_truth import gt_path
+    from tests.conftest import copy_strecha_subset
+    monkeypatch.setenv("IMTUNE_GT", str(tmp_path / "gt"))
+    names = ["0000.jpg", "0001.jpg", "0002.jpg"]
+    strecha = copy_strecha_subset(tmp_path / "s", names)
+    pairs = write_pairs_with_gt(tmp_path / "p", names)
+    (pairs / "fountain-pairs").rename(pairs / "fountain-P11")
+    a, b = load_scene(strecha), load_scene(pairs)
+    assert (a.name, b.name, a.source, b.source) == ("fountain-P11", "fountain-P11", "strecha", "pairs_with_gt")
+    assert gt_path(a) != gt_path(b)
+    cam = strecha / "fountain-P11" / "gt_dense_cameras" / "0001.jpg.camera"
+    shutil.copy(FOUNTAIN / "gt_dense_cameras" / "0005.jpg.camera", cam)  # another pose for 0001.jpg
+    assert gt_path(load_scene(strecha)) != gt_path(a)
+    folder = tmp_path / "f" / "fountain-P11" / "images"
+    folder.mkdir(parents=True)
+    for n in names:
+        shutil.copy(FOUNTAIN / "images" / n, folder / n)
+    c = load_scene(tmp_path / "f")
+    path = gt_path(c)
+    assert path.parent.name.count("-") == 2  # fountain-P11-<images>: no ground truth of its own
+    c.images["0000.jpg"].K = np.eye(3)  # what an SfM ground truth attached does: the key stays
+    assert gt_path(c) == path

@@ -88,7 +88,9 @@ def load_scene(data_root: str | Path, scene_name: str | None = None, **kwargs) -
         scene_name = next(iter(cat))
     if scene_name not in cat:
         raise ImtuneError(f"unknown scene {scene_name!r} in {root} (available: {', '.join(cat)})")
-    return FORMATS[cat[scene_name]].load(root, scene_name, **kwargs)
+    scene = FORMATS[cat[scene_name]].load(root, scene_name, **kwargs)
+    scene.truth_id = scene.truth_digest()
+    return scene
 
 
 def _read_splits(path: Path, scenes: list[str]) -> dict[str, list[str]]:

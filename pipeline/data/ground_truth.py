@@ -59,10 +59,13 @@ def scene_content_id(scene) -> str:
 
 
 def gt_path(scene, gt_dir: Path | str | None = None) -> Path:
-    """Where the ground truth of ``scene`` lives (whether or not it exists)."""
+    """Where the ground truth of ``scene`` lives (whether or not it exists): keyed by its name, images and, when it has
+    any, its own ground truth as loaded (``Scene.truth_id``): a scene of the same name and images in another format or
+    with other poses (a pairs list of a Strecha scene, a corrected camera file) has its own, never the other's."""
     root = Path(gt_dir).expanduser() if gt_dir is not None else default_gt_dir()
     safe = "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in scene.name)
-    return root / f"{safe}-{scene_content_id(scene)}" / GT_FILE
+    truth = scene.truth_id if scene.truth_id is not None else scene.truth_digest()
+    return root / (f"{safe}-{scene_content_id(scene)}" + (f"-{truth}" if truth else "")) / GT_FILE
 
 
 @dataclass(frozen=True)

@@ -61,6 +61,29 @@ class Scene:
     observations: dict[str, tuple[np.ndarray, np.ndarray]] | None = None
     bags: dict[int, list[tuple[str, ...]]] | None = None
     source: str = ""  # loader name
+    truth_id: str | None = None  # the ground truth as loaded (truth_digest); set by load_scene, before a built one joins
+
+    def truth_digest(self) -> str:
+        """12 hex of the scene's ground truth as it stands: its format and every image's K, R, t and every pair's
+        R, t, K (float64 bytes); "" when it has none (a plain image folder). Built ground truth is keyed by it
+        (``truth_id``, fixed at load), so that a scene of the same name and images with other poses never takes
+        another's (an SfM ground truth replaces K, R, t)."""
+        import hashlib
+        h, known = hashlib.sha1(self.source.encode()), False
+
+        def add(tag: str, a) -> None:
+            nonlocal known
+            if a is not None:
+                known = True
+                h.update(tag.encode() + b"\0" + np.ascontiguousarray(a, dtype=np.float64).tobytes())
+        for n in sorted(self.images):
+            im = self.images[n]
+            h.update(b"\1" + n.encode())
+            add("K", im.K), add("R", im.R), add("t", im.t)
+        for p in self.pairs:
+            h.update(b"\2" + p.key.encode())
+            add("R", p.R), add("t", p.t), add("Ki", p.K_i), add("Kj", p.K_j)
+        return h.hexdigest()[:12] if known else ""
 
     def relative_pose(self, pair: Pair) -> tuple[np.ndarray, np.ndarray]:
         """Ground-truth (R_ij, t_ij) of a pair; t is not normalised."""
