@@ -262,3 +262,14 @@ def test_built_ground_truth_belongs_to_the_scene_it_was_built_for(tmp_path, monk
     assert path.parent.name.count("-") == 2  # fountain-P11-<images>: no ground truth of its own
     c.images["0000.jpg"].K = np.eye(3)  # what an SfM ground truth attached does: the key stays
     assert gt_path(c) == path
+
+
+def test_a_folder_with_several_pairs_lists_names_them(tmp_path, cache_dir):
+    """A folder holding two pairs lists (SuperGlue's assets/: yfcc_test_pairs_with_gt.txt beside
+    scannet_test_pairs_with_gt.txt) read as a plain image folder, and the advice was to build ground truth by SfM,
+    which would have replaced the lists' ground truth with a reconstruction. Now one line naming both lists."""
+    root = write_pairs_with_gt(tmp_path / "data", ["0000.jpg", "0001.jpg", "0002.jpg"])
+    d = root / "fountain-pairs"
+    (d / "pairs_with_gt.txt").rename(d / "a_pairs_with_gt.txt")
+    (d / "b_pairs_with_gt.txt").write_text((d / "a_pairs_with_gt.txt").read_text().splitlines()[0] + "\n")
+    one_line_error(tune("evaluate", "--data", root, *EVAL), "a_pairs_with_gt.txt", "b_pairs_with_gt.txt")

@@ -28,22 +28,31 @@ _NUMS = 2 + 9 + 9 + 16
 _FIELDS = {2 + _NUMS: "rot0 rot1 K0 K1 T_0to1", 2 + 9 + 9 + 12: "K0 K1 R t", 2 + 9 + 9 + 16: "K0 K1 T_0to1"}
 
 
-def find_pairs_file(folder: Path) -> Path | None:
-    """``pairs_with_gt.txt``, else ``pairs_calibrated.txt``, else the single ``*pairs_with_gt*.txt`` or
-    ``*pairs_calibrated*.txt`` in ``folder``; None if there is none."""
+def pairs_files(folder: Path) -> list[Path]:
+    """The pairs lists in ``folder``: ``pairs_with_gt.txt`` or ``pairs_calibrated.txt`` alone when there, else every
+    ``*pairs_with_gt*.txt`` and ``*pairs_calibrated*.txt`` (sorted)."""
     folder = Path(folder)
     for name in (DEFAULT_FILE, CALIBRATED_FILE):
         if (folder / name).is_file():
-            return folder / name
+            return [folder / name]
     if not folder.is_dir():
-        return None
-    found = sorted(p for pattern in ("*pairs_with_gt*.txt", "*pairs_calibrated*.txt") for p in folder.glob(pattern)
-                   if p.is_file())
-    return found[0] if len(found) == 1 else None
+        return []
+    return sorted({p for pattern in ("*pairs_with_gt*.txt", "*pairs_calibrated*.txt") for p in folder.glob(pattern)
+                   if p.is_file()})
+
+
+def find_pairs_file(folder: Path) -> Path | None:
+    """The folder's one pairs list (see :func:`pairs_files`); None if there is none; ImtuneError naming them if there
+    are several (it was read as a plain image folder, whose advice, SfM, replaced the lists' ground truth)."""
+    found = pairs_files(folder)
+    if len(found) > 1:
+        raise ImtuneError(f"{folder} holds several pairs lists ({', '.join(p.name for p in found)}): a scene is one "
+                          f"list; keep one there (or name it {DEFAULT_FILE}), the others in folders of their own")
+    return found[0] if found else None
 
 
 def _is_scene(p: Path) -> bool:
-    return find_pairs_file(p) is not None
+    return bool(pairs_files(p))
 
 
 def detect(root: Path) -> bool:
