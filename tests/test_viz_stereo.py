@@ -188,3 +188,16 @@ def test_real_render_fountain_sift_1024(strecha, cache_dir, tmp_path):
     assert rec["NI"] == out["NI"] and math.isclose(rec["err"], out["err"])
     img = cv2.imread(out["png"])
     assert img.shape[1] == 1200 and img.shape[0] > 1200 * 683 / 2048
+
+
+@pytest.mark.parametrize("text", ["η", "Γ", "→"])
+def test_figure_text_never_draws_a_missing_glyph_as_a_question_mark(text):
+    """Every figure's header reads 'degensac η 0.5 px, Γ 50000': OpenCV's built-in fonts have no Greek letters (nor
+    arrows) and drew '?' in their place. Such characters are now spelled out (eta, Gamma, ->)."""
+    from pipeline.viz.text import put_text
+
+    def drawn(s):
+        img = np.zeros((40, 120, 3), np.uint8)
+        put_text(img, s, 5, 30, 20, (255, 255, 255))
+        return img
+    assert not np.array_equal(drawn(text), drawn("?"))

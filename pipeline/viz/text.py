@@ -1,11 +1,14 @@
 """Text on figures: OpenCV's TrueType renderer (``cv2.FontFace``, OpenCV >= 5: anti-aliased, Unicode such as
-degree signs and Greek letters) with a fallback to the Hershey fonts (ASCII only) on older OpenCV builds."""
+degree signs and accented letters; Greek letters and arrows, which its faces lack, spelled out) with a fallback to
+the Hershey fonts (ASCII only) on older OpenCV builds."""
 from __future__ import annotations
 
 import numpy as np
 
 _ASCII = {"°": " deg", "η": "eta", "Γ": "Gamma", "≤": "<=", "≥": ">=", "·": "-", "—": "-", "–": "-", "×": "x",
           "…": "...", "→": "->"}
+#: characters OpenCV's built-in TrueType faces (OpenCV 5.1: sans, serif, uni, italic) have no glyph for: drawn as '?'
+_NO_GLYPH = {"η": "eta", "Γ": "Gamma", "→": "->"}
 _FACE = None
 
 
@@ -26,11 +29,18 @@ def _ascii(text: str) -> str:
     return text.encode("ascii", "replace").decode()
 
 
+def _drawable(text: str) -> str:
+    for k, v in _NO_GLYPH.items():
+        text = text.replace(k, v)
+    return text
+
+
 def text_width(text: str, size: float, weight: int = 400) -> int:
     """Width in px of ``text`` drawn with :func:`put_text` at ``size`` px."""
     import cv2
     face = _face()
     if face:
+        text = _drawable(text)
         r = cv2.getTextSize((100000, int(size * 3) + 10), text, (0, int(size * 2)), face, int(round(size)), weight)
         return int(r[2]) + int(r[0])
     scale = size / 30.0
@@ -43,6 +53,7 @@ def put_text(img: np.ndarray, text: str, x: int, baseline: int, size: float, col
     import cv2
     face = _face()
     if face:
+        text = _drawable(text)
         color = tuple(int(c) for c in color_bgr)
         cv2.putText(img, text, (int(x), int(baseline)), color, face, int(round(size)), weight)
         return int(x) + text_width(text, size, weight)
