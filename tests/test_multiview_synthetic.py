@@ -2,6 +2,7 @@
 keypoints and matches (success, failure, parallel workers, a dying worker), aggregation, bad input."""
 import math
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -163,3 +164,21 @@ def test_bad_multiview_settings_are_rejected():
     with pytest.raises(ImtuneError):
         MultiviewConfig(min_model_size=1)
     assert MultiviewConfig(bags={5: 3}).bag_spec == {5: 3}
+
+
+def test_a_bag_size_no_bag_of_which_is_valid_is_said():
+    """A requested bag size of which no bag passes the visibility rule (each image sees >= 100 of the bag's points)
+    was left out of the scene's multiview means without a word (a 29-image scene of three Strecha scenes: sizes 5 and
+    10 averaged, reported as the mean over 5, 10 and 25). Now the task's notes name the size (a warning line and
+    `notes` in the JSON)."""
+    from pipeline.data.scene import ImageInfo, Scene, all_pairs
+    from pipeline.tasks.multiview import MultiviewConfig, MultiviewTask
+    names = [f"{k}.jpg" for k in range(10)]
+    obs = {n: (np.arange(200), np.zeros((200, 2))) for n in names[:9]}
+    obs[names[9]] = (np.arange(50), np.zeros((50, 2)))  # sees too few points: every bag with it is invalid
+    scene = Scene("s", Path("."), {n: ImageInfo(n, Path(n), K=np.eye(3), R=np.eye(3), t=np.zeros(3)) for n in names},
+                  all_pairs(names), points3d=np.zeros((200, 3)), observations=obs)
+    task = MultiviewTask(MultiviewConfig(bags=((5, 3), (10, 1))))
+    notes = task.scene_notes(scene)
+    assert len(notes) == 1 and "no bag of 10 images" in notes[0] and "scene s" in notes[0], notes
+    assert MultiviewTask(MultiviewConfig(bags=((5, 3),))).scene_notes(scene) == []

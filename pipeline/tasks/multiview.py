@@ -494,12 +494,22 @@ class MultiviewTask(Task):
         25-image bags on an 11-image Strecha scene), which the per-size results list under that size."""
         n = len(scene.images)
         over = sorted(size for size in self.mv.bag_spec if size > n)
-        if not over or n < 2:
-            return []
-        sizes = ", ".join(map(str, over))
-        return [f"scene {scene.name} has {n} images: bag size{'s' if len(over) > 1 else ''} {sizes} evaluated as "
-                f"bags of all {n} (listed under size {n}, at most one bag); its multiview numbers at those sizes are "
-                "not the protocol's"]
+        notes = []
+        if over and n >= 2:
+            sizes = ", ".join(map(str, over))
+            notes.append(f"scene {scene.name} has {n} images: bag size{'s' if len(over) > 1 else ''} {sizes} evaluated "
+                         f"as bags of all {n} (listed under size {n}, at most one bag); its multiview numbers at those "
+                         "sizes are not the protocol's")
+        try:  # a size no bag of which passes the visibility rule drops out of the means over sizes
+            bags = scene_bags(scene, self.mv.bag_spec, min_points=self.mv.min_points, seed=self.mv.bag_seed)
+        except ImtuneError:  # no bags at all: the evaluation says why
+            return notes
+        wanted = sorted({min(s, n) for s in self.mv.bag_spec if min(s, n) >= MIN_BAG} - set(bags))
+        for size in wanted:
+            notes.append(f"scene {scene.name}: no bag of {size} images in which each image sees >= "
+                         f"{self.mv.min_points} of the bag's 3D points: size {size} is left out, and its multiview "
+                         f"means are over the sizes {', '.join(map(str, sorted(bags)))} only")
+        return notes
 
     def for_run(self, conf: PipelineConfig, k: int):
         """COLMAP's seed varies across repeated runs (the bags stay the same)."""
