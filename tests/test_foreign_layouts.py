@@ -273,3 +273,24 @@ def test_a_folder_with_several_pairs_lists_names_them(tmp_path, cache_dir):
     (d / "pairs_with_gt.txt").rename(d / "a_pairs_with_gt.txt")
     (d / "b_pairs_with_gt.txt").write_text((d / "a_pairs_with_gt.txt").read_text().splitlines()[0] + "\n")
     one_line_error(tune("evaluate", "--data", root, *EVAL), "a_pairs_with_gt.txt", "b_pairs_with_gt.txt")
+
+
+def _with_exif_orientation(jpeg: bytes, orientation: int) -> bytes:
+    """``jpeg`` with an APP1 Exif segment holding only the orientation tag (0x0112), as cameras write it."""
+    import struct
+    tiff = b"II*\x00" + struct.pack("<IHHHIHHI", 8, 1, 0x0112, 3, 1, orientation, 0, 0)
+    payload = b"Exif\x00\x00" + tiff
+    return jpeg[:2] + b"\xff\xe1" + struct.pack(">H", len(payload) + 2) + payload + jpeg[2:]
+
+
+def test_an_image_stored_rotated_with_an_exif_tag_is_named_as_such(tmp_path, cache_dir):
+    """A camera's portrait shot stored as landscape pixels with an EXIF orientation tag: viewers show it at the size
+    its camera file states, imtune (like COLMAP) reads the pixels as stored, and the size mismatch said only that
+    the sizes differ. Now the line also says the image carries EXIF orientation 6 and what to do."""
+    from tests.conftest import copy_strecha_subset
+    root = copy_strecha_subset(tmp_path / "data", ["0000.jpg", "0001.jpg", "0002.jpg"])
+    img = root / "fountain-P11" / "images" / "0001.jpg"
+    ok, buf = cv2.imencode(".jpg", cv2.rotate(cv2.imread(str(img)), cv2.ROTATE_90_COUNTERCLOCKWISE))
+    img.write_bytes(_with_exif_orientation(buf.tobytes(), 6))
+    assert cv2.imread(str(img)).shape[:2] == (1024, 1536)  # displayed as the camera file states
+    one_line_error(tune("evaluate", "--data", root, *EVAL), str(img), "1024x1536", "EXIF orientation 6")

@@ -3,8 +3,8 @@
 Scene layout: ``<scene>/images/`` plus ``<scene>/sparse/`` or ``<scene>/sparse/<n>/`` holding
 cameras/images/points3D as ``.bin`` or ``.txt`` (also ``<scene>/dense/{images,sparse}`` as in the IMC-PT training
 archives). With several ``sparse/<n>`` models the one with the most registered images is used. Only registered
-images are kept. K is the camera's calibration matrix (px); a camera whose lens distortion moves its image border by more
-than ``MAX_DISTORTION_PX`` is refused (imtune models pinhole cameras: undistort first). COLMAP's
+images are kept. K is the camera's calibration matrix (px); a camera whose lens distortion moves its image border by
+more than ``MAX_DISTORTION_PX`` is refused (imtune models pinhole cameras: undistort first). COLMAP's
 pixel coordinates put the top-left pixel's centre at (0.5, 0.5): K's principal point and the observations are moved
 by -0.5 px into imtune's pixel-centre convention (:mod:`pipeline.colmap_db`).
 Poses world-to-camera in model units; ``points3d`` (P, 3) and per-image observations (point indices, xy px); a model
@@ -18,7 +18,7 @@ import numpy as np
 
 from pipeline.colmap_db import PIXEL_OFFSET, K_from_camera
 from pipeline.data._common import check_K, pick_scene, scene_dirs
-from pipeline.data.imagefile import check_image_file, image_size
+from pipeline.data.imagefile import check_image_file, image_size, rotated_by_exif
 from pipeline.data.scene import ImageInfo, Scene, all_pairs
 from pipeline.errors import ImtuneError
 
@@ -147,17 +147,18 @@ def load_colmap(root: Path, scene: str | None = None, model: Path | None = None,
             check_image_file(path)
             w, h = image_size(path)
             if (w, h) != (int(cam.width), int(cam.height)):  # K is for the camera's size: a resized copy made it wrong
+                turned = rotated_by_exif(path, (int(cam.width), int(cam.height)))
                 raise ImtuneError(f"COLMAP model {mdir}: camera {im.camera_id} of {im.name} is {cam.width}x{cam.height}"
-                                  f" px but {path} is {w}x{h}: use the images the model was made from (or rescale "
-                                  "the model's cameras to them)")
+                                  f" px but {path} is {w}x{h}" + (turned or ": use the images the model was made "
+                                                                 "from (or rescale the model's cameras to them)"))
         # a focal length of 0 (cameras.txt) was taken as ground truth; pycolmap refuses NaN, not 0 or < 0
         K = check_K(K_from_camera(cam), f"COLMAP model {mdir}: camera {im.camera_id} of {im.name}")
         moved = distortion_px(cam)
         if moved > MAX_DISTORTION_PX:  # poses were estimated with the pinhole K alone on distorted images, unsaid
             raise ImtuneError(f"COLMAP model {mdir}: camera {im.camera_id} ({cam.model.name}) of {im.name} has lens "
-                              f"distortion moving its image border by up to {moved:.3g} px, which imtune does not model "
-                              "(pinhole K): undistort the images and the model first (`colmap image_undistorter`; "
-                              "its output folder reads as is)")
+                              f"distortion moving its image border by up to {moved:.3g} px, which imtune does not "
+                              "model (pinhole K): undistort the images and the model first "
+                              "(`colmap image_undistorter`; its output folder reads as is)")
         images[im.name] = ImageInfo(name=im.name, path=path, K=K,
                                     R=_rotation(pose.rotation, f"COLMAP model {mdir}: image {image_id} ({im.name})"),
                                     t=np.asarray(pose.translation, float).reshape(3),

@@ -188,6 +188,47 @@ def _jpeg_size(f) -> tuple[int, int] | None:
         f.seek(-1, os.SEEK_CUR)
 
 
+def exif_orientation(path: Path) -> int | None:
+    """The EXIF orientation tag (1-8) of a JPEG, None when it has none or is no JPEG (never raises). imtune, like
+    COLMAP, reads pixels as stored and ignores it; it is read only to say so when sizes disagree."""
+    import struct
+    try:
+        with open(path, "rb") as f:
+            if f.read(2) != b"\xff\xd8":
+                return None
+            while True:
+                head = f.read(4)
+                if len(head) < 4 or head[0] != 0xFF or head[1] in (0xD9, 0xDA):
+                    return None
+                length = int.from_bytes(head[2:4], "big")
+                if head[1] != 0xE1:
+                    f.seek(length - 2, os.SEEK_CUR)
+                    continue
+                seg = f.read(length - 2)
+                if not seg.startswith(b"Exif\x00\x00"):
+                    continue
+                tiff = seg[6:]
+                e = "<" if tiff[:2] == b"II" else ">"
+                ifd = struct.unpack(e + "I", tiff[4:8])[0]
+                for k in range(struct.unpack(e + "H", tiff[ifd:ifd + 2])[0]):
+                    tag, typ, _, value = struct.unpack(e + "HHIH", tiff[ifd + 2 + 12 * k: ifd + 12 + 12 * k])
+                    if tag == 0x0112 and typ == 3:
+                        return int(value) if 1 <= value <= 8 else None
+                return None
+    except (OSError, struct.error, IndexError):
+        return None
+
+
+def rotated_by_exif(path: Path, expected: tuple[int, int]) -> str:
+    """The words " (it carries EXIF orientation N, ...)" when ``path`` is ``expected`` (w, h) px only as its EXIF
+    orientation tag displays it (transposed, tags 5-8); "" otherwise. For size-mismatch errors."""
+    o = exif_orientation(path)
+    if o is None or o < 5 or tuple(image_size(path)) != (expected[1], expected[0]):
+        return ""
+    return (f" (it carries EXIF orientation {o}, which viewers apply and imtune, like COLMAP, does not: store the "
+            "pixels upright and drop the tag, or give intrinsics for the pixels as stored)")
+
+
 def image_size(path: Path) -> tuple[int, int]:
     """(width, height) in px of the image as stored (EXIF orientation ignored). ImtuneError if unreadable."""
     path = Path(path)

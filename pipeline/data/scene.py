@@ -61,7 +61,7 @@ class Scene:
     observations: dict[str, tuple[np.ndarray, np.ndarray]] | None = None
     bags: dict[int, list[tuple[str, ...]]] | None = None
     source: str = ""  # loader name
-    truth_id: str | None = None  # the ground truth as loaded (truth_digest); set by load_scene, before a built one joins
+    truth_id: str | None = None  # the ground truth as loaded (truth_digest), set by load_scene: keys built ground truth
 
     def truth_digest(self) -> str:
         """12 hex of the scene's ground truth as it stands: its format and every image's K, R, t and every pair's

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.data._common import check_K, check_rotation, parse_floats, pick_scene, scene_dirs
-from pipeline.data.imagefile import check_image_file, image_size, list_images
+from pipeline.data.imagefile import check_image_file, image_size, list_images, rotated_by_exif
 from pipeline.data.scene import ImageInfo, Scene, all_pairs
 from pipeline.errors import ImtuneError
 
@@ -101,7 +101,7 @@ def load_strecha(root: Path, scene: str | None = None, verify: bool = True) -> S
             if image_size(path) != cam["size"]:
                 w, h = image_size(path)
                 raise ImtuneError(f"camera file {cam_path} states size {cam['size'][0]}x{cam['size'][1]} "
-                                  f"but {path} is {w}x{h}")
+                                  f"but {path} is {w}x{h}{rotated_by_exif(path, cam['size'])}")
         R_wc = cam["R"].T
         images[n] = ImageInfo(name=n, path=path, K=cam["K"], R=R_wc, t=-R_wc @ cam["C"], size=cam["size"])
     return Scene(name=name, root=sdir, images=images, pairs=all_pairs(names), source=NAME)
