@@ -172,7 +172,7 @@ def scene_bags(scene, bags: dict[int, int] | None = None, min_points: int = MIN_
             if ok:
                 out[size] = ok[: wanted[size]]
         missing = sorted(set(wanted) - set(out))
-        if out and not missing:
+        if not missing:  # {} where no requested size reaches MIN_BAG: the caller says so
             return out
         if pts is not None or min_points <= 0:  # the sizes it does not ship, sampled from its 3D points
             return dict(sorted({**sample_bags(list(scene.images), pts, {s: wanted[s] for s in missing},
