@@ -79,10 +79,12 @@ class Scene:
         for n in sorted(self.images):
             im = self.images[n]
             h.update(b"\1" + n.encode())
-            add("K", im.K), add("R", im.R), add("t", im.t)
+            for tag, a in (("K", im.K), ("R", im.R), ("t", im.t)):
+                add(tag, a)
         for p in self.pairs:
             h.update(b"\2" + p.key.encode())
-            add("R", p.R), add("t", p.t), add("Ki", p.K_i), add("Kj", p.K_j)
+            for tag, a in (("R", p.R), ("t", p.t), ("Ki", p.K_i), ("Kj", p.K_j)):
+                add(tag, a)
         return h.hexdigest()[:12] if known else ""
 
     def relative_pose(self, pair: Pair) -> tuple[np.ndarray, np.ndarray]:
