@@ -286,6 +286,29 @@ class StereoTask(Task):
     def evaluation_units(self, scene: Scene) -> list[Pair]:
         return subsample_pairs(scene.select_pairs(self.min_covisibility), self.max_pairs)
 
+    #: a principal point farther than this fraction of the image's width / height from its centre is said
+    OFF_CENTRE = 0.1
+
+    def scene_notes(self, scene: Scene) -> list[str]:
+        """Images whose principal point lies far from their centre (more than OFF_CENTRE of their size): intrinsics
+        for another image size (images resized, K not) that the formats stating no size cannot refuse."""
+        off = []
+        for p in self.evaluation_units(scene):
+            for n, K in zip((p.i, p.j), scene.intrinsics(p)):
+                size = scene.images[n].size
+                if size is None or not np.all(np.isfinite(K)):
+                    continue
+                d = max(abs(K[0, 2] - (size[0] - 1) / 2) / size[0], abs(K[1, 2] - (size[1] - 1) / 2) / size[1])
+                if d > self.OFF_CENTRE and n not in {o[0] for o in off}:
+                    off.append((n, size, K[0, 2], K[1, 2], d))
+        if not off:
+            return []
+        n, (w, h), cx, cy, d = off[0]
+        more = f" (and {len(off) - 1} more image(s))" if len(off) > 1 else ""
+        return [f"scene {scene.name}: image {n} ({w}x{h} px) has its principal point ({cx:.1f}, {cy:.1f}) "
+                f"{100 * d:.0f}% of its size from its centre{more}: are its intrinsics for another image size "
+                "(images resized, K not)? Such poses are wrong; check them"]
+
     def budget_seconds(self, summary: dict) -> float | None:
         return float(summary.get("ransac_seconds_median", 0.0))
 
