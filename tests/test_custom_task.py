@@ -79,3 +79,14 @@ def test_study_of_a_plugin_task(plugin, data, tmp_path):
     assert (sd / "sift-1024-degensac-rotation" / "frozen.yaml").is_file()
     r = tune("table", "--studies-dir", str(sd), "--format", "json", "--task", "rotation", env=env)
     assert r.returncode == 0, r.stderr
+
+
+def test_list_shows_the_tasks_with_a_plugin_task(plugin):
+    """`--task` says "a task (see `tune list`)", but `tune list` listed features, estimators, pre-filters and
+    matchers only: neither stereo / multiview nor a plug-in task appeared. Now a "task" family."""
+    r = tune("list", "--json", env={"IMTUNE_PLUGINS": str(plugin)})
+    assert r.returncode == 0, r.stderr
+    tasks = {x["name"]: x for x in json.loads(r.stdout) if x["family"] == "task"}
+    assert {"stereo", "multiview", "rotation"} <= set(tasks), tasks
+    assert tasks["rotation"]["available"] == "yes"
+    assert "rotation error alone" in tasks["rotation"]["note"]

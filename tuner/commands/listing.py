@@ -1,4 +1,4 @@
-"""`tune list`: every feature, matcher option and estimator, and whether it is available here."""
+"""`tune list`: every feature, matcher option, estimator and task, and whether it is available here."""
 from __future__ import annotations
 
 import json
@@ -7,8 +7,8 @@ from tuner.formatting import render
 
 
 def register(sub) -> None:
-    ap = sub.add_parser("list", help="list features, matchers and estimators, with availability")
-    ap.add_argument("--json", action="store_true")
+    ap = sub.add_parser("list", help="list features, matchers, estimators and tasks, with availability")
+    ap.add_argument("--json", action="store_true", help="print a JSON list of {family, name, available, note}")
     ap.set_defaults(func=run)
 
 
@@ -27,6 +27,10 @@ def inventory() -> list[dict]:
         for name, (ok, why) in reg.availability().items():
             rows.append({"family": family, "name": name, "available": "yes" if ok else "no",
                          "note": why or reg.description(name)})
+    from pipeline.tasks import TASKS  # the tasks `--task` takes, a plug-in's included (IMTUNE_PLUGINS)
+    for name, (ok, why) in TASKS.availability().items():
+        rows.append({"family": "task", "name": name, "available": "yes" if ok else "no",
+                     "note": why or TASKS.description(name)})
     for name, note in [("exact", "brute-force nearest neighbours, L2 or Hamming (default)"),
                        ("flann", "OpenCV FLANN: 4 KD-trees, 128 checks (LSH for binary)"),
                        ("both", "strategy: mutual nearest neighbours (intersection)"),
