@@ -131,7 +131,8 @@ def test_every_option_help_shows_its_default():
             if not a.option_strings or a.default is argparse.SUPPRESS:
                 continue
             text = fmt._format_action(a).lower()
-            assert "default" in text or "(else " in text, f"{name} {a.option_strings[0]}: {text.strip()}"
+            assert "default" in text or "(else " in text or a.required and "(required)" in text, \
+                f"{name} {a.option_strings[0]}: {text.strip()}"
             seen += 1
     assert seen > 100
 
@@ -143,6 +144,22 @@ def test_run_help_shows_defaults(user):
     for s in ("--confidence CONFIDENCE (default: 0.999999)", "--num-features NUM_FEATURES keypoints per image "
               "(paper: 2048 or 8000) (default: 8000)", "--fginn FGINN: 2nd neighbour > 10 px from the first "
               "(default: off)"):
+        assert s in flat, s
+
+
+def test_test_help_says_what_its_defaults_are(user):
+    """`tune test -h` showed "--test-budget TEST_BUDGET (default: none)", "--max-pairs MAX_PAIRS (default: none)",
+    "--cache CACHE (default: none)" and no words for --study, --runs, --json, --quiet: the real defaults are the
+    study's test budget and pairs per scene and $IMTUNE_CACHE."""
+    r = tune("test", "-h", env=user)
+    assert r.returncode == 0, r.stderr
+    flat = " ".join(r.stdout.split())
+    assert "(default: none)" not in flat, flat
+    for s in ("--test-budget TEST_BUDGET median estimator seconds per pair allowed on test (default: the study's",
+              "--max-pairs MAX_PAIRS at most N pairs per scene (evenly spread; default: the study's",
+              "--cache CACHE cache folder (else $IMTUNE_CACHE or ~/.cache/imtune)",
+              "--runs RUNS test runs, each with its own estimator seed, averaged (default: 3)",
+              "--study STUDY the study whose frozen settings are tested (required)"):
         assert s in flat, s
 
 

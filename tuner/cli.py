@@ -57,6 +57,8 @@ class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
     def _default_text(self, action) -> str:
         if action.default is argparse.SUPPRESS or action.nargs == 0 and action.const is None:
             return ""
+        if action.required:  # `tune test --study`: "(default: none)" read as optional
+            return "(required)"
         d = action.default
         if isinstance(d, bool) and action.nargs == 0:
             return "(default: off)" if not d else "(default: on)"

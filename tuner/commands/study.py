@@ -185,19 +185,23 @@ def register(sub) -> None:
     c.set_defaults(func=run_calibrate, on_interrupt="a calibration is stored only when it finishes; rerun the command")
 
     te = sub.add_parser("test", help="run a study's frozen settings on the test scenes (3 runs, averaged)")
-    te.add_argument("--study", required=True)
+    te.add_argument("--study", required=True, help="the study whose frozen settings are tested")
     _storage_opts(te)
     te.add_argument("--data", default=None, help="data folder (default: the study's, else the usual precedence)")
     te.add_argument("--scenes", type=scene_list, default=None, help="comma-separated test scenes (default: the study's test split)")
-    te.add_argument("--runs", type=positive_int, default=3)
-    te.add_argument("--max-pairs", type=positive_int, default=None)
-    te.add_argument("--test-budget", type=positive_float, default=None)
-    te.add_argument("--cache", default=None)
+    te.add_argument("--runs", type=positive_int, default=3,
+                    help="test runs, each with its own estimator seed, averaged")
+    te.add_argument("--max-pairs", type=positive_int, default=None,
+                    help="at most N pairs per scene (evenly spread; default: the study's --max-pairs, else every pair)")
+    te.add_argument("--test-budget", type=positive_float, default=None,
+                    help="median estimator seconds per pair allowed on test (default: the study's --test-budget, "
+                         "1.0 unless set)")
+    te.add_argument("--cache", default=None, help="cache folder (else $IMTUNE_CACHE or ~/.cache/imtune)")
     te.add_argument("--reuse", action="store_true", help="return test.json as is when it matches the frozen settings")
     te.add_argument("--workers", type=positive_int, default=None,
                     help="multiview studies: bags in parallel (default: available CPUs)")
-    te.add_argument("--json", action="store_true")
-    te.add_argument("--quiet", action="store_true")
+    te.add_argument("--json", action="store_true", help="print the test result (test.json's object)")
+    te.add_argument("--quiet", action="store_true", help="no progress bars")
     _select_opts(te)
     add_ci_options(te)
     add_jobs_option(te)
