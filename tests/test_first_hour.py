@@ -141,7 +141,8 @@ def test_run_help_shows_defaults(user):
     r = tune("run", "-h", env=user)
     assert r.returncode == 0, r.stderr
     flat = " ".join(r.stdout.split())
-    for s in ("--confidence CONFIDENCE (default: 0.999999)", "--num-features NUM_FEATURES keypoints per image "
+    for s in ("--confidence CONFIDENCE RANSAC confidence tau (the protocol fixes 0.999999) (default: 0.999999)",
+              "--num-features NUM_FEATURES keypoints per image "
               "(paper: 2048 or 8000) (default: 8000)", "--fginn FGINN: 2nd neighbour > 10 px from the first "
               "(default: off)"):
         assert s in flat, s
@@ -161,6 +162,27 @@ def test_test_help_says_what_its_defaults_are(user):
               "--runs RUNS test runs, each with its own estimator seed, averaged (default: 3)",
               "--study STUDY the study whose frozen settings are tested (required)"):
         assert s in flat, s
+
+
+def test_pipeline_options_help_says_units_and_real_defaults(user):
+    """`tune evaluate -h` / `tune run -h` showed "--mr-size MR_SIZE ... (default: none)" (the descriptor's own:
+    3 for SIFT, 6 for the learned ones), "--scenes SCENES ... (default: none)" (every scene for evaluate, the
+    validation split for run) and bare "--distance-threshold ... (default: none)", "--clahe ... (default: none)",
+    "--confidence ..." with no unit or meaning."""
+    flat = {c: " ".join(tune(c, "-h", env=user).stdout.split()) for c in ("evaluate", "run")}
+    for c, text in flat.items():
+        for s in ("descriptor support scale (SIFT mrSize: the patch is 4 x mr_size sigmas) (default: the "
+                  "descriptor's own, 3 for SIFT, 6 for the learned ones)",
+                  "--distance-threshold DISTANCE_THRESHOLD drop a match whose descriptor distance exceeds this (L2 "
+                  "for float descriptors, bits for binary ones) (default: none, no threshold)",
+                  "--clahe {none,detector,descriptor,both} CLAHE contrast equalisation of the image the detector "
+                  "and/or the descriptor sees (default: none)",
+                  "--confidence CONFIDENCE RANSAC confidence tau (the protocol fixes 0.999999) (default: 0.999999)",
+                  "--matcher {exact,flann} nearest neighbours: exact brute force, or OpenCV FLANN (approximate) "
+                  "(default: exact)"):
+            assert s in text, (c, s)
+    assert "--scenes SCENES comma-separated scene names, each once (default: every scene of the data)" in flat["evaluate"]
+    assert "--scenes SCENES comma-separated validation scenes, each once (default: the data set's validation split)" in flat["run"]
 
 
 # -- item 1: data that just works ------------------------------------------------------------------------------

@@ -25,30 +25,38 @@ DATA_HELP = ("data folder (else $IMTUNE_DATA, imtune.yaml, the download location
              "../shared/data beside the project; `tune data scenes` says which was found)")
 
 def add_pipeline_options(ap: argparse.ArgumentParser, tuning: bool = False) -> None:
-    """Options that define one pipeline configuration (and, for `tune`, the fixed part of a study)."""
+    """Options that define one pipeline configuration (and, for `tune`, the fixed part of a study: ``tuning``,
+    whose --scenes are the validation scenes)."""
     g = ap.add_argument_group("pipeline")
     g.add_argument("--feature", default="sift", help="feature registry name (see `tune list`)")
     g.add_argument("--num-features", type=int, default=8000, help="keypoints per image (paper: 2048 or 8000)")
     g.add_argument("--no-low-threshold", action="store_true", help="keep the detector's default threshold")
     g.add_argument("--upright", action="store_true", help="orientation fixed, duplicates removed")
     g.add_argument("--upright-plus", action="store_true", help="upright, refilled to the budget (upright++)")
-    g.add_argument("--clahe", default="none", choices=["none", "detector", "descriptor", "both"])
-    g.add_argument("--mr-size", type=positive_float, default=None, help="descriptor support scale (SIFT mrSize)")
+    g.add_argument("--clahe", default="none", choices=["none", "detector", "descriptor", "both"],
+                   help="CLAHE contrast equalisation of the image the detector and/or the descriptor sees")
+    g.add_argument("--mr-size", type=positive_float, default=None,
+                   help="descriptor support scale (SIFT mrSize: the patch is 4 x mr_size sigmas) (default: the "
+                        "descriptor's own, 3 for SIFT, 6 for the learned ones)")
     g.add_argument("--max-side", type=count_int, default=1024,
                    help="resize so the long side is at most this (px; 0 = keep the original size)")
     g.add_argument("--feature-option", action="append", type=feature_option, default=[], metavar="KEY=VALUE",
                    help="an extractor option, e.g. edge_threshold=10 or contrast_threshold=0.04 for sift (an unknown "
                         "KEY lists the extractor's options); repeatable")
-    g.add_argument("--matcher", default="exact", choices=["exact", "flann"])
+    g.add_argument("--matcher", default="exact", choices=["exact", "flann"],
+                   help="nearest neighbours: exact brute force, or OpenCV FLANN (approximate)")
     g.add_argument("--strategy", default="both", help="both | either | uni")
-    g.add_argument("--distance-threshold", type=nonnegative_float, default=None)
+    g.add_argument("--distance-threshold", type=nonnegative_float, default=None,
+                   help="drop a match whose descriptor distance exceeds this (L2 for float descriptors, bits for "
+                        "binary ones) (default: none, no threshold)")
     g.add_argument("--fginn", action="store_true", help="FGINN: 2nd neighbour > 10 px from the first")
     g.add_argument("--prefilter", default="none", metavar="NAME[:k=v,...]",
                    help="outlier pre-filter between matching and the estimator: none | gms | adalam (see `tune list`)")
     g.add_argument("--matches", default=None, metavar="custom:DIR",
                    help="imported matches (IMC h5 layout) instead of the matcher; needs --feature custom:DIR")
     g.add_argument("--ransac", default="degensac", help="estimator registry name (see `tune list`)")
-    g.add_argument("--confidence", type=probability_float, default=0.999999)
+    g.add_argument("--confidence", type=probability_float, default=0.999999,
+                   help="RANSAC confidence tau (the protocol fixes 0.999999)")
     if not tuning:
         g.add_argument("--ratio", type=ratio_float, default=0.85, help="ratio test r in (0, 1]; 1 = off")
         g.add_argument("--threshold", type=positive_float, default=0.5, help="inlier threshold eta, px")
@@ -56,7 +64,9 @@ def add_pipeline_options(ap: argparse.ArgumentParser, tuning: bool = False) -> N
     g.add_argument("--seed", type=seed_int, default=0, help=f"random seed, 0 to {SEED_MAX}")
     d = ap.add_argument_group("data")
     d.add_argument("--data", default=None, help=DATA_HELP)
-    d.add_argument("--scenes", type=scene_list, default=None, help="comma-separated scene names, each once")
+    d.add_argument("--scenes", type=scene_list, default=None,
+                   help="comma-separated validation scenes, each once (default: the data set's validation split)"
+                   if tuning else "comma-separated scene names, each once (default: every scene of the data)")
     d.add_argument("--covisibility", type=unit_float, default=0.1, help="minimum pair co-visibility where known")
     d.add_argument("--cache", default=None, help="cache folder (else $IMTUNE_CACHE or ~/.cache/imtune)")
     o = ap.add_argument_group("output")
