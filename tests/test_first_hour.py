@@ -185,6 +185,24 @@ def test_pipeline_options_help_says_units_and_real_defaults(user):
     assert "--scenes SCENES comma-separated validation scenes, each once (default: the data set's validation split)" in flat["run"]
 
 
+def test_calibrate_help_states_one_true_default_each(user):
+    """`tune calibrate -h` said "--budget BUDGET B in seconds per pair (repeatable; default 0.5 and 1.0) (default:
+    none)" (two defaults, one wrong), and "(default: none)" for --calibration-ratio / --calibration-threshold,
+    which come from the search space's 'calibration' section, and for --max-pairs (every pair)."""
+    r = tune("calibrate", "-h", env=user)
+    assert r.returncode == 0, r.stderr
+    flat = " ".join(r.stdout.split())
+    options = flat.split("options:", 1)[1].split("pipeline:", 1)[0]  # calibrate's own options
+    assert "(default: none)" not in options, options
+    for s in ("--budget BUDGET B: median estimator seconds per pair (repeatable) (default: 0.5 and 1.0)",
+              "--calibration-ratio CALIBRATION_RATIO ratio test r of the timed matches (default: the search "
+              "space's 'calibration' section)",
+              "--calibration-threshold CALIBRATION_THRESHOLD eta (px) used while timing (default: the search "
+              "space's 'calibration' section)",
+              "--max-pairs MAX_PAIRS pairs per scene considered (default: every pair)"):
+        assert s in flat, s
+
+
 # -- item 1: data that just works ------------------------------------------------------------------------------
 
 def test_no_data_and_no_network(user, tmp_path):

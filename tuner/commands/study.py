@@ -172,12 +172,16 @@ def register(sub) -> None:
     _storage_opts(c, storage=False)  # a calibration lives in <studies dir>/budgets.json, never in the storage
     c.add_argument("--storage", dest="refused_storage", type=_no_storage_for_calibrate, help=argparse.SUPPRESS)
     c.add_argument("--budget", type=positive_float, action="append", default=None,
-                   help="B in seconds per pair (repeatable; default 0.5 and 1.0)")
+                   help="B: median estimator seconds per pair (repeatable) (default: 0.5 and 1.0)")
     c.add_argument("--pairs", type=positive_int, default=16, help="validation pairs timed per cap (default 16)")
-    c.add_argument("--max-pairs", type=positive_int, default=None, help="pairs per scene considered")
-    c.add_argument("--space", default=None, help="search space whose 'calibration' section gives r and eta")
-    c.add_argument("--calibration-ratio", type=ratio_float, default=None, help="ratio test r of the timed matches")
-    c.add_argument("--calibration-threshold", type=positive_float, default=None, help="eta (px) used while timing")
+    c.add_argument("--max-pairs", type=positive_int, default=None,
+                   help="pairs per scene considered (default: every pair)")
+    c.add_argument("--space", default=None, help="search space whose 'calibration' section gives r and eta (default: "
+                                                 "the estimator family's in search_spaces/)")
+    c.add_argument("--calibration-ratio", type=ratio_float, default=None,
+                   help="ratio test r of the timed matches (default: the search space's 'calibration' section)")
+    c.add_argument("--calibration-threshold", type=positive_float, default=None,
+                   help="eta (px) used while timing (default: the search space's 'calibration' section)")
     c.add_argument("--force", action="store_true", help="measure again even if stored")
     c.add_argument("--task", default="stereo", choices=[t for t in task_choices() if t != "both"],
                    help="the task whose pairs are timed")
