@@ -203,6 +203,15 @@ def test_calibrate_help_states_one_true_default_each(user):
         assert s in flat, s
 
 
+def test_run_help_says_what_no_seed_means(user):
+    """`tune run -h` said "--seed SEED random seed, 0 to 2147483647 (default: none)": the seed seeds the sampler
+    (each worker deriving its own) and the estimators, and without it the sampler is unseeded and the estimators
+    take 0."""
+    flat = " ".join(tune("run", "-h", env=user).stdout.split())
+    assert ("--seed SEED seed of the sampler (each worker derives its own from it and its first trial) and of the "
+            "seeded estimators, 0 to 2147483647 (default: none: an unseeded sampler, estimator seed 0)") in flat, flat
+
+
 # -- item 1: data that just works ------------------------------------------------------------------------------
 
 def test_no_data_and_no_network(user, tmp_path):

@@ -24,7 +24,7 @@ from pipeline.data.locate import resolve_data  # noqa: E402,F401
 DATA_HELP = ("data folder (else $IMTUNE_DATA, imtune.yaml, the download location $IMTUNE_DATA_HOME, then "
              "../shared/data beside the project; `tune data scenes` says which was found)")
 
-def add_pipeline_options(ap: argparse.ArgumentParser, tuning: bool = False) -> None:
+def add_pipeline_options(ap: argparse.ArgumentParser, tuning: bool = False, seed_help: str | None = None) -> None:
     """Options that define one pipeline configuration (and, for `tune`, the fixed part of a study: ``tuning``,
     whose --scenes are the validation scenes)."""
     g = ap.add_argument_group("pipeline")
@@ -61,7 +61,7 @@ def add_pipeline_options(ap: argparse.ArgumentParser, tuning: bool = False) -> N
         g.add_argument("--ratio", type=ratio_float, default=0.85, help="ratio test r in (0, 1]; 1 = off")
         g.add_argument("--threshold", type=positive_float, default=0.5, help="inlier threshold eta, px")
         g.add_argument("--max-iters", type=iters_int, default=50000, help="RANSAC iteration cap Gamma")
-    g.add_argument("--seed", type=seed_int, default=0, help=f"random seed, 0 to {SEED_MAX}")
+    g.add_argument("--seed", type=seed_int, default=0, help=seed_help or f"random seed, 0 to {SEED_MAX}")
     d = ap.add_argument_group("data")
     d.add_argument("--data", default=None, help=DATA_HELP)
     d.add_argument("--scenes", type=scene_list, default=None,

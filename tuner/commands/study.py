@@ -112,7 +112,10 @@ def register(sub) -> None:
     from tuner.study import DEFAULT_PRUNER, PRUNERS, SAMPLERS
     ap = sub.add_parser("run", help="tune on the validation scenes, freeze the optimum, run the test scenes "
                                     "(the default command)")
-    add_pipeline_options(ap, tuning=True)
+    from tuner.argtypes import SEED_MAX
+    add_pipeline_options(ap, tuning=True, seed_help=f"seed of the sampler (each worker derives its own from it and its "
+                                                    f"first trial) and of the seeded estimators, 0 to {SEED_MAX} "
+                                                    f"(default: none: an unseeded sampler, estimator seed 0)")
     ap.set_defaults(seed=None)
     _storage_opts(ap)
     t = ap.add_argument_group("study")
