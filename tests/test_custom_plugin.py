@@ -77,3 +77,27 @@ def test_plugin_calling_sys_exit_is_one_line_not_a_silent_end(code, tmp_path):
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert r.returncode == 2 and len(lines) == 1, (r.returncode, r.stderr)
     assert str(p) in lines[0] and f"sys.exit({code})" in lines[0] and "Traceback" not in r.stderr
+
+
+def test_plugin_module_named_from_its_folder_with_the_tune_command(tmp_path):
+    """docs/extending.md: `IMTUNE_PLUGINS=mylab.features tune ...` with mylab/features.py in the current folder.
+    The `tune` console script (unlike `python -m tuner`) does not have the current folder on sys.path, so it
+    failed: "plug-in 'mylab.features' failed to import: ModuleNotFoundError: No module named 'mylab'"."""
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "extending.md").read_text()
+    code = re.search(r"```python\n(# mylab/features.py\n.*?)```", doc, re.S)
+    assert code, "docs/extending.md lost its 'Register a new extractor' example"
+    (tmp_path / "mylab").mkdir()
+    (tmp_path / "mylab" / "features.py").write_text(code.group(1))
+    script = Path(sys.executable).parent / "tune"
+    if not script.is_file():
+        pytest.skip(f"no `tune` console script beside {sys.executable}")
+    env = {k: v for k, v in __import__("os").environ.items() if k != "PYTHONPATH"}
+    env["IMTUNE_PLUGINS"] = "mylab.features"
+    r = subprocess.run([str(script), "list", "--json"], capture_output=True, text=True, cwd=tmp_path, env=env,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert any(row["name"] == "my-feature" for row in json.loads(r.stdout))

@@ -62,9 +62,28 @@ PLUGINS_ENV = "IMTUNE_PLUGINS"
 _LOADED_PLUGINS: set[str] = set()
 
 
+def _import_from_here(name: str):
+    """``importlib.import_module(name)``, and when its top package is found nowhere on sys.path, again with the
+    current folder appended to sys.path (last: it shadows nothing), as `python -m tuner` would have it: the
+    `tune` console script does not put the current folder on sys.path, so ``IMTUNE_PLUGINS=mylab.features tune``
+    beside mylab/ failed with "No module named 'mylab'"."""
+    import importlib
+    import os
+    import sys
+    try:
+        return importlib.import_module(name)
+    except ModuleNotFoundError as e:
+        here = os.getcwd()
+        if e.name != name.split(".")[0] or here in sys.path or "" in sys.path:
+            raise
+        sys.path.append(here)  # spawned pair workers get the parent's sys.path
+        return importlib.import_module(name)
+
+
 def load_plugins(spec: str | None = None) -> list[str]:
     """Import the plug-in modules named in ``spec`` (default: ``$IMTUNE_PLUGINS``; comma-separated
-    module names, e.g. ``mylab.features``, or paths to ``.py`` files) so that what they register
+    module names, e.g. ``mylab.features``, importable or found in the current folder, or paths to ``.py``
+    files) so that what they register
     (extractors, pre-filters, estimators) is known to the CLI too. Done once when ``pipeline.features``
     is imported; a module that fails to import is a one-line ImtuneError naming it."""
     import importlib
@@ -85,7 +104,7 @@ def load_plugins(spec: str | None = None) -> list[str]:
                 module = importlib.util.module_from_spec(mod_spec)
                 mod_spec.loader.exec_module(module)
             else:
-                importlib.import_module(item)
+                _import_from_here(item)
         except ImtuneError:
             raise
         except SystemExit as e:  # was the process's silent end: `tune list` exited 0 (or the plug-in's code) unsaid
@@ -94,6 +113,9 @@ def load_plugins(spec: str | None = None) -> list[str]:
                               f"{PLUGINS_ENV})") from None
         except Exception as e:
             msg = str(e).strip().splitlines()[0] if str(e).strip() else ""
+            if isinstance(e, ModuleNotFoundError) and e.name == item.split(".")[0]:
+                msg += (" (a module name must be importable: installed, on PYTHONPATH or in the current folder; "
+                        "or give the path of a .py file)")
             raise ImtuneError(f"{PLUGINS_ENV}: plug-in {item!r} failed to import: {type(e).__name__}: {msg}") from None
         _LOADED_PLUGINS.add(item)
         done.append(item)
