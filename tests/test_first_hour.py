@@ -212,6 +212,12 @@ def test_run_help_says_what_no_seed_means(user):
             "seeded estimators, 0 to 2147483647 (default: none: an unseeded sampler, estimator seed 0)") in flat, flat
 
 
+def test_top_help_names_every_data_subcommand(user):
+    """`tune -h` listed "data  data sets: download, scenes": build-gt, the README's ground-truth step, was missing."""
+    flat = " ".join(tune("-h", env=user).stdout.split())
+    assert "data data sets: download, scenes, build-gt (ground truth)" in flat, flat
+
+
 # -- item 1: data that just works ------------------------------------------------------------------------------
 
 def test_no_data_and_no_network(user, tmp_path):

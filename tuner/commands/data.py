@@ -10,7 +10,7 @@ DATA_HELP = "data folder (default: $IMTUNE_DATA, imtune.yaml, else strecha in th
 
 
 def register(sub) -> None:
-    ap = sub.add_parser("data", help="data sets: download, scenes")
+    ap = sub.add_parser("data", help="data sets: download, scenes, build-gt (ground truth)")
     dsub = ap.add_subparsers(dest="data_command", parser_class=type(ap))
     from pipeline.data.download import ENV_BASE, SOURCES
     d = dsub.add_parser("download", help="fetch a public data set from its original home into the download location",
