@@ -95,6 +95,21 @@ def test_multiview_test_table_and_plot(mv_study, capsys):
     assert "Accuracy vs angular threshold" in html and "fountain-P11 - test" in html
 
 
+def test_multiview_test_table_has_no_empty_column(mv_study, capsys):
+    """`tune test` of a multiview study printed a 'seconds' column of '-' in every row (the test runs' figures
+    never carry the bags' seconds): a column the test result has no value for is left out."""
+    root, studies = mv_study
+    rc, out = run_cli(["test", "--study", STUDY, "--studies-dir", str(studies), "--data", str(root),
+                       "--scenes", "fountain-P11", "--runs", "1", "--workers", "1", "--quiet"], capsys)
+    assert rc == 0
+    table = [ln for ln in out.splitlines() if ln.startswith("|")]
+    header = [c.strip() for c in table[0].strip("|").split("|")]
+    cells = [[c.strip() for c in ln.strip("|").split("|")] for ln in table[2:]]
+    assert "mAA10" in header and cells, out
+    empty = [h for i, h in enumerate(header) if all(row[i] in ("-", "") for row in cells)]
+    assert not empty, (empty, out)
+
+
 @pytest.mark.parametrize("how", ["sigint", "sigterm"])
 def test_interrupting_a_multiview_study_stops_its_colmap_workers_at_once(mv_study, tmp_path, how):
     """Ctrl-C (SIGINT to the process group, as a terminal sends it) or `kill PID` (SIGTERM to the parent alone)

@@ -394,8 +394,9 @@ def test_table(t: dict) -> str:
     """The test runs: per scene and the mean over scenes of the task's columns."""
     from tuner.freeze import task_of
     task = task_of(t)
-    cols = ["scene"] + list(task.columns)
     m = t["mean"]
+    parts = [m, *(m.get("scenes") or {}).values()]  # a column no run recorded (multiview's seconds) is left out
+    cols = ["scene"] + [c for c in task.columns if any(p.get(c) is not None for p in parts)]
     def row(scene, s):  # mAA with its 95% interval: "value [lo, hi]"
         return dict(scene=scene, **{k: with_ci(s.get(k), s[f"{k}_ci"]) if s.get(f"{k}_ci") and s.get(k) is not None
                                     else s.get(k) for k in cols[1:]})
