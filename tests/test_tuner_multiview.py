@@ -110,6 +110,17 @@ def test_multiview_test_table_has_no_empty_column(mv_study, capsys):
     assert not empty, (empty, out)
 
 
+def test_multiview_reference_names_only_what_the_task_uses(mv_study, capsys):
+    """The test of a multiview study said "vs paper defaults (r 0.85 both, eta 0.5 px, Gamma 50,000)": COLMAP
+    runs its own RANSAC, eta and Gamma play no part in it. The label names what the reference sets: r and the
+    strategy."""
+    root, studies = mv_study
+    rc, out = run_cli(["test", "--study", STUDY, "--studies-dir", str(studies), "--data", str(root),
+                       "--scenes", "fountain-P11", "--runs", "1", "--workers", "1", "--quiet"], capsys)
+    assert rc == 0
+    assert "vs paper defaults (r 0.85 both):" in out and "Gamma 50,000" not in out, out
+
+
 @pytest.mark.parametrize("how", ["sigint", "sigterm"])
 def test_interrupting_a_multiview_study_stops_its_colmap_workers_at_once(mv_study, tmp_path, how):
     """Ctrl-C (SIGINT to the process group, as a terminal sends it) or `kill PID` (SIGTERM to the parent alone)

@@ -276,7 +276,22 @@ def reference_config(frozen: dict, spec, task=None):
         task = TASKS.get(frozen.get("task", "stereo"))
     base = pipeline_from_dict(frozen["config"])
     values = {k: v for k, v in PAPER_DEFAULTS.items() if k in searchable(task)}
-    return config_for(base, values), REFERENCE_LABEL
+    return config_for(base, values), reference_label(values)
+
+
+def reference_label(values: dict) -> str:
+    """"paper defaults (...)" naming the defaults a task's reference sets: all four for stereo
+    (:data:`REFERENCE_LABEL`), only r and the strategy for multiview (COLMAP's own RANSAC: no eta, no Gamma)."""
+    parts = []
+    if "ratio" in values:
+        parts.append(f"r {values['ratio']:g}" + (f" {values['strategy']}" if "strategy" in values else ""))
+    elif "strategy" in values:
+        parts.append(str(values["strategy"]))
+    if "threshold" in values:
+        parts.append(f"eta {values['threshold']:g} px")
+    if "max_iters" in values:
+        parts.append(f"Gamma {values['max_iters']:,}")
+    return f"paper defaults ({', '.join(parts)})" if parts else "paper defaults"
 
 
 # ------------------------------------------------------------------------------------------ test runs
