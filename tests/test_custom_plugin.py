@@ -101,3 +101,21 @@ def test_plugin_module_named_from_its_folder_with_the_tune_command(tmp_path):
                        timeout=300)
     assert r.returncode == 0, r.stderr
     assert any(row["name"] == "my-feature" for row in json.loads(r.stdout))
+    # a research folder may hold a `pipeline/` of its own: the current folder is on sys.path for the plug-in's import
+    # only, so the spawned pair workers still import imtune's pipeline (not a namespace package of that folder)
+    (tmp_path / "pipeline" / "geometry").mkdir(parents=True)
+    (tmp_path / "pipeline" / "geometry" / "mylib_backend.py").write_text("raise ImportError('not this one')\n")
+    src = DATA / "strecha" / "fountain-P11"
+    if not src.exists():
+        pytest.skip(f"real data not found at {src}")
+    data = tmp_path / "data" / "fountain-P11"
+    for sub, suffix in (("images", ""), ("gt_dense_cameras", ".camera")):
+        (data / sub).mkdir(parents=True)
+        for n in ("0004.jpg", "0005.jpg", "0006.jpg"):
+            shutil.copy(src / sub / (n + suffix), data / sub / (n + suffix))
+    env["IMTUNE_CACHE"] = str(tmp_path / "cache")
+    r = subprocess.run([str(script), "evaluate", "--num-features", "1024", "--max-iters", "2000", "--jobs", "2",
+                        "--data", str(tmp_path / "data"), "--json", "--quiet"], capture_output=True, text=True,
+                       cwd=tmp_path, env=env, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["stereo"]["pairs"] == 3

@@ -64,9 +64,11 @@ _LOADED_PLUGINS: set[str] = set()
 
 def _import_from_here(name: str):
     """``importlib.import_module(name)``, and when its top package is found nowhere on sys.path, again with the
-    current folder appended to sys.path (last: it shadows nothing), as `python -m tuner` would have it: the
-    `tune` console script does not put the current folder on sys.path, so ``IMTUNE_PLUGINS=mylab.features tune``
-    beside mylab/ failed with "No module named 'mylab'"."""
+    current folder on sys.path for that import only, as `python -m tuner` would find it: the `tune` console script
+    does not put the current folder on sys.path, so ``IMTUNE_PLUGINS=mylab.features tune`` beside mylab/ failed
+    with "No module named 'mylab'". The folder is appended (it shadows nothing) and removed afterwards (a
+    ``pipeline/`` folder there must not become the spawned workers' ``pipeline`` package); every process, a
+    pool worker included, imports its plug-ins itself."""
     import importlib
     import os
     import sys
@@ -76,8 +78,12 @@ def _import_from_here(name: str):
         here = os.getcwd()
         if e.name != name.split(".")[0] or here in sys.path or "" in sys.path:
             raise
-        sys.path.append(here)  # spawned pair workers get the parent's sys.path
-        return importlib.import_module(name)
+        sys.path.append(here)
+        try:
+            return importlib.import_module(name)
+        finally:
+            if here in sys.path:
+                sys.path.remove(here)
 
 
 def load_plugins(spec: str | None = None) -> list[str]:
