@@ -288,17 +288,18 @@ class OpenCVExtractor(Extractor):
         kout, desc = self.descriptor.compute(img, kin)
         if len(kout) == 0 or desc is None:
             return np.zeros(0, np.int64), None, None
-        if len(kout) == len(kin):
-            idx = np.arange(len(kin))
-        elif not self.uses_class_id:
+        if not self.uses_class_id:  # always: ORB returns every keypoint given, but grouped by pyramid level
             idx = np.array([k.class_id for k in kout], np.int64)
+        elif len(kout) == len(kin):
+            idx = np.arange(len(kin))
         else:
             idx = _subsequence(xy, np.array([k.pt for k in kout], np.float32))
         if self.upright:
             ori = np.zeros(len(idx), np.float32)
         else:  # the angle the descriptor used (KAZE, BRISK and FREAK assign their own)
             ori = np.mod(np.array([k.angle for k in kout], np.float32), np.float32(360.0)).astype(np.float32)
-        return idx, np.asarray(desc), ori
+        order = np.argsort(idx, kind="stable")  # back to the order given (strongest first)
+        return idx[order], np.asarray(desc)[order], ori[order]
 
     def extract(self, image: np.ndarray) -> Features:
         """Detect and describe. ``image``: (H, W) uint8 grayscale at the working resolution (px).

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from pipeline.features._opencv import OpenCVExtractor, cv_factory
+from pipeline.features._opencv import OPENCV_VERSION, OpenCVExtractor, cv_factory
 from pipeline.features.registry import EXTRACTORS
 
 ORB_LOW_FAST, ORB_DEFAULT_FAST = 0, 20
@@ -36,6 +36,9 @@ def make_orb_detector(opts: dict[str, Any], low_threshold: bool, nfeatures: int)
 @EXTRACTORS.register("orb", "ORB, OpenCV; 256-bit binary")
 class ORB(OpenCVExtractor):
     """ORB, OpenCV; 256-bit binary (32 bytes)."""
+    # 2: descriptor rows realigned with their keypoints (ORB's compute() groups the keypoints by pyramid level);
+    # version 1 cache entries hold misaligned rows and are never read again
+    version = f"2+opencv-{OPENCV_VERSION}"
     factories = ("ORB_create",)
     option_defaults = ORB_OPTIONS
     option_bounds = ORB_BOUNDS
