@@ -315,3 +315,30 @@ def test_a_folder_at_a_task_match_file_is_named_not_passed_over(name, task, mini
     with pytest.raises(ImtuneError) as e:
         tentative_matches(pair_knn(cache, fi, fj, mc)[0], mc, fi, fj, task=task)
     assert str(e.value) == f"{scene_dir / name} is a folder, not an h5 file: move it away, or put the file there"
+
+
+def test_one_scene_folder_is_not_read_for_another_scene(mini, good, tmp_path, cache_dir):
+    """An import folder holding fountain-P11/ only, evaluated on every scene of the data (`tune evaluate
+    --feature custom:DIR` without --scenes): Herz-Jesus-P8's 0003.jpg ... were given fountain-P11's 0003 ...
+    keypoints (the lone scene folder served every scene), and its pairs scored mAA 0 with 900 "inliers", unsaid.
+    Now the lone folder serves the scene it is named after (or DIR itself is the scene folder); another scene is
+    a one-line error naming the folder and the image."""
+    other = "Herz-Jesus-P8"
+    src = DATA / "strecha" / other
+    if not src.exists():
+        pytest.skip(f"real data not found at {src}")
+    data = tmp_path / "data"
+    shutil.copytree(mini / SCENE, data / SCENE)
+    for sub, suffix in (("images", ""), ("gt_dense_cameras", ".camera")):
+        (data / other / sub).mkdir(parents=True)
+        for n in IMAGES:
+            shutil.copy(src / sub / (n + suffix), data / other / sub / (n + suffix))
+    fc = FeatureConfig(name=f"custom:{good}", num_features=K)
+    assert len(image_features(H5Cache(cache_dir), load_scene(data, SCENE).images["0004.jpg"], fc).keypoints) == K
+    with pytest.raises(ImtuneError, match=f"{other}.*0004.jpg|0004.jpg.*{other}") as e:
+        image_features(H5Cache(cache_dir), load_scene(data, other).images["0004.jpg"], fc)
+    assert "\n" not in str(e.value) and SCENE in str(e.value)
+    # DIR = the scene folder itself: still one scene, whatever its name
+    one = image_features(H5Cache(cache_dir), load_scene(data, SCENE).images["0004.jpg"],
+                         FeatureConfig(name=f"custom:{good / 'strecha' / SCENE}", num_features=K))
+    assert len(one.keypoints) == K

@@ -76,15 +76,18 @@ def folder_for(root: Path, image_path: Path | str, scene: str | None = None,
     if not folders:
         raise ImtuneError(f"{root}: no {what} in this folder or its subfolders (IMC import layout: "
                           f"<DIR>[/<dataset>]/<scene>/{what})")
-    if len(folders) == 1:
+    if len(folders) == 1 and folders[0] == root:  # DIR is the scene folder itself: one scene, whatever its name
         return folders[0]
+    # a lone scene folder under DIR serves the scene it is named after only (it served every scene: the images
+    # of another scene were given its keypoints, by the same image names)
     parts = set(Path(image_path).resolve().parts) | ({scene} if scene else set())
     hits = [f for f in folders if f.name in parts]
     if len(hits) == 1:
         return hits[0]
     if not hits:
         raise ImtuneError(f"{root}: none of the scene folders holding {what} ({', '.join(f.name for f in folders[:5])}"
-                          f"{', ...' if len(folders) > 5 else ''}) is named after a folder of {image_path}")
+                          f"{', ...' if len(folders) > 5 else ''}) is named after a folder of {image_path}: add "
+                          f"<DIR>/<scene>/ for that image's scene, or use only the scenes DIR holds (--scenes, --test-scenes)")
     raise ImtuneError(f"{root}: several scene folders match {image_path}: {', '.join(map(str, hits))}")
 
 
@@ -291,5 +294,5 @@ def custom_class(name: str) -> type[CustomFeatures]:
     if key not in _CLASSES:
         _CLASSES[key] = type(f"Custom[{root.name}]", (CustomFeatures,), {
             "__doc__": f"features imported from {root} (IMC h5 layout)", "__module__": __name__,
-            "root": root, "version": f"1+{sig}"})
+            "root": root, "version": f"2+{sig}"})  # 2: a lone scene folder serves its own scene only
     return _CLASSES[key]
