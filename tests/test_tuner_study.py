@@ -186,6 +186,19 @@ def test_tune_test_command(study_run, tuner_cache):
 
 
 
+def test_tune_test_keeps_the_studys_pairs_per_scene(study_run, tuner_cache):
+    """`tune test --study NAME` (README: "reruns it") of a study tuned and tested with --max-pairs 8 tested every
+    pair of the test scenes: Task.from_options let the command's unset --max-pairs (None) wipe the study's 8. It
+    now tests the study's pairs unless --max-pairs is given."""
+    from pipeline.tasks.stereo import StereoTask
+    assert StereoTask.from_options({"min_covisibility": 0.1, "max_pairs": 8}, max_pairs=None).max_pairs == 8
+    assert StereoTask.from_options({"min_covisibility": 0.1, "max_pairs": 8}, max_pairs=3).max_pairs == 3
+    r = tune("test", "--study", study_run["name"], "--studies-dir", str(study_run["dir"]), "--runs", "1", "--json",
+             "--reference", "none", "--quiet", cache=tuner_cache, check=True)
+    t = json.loads(r.stdout)
+    assert t["task_options"]["max_pairs"] == 8 and t["mean"]["scenes"]["Herz-Jesus-P8"]["pairs"] == 8, t["task_options"]
+
+
 def test_a_test_on_the_validation_scene_says_it_is_not_held_out(study_run, tuner_cache, tmp_path):
     """Allowed, and said (as `tune run` says it for --test-scenes); on a copy of the frozen file in another studies
     folder, so the study's own test.json stays as the other tests read it."""

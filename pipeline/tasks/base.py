@@ -104,7 +104,10 @@ class Task(abc.ABC):
         (progress, workers, ...; those the constructor does not take and None values are ignored)."""
         import inspect
         accepted = inspect.signature(cls.__init__).parameters
-        kw = {k: v for k, v in {**(options or {}), **extra}.items() if k in accepted and v is not None}
+        # None is dropped from each side before they are merged: an unset run-time option (tune test's --max-pairs
+        # None) must not wipe the recorded one (the study's max_pairs 8: every test pair was tested)
+        kw = {k: v for k, v in (options or {}).items() if k in accepted and v is not None}
+        kw.update({k: v for k, v in extra.items() if k in accepted and v is not None})
         return cls(**kw)
 
     def evaluation_units(self, scene) -> list:
