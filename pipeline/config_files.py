@@ -47,13 +47,19 @@ class ConfigFile:
     path: Path | None = None
 
 
-def config_label(conf: PipelineConfig) -> str:
-    """One line naming a configuration: feature (count), matching (r, strategy), estimator (eta, Gamma)."""
+def config_label(conf: PipelineConfig, task: str | None = None) -> str:
+    """One line naming a configuration: feature (count), matching (r, strategy), estimator (eta, Gamma). For a
+    ``task`` that times no estimator of ours (multiview: COLMAP's own RANSAC) the estimator part says what verifies
+    the matches instead of eta and Gamma it never used."""
     f, mt, g = conf.feature, conf.matching, conf.geometry
     feat = f"{f.name} {f.num_features}" + (" upright" if f.upright else "")
     match = f"r {mt.ratio:g} {mt.strategy}" + (" fginn" if mt.fginn else "") + \
         (f" d≤{mt.distance_threshold:g}" if mt.distance_threshold is not None else "")
     geo = f"{g.ransac} η {g.threshold:g} px, Γ {g.max_iters}"
+    if task is not None:
+        from pipeline.tasks import TASKS, is_timed
+        if task in TASKS and not is_timed(task):  # e.g. "COLMAP from our tentative matches"
+            geo = (getattr(TASKS.get(task), "note", "") or f"{task}: its own estimator").split(";")[0]
     return f"{feat} · {match} · {geo}"
 
 
@@ -260,8 +266,8 @@ def _load(path: Path, base: PipelineConfig | None) -> ConfigFile:
     if isinstance(d.get("config"), dict):
         conf = pipeline_from_dict(d["config"], base, where)
         if "study" in d and "trial" in d:  # a frozen.yaml
-            return ConfigFile(conf, f"{d.get('study') or path.stem}: {config_label(conf)}", "frozen", frozen=d,
-                              path=path)
+            label = f"{d.get('study') or path.stem}: {config_label(conf, d.get('task'))}"
+            return ConfigFile(conf, label, "frozen", frozen=d, path=path)
         beside = [k for k in d if k != "config" and (k in SECTIONS or str(k).replace("-", "_") in FLAT)]
         if beside:  # read as nothing: `geometry: {threshold: 2}` next to `config:` left eta at its default, unsaid
             raise ImtuneError(f"{where}: {beside[0]!r} is beside 'config:' and would be ignored: move it under "

@@ -121,6 +121,18 @@ def test_multiview_reference_names_only_what_the_task_uses(mv_study, capsys):
     assert "vs paper defaults (r 0.85 both):" in out and "Gamma 50,000" not in out, out
 
 
+def test_a_multiview_study_label_names_no_estimator_setting(mv_study):
+    """`tune viz --study <multiview study>` titled its bags "... · degensac eta 0.5 px, Gamma 1000": values the
+    study never used (COLMAP verifies the matches with its own RANSAC). Its label names COLMAP instead."""
+    from tuner.sources import load_study_source
+    root, studies = mv_study
+    label = load_study_source(STUDY, studies).label
+    assert "COLMAP" in label and "Γ" not in label and "η" not in label and "Gamma" not in label, label
+    from pipeline.config_files import load_config_file
+    label = load_config_file(studies / STUDY / "frozen.yaml").label
+    assert "COLMAP" in label and "Γ" not in label, label
+
+
 @pytest.mark.parametrize("how", ["sigint", "sigterm"])
 def test_interrupting_a_multiview_study_stops_its_colmap_workers_at_once(mv_study, tmp_path, how):
     """Ctrl-C (SIGINT to the process group, as a terminal sends it) or `kill PID` (SIGTERM to the parent alone)

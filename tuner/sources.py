@@ -60,7 +60,8 @@ def load_study_source(name: str, sdir: Path) -> Source:
     frozen = load_frozen(sdir, name)
     conf = pipeline_from_dict(frozen["config"], where=f"study {name} frozen.yaml")
     trial = frozen.get("trial")
-    return Source(conf, f"{name}" + (f" (trial #{trial})" if trial is not None else "") + f": {config_label(conf)}",
+    return Source(conf, f"{name}" + (f" (trial #{trial})" if trial is not None else "") +
+                  f": {config_label(conf, frozen.get('task'))}",
                   study=name, frozen=frozen)
 
 
