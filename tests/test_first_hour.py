@@ -218,6 +218,15 @@ def test_top_help_names_every_data_subcommand(user):
     assert "data data sets: download, scenes, build-gt (ground truth)" in flat, flat
 
 
+def test_run_help_names_the_default_space_and_pairs(user):
+    """`tune run -h`: "--space SPACE search-space YAML replacing the default of the estimator family (default: none)"
+    and "--max-pairs MAX_PAIRS ... (default: none)": the family's space and every pair are the defaults."""
+    flat = " ".join(tune("run", "-h", env=user).stdout.split())
+    assert ("--space SPACE search-space YAML replacing the default of the estimator family (default: "
+            "search_spaces/<family>.yaml, with its per-feature overrides)") in flat, flat
+    assert "--max-pairs MAX_PAIRS use at most N pairs per scene (evenly spread; quick runs) (default: every pair)" in flat
+
+
 # -- item 1: data that just works ------------------------------------------------------------------------------
 
 def test_no_data_and_no_network(user, tmp_path):

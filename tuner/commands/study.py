@@ -122,7 +122,8 @@ def register(sub) -> None:
     t.add_argument("--study", default=None, help="study name (default <feature>-<num_features>-<ransac>-<task>)")
     t.add_argument("--task", default="stereo", choices=[t for t in task_choices() if t != "both"],
                    help="the task tuned (see `tune list`)")
-    t.add_argument("--space", default=None, help="search-space YAML replacing the default of the estimator family")
+    t.add_argument("--space", default=None, help="search-space YAML replacing the default of the estimator family "
+                                                 "(default: search_spaces/<family>.yaml, with its per-feature overrides)")
     t.add_argument("--fix", action="append", default=[], metavar="NAME=VALUE",
                    help="pin a parameter (ratio, threshold, max_iters, strategy); repeatable")
     t.add_argument("--n-trials", type=positive_int, default=None,
@@ -145,7 +146,7 @@ def register(sub) -> None:
                    help="estimator seconds per pair allowed on test (default 1.0)")
     t.add_argument("--test-scenes", type=scene_list, default=None, help="comma-separated test scenes (default: the data set's test split)")
     t.add_argument("--max-pairs", type=positive_int, default=None,
-                   help="use at most N pairs per scene (evenly spread; quick runs)")
+                   help="use at most N pairs per scene (evenly spread; quick runs) (default: every pair)")
     t.add_argument("--chunk-pairs", type=positive_int, default=12,
                    help="pairs per pruning step (an intermediate value after each chunk)")
     t.add_argument("--heartbeat", type=nonnegative_int, default=10,
