@@ -133,6 +133,23 @@ def test_a_multiview_study_label_names_no_estimator_setting(mv_study):
     assert "COLMAP" in label and "Γ" not in label, label
 
 
+def test_multiview_results_table_has_no_empty_column(mv_study, capsys):
+    """`tune results --task multiview` showed 'NF' and 'NI degensac' columns of '-' in every row (a multiview test
+    records neither features per image nor estimator inliers): a column no row has a value for is left out."""
+    root, studies = mv_study
+    rc, _ = run_cli(["test", "--study", STUDY, "--studies-dir", str(studies), "--data", str(root),
+                     "--scenes", "fountain-P11", "--runs", "1", "--workers", "1", "--quiet"], capsys)
+    assert rc == 0
+    rc, out = run_cli(["results", "--task", "multiview", "--studies-dir", str(studies)], capsys)
+    assert rc == 0
+    table = [ln for ln in out.splitlines() if ln.startswith("|")]
+    header = [c.strip() for c in table[0].strip("|").split("|")]
+    cells = [[c.strip() for c in ln.strip("|").split("|")] for ln in table[2:]]
+    assert "rank" in header and cells, out
+    empty = [h for i, h in enumerate(header) if all(row[i] in ("-", "") for row in cells) and h != "ties"]
+    assert not empty, (empty, out)
+
+
 @pytest.mark.parametrize("how", ["sigint", "sigterm"])
 def test_interrupting_a_multiview_study_stops_its_colmap_workers_at_once(mv_study, tmp_path, how):
     """Ctrl-C (SIGINT to the process group, as a terminal sends it) or `kill PID` (SIGTERM to the parent alone)

@@ -459,6 +459,8 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
     for e in ests:
         cols += [f"NI {e}", f"mAA10 {e}"] + ([f"mAA10_ci {e}"] if fmt == "json" else [])
     cols += ["best"] + (["test set"] if several else []) + ["ties"]
+    # NF / NI that no row has (a multiview test records neither): left out, not a column of '-'
+    cols = [c for c in cols if not (c == "NF" or c.startswith("NI ")) or any(r.get(c) is not None for r in rows)]
     if fmt == "json":
         cols.append("studies")
     from tuner.formatting import Columns
