@@ -227,6 +227,14 @@ def test_run_help_names_the_default_space_and_pairs(user):
     assert "--max-pairs MAX_PAIRS use at most N pairs per scene (evenly spread; quick runs) (default: every pair)" in flat
 
 
+def test_build_gt_help_names_where_it_writes_as_the_readme_does(user):
+    """`tune data build-gt -h` said "Written to $IMTUNE_CACHE/gt (or --gt-dir)"; $IMTUNE_GT comes first and
+    ~/.cache/imtune/gt last (README, and its own --gt-dir help)."""
+    flat = " ".join(tune("data", "build-gt", "-h", env=user).stdout.split())
+    assert ("Written to --gt-dir, else $IMTUNE_GT, $IMTUNE_CACHE/gt or ~/.cache/imtune/gt, never into the data "
+            "folder") in flat, flat
+
+
 # -- item 1: data that just works ------------------------------------------------------------------------------
 
 def test_no_data_and_no_network(user, tmp_path):

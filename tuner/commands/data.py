@@ -32,8 +32,8 @@ def register(sub) -> None:
     g = dsub.add_parser("build-gt", help="build ground truth (3D points, co-visibility, bags) with pycolmap",
                         description="From known poses: triangulate SIFT matches with the poses held fixed. From an "
                                     "image folder: SfM with exhaustive matching (pseudo ground truth). Written to "
-                                    "$IMTUNE_CACHE/gt (or --gt-dir), never into the data folder; `tune evaluate` "
-                                    "picks it up.")
+                                    "--gt-dir, else $IMTUNE_GT, $IMTUNE_CACHE/gt or ~/.cache/imtune/gt, never into "
+                                    "the data folder; every later command picks it up.")
     g.add_argument("--data", default=None, help=DATA_HELP)
     g.add_argument("--scenes", type=scene_list, default=None, help="comma-separated scene names (default: all)")
     g.add_argument("--method", default="auto", choices=["auto", "poses", "sfm"],
