@@ -213,6 +213,7 @@ def test_glue_factory_pairs_calibrated_list_is_read(tmp_path, cache_dir):
         R, t = scene.relative_pose(p)
         np.testing.assert_allclose(R, Rj @ Ri.T, atol=1e-12)
         np.testing.assert_allclose(t, tj - Rj @ Ri.T @ ti, atol=1e-9)
+        np.testing.assert_allclose(scene.intrinsics(p)[0], Ki, atol=1e-12)
         np.testing.assert_allclose(scene.intrinsics(p)[1], Kj, atol=1e-12)
     r = tune("evaluate", "--data", root, *EVAL, "--json")
     assert r.returncode == 0, r.stderr[-2000:]
