@@ -254,3 +254,29 @@ def test_evaluate_config_of_a_multiview_study_with_task_stereo_says_what_was_nev
     assert main(["evaluate", "--config", STUDY, "--studies-dir", str(studies), "--data", str(root), "--scenes",
                  "fountain-P11", "--workers", "1", "--quiet", "--json"]) == 0  # its own task: nothing to say
     assert "warning: --config" not in capsys.readouterr().err
+
+
+def test_multiview_test_has_an_interval_and_a_paired_comparison(mv_study, capsys):
+    """A multiview `tune test` had no 95% interval (test.json's interval null) and no paired comparison with the
+    reference ("no per-pair errors in multiview records"), though every stereo test has both. Each run now keeps
+    its bags' pair errors; the mean over runs gets the interval and the reference is compared on the same bags."""
+    root, studies = mv_study
+    rc, out = run_cli(["test", "--study", STUDY, "--studies-dir", str(studies), "--data", str(root),
+                       "--scenes", "fountain-P11", "--runs", "2", "--workers", "1", "--json", "--quiet"], capsys)
+    assert rc == 0
+    res = json.loads(out)
+    assert res["interval"] and res["interval"]["runs"] == 2 and res["interval"]["consistent_with_mean"]
+    assert "bags" in res["interval"]["method"]
+    for run in res["runs"]:
+        assert len(run["bag_errors"]) == 3 and all(len(b[3]) == 10 for b in run["bag_errors"])  # 3 bags of 5: 10 pairs
+    m = res["mean"]
+    lo, hi = m["mAA10_ci"]
+    assert 0.0 <= lo <= m["mAA10"] <= hi <= 1.0
+    assert m["scenes"]["fountain-P11"]["mAA10_ci"] == pytest.approx([lo, hi])  # one scene: the same interval
+    cmp = res["reference"]["comparison"]
+    assert cmp is not None and cmp["pairs"] == 3 and cmp["units"] == "bags"
+    # B - A is the frozen mean minus the reference's, as the task averaged them
+    assert cmp["difference"] == pytest.approx(m["mAA10"] - res["reference"]["mean"]["mAA10"], abs=1e-9)
+    rc, text = run_cli(["test", "--study", STUDY, "--studies-dir", str(studies), "--data", str(root),
+                        "--scenes", "fountain-P11", "--runs", "2", "--workers", "1", "--quiet"], capsys)
+    assert rc == 0 and "no paired comparison" not in text and "intervals: 95%" in text, text

@@ -531,3 +531,98 @@ def test_the_interval_of_a_relative_difference_covers_the_true_ratio():
     assert paired_relative(a, a)["ci"] == [0.0, 0.0]
     zero = [dict(r, err=np.inf) for r in a[:4]]
     assert paired_relative(zero, a[:4])["relative"] is None  # A scores 0: no ratio
+
+
+# ------------------------------------------------------------------------------------------ multiview test runs
+
+# (scene, bag size) -> (bag count, exponential error scale in degrees, failure probability): unequal bag counts
+# and distributions per size, so a wrong weighting of sizes or scenes moves the estimate off the truth
+BAG_STRATA = {("A", 5): (12, 2.0, 0.05), ("A", 10): (6, 6.0, 0.20), ("A", 25): (3, 9.0, 0.30),
+              ("B", 5): (8, 4.0, 0.10), ("B", 10): (4, 3.0, 0.15)}
+
+
+def bag_truth(tau: int = 10) -> float:
+    """The multiview mAA expected over bags and runs (errors Exponential(scale) x Uniform(0.8, 1.25) run noise,
+    by Monte Carlo over 10^6 pairs per stratum): the mean over a scene's sizes, then over the scenes."""
+    rng = np.random.default_rng(98)
+    per_scene = {}
+    for (scene, _), (_, scale, fail) in BAG_STRATA.items():
+        e = draw(rng, 1_000_000, scale, fail) * rng.uniform(0.8, 1.25, 1_000_000)
+        per_scene.setdefault(scene, []).append(np.mean([(e <= k).mean() for k in range(1, tau + 1)]))
+    return float(np.mean([np.mean(v) for v in per_scene.values()]))
+
+
+def bag_runs(rng, runs: int, shrink: float = 1.0, difficulty=None):
+    """``runs`` lists of bag records on the same bags (scene, size, index); each bag's pairs have a difficulty
+    shared by the runs (and by a second method), the runs differ by per-pair noise; ``shrink`` scales the errors."""
+    if difficulty is None:
+        difficulty = {(st, b): draw(rng, st[1] * (st[1] - 1) // 2, scale, fail)
+                      for st, (count, scale, fail) in BAG_STRATA.items() for b in range(count)}
+    out = []
+    for _ in range(runs):
+        out.append([{"scene": st[0], "bag_size": st[1], "bag": b, "errors": list(shrink * d * rng.uniform(0.8, 1.25, d.size)),
+                     "success": True, "RC": 100.0, "NL": 1.0, "TL": 2.0, "NM": 1.0, "seconds": 1.0}
+                    for (st, b), d in difficulty.items()])
+    return out, difficulty
+
+
+def test_multiview_test_runs_get_an_interval_that_covers_the_truth():
+    """A multiview test (3 runs of the same bags) had no interval at all. The interval of the mean over runs
+    holds the multiview task's own mean of the runs' mAAs (pipeline.tasks.multiview: combine / summarize_scene)
+    and covers the known expected mAA at about the nominal rate; one run gives bag_intervals' interval."""
+    from pipeline.metrics.uncertainty import combine_bag_runs_interval
+    from pipeline.tasks.multiview import combine, summarize_scene
+    rng = np.random.default_rng(21)
+    runs, _ = bag_runs(rng, 3)
+    out = combine_bag_runs_interval(runs, seed=1)
+    task = [combine({s: summarize_scene([r for r in run if r["scene"] == s]) for s in ("A", "B")}) for run in runs]
+    for tau in (5, 10):
+        assert out[f"mAA{tau}"] == pytest.approx(np.mean([t[f"mAA{tau}"] for t in task]), abs=1e-12)
+        lo, hi = out[f"mAA{tau}_ci"]
+        assert lo < out[f"mAA{tau}"] < hi
+    assert out["scenes"]["B"]["mAA10"] == pytest.approx(np.mean([summarize_scene([r for r in run if r["scene"] == "B"])["mAA10"] for run in runs]), abs=1e-12)
+    one = combine_bag_runs_interval(runs[:1], seed=1)
+    assert one["mAA10_ci"] == pytest.approx(bag_intervals(runs[0], seed=1)["mAA10_ci"], abs=1e-12)
+    truth = bag_truth(10)
+    hits = 0
+    sims = 200
+    for i in range(sims):
+        runs, _ = bag_runs(rng, 3)
+        lo, hi = combine_bag_runs_interval(runs, taus=(10,), seed=i, n_resamples=500)["mAA10_ci"]
+        hits += lo <= truth <= hi
+    # conservative here (3-12 bags per stratum: the pseudo-bags weigh), never below the nominal rate by much
+    print(f"multiview test-run interval: coverage {hits / sims:.3f}")
+    assert hits / sims >= 0.90, hits / sims
+
+
+def test_paired_bags_compare_the_same_bags_with_size_and_power():
+    """The multiview test's comparison with the reference was never made ("no per-pair errors"). On the same
+    bags: identical records give 0, [0, 0], p 1; the difference is the task's mAA_b - mAA_a; two alike methods
+    are rarely called different, a clearly better one usually is."""
+    from pipeline.metrics.uncertainty import paired_bags
+    from pipeline.tasks.multiview import combine, summarize_scene
+    rng = np.random.default_rng(22)
+    a, diff = bag_runs(rng, 2)
+    same = paired_bags([dict(r, run=k) for k, run in enumerate(a) for r in run],
+                       [dict(r, run=k) for k, run in enumerate(a) for r in reversed(run)])
+    assert same["difference"] == 0.0 and same["ci"] == [0.0, 0.0] and same["p_value"] == 1.0
+    assert same["pairs"] == sum(c for c, _, _ in BAG_STRATA.values()) and same["units"] == "bags"
+    b, _ = bag_runs(rng, 2, shrink=0.5, difficulty=diff)
+    res = paired_bags([r for run in a for r in run], [r for run in b for r in run])
+
+    def task_maa(runs):
+        return np.mean([combine({s: summarize_scene([r for r in run if r["scene"] == s]) for s in ("A", "B")})["mAA10"]
+                        for run in runs])
+    assert res["difference"] == pytest.approx(task_maa(b) - task_maa(a), abs=1e-12)
+    assert res["scenes"]["A"]["pairs"] == 21 and res["scenes"]["B"]["pairs"] == 12
+    false = power = 0
+    sims = 300
+    for i in range(sims):
+        a, d = bag_runs(rng, 1)
+        a2, _ = bag_runs(rng, 1, difficulty=d)  # the same method again: only per-pair noise differs
+        false += paired_bags(a[0], a2[0], seed=i, n_resamples=500)["significant"]
+        b, _ = bag_runs(rng, 1, shrink=0.6, difficulty=d)
+        power += paired_bags(a[0], b[0], seed=i, n_resamples=500)["significant"]
+    print(f"paired bags: significant {false / sims:.3f} under the null, {power / sims:.3f} at errors x 0.6")
+    assert false / sims <= 0.09, false / sims  # nominal 5%; 3 binomial sd above it at 300 data sets
+    assert power / sims >= 0.8, power / sims

@@ -436,7 +436,7 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
              ci_resamples: int | None = None, gt_dir=None) -> dict:
     """Evaluate the frozen configuration with its task on the test scenes ``runs`` times (the k-th run with the
     task's k-th seed: ``Task.for_run``) and aggregate (``Task.aggregate``: mean and std). Each run keeps its pair
-    errors (``pair_errors``); the mean carries the 95% interval of ``tuner.select.test_interval`` (``interval``
+    errors (``pair_errors``; multiview: its bags' pair errors, ``bag_errors``); the mean carries the 95% interval of ``tuner.select.test_interval`` (``interval``
     says how it accounts for the run-to-run variation; ``ci_resamples`` 0: none). ``reference`` (None: the
     paper defaults, "none", a config file or study: ``tuner.select.reference_config``) is evaluated on the same
     pairs and runs and compared by a paired bootstrap (``reference.comparison``). Writes
@@ -480,9 +480,9 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
         res = t.evaluate(vs.scene_objs, c, cache)
         f = t.figures(res)
         f.update(run=k, seed=int(c.geometry.seed), task_options=t.options())
-        errors.append(sel.pair_errors(res.records))
-        if errors[-1] is not None:
-            f["pair_errors"] = errors[-1]  # [[scene, pair, err deg], ...]: what paired comparisons read
+        errors.append(sel.unit_errors(res.records))
+        if errors[-1] is not None:  # [[scene, pair, err deg], ...] or multiview [[scene, size, bag, [errs]], ...]
+            f[errors[-1][0]] = errors[-1][1]  # what the interval and paired comparisons read
         results.append(f)
     mean, std = task.aggregate(results)
     interval = sel.test_interval(mean, errors, n_ci)
@@ -496,9 +496,9 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
             res = t.evaluate(vs.scene_objs, c, cache)
             f = t.figures(res)
             f.update(run=k, seed=int(c.geometry.seed))
-            rerr.append(sel.pair_errors(res.records))
+            rerr.append(sel.unit_errors(res.records))
             if rerr[-1] is not None:
-                f["pair_errors"] = rerr[-1]
+                f[rerr[-1][0]] = rerr[-1][1]
             rres.append(f)
         rmean, rstd = task.aggregate(rres)
         sel.test_interval(rmean, rerr, n_ci)
@@ -506,7 +506,8 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
         reference_out = {"label": rlabel, "spec": sel.reference_spec(reference), "config": rconf.to_dict(),
                          task.objective: rmean.get(task.objective), "mean": rmean, "std": rstd, "runs": rres,
                          "comparison": cmp,
-                         "note": "" if cmp else f"no per-pair errors in {task.name} records: no paired comparison"}
+                         "note": "" if cmp else f"no per-pair or per-bag errors in {task.name} records: no paired "
+                                                  "comparison"}
     sec = task.budget_seconds(mean)  # the one feasibility rule, on the mean over runs
     out = _plain({
         "study": frozen["study"], "trial": frozen.get("trial"), "task": task.name, "task_options": task.options(),

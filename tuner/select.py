@@ -303,6 +303,11 @@ TEST_INTERVAL_NOTE = (
     "already contains the per-pair seed noise), widened by the run-to-run variation shared by all pairs (the "
     "variance of the runs' mAAs beyond what per-pair noise explains, G / R, with Student's t at "
     "Welch-Satterthwaite degrees of freedom); the std over runs is reported beside it")
+BAG_TEST_INTERVAL_NOTE = (
+    "95% interval of the mean over the test runs (pipeline.metrics.uncertainty.combine_bag_runs_interval): the "
+    "same as for stereo pairs with bags for pairs: a percentile bootstrap over bags stratified by scene and bag "
+    "size (weighted as the multiview mAA averages them) of the run-averaged bag scores (each bag's mAA over its "
+    "pairs), two pseudo-bags per stratum, widened by the run-to-run variation shared by all bags")
 
 
 def pair_errors(records: list[dict]) -> list | None:
@@ -312,8 +317,34 @@ def pair_errors(records: list[dict]) -> list | None:
     return [[r["scene"], r["pair"], r["err"]] for r in records]
 
 
+def _err(e) -> float:
+    return math.inf if e is None or e == "inf" else float(e)
+
+
 def _as_records(errors: list) -> list[dict]:
-    return [{"scene": sc, "pair": p, "err": math.inf if e is None or e == "inf" else float(e)} for sc, p, e in errors]
+    return [{"scene": sc, "pair": p, "err": _err(e)} for sc, p, e in errors]
+
+
+def bag_errors(records: list[dict]) -> list | None:
+    """``[[scene, bag size, bag, [pair errors deg]], ...]`` of a task's records when they are bags (multiview);
+    None otherwise."""
+    if not records or not all("errors" in r and "bag_size" in r and "bag" in r for r in records):
+        return None
+    return [[r["scene"], int(r["bag_size"]), int(r["bag"]), list(r["errors"])] for r in records]
+
+
+def _as_bags(errors: list) -> list[dict]:
+    return [{"scene": sc, "bag_size": size, "bag": b, "errors": [_err(e) for e in errs]} for sc, size, b, errs in errors]
+
+
+def unit_errors(records: list[dict]) -> tuple[str, list] | None:
+    """("pair_errors", ...) of stereo records, ("bag_errors", ...) of multiview ones: what a test run stores
+    for its interval and its paired comparisons; None for records of neither kind."""
+    e = pair_errors(records)
+    if e is not None:
+        return "pair_errors", e
+    e = bag_errors(records)
+    return ("bag_errors", e) if e is not None else None
 
 
 def test_interval(mean: dict, runs_errors: list, n_resamples: int) -> dict | None:
@@ -322,16 +353,34 @@ def test_interval(mean: dict, runs_errors: list, n_resamples: int) -> dict | Non
     ``n_resamples`` 0: then the runs' own intervals are all there is)."""
     if not n_resamples or not runs_errors or any(e is None for e in runs_errors):
         return None
-    from pipeline.metrics.uncertainty import combine_runs_interval
-    iv = combine_runs_interval([_as_records(e) for e in runs_errors], n_resamples=int(n_resamples))
+    from pipeline.metrics.uncertainty import combine_bag_runs_interval, combine_runs_interval
+    kinds = {_kind(e) for e in runs_errors}
+    if len(kinds) != 1:
+        return None
+    kind, = kinds
+    if kind == "bag_errors":
+        iv = combine_bag_runs_interval([_as_bags(e[1]) for e in runs_errors], n_resamples=int(n_resamples))
+        method = BAG_TEST_INTERVAL_NOTE
+    else:
+        iv = combine_runs_interval([_as_records(_unwrap(e)) for e in runs_errors], n_resamples=int(n_resamples))
+        method = TEST_INTERVAL_NOTE
     for k in ("mAA5", "mAA10"):
         mean[f"{k}_ci"] = iv[f"{k}_ci"]
         for name, s in (mean.get("scenes") or {}).items():
             if name in iv["scenes"]:
                 s[f"{k}_ci"] = iv["scenes"][name][f"{k}_ci"]
     check = abs(float(iv["mAA10"]) - float(mean.get("mAA10", iv["mAA10"])))
-    return {"method": TEST_INTERVAL_NOTE, "level": 0.95, "resamples": int(n_resamples), "runs": iv["runs"],
+    return {"method": method, "level": 0.95, "resamples": int(n_resamples), "runs": iv["runs"],
             "consistent_with_mean": bool(check < 1e-9)}
+
+
+def _kind(e) -> str:
+    """'bag_errors' for a (kind, errors) tuple of bags, else 'pair_errors' (plain stereo triples too)."""
+    return e[0] if isinstance(e, tuple) else "pair_errors"
+
+
+def _unwrap(e) -> list:
+    return e[1] if isinstance(e, tuple) else e
 
 
 def compare_reference(ref_errors: list, errors: list, n_resamples: int) -> dict | None:
@@ -340,9 +389,16 @@ def compare_reference(ref_errors: list, errors: list, n_resamples: int) -> dict 
     settings are better. None where either side has no pair errors."""
     if not ref_errors or not errors or any(e is None for e in list(ref_errors) + list(errors)):
         return None
-    from pipeline.metrics.uncertainty import paired_bootstrap
-    a = [{**x, "run": k} for k, e in enumerate(ref_errors) for x in _as_records(e)]  # run k: the k-th seed of both
-    b = [{**x, "run": k} for k, e in enumerate(errors) for x in _as_records(e)]
+    from pipeline.metrics.uncertainty import paired_bags, paired_bootstrap
+    kinds = {_kind(e) for e in list(ref_errors) + list(errors)}
+    if len(kinds) != 1:
+        return None
+    if kinds == {"bag_errors"}:  # the same bags for both (drawn from the ground truth), run k: the k-th seed of both
+        a = [{**x, "run": k} for k, e in enumerate(ref_errors) for x in _as_bags(e[1])]
+        b = [{**x, "run": k} for k, e in enumerate(errors) for x in _as_bags(e[1])]
+        return paired_bags(a, b, tau=10, n_resamples=int(n_resamples or 2000))
+    a = [{**x, "run": k} for k, e in enumerate(ref_errors) for x in _as_records(_unwrap(e))]  # run k: k-th seed of both
+    b = [{**x, "run": k} for k, e in enumerate(errors) for x in _as_records(_unwrap(e))]
     return paired_bootstrap(a, b, tau=10, n_resamples=int(n_resamples or 2000))
 
 
@@ -353,7 +409,7 @@ def refresh_intervals(result: dict, n_resamples: int) -> bool:
     `tune findings` compute from the same pair errors. Returns whether it changed anything (the caller rewrites
     the file); False with no interval method recorded, ``n_resamples`` 0 or no pair errors."""
     iv = result.get("interval")
-    if not isinstance(iv, dict) or iv.get("method") == TEST_INTERVAL_NOTE or not n_resamples:
+    if not isinstance(iv, dict) or iv.get("method") in (TEST_INTERVAL_NOTE, BAG_TEST_INTERVAL_NOTE) or not n_resamples:
         return False
     errors = [r.get("pair_errors") for r in result.get("runs") or []]
     new = test_interval(result.setdefault("mean", {}), errors, n_resamples)
@@ -385,4 +441,4 @@ def comparison_text(ref: dict | None) -> str:
                -1: "frozen settings significantly WORSE: tuning did not generalise"}[
         paired_direction(c["ci"], c.get("p_value"))]
     return (f"{head}; frozen - reference {c['difference']:+.3f} [{lo:+.3f}, {hi:+.3f}], p = {format_p(c['p_value'])} "
-            f"over {c['pairs']} paired pairs: {verdict}")
+            f"over {c['pairs']} paired {c.get('units', 'pairs')}: {verdict}")

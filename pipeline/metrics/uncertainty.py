@@ -48,7 +48,8 @@ from pipeline.metrics.pose import mean_average_accuracy
 
 __all__ = ["pair_scores", "maa_from_errors", "maa_intervals", "bag_intervals", "paired_bootstrap", "paired_direction",
            "DIRECTION_RULE",
-           "rank_with_ties", "rank_by_intervals", "combine_runs_interval", "stratified_interval",
+           "rank_with_ties", "rank_by_intervals", "combine_runs_interval", "combine_bag_runs_interval",
+           "paired_bags", "stratified_interval",
            "DEFAULT_RESAMPLES", "DEFAULT_LEVEL", "SCORE_RANGE", "format_p", "paired_relative"]
 
 DEFAULT_RESAMPLES = 2000
@@ -282,7 +283,7 @@ def _sign_flip_p(d: np.ndarray, w: np.ndarray, n_resamples: int, rng: np.random.
     return float(min(1.0, (1 + hits) / (1 + n_resamples)))
 
 
-def _run_variance(run_diffs) -> tuple[float, int]:
+def _run_variance(run_diffs, weights=None) -> tuple[float, int]:
     """(G, R): the variance of the run-to-run effect shared by all pairs in the difference B - A, and the number
     of runs, from ``run_diffs`` = per scene an (R, n_s) array of per-run pair score differences (run k of A with
     run k of B: the same seed). As :func:`combine_runs_interval`: G = max(0, s2 - W), s2 the sample variance of
@@ -293,17 +294,18 @@ def _run_variance(run_diffs) -> tuple[float, int]:
     R = run_diffs[0].shape[0]
     if R < 2:
         return 0.0, R
-    S = len(run_diffs)
-    per_run = sum(g.mean(axis=1) for g in run_diffs) / S
-    W = sum(float(np.sum(np.var(g, axis=0, ddof=1))) / (S * g.shape[1]) ** 2 for g in run_diffs)
+    w = list(weights) if weights is not None else [1.0 / len(run_diffs)] * len(run_diffs)  # per scene (stratum)
+    per_run = sum(wg * g.mean(axis=1) for g, wg in zip(run_diffs, w))
+    W = sum(float(np.sum(np.var(g, axis=0, ddof=1))) * (wg / g.shape[1]) ** 2 for g, wg in zip(run_diffs, w))
     return max(0.0, float(np.var(per_run, ddof=1)) - W), R
 
 
-def _paired_stats(groups_a, groups_b, n_resamples, seed, level, method, run_diffs=None) -> dict:
+def _paired_stats(groups_a, groups_b, n_resamples, seed, level, method, run_diffs=None, weights=None) -> dict:
     """groups_*: per-scene score arrays on the common pairs (same order in a and b); run_diffs: per scene the
-    (R, n_s) per-run differences when the records carry their runs (see :func:`paired_bootstrap`)."""
+    (R, n_s) per-run differences when the records carry their runs (see :func:`paired_bootstrap`); weights: per
+    group (default 1 / the group count: scenes weigh alike; multiview strata weigh as the task averages)."""
     S = len(groups_a)
-    w_groups = [1.0 / S] * S if S else []
+    w_groups = list(weights) if weights is not None else ([1.0 / S] * S if S else [])
     maa_a = float(sum(w * g.mean() for g, w in zip(groups_a, w_groups) if g.size))
     maa_b = float(sum(w * g.mean() for g, w in zip(groups_b, w_groups) if g.size))
     diffs = [b - a for a, b in zip(groups_a, groups_b)]
@@ -312,7 +314,7 @@ def _paired_stats(groups_a, groups_b, n_resamples, seed, level, method, run_diff
     w = np.concatenate([np.full(g.size, wg / g.size) for g, wg in zip(diffs, w_groups) if g.size]) if diffs else d
     p = _sign_flip_p(d, w, int(n_resamples), np.random.default_rng(seed))
     diff = float(sum(wg * g.mean() for g, wg in zip(diffs, w_groups) if g.size))
-    G, R = _run_variance(run_diffs) if run_diffs is not None else (0.0, 0)
+    G, R = _run_variance(run_diffs, w_groups) if run_diffs is not None else (0.0, 0)
     run_note = None
     if G > 0 and np.any(d):
         # a run effect shared by all pairs: neither the bootstrap over pairs nor the sign flips of pairs see it.
@@ -470,6 +472,104 @@ def _run_differences(records_a, records_b, common, names, tau) -> list[np.ndarra
     return [np.array([[rb[r][k] - ra[r][k] for k in common if k[0] == n] for r in runs]) for n in names]
 
 
+# ------------------------------------------------------------------------------------------ multiview runs
+
+def _bag_unit(r: Mapping) -> tuple:
+    """A bag record's key: ((scene, bag size), bag index) -- the same bags in every run (only COLMAP's seed
+    varies) and for every configuration (bags are drawn from the scene's ground truth)."""
+    return (r["scene"], int(r["bag_size"])), int(r["bag"])
+
+
+def _bag_weights(strata: Iterable[tuple], scene_names: Sequence[str]) -> dict:
+    """{(scene, size): weight} as the multiview task averages: the mean over a scene's bag sizes, then over the
+    scenes (a scene without bags counts 0, its weight going to no stratum)."""
+    strata = list(dict.fromkeys(strata))
+    out = {}
+    for n in scene_names:
+        mine = [st for st in strata if st[0] == n]
+        for st in sorted(mine, key=lambda x: x[1]):
+            out[st] = 1.0 / (len(scene_names) * len(mine))
+    return out
+
+
+def combine_bag_runs_interval(runs: Sequence[Sequence[Mapping]], taus: Sequence[int] = (5, 10),
+                              n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0, level: float = DEFAULT_LEVEL) -> dict:
+    """:func:`combine_runs_interval` for the multiview task's repeated test runs: ``runs`` one list of bag records
+    ("scene", "bag_size", "bag", "errors": the bag's pair errors in degrees) per run. A bag's score is its
+    mAA(tau) over its pairs; the bootstrap resamples bags within each (scene, bag size) stratum, weighted as
+    :func:`bag_intervals` and the task weigh them, with the same pseudo-scores and run-effect widening. Same
+    keys as :func:`combine_runs_interval`."""
+    runs = [list(r) for r in runs]
+    names = _scene_order([x for run in runs for x in run], None)
+    out: dict = {"runs": len(runs), "scenes": {n: {} for n in names}}
+
+    def one(tau, scene_names) -> dict:
+        per_run = [{_bag_unit(x): maa_from_errors(x["errors"], tau) for x in run if x["scene"] in scene_names}
+                   for run in runs]
+        w = _bag_weights((k[0] for pr in per_run for k in pr), scene_names)
+        return _combine_runs(per_run, w, n_resamples, seed, level)
+
+    for tau in taus:
+        k = f"mAA{int(tau)}"
+        o = one(int(tau), names)
+        out[k], out[k + "_ci"], out[k + "_std"] = o["value"], o["ci"], o["std"]
+        for n in names:
+            o = one(int(tau), [n])
+            out["scenes"][n][k], out["scenes"][n][k + "_ci"], out["scenes"][n][k + "_std"] = o["value"], o["ci"], o["std"]
+    return out
+
+
+def paired_bags(bags_a: Sequence[Mapping], bags_b: Sequence[Mapping], tau: int = 10,
+                n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0, level: float = DEFAULT_LEVEL) -> dict:
+    """:func:`paired_bootstrap` for the multiview task: B against A on the bags both evaluated (bag records as
+    for :func:`combine_bag_runs_interval`, each bag's mAA(tau) averaged over the runs; records carrying their
+    ``run`` index let the comparison see a run effect). The same bootstrap, sign-flip test, verdict rule and
+    keys, with bags for pairs ("pairs": the common bags) and strata (scene, bag size) weighted as the task
+    averages them."""
+    tau = int(tau)
+
+    def scores(records):
+        acc: dict = {}
+        for r in records:
+            acc.setdefault(_bag_unit(r), []).append(maa_from_errors(r["errors"], tau))
+        return {k: float(np.mean(v)) for k, v in acc.items()}
+
+    def by_run(records):
+        out: dict = {}
+        for r in records:
+            if "run" not in r:
+                return None
+            out.setdefault(r["run"], {})[_bag_unit(r)] = maa_from_errors(r["errors"], tau)
+        return out
+    sa, sb = scores(bags_a), scores(bags_b)
+    common = [k for k in sa if k in sb]
+    if not common:
+        raise ValueError(f"no common bag between the two sets of records ({len(sa)} and {len(sb)} bags): they were "
+                         "not evaluated on the same bags")
+    names = list(dict.fromkeys(k[0][0] for k in common))
+    ra, rb = by_run(bags_a), by_run(bags_b)
+    runs = sorted(set(ra) & set(rb), key=str) if ra and rb else []
+    paired_runs = len(runs) >= 2 and all(k in ra[r] and k in rb[r] for r in runs for k in common)
+    ka, kb = f"mAA{tau}_a", f"mAA{tau}_b"
+
+    def part(scene_names):
+        w = _bag_weights((k[0] for k in common if k[0][0] in scene_names), scene_names)
+        ga = [np.array([sa[k] for k in common if k[0] == st]) for st in w]
+        gb = [np.array([sb[k] for k in common if k[0] == st]) for st in w]
+        rd = ([np.array([[rb[r][k] - ra[r][k] for k in common if k[0] == st] for r in runs]) for st in w]
+              if paired_runs else None)
+        st = _paired_stats(ga, gb, n_resamples, seed, level, "percentile", rd, weights=list(w.values()))
+        mine = {k for k in common if k[0][0] in scene_names}
+        return {ka: st["a"], kb: st["b"], "difference": st["difference"], "ci": st["ci"], "p_value": st["p_value"],
+                "significant": st["significant"], "pairs": st["pairs"],
+                "dropped_a": sum(1 for k in sa if k[0][0] in scene_names and k not in mine),
+                "dropped_b": sum(1 for k in sb if k[0][0] in scene_names and k not in mine),
+                "tau": tau, "level": level, "run_effect": st["run_effect"], "units": "bags"}
+    out = part(names)
+    out["scenes"] = {n: part([n]) for n in names}
+    return out
+
+
 def format_p(p: float, alpha: float = 0.05) -> str:
     """A p-value to 3 significant digits, with as many more as it takes to stay on its side of ``alpha``: 0.04996
     reads "0.04996", not "0.05" beside a verdict that needs p < 0.05."""
@@ -606,6 +706,47 @@ def rank_by_intervals(items: Sequence[Mapping], key: str = "mAA10") -> list[dict
 
 # ------------------------------------------------------------------------------------------ repeated runs
 
+def _combine_runs(per_run: list[dict], weights: dict, n_resamples: int, seed: int, level: float) -> dict:
+    """The estimate of :func:`combine_runs_interval` (steps 1-4) on scores already computed: ``per_run`` one
+    ``{(stratum, unit): score}`` per run, ``weights`` {stratum: weight} (summing to 1; a unit weighs its stratum's
+    weight / the stratum's unit count). Stereo: strata are scenes, units pairs; multiview: strata are (scene, bag
+    size), units bags. Returns {"value", "ci", "std" (over runs, ddof 0)}."""
+    R = len(per_run)
+    z = float(stats.norm.ppf(0.5 + level / 2))
+    keys = list(dict.fromkeys(k for pr in per_run for k in pr))
+    groups, wgroups, wpair, vpair = [], [], [], []
+    for st, wst in weights.items():
+        ks = [k for k in keys if k[0] == st]
+        mat = [[pr[k] for pr in per_run if k in pr] for k in ks]
+        groups.append(np.array([np.mean(v) for v in mat]) if ks else np.zeros(0))
+        wgroups.append(wst)
+        for v in mat:
+            wpair.append(wst / len(ks))
+            vpair.append(np.var(v, ddof=1) if len(v) > 1 else 0.0)
+    M = float(sum(w * g.mean() for g, w in zip(groups, wgroups) if g.size))
+    run_vals = []
+    for pr in per_run:
+        run_vals.append(float(sum(wst * np.mean([v for k, v in pr.items() if k[0] == st] or [0.0])
+                                  for st, wst in weights.items())))
+    (lo, hi), se = _stratified(groups, wgroups, n_resamples, seed, level, pseudo=SCORE_RANGE)
+    if R > 1:
+        W = float(np.sum(np.square(wpair) * np.asarray(vpair)))
+        G = max(0.0, float(np.var(run_vals, ddof=1)) - W)
+        if G > 0:
+            Vb = se * se  # scipy's bootstrap standard error of the same resampling
+            V = Vb + G / R
+            # Welch-Satterthwaite: G rests on R - 1 degrees of freedom, V_b on (practically) infinitely many
+            df = V * V / ((G / R) ** 2 / (R - 1))
+            t = float(stats.t.ppf(0.5 + level / 2, df))
+            if Vb > 0:
+                k = t * math.sqrt(V) / (z * math.sqrt(Vb))
+                lo, hi = M - (M - lo) * k, M + (hi - M) * k
+            else:
+                h = t * math.sqrt(V)
+                lo, hi = M - h, M + h
+    return {"value": M, "ci": [max(0.0, float(lo)), min(1.0, float(hi))], "std": float(np.std(run_vals))}
+
+
 def combine_runs_interval(runs: Sequence[Sequence[Mapping]], taus: Sequence[int] = (5, 10),
                           n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0, level: float = DEFAULT_LEVEL) -> dict:
     """Interval of the mean mAA of repeated test runs (same pairs, different estimator seeds), accounting
@@ -629,10 +770,8 @@ def combine_runs_interval(runs: Sequence[Sequence[Mapping]], taus: Sequence[int]
     Returns ``{"mAA5": M, "mAA5_ci": [lo', hi'], "mAA5_std": std over runs (ddof 0, as the test run's
     "std"), ..., "runs": R, "scenes": {name: the same per scene}}``."""
     runs = [list(r) for r in runs]
-    R = len(runs)
     names = _scene_order([x for run in runs for x in run], None)
-    z = float(stats.norm.ppf(0.5 + level / 2))
-    out: dict = {"runs": R, "scenes": {n: {} for n in names}}
+    out: dict = {"runs": len(runs), "scenes": {n: {} for n in names}}
 
     def one(tau, scene_names) -> dict:
         per_run = []  # {(scene, pair): score}
@@ -640,39 +779,7 @@ def combine_runs_interval(runs: Sequence[Sequence[Mapping]], taus: Sequence[int]
             recs = [x for x in run if x["scene"] in scene_names]
             keys = [(x["scene"], _pair_key(x["pair"])) for x in recs]
             per_run.append(dict(zip(keys, pair_scores([x["err"] for x in recs], tau))))
-        keys = list(dict.fromkeys(k for pr in per_run for k in pr))
-        groups, wgroups, wpair, vpair = [], [], [], []
-        S = len(scene_names)
-        for n in scene_names:
-            ks = [k for k in keys if k[0] == n]
-            mat = [[pr[k] for pr in per_run if k in pr] for k in ks]
-            groups.append(np.array([np.mean(v) for v in mat]) if ks else np.zeros(0))
-            wgroups.append(1.0 / S)
-            for v in mat:
-                wpair.append(1.0 / (S * len(ks)))
-                vpair.append(np.var(v, ddof=1) if len(v) > 1 else 0.0)
-        M = float(sum(w * g.mean() for g, w in zip(groups, wgroups) if g.size))
-        run_vals = []
-        for pr in per_run:
-            sc = [[v for k, v in pr.items() if k[0] == n] for n in scene_names]
-            run_vals.append(float(np.mean([np.mean(s) if s else 0.0 for s in sc])))
-        (lo, hi), se = _stratified(groups, wgroups, n_resamples, seed, level, pseudo=SCORE_RANGE)
-        if R > 1:
-            W = float(np.sum(np.square(wpair) * np.asarray(vpair)))
-            G = max(0.0, float(np.var(run_vals, ddof=1)) - W)
-            if G > 0:
-                Vb = se * se  # scipy's bootstrap standard error of the same resampling
-                V = Vb + G / R
-                # Welch-Satterthwaite: G rests on R - 1 degrees of freedom, V_b on (practically) infinitely many
-                df = V * V / ((G / R) ** 2 / (R - 1))
-                t = float(stats.t.ppf(0.5 + level / 2, df))
-                if Vb > 0:
-                    k = t * math.sqrt(V) / (z * math.sqrt(Vb))
-                    lo, hi = M - (M - lo) * k, M + (hi - M) * k
-                else:
-                    h = t * math.sqrt(V)
-                    lo, hi = M - h, M + h
-        return {"value": M, "ci": [max(0.0, float(lo)), min(1.0, float(hi))], "std": float(np.std(run_vals))}
+        return _combine_runs(per_run, {n: 1.0 / len(scene_names) for n in scene_names}, n_resamples, seed, level)
 
     for tau in taus:
         k = f"mAA{int(tau)}"

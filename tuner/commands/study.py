@@ -420,8 +420,9 @@ def test_table(t: dict) -> str:
                     + (f" (the budget is on the median estimator time: {med:.3g} s/pair)"
                        if isinstance(med, (int, float)) else ""))
     if t.get("interval"):
-        tail.append(f"intervals: 95%, over pairs and runs ({t['interval'].get('resamples')} resamples; "
-                    "tuner.select.TEST_INTERVAL_NOTE, test.json 'interval')")
+        units = "bags" if "bags stratified" in str(t["interval"].get("method")) else "pairs"
+        tail.append(f"intervals: 95%, over {units} and runs ({t['interval'].get('resamples')} resamples; how: "
+                    "test.json 'interval')")
     if "reference" in t:
         from tuner.select import comparison_text
         tail.append(comparison_text(t.get("reference")))
