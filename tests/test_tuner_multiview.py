@@ -93,6 +93,7 @@ def test_multiview_test_table_and_plot(mv_study, capsys):
     assert rc == 0
     html = (studies / STUDY / "report.html").read_text()
     assert "Accuracy vs angular threshold" in html and "fountain-P11 - test" in html
+    assert "1 run, trial" in html and "1 runs" not in html  # it read "test (1 runs, trial 0)"
 
 
 def test_multiview_test_table_has_no_empty_column(mv_study, capsys):

@@ -50,6 +50,10 @@ class Section:
     note: str = ""
 
 
+def _runs(n: int) -> str:
+    return f"{n} run" + ("" if n == 1 else "s")
+
+
 def _complete(study):
     from optuna.trial import TrialState
     return study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
@@ -277,7 +281,7 @@ def breakdown_sources(study, best, studies_dir=None) -> list[tuple[str, dict]]:
                     d["covisibility"] = {b: {"mAA10": float(np.mean([c[b]["mAA10"] for c in covs if b in c])),
                                              "pairs": covs[0][b].get("pairs")} for b in covs[0]}
                 scenes[name] = d
-            out.append((f"test (trial {t.get('trial')}, {len(t['runs'])} runs)", scenes))
+            out.append((f"test (trial {t.get('trial')}, {_runs(len(t['runs']))})", scenes))
     return out
 
 
@@ -445,7 +449,7 @@ def _uncertainty_lines(study, studies_dir=None) -> list[str]:
     if t is not None:
         m = t.get("mean") or {}
         tci = m.get("mAA10_ci")
-        line = (f"test ({len(t.get('runs') or [])} runs, trial {t.get('trial')}): {METRIC} = "
+        line = (f"test ({_runs(len(t.get('runs') or []))}, trial {t.get('trial')}): {METRIC} = "
                 + (f"{m.get('mAA10'):.3f}" if m.get("mAA10") is not None else "?")
                 + (f" [95% interval {tci[0]:.3f}, {tci[1]:.3f}, over pairs and runs]" if tci else "")
                 + f", std over runs {(t.get('std') or {}).get('mAA10', 0.0):.3f}")
