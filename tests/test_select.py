@@ -248,3 +248,22 @@ def test_a_reused_test_result_gets_the_intervals_of_the_current_method():
     c = result["reference"]["comparison"]  # 12 of 12 pairs one way: exact sign-flip p = 2 / 2^12
     assert c["difference"] == 1.0 and c["p_value"] < 0.01 and c["significant"]
     assert not sel.refresh_intervals(result, 500)  # current: left as is
+
+
+def test_every_reader_of_an_earlier_test_json_gets_the_current_intervals(tmp_path):
+    """A study's report (`tune plot`) and tables read test.json through one reader; a file written by an earlier
+    imtune showed its old interval ([1, 1] for 12 pairs all within 1 deg) until `tune test` ran again, beside
+    numbers (ranks, findings) recomputed the current way. The reader now recomputes it from the pair errors."""
+    import json
+    from tuner.freeze import load_test_file
+    runs = [[["A", f"p{i}", 0.2] for i in range(12)] for _ in range(3)]
+    old = {"study": "s", "runs": [{"pair_errors": r, "mAA10": 1.0} for r in runs],
+           "mean": {"mAA10": 1.0, "mAA5": 1.0, "mAA10_ci": [1.0, 1.0], "mAA5_ci": [1.0, 1.0]},
+           "interval": {"method": "percentile bootstrap over pairs (an earlier imtune)", "level": 0.95,
+                        "resamples": 500}}
+    p = tmp_path / "test.json"
+    p.write_text(json.dumps(old))
+    d, why = load_test_file(p, "s")
+    assert why is None and d["mean"]["mAA10_ci"][0] < 0.9 and d["interval"]["method"] == sel.TEST_INTERVAL_NOTE
+    raw, _ = load_test_file(p, "s", refresh=False)
+    assert raw["mean"]["mAA10_ci"] == [1.0, 1.0]  # the file itself is left to `tune test`

@@ -49,12 +49,15 @@ def study_dir(studies_dir: Path | str, name: str) -> Path:
     return Path(studies_dir) / f"{safe.strip('.')[:MAX_DIR_NAME - 11] or 'study'}-{tag}"
 
 
-def load_test_file(path: Path | str | None, study: str | None = None) -> tuple[dict | None, str | None]:
+def load_test_file(path: Path | str | None, study: str | None = None,
+                   refresh: bool = True) -> tuple[dict | None, str | None]:
     """A study's test.json: (the result, None); (None, None) when there is none; (None, why) when it is there but
     cannot be read or holds no test result (cut short, binary, a JSON list), or, given ``study``, holds another
     study's (a study folder copied under a new name: its numbers passed for this study's). The one reader every
     table, report and rerun check goes through, so that a damaged file is said (or rerun), never a crash or
-    silently ignored."""
+    silently ignored. ``refresh``: a result whose intervals an earlier imtune made with another method gets the
+    current ones, recomputed from its pair errors in memory (``tuner.select.refresh_intervals``), so a report or
+    table never shows the old ones beside numbers recomputed the new way; `tune test` rewrites the file."""
     if path is None or not Path(path).is_file():
         return None, None
     try:
@@ -71,6 +74,12 @@ def load_test_file(path: Path | str | None, study: str | None = None) -> tuple[d
     why = _test_figures_problem(d)
     if why is None and study is not None and d.get("study") is not None and d["study"] != study:
         why = f"it holds the test of study {d.get('study')!r}, not {study!r} (copied from another study?)"
+    if why is None and refresh:
+        from tuner.select import refresh_intervals
+        iv = d.get("interval") if isinstance(d.get("interval"), dict) else {}
+        n = iv.get("resamples") or (d.get("identity") or {}).get("ci_resamples") or 2000
+        if isinstance(n, int) and not isinstance(n, bool) and n > 0:
+            refresh_intervals(d, n)
     return (None, why) if why else (d, None)
 
 
@@ -107,7 +116,7 @@ def _previous_result(out_path: Path | None, ident: dict, study: str | None = Non
     """The test.json already written for exactly this identity (trial, config, data, runs), if any. Asked with no
     reference (``--reference none``), a result that also compared a reference serves too: its own runs are the
     same."""
-    old, _ = load_test_file(out_path, study)
+    old, _ = load_test_file(out_path, study, refresh=False)  # run_test refreshes and rewrites it
     if old is None:
         return None  # none, or unreadable: rerun the test rather than trust it
     have, want = old.get("identity"), _plain(ident)
@@ -526,7 +535,7 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
         "identity": ident,
     })
     if out_path is not None:
-        prev, _ = load_test_file(out_path, frozen["study"])
+        prev, _ = load_test_file(out_path, frozen["study"], refresh=False)
         if prev is not None and (prev.get("data") or {}).get("fingerprint") != vs.fingerprint:
             # another test set (`tune test --scenes` on one scene after the full test): kept, never replaced
             kept = keep_earlier_file(out_path)
