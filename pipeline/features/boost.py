@@ -11,10 +11,10 @@ from __future__ import annotations
 
 
 from pipeline.errors import ImtuneError
-from pipeline.features._opencv import OpenCVExtractor, cv_const, cv_factory
+from pipeline.features._opencv import OPENCV_VERSION, OpenCVExtractor, cv_const, cv_factory
 from pipeline.features.orb import ORB_BOUNDS, ORB_OPTIONS, make_orb_detector
 from pipeline.features.registry import EXTRACTORS
-from pipeline.features.sift import SIFT_BOUNDS, SIFT_OPTIONS, make_sift_detector
+from pipeline.features.sift import SIFT_BOUNDS, SIFT_OPTIONS, make_sift_detector, sift_pixel_centre
 
 #: OpenCV's documented BEBLID/TEBLID scale_factor per keypoint detector.
 DESCRIPTOR_SCALE = {"orb": 1.00, "sift": 6.75}
@@ -22,6 +22,8 @@ _DETECTORS = {"orb": (ORB_OPTIONS, ORB_BOUNDS), "sift": (SIFT_OPTIONS, SIFT_BOUN
 
 
 class _Boosted(OpenCVExtractor):
+    # 2: with detector=sift, keypoints moved by -0.25 px to the pixel-centre convention (sift_pixel_centre)
+    version = f"2+opencv-{OPENCV_VERSION}"
     factory = ""
     default_bits = 512
     binary = True
@@ -36,6 +38,11 @@ class _Boosted(OpenCVExtractor):
                                 **_DETECTORS[det][0]}
         self.option_bounds = {"descriptor_scale": ">0", **_DETECTORS[det][1]}
         super().__init__(conf)
+
+    def _output_positions(self, xy, octave):
+        if self.opts["detector"] == "sift":
+            return sift_pixel_centre(xy)
+        return super()._output_positions(xy, octave)
 
     def _make_detector(self):
         if self.opts["detector"] == "sift":

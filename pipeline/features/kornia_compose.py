@@ -42,7 +42,8 @@ from pipeline.features.kornia_detectors import DETECTORS, Detector, detector_cla
 from pipeline.features.kornia_shape import AFFINE, ORIENTATION, ShapeStep, canonical, step_class
 from pipeline.features.registry import EXTRACTORS
 
-VERSION = f"1+kornia-{package_version('kornia')}+torch-{package_version('torch')}+opencv-{cv2.__version__}"
+# 2: the dog detector reports OpenCV SIFT positions moved by -0.25 px to the pixel-centre convention
+VERSION = f"2+kornia-{package_version('kornia')}+torch-{package_version('torch')}+opencv-{cv2.__version__}"
 
 
 class ComposedExtractor(Extractor):

@@ -89,10 +89,12 @@ class DoG(Detector):
 
     def detect(self, image, k, dedupe=False, refill=False):
         from pipeline.features._opencv import _kp_arrays, rank_keypoints
+        from pipeline.features.sift import sift_pixel_centre
         xy, size, angle, resp, _, _ = _kp_arrays(self.sift.detect(image, None))
         if len(xy) == 0:
             return Detections.empty()
         order = rank_keypoints(xy, size, angle, resp, k, upright=dedupe, refill=refill)[:k]
+        xy = sift_pixel_centre(xy)  # OpenCV's +0.25 px (its doubled octave -1) undone: patches cut where they belong
         return Detections(xy[order].astype(np.float32), (size[order] / 2).astype(np.float32),
                           angle[order].astype(np.float32), resp[order].astype(np.float32))
 

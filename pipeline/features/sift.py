@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.features._opencv import OpenCVExtractor, cv_factory
+from pipeline.features._opencv import OPENCV_VERSION, OpenCVExtractor, cv_factory
 from pipeline.features.registry import EXTRACTORS
 
 #: OpenCV's SIFT_DESCR_SCL_FCTR: a descriptor bin spans 3 x the keypoint's sigma (Lowe's and
@@ -26,6 +26,18 @@ SIFT_OPTIONS: dict[str, Any] = {
     "n_octave_layers": 3,
     "sigma": 1.6,                 # Gaussian sigma at octave 0 (px)
 }
+#: OpenCV's SIFT detects from octave -1, the image doubled by a pixel-centre resize (x -> 2 x + 0.5), and halves
+#: the positions found there (2 x + 0.5 -> x + 0.25) without undoing the half pixel: its keypoints lie 0.25 px
+#: right of and below the point they stand for, at every octave (measured: +0.250 px in x and y under a
+#: 180-degree rotation). Subtracted from what we report (the descriptor is OpenCV's, at its own position).
+SIFT_DOUBLING_OFFSET = 0.25
+
+
+def sift_pixel_centre(xy: np.ndarray) -> np.ndarray:
+    """OpenCV SIFT keypoint positions (N, 2) -> the pixel-centre convention (centre of the top-left pixel (0, 0))."""
+    return (np.asarray(xy, np.float32) - np.float32(SIFT_DOUBLING_OFFSET)).astype(np.float32)
+
+
 SIFT_BOUNDS = {"contrast_threshold": ">=0", "edge_threshold": ">0", "n_octave_layers": ">=1", "sigma": ">0"}
 
 
@@ -46,6 +58,8 @@ class SIFT(OpenCVExtractor):
     is applied by scaling each keypoint's size by ``mr_size / 3`` before description; the reported
     scales are the detector's.
     """
+    # 2: keypoints moved by -0.25 px in x and y to the pixel-centre convention (sift_pixel_centre)
+    version = f"2+opencv-{OPENCV_VERSION}"
     factories = ("SIFT_create",)
     option_defaults = SIFT_OPTIONS
     option_bounds = SIFT_BOUNDS
@@ -54,6 +68,9 @@ class SIFT(OpenCVExtractor):
 
     def _make_detector(self):
         return make_sift_detector(self.opts, self.conf.low_threshold)
+
+    def _output_positions(self, xy: np.ndarray, octave: np.ndarray) -> np.ndarray:
+        return sift_pixel_centre(xy)
 
     def _description_sizes(self, size: np.ndarray) -> np.ndarray:
         if self.conf.mr_size is None:
