@@ -265,10 +265,10 @@ class OpenCVExtractor(Extractor):
     def _postprocess(self, desc: np.ndarray) -> np.ndarray:
         return desc
 
-    def _output_positions(self, xy: np.ndarray, octave: np.ndarray) -> np.ndarray:
-        """Keypoint positions as reported, from OpenCV's (``xy`` (N, 2), ``octave`` (N,) KeyPoint.octave): the
-        hook where a detector's own coordinate frame is brought to the pixel-centre convention (SIFT). Applied
-        after description, so that OpenCV describes the keypoints it detected."""
+    def _output_positions(self, xy: np.ndarray, octave: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+        """Keypoint positions as reported, from OpenCV's (``xy`` (N, 2), ``octave`` (N,) KeyPoint.octave, ``shape``
+        (H, W) of the image): the hook where a detector's own coordinate frame is brought to the pixel-centre
+        convention (SIFT, ORB). Applied after description, so that OpenCV describes the keypoints it detected."""
         return xy
 
     def _descriptor_dim(self) -> int:
@@ -341,7 +341,7 @@ class OpenCVExtractor(Extractor):
         desc = self._postprocess(np.concatenate(descs)[:k])
         desc = desc.astype(np.uint8 if self.binary else np.float32, copy=False)
         xy, size, _, resp = arrs[0], arrs[1], arrs[2], arrs[3]
-        return Features(keypoints=np.ascontiguousarray(self._output_positions(xy[sel], arrs[4][sel]), np.float32),
+        return Features(keypoints=np.ascontiguousarray(self._output_positions(xy[sel], arrs[4][sel], img.shape), np.float32),
                         descriptors=np.ascontiguousarray(desc),
                         scales=size[sel].astype(np.float32),
                         orientations=np.concatenate(oris)[:k],

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from pipeline.errors import ImtuneError
 from pipeline.features._opencv import OPENCV_VERSION, OpenCVExtractor, cv_const, cv_factory
-from pipeline.features.orb import ORB_BOUNDS, ORB_OPTIONS, make_orb_detector
+from pipeline.features.orb import ORB_BOUNDS, ORB_OPTIONS, make_orb_detector, orb_pixel_centre
 from pipeline.features.registry import EXTRACTORS
 from pipeline.features.sift import SIFT_BOUNDS, SIFT_OPTIONS, make_sift_detector, sift_pixel_centre
 
@@ -23,7 +23,8 @@ _DETECTORS = {"orb": (ORB_OPTIONS, ORB_BOUNDS), "sift": (SIFT_OPTIONS, SIFT_BOUN
 
 class _Boosted(OpenCVExtractor):
     # 2: with detector=sift, keypoints moved by -0.25 px to the pixel-centre convention (sift_pixel_centre)
-    version = f"2+opencv-{OPENCV_VERSION}"
+    # 3: with detector=orb, keypoints at the pixel-centre position of their pyramid-level pixel (orb_pixel_centre)
+    version = f"3+opencv-{OPENCV_VERSION}"
     factory = ""
     default_bits = 512
     binary = True
@@ -39,10 +40,10 @@ class _Boosted(OpenCVExtractor):
         self.option_bounds = {"descriptor_scale": ">0", **_DETECTORS[det][1]}
         super().__init__(conf)
 
-    def _output_positions(self, xy, octave):
+    def _output_positions(self, xy, octave, shape):
         if self.opts["detector"] == "sift":
             return sift_pixel_centre(xy)
-        return super()._output_positions(xy, octave)
+        return orb_pixel_centre(xy, octave, shape, float(self.opts["scale_factor"]))
 
     def _make_detector(self):
         if self.opts["detector"] == "sift":

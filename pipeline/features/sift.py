@@ -69,7 +69,7 @@ class SIFT(OpenCVExtractor):
     def _make_detector(self):
         return make_sift_detector(self.opts, self.conf.low_threshold)
 
-    def _output_positions(self, xy: np.ndarray, octave: np.ndarray) -> np.ndarray:
+    def _output_positions(self, xy: np.ndarray, octave: np.ndarray, shape) -> np.ndarray:
         return sift_pixel_centre(xy)
 
     def _description_sizes(self, size: np.ndarray) -> np.ndarray:
