@@ -124,3 +124,39 @@ def test_tentative_matches_applies_the_prefilter():
     truth = {tuple(m) for m in matches[is_true]}
     kept_true = sum(tuple(m) in truth for m in gms)
     assert kept_true > 0.75 * is_true.sum() and len(gms) - kept_true < 0.15 * (~is_true).sum()
+
+
+def test_either_hands_each_match_its_own_ratio():
+    """With strategy "either", a match found only from image 2 (j's nearest neighbour is i, i's is another point)
+    was handed to the pre-filter with the ratio of i's own row (d12[i, 0] / d12[i, 1], a ratio about a different
+    match): AdaLAM ranks its seeds by these ratios. Hand-made tables with known ratios: the 2 -> 1 match (1, 0)
+    got 0.2 (row 1 of image 1, whose nearest neighbour is 1) instead of its own 0.9; now its own."""
+    from pipeline.matching.knn import KnnTables
+    from pipeline.matching.prefilters import Prefilter
+    from pipeline.tasks.prepare import ImageFeatures, tentative_matches
+    seen = {}
+    if "record-ratio" not in PREFILTERS:
+        @PREFILTERS.register("record-ratio", "test: records the ratios it is handed")
+        class RecordRatio(Prefilter):
+            def filter(self, matches, ctx):
+                seen["m"], seen["r"] = np.asarray(matches).copy(), np.asarray(ctx.ratio).copy()
+                return np.ones(len(matches), bool)
+    # image 1: rows 0, 1 -> NN in image 2: 0 (ratio 0.5), 1 (ratio 0.2)
+    idx12 = np.array([[0, 1], [1, 0]], np.int32)
+    d12 = np.array([[0.5, 1.0], [0.2, 1.0]], np.float32)
+    # image 2: rows 0, 1 -> NN in image 1: 1 (ratio 0.9: a 2 -> 1 only match), 1 (mutual with row 1)
+    idx21 = np.array([[1, 0], [1, 0]], np.int32)
+    d21 = np.array([[0.9, 1.0], [0.2, 1.0]], np.float32)
+    tab = KnnTables(idx12, d12, idx21, d21)
+    kp = np.array([[10.0, 10.0], [50.0, 50.0]], np.float32)
+    fi = ImageFeatures("a", kp, np.zeros((2, 8), np.float32), False, 1.0, 1.0, 100, 100, 0.0)
+    fj = ImageFeatures("b", kp.copy(), np.zeros((2, 8), np.float32), False, 1.0, 1.0, 100, 100, 0.0)
+    try:
+        tentative_matches(tab, MatchConfig(ratio=1.0, strategy="either", prefilter="record-ratio"), fi, fj)
+    finally:  # not left in the registry for other tests (tune list, ...)
+        PREFILTERS._items.pop("record-ratio", None)
+        PREFILTERS._describe.pop("record-ratio", None)
+    got = {tuple(int(v) for v in a): float(r) for a, r in zip(seen["m"], seen["r"])}
+    assert got.keys() == {(0, 0), (1, 1), (1, 0)}, got
+    assert got[(0, 0)] == pytest.approx(0.5) and got[(1, 1)] == pytest.approx(0.2)
+    assert got[(1, 0)] == pytest.approx(0.9), got

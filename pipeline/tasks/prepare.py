@@ -148,9 +148,15 @@ def tentative_matches(tables, conf: MatchConfig, fi: ImageFeatures, fj: ImageFea
         ratio = None
         if not isinstance(tables, CustomTables) and np.asarray(tables.dist12).ndim == 2 \
                 and np.asarray(tables.dist12).shape[1] >= 2:
-            d12 = np.asarray(tables.dist12, np.float64)[m[:, 0]]
+            # each match's own ratio: of its row of image 1 when it is that row's nearest neighbour, else (a match
+            # found from image 2 only, strategy "either") of its row of image 2
+            d = np.asarray(tables.dist12, np.float64)[m[:, 0], :2]
+            from_2 = np.asarray(tables.idx12)[m[:, 0], 0] != m[:, 1]
+            d21 = np.asarray(tables.dist21, np.float64)
+            if from_2.any() and d21.ndim == 2 and d21.shape[1] >= 2:
+                d[from_2] = d21[m[from_2, 1], :2]
             with np.errstate(divide="ignore", invalid="ignore"):
-                ratio = np.where(np.isfinite(d12[:, 1]) & (d12[:, 1] > 0), d12[:, 0] / d12[:, 1], 0.0)
+                ratio = np.where(np.isfinite(d[:, 1]) & (d[:, 1] > 0), d[:, 0] / d[:, 1], 0.0)
         ctx = PairContext(fi.keypoints, fj.keypoints, (fi.width, fi.height), (fj.width, fj.height),
                           fi.scales, fj.scales, fi.orientations, fj.orientations, ratio,
                           None if isinstance(tables, CustomTables) else tables)
