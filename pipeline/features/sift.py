@@ -30,6 +30,8 @@ SIFT_OPTIONS: dict[str, Any] = {
 #: the positions found there (2 x + 0.5 -> x + 0.25) without undoing the half pixel: its keypoints lie 0.25 px
 #: right of and below the point they stand for, at every octave (measured: +0.250 px in x and y under a
 #: 180-degree rotation). Subtracted from what we report (the descriptor is OpenCV's, at its own position).
+#: OpenCV's own ``enable_precise_upscale=True`` avoids the offset but builds another pyramid, hence other keypoints
+#: and descriptors than the default OpenCV SIFT the IMC benchmark used; the default is kept, its positions corrected.
 SIFT_DOUBLING_OFFSET = 0.25
 
 
