@@ -509,14 +509,7 @@ def combine_bag_runs_interval(runs: Sequence[Sequence[Mapping]], taus: Sequence[
         w = _bag_weights((k[0] for pr in per_run for k in pr), scene_names)
         return _combine_runs(per_run, w, n_resamples, seed, level)
 
-    for tau in taus:
-        k = f"mAA{int(tau)}"
-        o = one(int(tau), names)
-        out[k], out[k + "_ci"], out[k + "_std"] = o["value"], o["ci"], o["std"]
-        for n in names:
-            o = one(int(tau), [n])
-            out["scenes"][n][k], out["scenes"][n][k + "_ci"], out["scenes"][n][k + "_std"] = o["value"], o["ci"], o["std"]
-    return out
+    return _per_tau_and_scene(one, taus, names, out)
 
 
 def paired_bags(bags_a: Sequence[Mapping], bags_b: Sequence[Mapping], tau: int = 10,
@@ -706,6 +699,19 @@ def rank_by_intervals(items: Sequence[Mapping], key: str = "mAA10") -> list[dict
 
 # ------------------------------------------------------------------------------------------ repeated runs
 
+def _per_tau_and_scene(one, taus, names, out: dict) -> dict:
+    """Fill ``out`` (``{"runs", "scenes": {name: {}}}``) with ``one(tau, scene_names)``'s value, interval and std
+    per tau, overall and per scene: the keys of :func:`combine_runs_interval`."""
+    for tau in taus:
+        k = f"mAA{int(tau)}"
+        o = one(int(tau), names)
+        out[k], out[k + "_ci"], out[k + "_std"] = o["value"], o["ci"], o["std"]
+        for n in names:
+            o = one(int(tau), [n])
+            out["scenes"][n][k], out["scenes"][n][k + "_ci"], out["scenes"][n][k + "_std"] = o["value"], o["ci"], o["std"]
+    return out
+
+
 def _combine_runs(per_run: list[dict], weights: dict, n_resamples: int, seed: int, level: float) -> dict:
     """The estimate of :func:`combine_runs_interval` (steps 1-4) on scores already computed: ``per_run`` one
     ``{(stratum, unit): score}`` per run, ``weights`` {stratum: weight} (summing to 1; a unit weighs its stratum's
@@ -781,12 +787,5 @@ def combine_runs_interval(runs: Sequence[Sequence[Mapping]], taus: Sequence[int]
             per_run.append(dict(zip(keys, pair_scores([x["err"] for x in recs], tau))))
         return _combine_runs(per_run, {n: 1.0 / len(scene_names) for n in scene_names}, n_resamples, seed, level)
 
-    for tau in taus:
-        k = f"mAA{int(tau)}"
-        o = one(int(tau), names)
-        out[k], out[k + "_ci"], out[k + "_std"] = o["value"], o["ci"], o["std"]
-        for n in names:
-            o = one(int(tau), [n])
-            out["scenes"][n][k], out["scenes"][n][k + "_ci"], out["scenes"][n][k + "_std"] = o["value"], o["ci"], o["std"]
-    return out
+    return _per_tau_and_scene(one, taus, names, out)
 
