@@ -50,3 +50,36 @@ def test_an_interruption_leaves_no_child_process_behind():
         assert _dead(p.pid)
     finally:
         kill_processes([p])
+
+
+_CLOSED_WAKEUP = """
+import multiprocessing as mp, os, time, sys
+from concurrent.futures import ProcessPoolExecutor
+import concurrent.futures.process as cfp
+from pipeline.tasks.pool import kill_executor
+if __name__ == "__main__":
+    ex = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn"))
+    ex.submit(time.sleep, 60)
+    time.sleep(0.5)
+    kill_executor(ex, [])
+    # the race: the manager thread's wake-up pipe closed at the OS level while the exit hook still lists it
+    for w in list(cfp._threads_wakeups.values()):
+        os.close(w._writer.fileno())
+    print("exiting", flush=True)
+"""
+
+
+def test_an_exit_after_kill_executor_prints_no_traceback_from_a_closed_wakeup(tmp_path):
+    """CI: `tune` terminated by SIGTERM with a pair pool printed "tune: terminated ..." and then a traceback from
+    Python 3.11's pool exit hook ("OSError: [Errno 9] Bad file descriptor": the manager thread's wake-up pipe closed
+    as the hook wrote to it). A real spawn pool, the pipe closed for real, the real interpreter exit."""
+    import subprocess
+    import sys
+    from pathlib import Path
+    script = tmp_path / "closed_wakeup.py"
+    script.write_text(_CLOSED_WAKEUP)
+    root = Path(__file__).resolve().parents[1]
+    r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, cwd=root,
+                       env={**__import__("os").environ, "PYTHONPATH": str(root)})
+    assert r.stdout.strip() == "exiting", (r.stdout, r.stderr)
+    assert "Traceback" not in r.stderr and "Bad file descriptor" not in r.stderr, r.stderr

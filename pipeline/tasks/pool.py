@@ -187,6 +187,26 @@ def kill_executor(ex, procs=None) -> None:
     if t is not None and t.is_alive():  # still ending (a loaded machine): keep the exit hook off its closing pipe
         import concurrent.futures.process as cfp
         getattr(cfp, "_threads_wakeups", {}).pop(t, None)  # it was woken by shutdown() already; 3.12 needs none
+    quiet_exit_wakeups()
+
+
+def quiet_exit_wakeups() -> None:
+    """Make Python 3.11's exit hook for process pools (``concurrent.futures.process._python_exit``) ignore a wake-up
+    pipe its manager thread has closed: the thread can close it between kill_executor's check above and the
+    interpreter's exit (a race 3.12 closes with a lock), and the hook then printed a traceback ending in "OSError:
+    [Errno 9] Bad file descriptor" after "tune: terminated" (once in CI). Hand-written: the standard library offers
+    no switch; each registered wake-up's ``wakeup`` is wrapped to drop that OSError (the thread it would wake has
+    ended)."""
+    import concurrent.futures.process as cfp
+    for w in list(getattr(cfp, "_threads_wakeups", {}).values()):
+        if getattr(w, "_imtune_quiet", False):
+            continue
+        def wakeup(orig=w.wakeup):
+            try:
+                orig()
+            except OSError:
+                pass
+        w.wakeup, w._imtune_quiet = wakeup, True
 
 
 # ------------------------------------------------------------------------------------- the pair data
