@@ -53,18 +53,23 @@ def test_an_interruption_leaves_no_child_process_behind():
 
 
 _CLOSED_WAKEUP = """
-import multiprocessing as mp, os, time, sys
+import multiprocessing as mp, threading, time
 from concurrent.futures import ProcessPoolExecutor
 import concurrent.futures.process as cfp
-from pipeline.tasks.pool import kill_executor
+from pipeline.tasks.pool import kill_executor, quiet_exit_wakeups
 if __name__ == "__main__":
     ex = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn"))
     ex.submit(time.sleep, 60)
     time.sleep(0.5)
     kill_executor(ex, [])
-    # the race: the manager thread's wake-up pipe closed at the OS level while the exit hook still lists it
-    for w in list(cfp._threads_wakeups.values()):
-        os.close(w._writer.fileno())
+    # what the race leaves: a wake-up the exit hook still lists whose pipe its manager thread has closed
+    w = cfp._ThreadWakeup()
+    w._writer.close()
+    gone = threading.Thread(target=int)  # an ended thread, held: the hook's registry holds its threads weakly
+    gone.start()
+    gone.join()
+    cfp._threads_wakeups[gone] = w
+    quiet_exit_wakeups()  # the last thing the CLI's interruption path does
     print("exiting", flush=True)
 """
 
