@@ -491,7 +491,7 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
         f.update(run=k, seed=int(c.geometry.seed), task_options=t.options())
         errors.append(sel.unit_errors(res.records))
         if errors[-1] is not None:  # [[scene, pair, err deg], ...] or multiview [[scene, size, bag, [errs]], ...]
-            f[errors[-1][0]] = errors[-1][1]  # what the interval and paired comparisons read
+            f[sel.errors_key(errors[-1])] = errors[-1]  # what the interval and paired comparisons read
         results.append(f)
     mean, std = task.aggregate(results)
     interval = sel.test_interval(mean, errors, n_ci)
@@ -507,7 +507,7 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
             f.update(run=k, seed=int(c.geometry.seed))
             rerr.append(sel.unit_errors(res.records))
             if rerr[-1] is not None:
-                f[rerr[-1][0]] = rerr[-1][1]
+                f[sel.errors_key(rerr[-1])] = rerr[-1]
             rres.append(f)
         rmean, rstd = task.aggregate(rres)
         sel.test_interval(rmean, rerr, n_ci)

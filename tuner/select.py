@@ -337,14 +337,21 @@ def _as_bags(errors: list) -> list[dict]:
     return [{"scene": sc, "bag_size": size, "bag": b, "errors": [_err(e) for e in errs]} for sc, size, b, errs in errors]
 
 
-def unit_errors(records: list[dict]) -> tuple[str, list] | None:
-    """("pair_errors", ...) of stereo records, ("bag_errors", ...) of multiview ones: what a test run stores
-    for its interval and its paired comparisons; None for records of neither kind."""
+def unit_errors(records: list[dict]) -> list | None:
+    """What a test run stores for its interval and its paired comparisons: :func:`pair_errors` of stereo records,
+    :func:`bag_errors` of multiview ones (stored under :func:`errors_key`); None for records of neither kind."""
     e = pair_errors(records)
-    if e is not None:
-        return "pair_errors", e
-    e = bag_errors(records)
-    return ("bag_errors", e) if e is not None else None
+    return e if e is not None else bag_errors(records)
+
+
+def _is_bags(errors: list) -> bool:
+    """Bag entries are ``[scene, size, bag, [errors]]``, pair entries ``[scene, pair, err]``."""
+    return bool(errors) and len(errors[0]) == 4
+
+
+def errors_key(errors: list) -> str:
+    """The test run's key for :func:`unit_errors`' list: ``bag_errors`` or ``pair_errors``."""
+    return "bag_errors" if _is_bags(errors) else "pair_errors"
 
 
 def test_interval(mean: dict, runs_errors: list, n_resamples: int) -> dict | None:
@@ -354,15 +361,14 @@ def test_interval(mean: dict, runs_errors: list, n_resamples: int) -> dict | Non
     if not n_resamples or not runs_errors or any(e is None for e in runs_errors):
         return None
     from pipeline.metrics.uncertainty import combine_bag_runs_interval, combine_runs_interval
-    kinds = {_kind(e) for e in runs_errors}
+    kinds = {_is_bags(e) for e in runs_errors}
     if len(kinds) != 1:
         return None
-    kind, = kinds
-    if kind == "bag_errors":
-        iv = combine_bag_runs_interval([_as_bags(e[1]) for e in runs_errors], n_resamples=int(n_resamples))
+    if kinds == {True}:
+        iv = combine_bag_runs_interval([_as_bags(e) for e in runs_errors], n_resamples=int(n_resamples))
         method = BAG_TEST_INTERVAL_NOTE
     else:
-        iv = combine_runs_interval([_as_records(_unwrap(e)) for e in runs_errors], n_resamples=int(n_resamples))
+        iv = combine_runs_interval([_as_records(e) for e in runs_errors], n_resamples=int(n_resamples))
         method = TEST_INTERVAL_NOTE
     for k in ("mAA5", "mAA10"):
         mean[f"{k}_ci"] = iv[f"{k}_ci"]
@@ -374,15 +380,6 @@ def test_interval(mean: dict, runs_errors: list, n_resamples: int) -> dict | Non
             "consistent_with_mean": bool(check < 1e-9)}
 
 
-def _kind(e) -> str:
-    """'bag_errors' for a (kind, errors) tuple of bags, else 'pair_errors' (plain stereo triples too)."""
-    return e[0] if isinstance(e, tuple) else "pair_errors"
-
-
-def _unwrap(e) -> list:
-    return e[1] if isinstance(e, tuple) else e
-
-
 def compare_reference(ref_errors: list, errors: list, n_resamples: int) -> dict | None:
     """Paired bootstrap (pipeline.metrics.uncertainty.paired_bootstrap) of the frozen settings (B) against the
     reference (A) on the same test pairs, each pair's score averaged over the runs; ``difference`` > 0: the frozen
@@ -390,15 +387,15 @@ def compare_reference(ref_errors: list, errors: list, n_resamples: int) -> dict 
     if not ref_errors or not errors or any(e is None for e in list(ref_errors) + list(errors)):
         return None
     from pipeline.metrics.uncertainty import paired_bags, paired_bootstrap
-    kinds = {_kind(e) for e in list(ref_errors) + list(errors)}
+    kinds = {_is_bags(e) for e in list(ref_errors) + list(errors)}
     if len(kinds) != 1:
         return None
-    if kinds == {"bag_errors"}:  # the same bags for both (drawn from the ground truth), run k: the k-th seed of both
-        a = [{**x, "run": k} for k, e in enumerate(ref_errors) for x in _as_bags(e[1])]
-        b = [{**x, "run": k} for k, e in enumerate(errors) for x in _as_bags(e[1])]
+    if kinds == {True}:  # the same bags for both (drawn from the ground truth), run k: the k-th seed of both
+        a = [{**x, "run": k} for k, e in enumerate(ref_errors) for x in _as_bags(e)]
+        b = [{**x, "run": k} for k, e in enumerate(errors) for x in _as_bags(e)]
         return paired_bags(a, b, tau=10, n_resamples=int(n_resamples or 2000))
-    a = [{**x, "run": k} for k, e in enumerate(ref_errors) for x in _as_records(_unwrap(e))]  # run k: k-th seed of both
-    b = [{**x, "run": k} for k, e in enumerate(errors) for x in _as_records(_unwrap(e))]
+    a = [{**x, "run": k} for k, e in enumerate(ref_errors) for x in _as_records(e)]  # run k: the k-th seed of both
+    b = [{**x, "run": k} for k, e in enumerate(errors) for x in _as_records(e)]
     return paired_bootstrap(a, b, tau=10, n_resamples=int(n_resamples or 2000))
 
 
