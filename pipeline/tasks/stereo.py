@@ -292,18 +292,18 @@ class StereoTask(Task):
     def scene_notes(self, scene: Scene) -> list[str]:
         """Images whose principal point lies far from their centre (more than OFF_CENTRE of their size): intrinsics
         for another image size (images resized, K not) that the formats stating no size cannot refuse."""
-        off = []
+        off: dict[str, tuple] = {}  # image -> (size, cx, cy, distance), in the order found
         for p in self.evaluation_units(scene):
             for n, K in zip((p.i, p.j), scene.intrinsics(p)):
                 size = scene.images[n].size
-                if size is None or not np.all(np.isfinite(K)):
+                if n in off or size is None or not np.all(np.isfinite(K)):
                     continue
                 d = max(abs(K[0, 2] - (size[0] - 1) / 2) / size[0], abs(K[1, 2] - (size[1] - 1) / 2) / size[1])
-                if d > self.OFF_CENTRE and n not in {o[0] for o in off}:
-                    off.append((n, size, K[0, 2], K[1, 2], d))
+                if d > self.OFF_CENTRE:
+                    off[n] = (size, K[0, 2], K[1, 2], d)
         if not off:
             return []
-        n, (w, h), cx, cy, d = off[0]
+        n, ((w, h), cx, cy, d) = next(iter(off.items()))
         more = f" (and {len(off) - 1} more image(s))" if len(off) > 1 else ""
         return [f"scene {scene.name}: image {n} ({w}x{h} px) has its principal point ({cx:.1f}, {cy:.1f}) "
                 f"{100 * d:.0f}% of its size from its centre{more}: are its intrinsics for another image size "
