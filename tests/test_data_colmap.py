@@ -170,6 +170,27 @@ def test_two_images_of_one_name_are_refused(tmp_path):
     assert f"COLMAP model {sdir / 'sparse'}: images 1 and 2 are both named 'view_0.jpg'" in msg and "\n" not in msg, msg
 
 
+def test_an_images_txt_of_pose_lines_alone_is_refused(tmp_path):
+    """images.txt written with each image's pose line and no 2D-points line after it (a model made by hand from known
+    poses): COLMAP reads the line after each pose line as its 2D points, so image 2's pose line became image 1's
+    points, and 2 of the 4 images were loaded (1 of their 6 pairs evaluated), without a word. Now one line naming
+    images.txt's line and what each image takes."""
+    sdir = tmp_path / "bridge"
+    write_colmap_text(sdir / "sparse", sdir / "images")
+    (sdir / "sparse" / "points3D.txt").write_text("# 3D points\n")
+    lines = (sdir / "sparse" / "images.txt").read_text().splitlines()
+    (sdir / "sparse" / "images.txt").write_text("\n".join([lines[0]] + lines[1::2]) + "\n")  # the pose lines only
+    with pytest.raises(ImtuneError) as e:
+        load_colmap(sdir)
+    msg = str(e.value)
+    assert msg.startswith(f"COLMAP model {sdir / 'sparse'}: images.txt line 3, read as the 2D points of image "
+                          "'view_0.jpg'") and "an empty line when it has none" in msg and "\n" not in msg, msg
+    # with an empty points line after each pose line, all 4 images and their 6 pairs
+    (sdir / "sparse" / "images.txt").write_text("".join(f"{ln}\n\n" for ln in [lines[0]] + lines[1::2]))
+    scene = load_colmap(sdir)
+    assert sorted(scene.images) == [f"view_{k}.jpg" for k in range(4)] and len(scene.pairs) == 6
+
+
 @pytest.mark.parametrize("quat", ["0 0 0 0", "0.0 0.0 0.0 0.0", "twice"])
 def test_an_image_quaternion_that_is_no_rotation(tmp_path, quat):
     """images.txt with a zero quaternion: pycolmap keeps it and makes it the identity, so the image's ground-truth

@@ -62,6 +62,39 @@ def list_scenes(root: Path) -> list[str]:
     return list(scene_dirs(root, _is_scene))
 
 
+def check_images_txt(path: Path) -> None:
+    """ImtuneError naming the line when ``images.txt`` is not pose line + 2D-points line per image. COLMAP reads
+    the line after each image's pose line as its 2D points whatever it holds: a file of pose lines alone (no empty
+    points lines) had every second image read as the points of the one before, and half the images were evaluated,
+    unsaid."""
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as e:
+        raise ImtuneError(f"unreadable COLMAP model file {path}: {e}") from None
+    k = 0
+    while k < len(lines):
+        head = lines[k].strip()
+        k += 1
+        if not head or head.startswith("#"):
+            continue
+        if k >= len(lines):
+            break
+        parts = lines[k].split()
+        k += 1
+        try:
+            [float(v) for v in parts]
+            ok = len(parts) % 3 == 0
+        except ValueError:
+            ok = False
+        if not ok:
+            name = head.split()[-1] if len(head.split()) >= 10 else "?"
+            shown = lines[k - 1].strip()
+            raise ImtuneError(f"COLMAP model {path.parent}: images.txt line {k}, read as the 2D points of image "
+                              f"{name!r}, is not X Y POINT3D_ID triples ({shown[:60]}{'...' if len(shown) > 60 else ''}):"
+                              " each image takes two lines, its pose and then its 2D points (an empty line when it "
+                              "has none)")
+
+
 def read_model(path: Path):
     """pycolmap.Reconstruction from a model folder; ImtuneError naming it if missing or unreadable."""
     from pipeline.colmap_db import import_pycolmap
@@ -74,6 +107,8 @@ def read_model(path: Path):
         f = path / f"{n}.bin"
         if f.is_file() and f.stat().st_size == 0:
             raise ImtuneError(f"unreadable COLMAP model {path}: {f.name} is empty")
+    if not (path / "images.bin").is_file():
+        check_images_txt(path / "images.txt")
     try:
         return pycolmap.Reconstruction(str(path))
     except Exception as e:  # pycolmap raises ValueError / RuntimeError with multi-line C++ messages
