@@ -310,3 +310,31 @@ def test_a_principal_point_far_from_the_image_centre_is_said(tmp_path, cache_dir
     assert any("principal point" in n for n in json.loads(r.stdout)["stereo"]["notes"])
     r = tune("evaluate", "--data", write_pairs_with_gt(tmp_path / "b", names), *EVAL)
     assert r.returncode == 0 and "principal point" not in r.stderr, r.stderr
+
+
+def test_the_same_images_score_the_same_in_every_layout(tmp_path, cache_dir):
+    """Test (no bug found): three fountain-P11 images as Strecha files, a COLMAP text model, an IMC-PT 2020 set_100
+    and a pairs_with_gt list, each through `tune evaluate`: the same 3 pairs, and per pair the same tentative
+    matches, inliers and pose error (within 2e-4 deg: the COLMAP quaternion makes the camera files' rotations,
+    printed to 6 digits, exactly orthonormal: ~1e-5 deg), hence the same mAA(10). A loader that read a convention
+    differently would show here (the COLMAP half pixel ignored: 1.2e-3 deg on 0000-0002)."""
+    from tests.conftest import copy_strecha_subset
+    names = ["0000.jpg", "0001.jpg", "0002.jpg"]
+    roots = {"strecha": copy_strecha_subset(tmp_path / "strecha", names),
+             "colmap": write_colmap_scene(tmp_path / "colmap", names),
+             "imc_pt2020": write_imc_pt2020_scene(tmp_path / "imcpt", names, {}),
+             "pairs_with_gt": write_pairs_with_gt(tmp_path / "pairs", names)}
+    got = {}
+    for layout, root in roots.items():
+        r = tune("evaluate", "--data", root, *EVAL, "--json", "--pairs")
+        assert r.returncode == 0, (layout, r.stderr[-2000:])
+        st = json.loads(r.stdout)["stereo"]
+        got[layout] = (st["mAA10"], {tuple(sorted(x["pair"].split("|"))): x for x in st["pair_records"]})
+    base_maa, base = got["strecha"]
+    assert len(base) == 3 and all(np.isfinite(x["err"]) for x in base.values())
+    for layout, (maa, recs) in got.items():
+        assert set(recs) == set(base), layout
+        for p, x in recs.items():
+            assert (x["NM"], x["NI"]) == (base[p]["NM"], base[p]["NI"]), (layout, p)
+            assert abs(x["err"] - base[p]["err"]) < 2e-4, (layout, p, x["err"], base[p]["err"])
+        assert abs(maa - base_maa) < 1e-9, layout
