@@ -267,3 +267,20 @@ def test_every_reader_of_an_earlier_test_json_gets_the_current_intervals(tmp_pat
     assert why is None and d["mean"]["mAA10_ci"][0] < 0.9 and d["interval"]["method"] == sel.TEST_INTERVAL_NOTE
     raw, _ = load_test_file(p, "s", refresh=False)
     assert raw["mean"]["mAA10_ci"] == [1.0, 1.0]  # the file itself is left to `tune test`
+
+
+def test_an_earlier_test_json_of_the_same_scenes_and_pairs_is_not_called_another_test_set():
+    """`tune test` after `tune data build-gt` (co-visibility now known: the data fingerprint changes, the 16 pairs of
+    Herz-Jesus-P8 and entry-P10 do not) warned 'the study's earlier test.json measured another test set
+    (Herz-Jesus-P8, entry-P10; 16 pairs)', naming the very set it had just measured. Now the line says the scenes and
+    pairs are the same and the data differs (both fingerprints); another set of scenes keeps the old line."""
+    from tuner.freeze import earlier_test_line
+    now = {"scenes": ["Herz-Jesus-P8", "entry-P10"], "pairs": 16, "fingerprint": "073f4b57346be4c9"}
+    same = {"path": "/s/earlier-1/test.json", "scenes": ["Herz-Jesus-P8", "entry-P10"], "pairs": 16,
+            "fingerprint": "281672c91a8ad960"}
+    line = earlier_test_line({"data": now, "earlier_test": same})
+    assert "another test set" not in line and "the same scenes (Herz-Jesus-P8, entry-P10; 16 pairs)" in line
+    assert "281672c91a8ad960, now 073f4b57346be4c9" in line and "/s/earlier-1/test.json" in line
+    other = earlier_test_line({"data": {**now, "scenes": ["entry-P10"], "pairs": 3}, "earlier_test": same})
+    assert other.startswith("the study's earlier test.json measured another test set (Herz-Jesus-P8, entry-P10; 16")
+    assert earlier_test_line({"data": now}) is None

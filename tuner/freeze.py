@@ -540,7 +540,8 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
             # another test set (`tune test --scenes` on one scene after the full test): kept, never replaced
             kept = keep_earlier_file(out_path)
             out["earlier_test"] = {"path": str(kept), "scenes": (prev.get("data") or {}).get("scenes"),
-                                   "pairs": (prev.get("data") or {}).get("pairs")}
+                                   "pairs": (prev.get("data") or {}).get("pairs"),
+                                   "fingerprint": (prev.get("data") or {}).get("fingerprint")}
         atomic_write(out_path, json.dumps(out, indent=2))
     return out
 
@@ -557,6 +558,13 @@ def earlier_test_line(result: dict) -> str | None:
     if not e:
         return None
     what = ", ".join(e.get("scenes") or []) or "other scenes"
+    now = result.get("data") or {}
+    if e.get("scenes") == now.get("scenes") and e.get("pairs") == now.get("pairs"):
+        # same scenes and pair count: "another test set" named the very set just measured
+        return (f"the study's earlier test.json measured the same scenes ({what}; {e.get('pairs')} pairs) with other "
+                f"data (data fingerprint {e.get('fingerprint')}, now {now.get('fingerprint')}: other pairs or images, or"
+                f" a ground truth built or removed since: co-visibility from `tune data build-gt`): kept at {e.get('path')},"
+                " not replaced")
     return (f"the study's earlier test.json measured another test set ({what}; {e.get('pairs')} pairs): kept at "
             f"{e.get('path')}, not replaced")
 
