@@ -562,9 +562,9 @@ def earlier_test_line(result: dict) -> str | None:
     if e.get("scenes") == now.get("scenes") and e.get("pairs") == now.get("pairs"):
         # same scenes and pair count: "another test set" named the very set just measured
         return (f"the study's earlier test.json measured the same scenes ({what}; {e.get('pairs')} pairs) with other "
-                f"data (data fingerprint {e.get('fingerprint')}, now {now.get('fingerprint')}: other pairs or images, or"
-                f" a ground truth built or removed since: co-visibility from `tune data build-gt`): kept at {e.get('path')},"
-                " not replaced")
+                f"data (data fingerprint {e.get('fingerprint')}, now {now.get('fingerprint')}: other pairs or images, "
+                "or a ground truth built or removed since: co-visibility from `tune data build-gt`): kept at "
+                f"{e.get('path')}, not replaced")
     return (f"the study's earlier test.json measured another test set ({what}; {e.get('pairs')} pairs): kept at "
             f"{e.get('path')}, not replaced")
 

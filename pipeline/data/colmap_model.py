@@ -89,8 +89,9 @@ def check_images_txt(path: Path) -> None:
         if not ok:
             name = head.split()[-1] if len(head.split()) >= 10 else "?"
             shown = lines[k - 1].strip()
+            shown = shown[:60] + ("..." if len(shown) > 60 else "")
             raise ImtuneError(f"COLMAP model {path.parent}: images.txt line {k}, read as the 2D points of image "
-                              f"{name!r}, is not X Y POINT3D_ID triples ({shown[:60]}{'...' if len(shown) > 60 else ''}):"
+                              f"{name!r}, is not X Y POINT3D_ID triples ({shown}):"
                               " each image takes two lines, its pose and then its 2D points (an empty line when it "
                               "has none)")
 
