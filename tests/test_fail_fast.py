@@ -258,6 +258,20 @@ def test_rules_on_crafted_studies(tmp_path):
     st, fr = crafted_study(tmp_path / "d", [(top, 0.7)], gamma_max=GAMMA_CEILING)
     (w,) = optimum_warnings(st, fr)
     assert w.startswith("Gamma_max = 1,000,000 is the search ceiling") and "0.5 s per pair" in w
+    assert "so the budget never bound Gamma" in w
+    # ... but with trials timed over B (DEGENSAC 2k SIFT: Gamma 431k and 930k at 1.3 s per pair, 2 of 12) the
+    # budget did bind: 'never bound Gamma' beside them was false
+    import optuna
+    from optuna.distributions import FloatDistribution, IntDistribution
+    st, fr = crafted_study(tmp_path / "d2", [(top, 0.7)], gamma_max=GAMMA_CEILING)
+    slow = {**inside, "max_iters": 930_000}
+    st.add_trial(optuna.trial.create_trial(  # median 1.34 s per pair, B 0.5 s: as a run records an over-budget trial
+        params=slow, value=0.8, user_attrs={"feasible": False, "ransac_seconds_median": 1.34},
+        distributions={"ratio": FloatDistribution(0.6, 1.0), "threshold": FloatDistribution(0.1, 2.0, log=True),
+                       "max_iters": IntDistribution(1000, GAMMA_CEILING, log=True)}))
+    (w,) = optimum_warnings(st, fr)
+    assert w.startswith("Gamma_max = 1,000,000 is the search ceiling") and "never bound" not in w, w
+    assert "yet 1 of 2 completed trials ran over it" in w, w
     # every trial 0: that warning alone (the optimum's position means nothing)
     st, fr = crafted_study(tmp_path / "e", [(edge, 0.0), (inside, 0.0)])
     (w,) = optimum_warnings(st, fr)

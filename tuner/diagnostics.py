@@ -11,7 +11,7 @@
   binding, as the protocol intends);
 - **Gamma_max is the search ceiling** (``tuner.budget.GAMMA_CEILING``): the estimator never reached B seconds
   per pair at any cap measured, so the budget never bound Gamma and the study did not compare settings under
-  the budget;
+  the budget (unless trials ran over B at their own r / eta: then the warning says so, not "never bound");
 - **every trial scored 0**: no completed trial has a non-zero objective, so the "optimum" is arbitrary (e.g.
   SIFT on ScanNet's indoor pairs: no pose within 10 degrees at any setting).
 
@@ -116,8 +116,9 @@ def bound_warnings(space: dict, params: dict, *, source: str = "", calibrated=()
     return out
 
 
-def gamma_ceiling_warning(budget: dict, ceiling: int | None = None) -> str | None:
-    """A warning when Gamma_max(B) is the search ceiling: the budget never bound the iteration cap."""
+def gamma_ceiling_warning(budget: dict, ceiling: int | None = None, over: int = 0, completed: int = 0) -> str | None:
+    """A warning when Gamma_max(B) is the search ceiling: the budget never bound the iteration cap. ``over`` of
+    ``completed`` trials ran over B at their own settings: then it did bind, the calibration missed it."""
     from tuner.budget import GAMMA_CEILING
     budget = budget or {}
     gmax = budget.get("gamma_max")
@@ -128,9 +129,14 @@ def gamma_ceiling_warning(budget: dict, ceiling: int | None = None) -> str | Non
     if int(gmax) < ceiling:
         return None
     b = budget.get("seconds_per_pair")
-    return (f"Gamma_max = {_g(int(gmax))} is the search ceiling (tuner/budget.py GAMMA_CEILING): the estimator "
-            f"stayed within the {_g(b) if b is not None else 'B'} s per pair budget at every cap measured, so the "
-            "budget never bound Gamma (a faster machine, an estimator that stops early, or a loose --budget)")
+    head = (f"Gamma_max = {_g(int(gmax))} is the search ceiling (tuner/budget.py GAMMA_CEILING): the estimator "
+            f"stayed within the {_g(b) if b is not None else 'B'} s per pair budget at every cap measured")
+    if over:  # "never bound Gamma" beside trials timed over B at their r / eta: the calibration's settings missed it
+        return (f"{head} at the calibration's r and eta, yet {over} of {completed} completed trials ran over it at "
+                "their own: the budget binds at some settings and Gamma_max did not follow it (time it at a "
+                "smaller eta: a --space file whose 'calibration' section sets threshold, see tuner/space.py)")
+    return (f"{head}, so the budget never bound Gamma (a faster machine, an estimator that stops early, or a loose "
+            "--budget)")
 
 
 def zero_score_warning(values: list, objective: str = "mAA10") -> str | None:
@@ -167,7 +173,10 @@ def optimum_warnings(study, frozen: dict) -> list[str]:
     if not z:  # with every score 0 the optimum's position means nothing
         out += bound_warnings(space, params, source=attrs.get("search_space_source", ""), calibrated=calibrated)
     if "max_iters" in params or "max_iters" in (space.get("fixed") or {}):
-        g = gamma_ceiling_warning(attrs.get("budget") or (frozen or {}).get("budget"))
+        from tuner.protocol import trial_within_budget
+        done = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
+        g = gamma_ceiling_warning(attrs.get("budget") or (frozen or {}).get("budget"),
+                                  over=sum(not trial_within_budget(t) for t in done), completed=len(done))
         if g:
             out.append(g)
     return out
