@@ -959,3 +959,26 @@ def test_one_reversal_among_several_relations_is_tested_at_the_bonferroni_level(
         text = _difference_text({"id": 4, "verdict": a["verdict"], "difference": a["difference"], "ci": a["ci"],
                                  "p_value": a["p_value"], "measured": {**a["measured"], "rule": "better"}})
         assert "Bonferroni" in text and "needs p < 0.025" in text, text  # why p = 0.031 is not enough
+
+
+@pytest.mark.parametrize("how", ["splits.yaml", "--test-scenes"])
+def test_a_test_scene_without_ground_truth_fails_before_any_study(subset, tmp_path, capsys, how):
+    """A test scene of images alone (no poses yet: before `tune data build-gt`, e.g. `--data` at a folder holding
+    sacre_coeur) stops every stereo study at its test: it was every finding "not run" with a hint naming `--no-test`
+    (a flag tune findings does not have), finding 6's multiview study tuned anyway, a report, and exit 0. Now one
+    line naming the scene and the command that builds its ground truth, exit 2, no study."""
+    root = tmp_path / "data"
+    shutil.copytree(subset / "fountain-P11", root / "fountain-P11")
+    shutil.copytree(subset / "entry-P10" / "images", root / "posefree" / "images")  # images only: no camera files
+    args = ["--test-scenes", "posefree"]
+    if how == "splits.yaml":
+        (root / "splits.yaml").write_text("val: [fountain-P11]\ntest: [posefree]\n")
+        args = []
+    sdir = tmp_path / "s"
+    rc, out, err = _cli(["findings", "--data", str(root), "--studies-dir", str(sdir), "--quick", "--only", "1,6",
+                         "--trials", "2", "--max-pairs", "3", "--test-runs", "1", "--jobs", "1"] + args, capsys)
+    assert rc == 2 and out == "" and err.count("\n") == 1 and err.startswith("tune: error: "), err
+    assert "test scene 'posefree' has no ground truth" in err and "tune data build-gt" in err, err
+    assert "--test-scenes" in err and "--no-test" not in err, err
+    assert not (sdir / "findings").exists()
+    assert _trial_count(f"sqlite:///{sdir / 'optuna.db'}") == {} if (sdir / "optuna.db").exists() else True

@@ -156,6 +156,14 @@ def preflight(fs: FindingsSettings) -> None:
         raise ImtuneError(f"scene {', '.join(both)} is both a validation and a test scene: the findings tune on the "
                           "validation scenes and measure on the test scenes; choose disjoint --val-scenes and "
                           "--test-scenes")
+    # every finding tunes stereo studies on the validation scenes and tests them on the test scenes: a scene the
+    # stereo task cannot evaluate (no ground truth: a folder of images before `tune data build-gt`) stops them all
+    from pipeline.tasks import make_task
+    from tuner.study import check_task_scene
+    stereo = make_task("stereo")
+    for role, flag, split, names in (("validation", "--val-scenes", "val", val), ("test", "--test-scenes", "test", test)):
+        for sc in load_scenes(Path(fs.data_root), list(names), split=split):
+            check_task_scene(stereo, sc, role, f"or choose other {role} scenes with {flag}")
 
 
 def run_findings(fs: FindingsSettings, write: bool = True) -> dict:
