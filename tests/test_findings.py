@@ -982,3 +982,28 @@ def test_a_test_scene_without_ground_truth_fails_before_any_study(subset, tmp_pa
     assert "--test-scenes" in err and "--no-test" not in err, err
     assert not (sdir / "findings").exists()
     assert _trial_count(f"sqlite:///{sdir / 'optuna.db'}") == {} if (sdir / "optuna.db").exists() else True
+
+
+def test_a_gamma_max_at_the_search_ceiling_is_reported_as_a_lower_bound_with_the_freezes_warnings():
+    """On 2048 SIFT most estimators never reach 0.5 s per pair below the search ceiling (1,000,000): the report read
+    "here Gamma_max magsac 1,000,000, degensac 140,000, ..." beside the paper's "magsac 10k, ... pyransac 250k", a
+    measured-looking cap 100 x the paper's, and it dropped the freeze's warnings (that one, an optimum eta on the
+    lower bound of the space: finding 7's 'optimal eta' was the bound). Now a ceiling Gamma_max reads '>= 1,000,000'
+    and each study's frozen warnings are listed under its table."""
+    from tuner.budget import GAMMA_CEILING
+    from tuner.findings import report as R
+    warn = "the optimum's threshold (eta) = 0.1056 px lies on the lower bound of the search space"
+    at, below = _outcome("at", [{("s1", 0): 1.0, ("s1", 1): 2.0}]), _outcome("below", [{("s1", 0): 1.0, ("s1", 1): 2.0}])
+    at.attrs = {"budget": {"gamma_max": GAMMA_CEILING, "seconds_per_pair": 0.5}}
+    below.attrs = {"budget": {"gamma_max": 140000, "seconds_per_pair": 0.5}}
+    below.frozen = {**below.frozen, "warnings": [warn]}
+    fa, fb = A.study_figures(at, 200), A.study_figures(below, 200)
+    f = {"id": 2, "measured": {"studies": {"magsac": {**fa, "mAA10": 0.45}, "degensac": {**fb, "mAA10": 0.73}}}}
+    txt = R.paper_comparison(f)
+    assert "here Gamma_max magsac >= 1,000,000, degensac 140,000 ('>=': the search ceiling" in txt, txt
+    assert f["measured"]["paper_comparison"].get("ours_at_ceiling") == ["magsac"]
+    rows = {r[0]: r[-1] for r in R._study_rows(f)}
+    assert rows["magsac"].startswith("Gamma_max >= 1,000,000 (the search ceiling") and \
+        rows["degensac"].startswith("Gamma_max 140,000;"), rows
+    assert fa["gamma_max_at_ceiling"] is True and fb["gamma_max_at_ceiling"] is False
+    assert R.study_warnings(f) == [f"degensac: {warn}"]

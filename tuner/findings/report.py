@@ -157,8 +157,13 @@ def paper_comparison(f: dict) -> str | None:
                 order = " > ".join(" ~ ".join(g) for g in groups) + " ('~': not significantly different)"
             else:
                 order = " > ".join(sorted((r for r in st if maa(r) is not None), key=lambda r: -maa(r)))
+            ceiling = sorted(r for r in g if g[r] and st[r].get("gamma_max_at_ceiling"))
+            if ceiling:  # a lower bound: the budget never bound Gamma there, unlike the paper's figures
+                m["paper_comparison"]["ours_at_ceiling"] = ceiling
             txt = ("Gamma at 0.5 s: paper " + ", ".join(f"{r} {v // 1000}k" for r, v in paper.items())
-                   + "; here Gamma_max " + ", ".join(f"{r} {v:,}" if v else f"{r} -" for r, v in g.items())
+                   + "; here Gamma_max " + ", ".join((f"{r} >= {v:,}" if r in ceiling else f"{r} {v:,}") if v
+                                                     else f"{r} -" for r, v in g.items())
+                   + (" ('>=': the search ceiling; the budget never bound Gamma there)" if ceiling else "")
                    + "; frozen Gamma " + ", ".join(f"{r} {int(v):,}" if v else f"{r} -" for r, v in frozen.items())
                    + "; test mAA(10) order here: " + order)
     elif f["id"] == 4:
@@ -188,11 +193,20 @@ def _study_rows(f: dict) -> list[list[str]]:
             cost = f"; tuning {tun / 60:.1f} min" + (f", test {c['test_seconds'] / 60:.1f} min"
                                                        if c.get("test_seconds") is not None else "")
         rows.append([role, s["study"], _num(s.get("mAA10")), _ci(s.get("mAA10_ci")), _num(s.get("mAA5")), ps,
-                     f"Gamma_max {format(s['gamma_max'], ',') if s.get('gamma_max') else '-'}; "
+                     f"Gamma_max {'>= ' if s.get('gamma_max_at_ceiling') else ''}"
+                     f"{format(s['gamma_max'], ',') if s.get('gamma_max') else '-'}"
+                     f"{' (the search ceiling: the budget never bound Gamma)' if s.get('gamma_max_at_ceiling') else ''}; "
                      f"{s.get('trials', 0)} feasible trials; "
                      f"{s.get('pairs') or '-'} test pairs x {s.get('test_runs') or '-'} "
                      f"run{'' if s.get('test_runs') == 1 else 's'}{cost}"])
     return rows
+
+
+def study_warnings(f: dict) -> list[str]:
+    """"<role>: <warning>" for each warning of each study's freeze (``frozen.yaml`` ``warnings``: an optimum on a
+    bound of the search space, Gamma_max at the search ceiling, every trial 0), which qualify the values shown."""
+    return [f"{role}: {w}" for role, s in (f["measured"].get("studies") or {}).items() if s.get("ok")
+            for w in s.get("warnings") or []]
 
 
 STUDY_COLS = ["role", "study", "test mAA(10)", "95% CI", "test mAA(5)", "frozen parameters", "notes"]
@@ -407,6 +421,8 @@ def write_report(out: dict, fs, seconds: float = 0.0) -> Path:
         versus = paper_comparison(f)
         md += [f"Measured: {_difference_text(f)}", ""] + ([f"Paper vs here: {versus}", ""] if versus else [])
         md += [_md_table(STUDY_COLS, _study_rows(f)), ""]
+        warns = study_warnings(f)
+        md += [f"Warnings (the studies' frozen settings): {'; '.join(warns)}", ""] if warns else []
         fig = plot_finding(f)
         div = pio.to_html(fig, full_html=False, include_plotlyjs=first) if fig is not None else ""
         first = first and fig is None
@@ -420,6 +436,7 @@ def write_report(out: dict, fs, seconds: float = 0.0) -> Path:
             + f"<p><b>Measured</b>: {html.escape(_difference_text(f))}</p>"
             + (f"<p><b>Paper vs here</b>: {html.escape(versus)}</p>" if versus else "")
             + _html_table(STUDY_COLS, _study_rows(f))
+            + (f"<p><b>Warnings</b> (the studies' frozen settings): {html.escape('; '.join(warns))}</p>" if warns else "")
             + div
             + (f"<p><b>Studies</b>: {links}</p>" if links else "") + "</section>")
         md += [f"Studies: {', '.join(f['studies']) or 'none'} (their reports: ../<study>/report.html)", ""]
