@@ -1007,3 +1007,24 @@ def test_a_gamma_max_at_the_search_ceiling_is_reported_as_a_lower_bound_with_the
         rows["degensac"].startswith("Gamma_max 140,000;"), rows
     assert fa["gamma_max_at_ceiling"] is True and fb["gamma_max_at_ceiling"] is False
     assert R.study_warnings(f) == [f"degensac: {warn}"]
+
+
+def test_finding_12s_measured_line_states_its_key_relation_once():
+    """Finding 12's key is the learned feature best on validation: its Measured line gave that relation as the key,
+    then again among the others ("aliked (the best on validation of ...) vs rootsift: 0.1458 ...; ...; aliked vs
+    rootsift: 0.1458 ..."). Known records: aliked scores best on validation, tfeat and mkd below it."""
+    from tuner.findings.report import _difference_text
+    f = BY_ID[12]
+    rng = np.random.default_rng(3)
+    base = {(sc, i): float(rng.uniform(0.2, 3.0)) for sc in ("s1", "s2") for i in range(12)}
+    outcomes = {"rootsift": _outcome("rootsift", [base])}
+    for role, shift, val in (("dog-tfeat", 2.0, 0.5), ("dog-mkd", 1.0, 0.6), ("aliked", -0.1, 0.9)):
+        o = _outcome(role, [{k: max(0.01, e + shift) for k, e in base.items()}])
+        o.frozen = {**o.frozen, "value": val}
+        outcomes[role] = o
+    a = A.analyse(f, outcomes, n_resamples=200)
+    assert a["measured"]["key"].startswith("aliked (the best on validation")
+    txt = _difference_text({"id": 12, "measured": {**a["measured"], "rule": f.rule}, "difference": a["difference"],
+                            "ci": a["ci"], "p_value": a["p_value"], "verdict": a["verdict"]})
+    assert txt.count("vs rootsift") == 3, txt  # aliked (key), dog-tfeat, dog-mkd: each once
+    assert "; aliked vs rootsift" not in txt and "dog-tfeat vs rootsift" in txt and "dog-mkd vs rootsift" in txt, txt

@@ -272,7 +272,10 @@ def _difference_text(f: dict) -> str:
     def bonferroni(r) -> str:
         return (f" (deciding alone, tested at the Bonferroni level over the relations: {100 * r['level']:.3g}% CI "
                 f"{_ci(r['ci_at_level'])}, needs p < {1 - r['level']:.3g})" if r.get("level") else "")
-    is_key = [m.get("key", "").startswith(f"{r['b']} vs {r['a']}") for r in m.get("relations") or []]
+    key = m.get("key") or ""
+    # the key relation is stated first: "B vs A", or finding 12's "B (the best on validation of ...) vs A"
+    is_key = [key.startswith(f"{r['b']} vs {r['a']}") or (key.startswith(f"{r['b']} (") and key.endswith(f" vs {r['a']}"))
+              for r in m.get("relations") or []]
     for r, k in zip(m.get("relations") or [], is_key):
         if k and r.get("level"):
             txt += f" -> {r.get('status')}{bonferroni(r)}"
