@@ -1028,3 +1028,20 @@ def test_finding_12s_measured_line_states_its_key_relation_once():
                             "ci": a["ci"], "p_value": a["p_value"], "verdict": a["verdict"]})
     assert txt.count("vs rootsift") == 3, txt  # aliked (key), dog-tfeat, dog-mkd: each once
     assert "; aliked vs rootsift" not in txt and "dog-tfeat vs rootsift" in txt and "dog-mkd vs rootsift" in txt, txt
+
+
+def test_finding_1s_relative_interval_uses_the_runs_seed_and_resamples():
+    """The header states the intervals' resamples and seed (--seed); finding 1's interval of the defaults' relative
+    change and finding 2's shared ranks used 2000 resamples at seed 0 whatever the run's. Noisy synthetic records:
+    another seed gives another interval, and the one reported is the one at the run's seed and resample count."""
+    from pipeline.metrics.uncertainty import paired_relative
+    rng = np.random.default_rng(5)
+    tuned = {(sc, i): float(rng.uniform(0.2, 9.0)) for sc in ("s1", "s2") for i in range(15)}
+    defaults = {k: float(e * rng.uniform(0.8, 3.0)) for k, e in tuned.items()}
+    outcomes = {"defaults": _outcome("d", [defaults]), "tuned": _outcome("t", [tuned])}
+    got = {s: A.analyse(BY_ID[1], outcomes, n_resamples=300, seed=s)["measured"]["relative_change_of_defaults"]["ci"]
+           for s in (0, 7)}
+    want = {s: paired_relative(A._flat(outcomes["tuned"].test_runs), A._flat(outcomes["defaults"].test_runs), tau=10,
+                               n_resamples=300, seed=s)["ci"] for s in (0, 7)}
+    assert want[0] != want[7]
+    assert got == want, (got, want)

@@ -230,7 +230,7 @@ def analyse(f: Finding, outcomes: dict, n_resamples: int = 2000, seed: int = 0) 
         measured["relative_difference"] = key["relative"]
         measured["relative_ci"] = key.get("relative_ci")  # joint bootstrap of the ratio (paired_relative)
         measured["relative_to"] = key["a"]  # the role the relative difference divides by (A of "B vs A")
-        extra = _extras(f, outcomes)
+        extra = _extras(f, outcomes, n_resamples, seed)
         if extra:
             measured.update(extra)
         return {**out, "measured": measured, "difference": key["difference"], "ci": key["ci"],
@@ -268,13 +268,13 @@ def _reason(missing: dict) -> str:
     return "; ".join(f"{k}: {v}" for k, v in missing.items()) or "no study produced test results"
 
 
-def _extras(f: Finding, outcomes: dict) -> dict:
-    """Finding-specific figures beside the verdict (they do not change it)."""
+def _extras(f: Finding, outcomes: dict, n_resamples: int = 2000, seed: int = 0) -> dict:
+    """Finding-specific figures beside the verdict (they do not change it), with the run's resamples and seed."""
     out = {}
     if f.id == 1:  # the paper's figure is the defaults' change relative to tuned: (defaults - tuned) / tuned
         od, ot = outcomes.get("defaults"), outcomes.get("tuned")
         if od and ot and od.ok and ot.ok and od.test_runs and ot.test_runs:
-            r = paired_relative(_flat(ot.test_runs), _flat(od.test_runs), tau=10)
+            r = paired_relative(_flat(ot.test_runs), _flat(od.test_runs), tau=10, n_resamples=n_resamples, seed=seed)
             out["relative_change_of_defaults"] = {"relative": r["relative"], "ci": r["ci"]}
     if f.id == 2:
         g = {r: (o.attrs.get("budget") or {}).get("gamma_max") for r, o in outcomes.items() if o.ok}
@@ -286,7 +286,7 @@ def _extras(f: Finding, outcomes: dict) -> dict:
         items = [(r, _flat(o.test_runs)) for r, o in outcomes.items() if o.ok and o.test_runs]
         if items:
             out["ranking"] = [{k: row[k] for k in ("name", "rank", "mAA10", "shared", "note")}
-                              for row in rank_with_ties(items)]
+                              for row in rank_with_ties(items, n_resamples=n_resamples, seed=seed)]
     if f.id == 4:
         out["optimal_ratio"] = {r: ((o.frozen or {}).get("params") or {}).get("ratio") for r, o in outcomes.items()
                                 if o.ok}
