@@ -71,6 +71,16 @@ def test_a_trial_proven_over_budget_stops_early(tmp_path, data4, cache, monkeypa
     optimize(ctx2, s2)
     t2 = ctx2.study.trials[0]
     assert t2.state == TrialState.COMPLETE and t2.user_attrs["feasible"] is True and len(t2.intermediate_values) == 3
+    # the 2 x B rule on (the default): it stops the trial at the first chunk, where 2 of 6 pairs over B prove
+    # nothing, and its reason says it is a guess (it read "over budget", as a proof does)
+    s3 = _settings(data4, tmp_path, budget=1e-5, study_name="guess")
+    ctx3 = setup_study(s3)
+    assert ctx3.objective.prune_over_budget == 2.0
+    optimize(ctx3, s3)
+    t3 = ctx3.study.trials[0]
+    assert t3.state == TrialState.PRUNED and t3.user_attrs["pruned_at_pairs"] == 2, t3.user_attrs
+    why = t3.user_attrs["pruned_reason"]
+    assert why.startswith("likely over budget: running median ") and "after 2 of 6 pairs" in why and "not a proof" in why
 
 
 @pytest.mark.parametrize("pruner", ["sha", "hyperband"])

@@ -4,8 +4,11 @@ what it consumes, what it reports and what a time budget bounds.
 
 The task evaluates in steps (stereo: chunks of ``chunk_pairs`` pairs stratified over the scenes; multiview:
 one scene at a time); after each step the running objective is reported as an intermediate value so the pruner
-can stop a hopeless trial early, and a trial whose running budget statistic exceeds ``prune_over_budget`` x B
-is stopped as infeasible. Features and k-NN tables come from the cache (warmed once by
+can stop a hopeless trial early. A trial is also stopped once more than half of all its pairs took more than B (a
+proof: its median is over B whatever the rest take), and, to save time, once its running budget statistic exceeds
+``prune_over_budget`` x B (a guess, like any pruner's: the pairs seen so far may be the slow ones; its
+``pruned_reason`` says so). A stopped trial is never frozen; its ``feasible`` and budget constraint are those of the
+pairs it evaluated. Features and k-NN tables come from the cache (warmed once by
 :meth:`ValidationSet.prepare`).
 
 Each trial records, as user attributes, the task's figures (``Task.figures``: for stereo ``mAA5``, ``mAA10``,
@@ -137,8 +140,8 @@ class Objective:
     task: a ``pipeline.tasks.Task``; base: the study's fixed pipeline configuration; space: the (resolved)
     search space; vs: the prepared validation set; cache: an H5Cache (shared by all trials of this process);
     budget: B in seconds per pair (median estimator time; None = no budget); prune_over_budget: stop a trial
-    early once its running budget statistic exceeds this multiple of B (it is infeasible whatever the rest
-    gives); objectives: :data:`SINGLE` (return the task's objective figure) or :data:`PARETO` (return it
+    early once its running budget statistic exceeds this multiple of B (0: never; a guess that saves time, not a
+    proof: only more than half of all its pairs over B proves a trial over budget); objectives: :data:`SINGLE` (return the task's objective figure) or :data:`PARETO` (return it
     and the median estimator seconds per pair; a task that times no estimator cannot)."""
 
     def __init__(self, task, base: PipelineConfig, space, vs: ValidationSet, cache, budget: float | None = None,
@@ -208,8 +211,10 @@ class Objective:
                                                          f"took more than {self.budget:g} s (median > B whatever "
                                                          "the rest take)")
                 elif over:
-                    trial.set_user_attr("pruned_reason", f"over budget: median {sec:.3f} s > "
-                                                         f"{self.prune_over_budget:g} x {self.budget:g} s")
+                    trial.set_user_attr("pruned_reason", f"likely over budget: running median {sec:.3f} s > "
+                                                         f"{self.prune_over_budget:g} x {self.budget:g} s after "
+                                                         f"{n} of {int(total or 0) or '?'} pairs (stopped to save "
+                                                         "time: a guess, not a proof)")
                 raise optuna.TrialPruned()
 
         res = task.evaluate(self.vs.scene_objs, conf, self.cache, on_step=None if self.pareto else on_step)
