@@ -261,6 +261,7 @@ def test_findings_1_and_4_end_to_end(subset, tmp_path, monkeypatch, capsys):
     # the rules are prose for a reader, not the module's Sphinx markup
     rules = md.split("## How the verdicts are decided", 1)[1]
     assert ":func:" not in rules and ":data:" not in rules and "``" not in rules and "SMALL_GAIN" not in rules
+    assert "_bonferroni_decider" not in rules and "SAME_BAND" not in rules  # no internal names for the reader
     assert "<= 0.02 mAA(10)" in rules
     # the summary table says what each difference is a difference of (B - A, the finding's key roles)
     assert "| difference of | difference |" in md

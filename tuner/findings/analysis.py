@@ -10,15 +10,15 @@ Rules (the report states the one each finding uses):
   verdict is inconclusive. A finding with several such relations combines them ("all": holds when every
   one holds, does not hold when any is reversed; "any": holds when one holds and none is reversed); the one
   relation that alone decides (a reversal for "all", a relation that holds for "any") must be significant at the
-  Bonferroni level 0.05 / m over the m relations (``_bonferroni_decider``).
+  Bonferroni level 0.05 / m over the m relations.
 - ``small_gain`` — the claim "B adds at most a little over A": holds when the upper end of the CI of B - A is
   <= SMALL_GAIN (in mAA(10), 0..1), does not hold when its lower end is above SMALL_GAIN, inconclusive
   otherwise (a CI containing 0 but reaching past the margin says nothing either way).
 - ``regions`` — "the optimal value of a parameter differs": each study's *flat region* is the range of the
   parameter over its feasible completed trials whose validation mAA(10) lies within the 95% interval of the
   best trial (value >= the interval's lower end). Two studies *differ* when their flat regions do not overlap;
-  they are the *same* when both flat regions fit in one band of :data:`SAME_BAND` (r: 0.05 wide; eta: a factor
-  1.5), i.e. the data pin both optima to one value; otherwise (overlapping but wide regions: too few pairs or
+  they are the *same* when both flat regions fit in one band (r: 0.05 wide; eta: a factor 1.5;
+  SAME_BAND), i.e. the data pin both optima to one value; otherwise (overlapping but wide regions: too few pairs or
   trials to tell) the comparison is *unclear*. A group of several studies differs
   when some pair differs and is the same when every pair is. The finding holds when every group differs,
   does not hold when some group is the same, and is inconclusive otherwise (also when a study is missing).
