@@ -17,8 +17,8 @@ Rules (the report states the one each finding uses):
 - ``regions`` — "the optimal value of a parameter differs": each study's *flat region* is the range of the
   parameter over its feasible completed trials whose validation mAA(10) lies within the 95% interval of the
   best trial (value >= the interval's lower end). Two studies *differ* when their flat regions do not overlap;
-  they are the *same* when both flat regions fit in one band (r: 0.05 wide; eta: a factor 1.5;
-  SAME_BAND), i.e. the data pin both optima to one value; otherwise (overlapping but wide regions: too few pairs or
+  they are the *same* when both flat regions fit in one band (r: 0.05 wide; eta: a factor
+  1.5), i.e. the data pin both optima to one value; otherwise (overlapping but wide regions: too few pairs or
   trials to tell) the comparison is *unclear*. A group of several studies differs
   when some pair differs and is the same when every pair is. The finding holds when every group differs,
   does not hold when some group is the same, and is inconclusive otherwise (also when a study is missing).
