@@ -88,3 +88,31 @@ def test_an_exit_after_kill_executor_prints_no_traceback_from_a_closed_wakeup(tm
                        env={**__import__("os").environ, "PYTHONPATH": str(root)})
     assert r.stdout.strip() == "exiting", (r.stdout, r.stderr)
     assert "Traceback" not in r.stderr and "Bad file descriptor" not in r.stderr, r.stderr
+
+
+def test_a_worker_killed_whose_exit_code_comes_late_is_still_the_culprit():
+    """A broken pool's futures fail before the executor's manager thread has reaped its workers: the killed worker's
+    exit code may not be readable yet when the parent asks which item died. Here two real spawned workers, one on
+    item 5 (killed with SIGKILL) and one on item 6 (terminated with SIGTERM, as the executor stops survivors), both
+    signalled 0.3 s after the question: item 5 is the dead worker's, 6 is not. Before the fix the parent read
+    'no exit code', found no culprit, and the item was silently evaluated again instead of recorded as failed."""
+    import signal
+    import threading
+    from types import SimpleNamespace
+    from pipeline.tasks.pool import PairPool
+    ctx = mp.get_context("spawn")
+    procs = [ctx.Process(target=time.sleep, args=(60,)) for _ in range(2)]
+    for p in procs:
+        p.start()
+    try:
+        pool = PairPool(2, SimpleNamespace(key="k"))
+        pool._status = ctx.RawArray("q", [procs[0].pid, 5, procs[1].pid, 6])
+        pool._procs = {p.pid: p for p in procs}
+        threading.Timer(0.3, lambda: (procs[0].kill(), procs[1].terminate())).start()
+        dead = pool._dead_items()
+        assert dead == {5}, (dead, [p.exitcode for p in procs])
+        assert procs[0].exitcode == -signal.SIGKILL and procs[1].exitcode == -signal.SIGTERM
+    finally:
+        for p in procs:
+            p.kill()
+            p.join()

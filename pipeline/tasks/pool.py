@@ -428,13 +428,22 @@ class PairPool:
     def terminate(self) -> None:
         self._drop(kill=True)
 
-    def _dead_items(self) -> set[int]:
+    def _dead_items(self, wait: float = 10.0) -> set[int]:
         """Submission ids that a process which died on its own was evaluating (the executor itself terminates the
-        survivors with SIGTERM after a break: those are not culprits)."""
+        survivors with SIGTERM after a break: those are not culprits).
+
+        Waits (at most ``wait`` s) for every worker's exit code first: the futures fail before the executor's
+        manager thread has terminated and reaped the workers, and while that thread waits for a process our own
+        poll of it reads no exit code, so a killed worker read as 'no exit code' and its pair was silently run
+        again instead of recorded as failed."""
+        import time
         out = set()
         st = self._status
         if st is None:
             return out
+        deadline = time.monotonic() + wait
+        while any(p.exitcode is None for p in self._procs.values()) and time.monotonic() < deadline:
+            time.sleep(0.01)
         for slot in range(len(st) // 2):
             pid, sub = int(st[2 * slot]), int(st[2 * slot + 1])
             p = self._procs.get(pid)
