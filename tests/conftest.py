@@ -68,6 +68,37 @@ def copy_strecha_subset(dst_root: Path, images: list[str], scene: str = "fountai
     return dst_root
 
 
+SQLITE_SIDE_FILES = ("-wal", "-shm", "-journal")
+
+
+def copy_studies(src: Path, dst: Path) -> Path:
+    """Copy a studies folder whose SQLite storages (``*.db``) other processes may have open: every other file with
+    shutil, each database through SQLite's backup API (a consistent snapshot taken under SQLite's own locks, no
+    -wal / -shm beside it). shutil.copytree opens and closes optuna.db, -wal and -shm in this process, and a close()
+    drops every POSIX lock the process holds on the file, including those of this process's open SQLite connections
+    (an Optuna storage a test left to the garbage collector): a `tune` run afterwards then deleted the WAL and -shm
+    under those connections, which read a stale database (20 trials of 220 in a stress run) or, in CI once,
+    'database disk image is malformed'; the copied -wal / -shm were also taken at other moments than the .db."""
+    import sqlite3
+    dbs = {p.name for p in Path(src).glob("*.db")}
+
+    def skip(folder, names):
+        if Path(folder) != Path(src):
+            return []
+        return [n for n in names if n in dbs or any(n == d + s for d in dbs for s in SQLITE_SIDE_FILES)]
+
+    shutil.copytree(src, dst, ignore=skip)
+    for name in sorted(dbs):
+        a = sqlite3.connect(str(Path(src) / name), timeout=60)
+        b = sqlite3.connect(str(Path(dst) / name))
+        try:
+            a.backup(b)
+        finally:
+            b.close()
+            a.close()
+    return Path(dst)
+
+
 def look_at(C, target=np.zeros(3)):
     """World-to-camera (R, t) of a camera at centre C looking at ``target`` (y up)."""
     z = (target - C) / np.linalg.norm(target - C)

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from tests.conftest import DATA, ROOT
+from tests.conftest import DATA, ROOT, copy_studies
 
 STRECHA = DATA / "strecha"
 pytestmark = pytest.mark.skipif(not STRECHA.is_dir(), reason=f"real data not found at {STRECHA}")
@@ -148,7 +148,7 @@ def test_a_new_study_keeps_an_earlier_studys_results_in_its_folder(study_run, tu
     trials had run, overwrote the earlier study's frozen.yaml and test.json without a word. Now they are moved into
     the folder's earlier-<time>/ (said in one warning) before the new study writes anything."""
     d = tmp_path / "st"
-    shutil.copytree(study_run["dir"], d)
+    copy_studies(study_run["dir"], d)
     name = study_run["name"]
     before = {f: (d / name / f).read_bytes() for f in ("frozen.yaml", "test.json")}
     (d / "optuna.db").unlink()
@@ -276,7 +276,7 @@ def test_a_damaged_test_json_is_said_never_a_crash_or_silence(damage, why, two_s
     / `tune findings` rechecking a list crashed ('list' object has no attribute 'get'). Now: a warning naming the
     file and what to run, the study's row kept from its stored summary, the report says so, the test is rerun."""
     d = tmp_path / "st"
-    shutil.copytree(two_studies["dir"], d)
+    copy_studies(two_studies["dir"], d)
     name = two_studies["name"]
     p = d / name / "test.json"
     assert p.is_file()
@@ -304,7 +304,7 @@ def test_results_says_when_studies_were_tested_on_different_test_sets(two_studie
     """`tune test --scenes` on one study left `tune results` ranking its mAA(10), measured on other pairs, beside
     the others' without a word. Now a warning naming the test sets, and a 'test set' column."""
     d = tmp_path / "st"
-    shutil.copytree(two_studies["dir"], d)
+    copy_studies(two_studies["dir"], d)
     same = tune("results", "--studies-dir", str(d), cache=tuner_cache, check=True)
     sets = {(tuple(t["scenes"]), t["pairs"]) for t in (json.loads((d / n / "test.json").read_text())["data"]
                                                        for n in ("sift-2048-degensac-stereo", "sift-2048-magsac++-stereo"))}
@@ -346,7 +346,7 @@ def test_a_test_json_with_figures_of_the_wrong_type_is_said(damage, why, two_stu
     reader's check and was "tune: internal error: ValueError / AttributeError" in tune results, tune plot and
     tune test --reuse. Now it is a damaged test.json like any other: named in a warning, rerun by --reuse."""
     d = tmp_path / "st"
-    shutil.copytree(two_studies["dir"], d)
+    copy_studies(two_studies["dir"], d)
     name = two_studies["name"]
     p = d / name / "test.json"
     damage(p)
@@ -368,7 +368,7 @@ def test_a_test_json_of_another_study_is_never_taken_for_this_ones(two_studies, 
     `tune plot` drew the other study's test as this one's, without a word. Now it is named in a warning (report: a
     red line) and the study's numbers come from its own stored summary."""
     d = tmp_path / "st"
-    shutil.copytree(two_studies["dir"], d)
+    copy_studies(two_studies["dir"], d)
     name = two_studies["name"]
     other = next(p.parent.name for p in d.glob("*/test.json") if p.parent.name != name)
     good = json.loads(tune("results", "--studies-dir", str(d), "--format", "json", cache=tuner_cache,
