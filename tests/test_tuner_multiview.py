@@ -284,3 +284,18 @@ def test_multiview_test_has_an_interval_and_a_paired_comparison(mv_study, capsys
     rc, text = run_cli(["test", "--study", STUDY, "--studies-dir", str(studies), "--data", str(root),
                         "--scenes", "fountain-P11", "--runs", "2", "--workers", "1", "--quiet"], capsys)
     assert rc == 0 and "no paired comparison" not in text and "intervals: 95%" in text, text
+
+
+def test_a_multiview_report_says_its_test_interval_is_over_bags(mv_study, capsys):
+    """The HTML report of a multiview study said "test (2 runs, trial 0): mAA(10°) = 0.868 [95% interval 0.644,
+    1.000, over pairs and runs]" (a real run on Strecha), though that interval resamples bags
+    (combine_bag_runs_interval), as `tune test` says beside the same number."""
+    root, studies = mv_study
+    rc, out = run_cli(["test", "--study", STUDY, "--studies-dir", str(studies), "--data", str(root),
+                       "--scenes", "fountain-P11", "--runs", "2", "--workers", "1", "--quiet"], capsys)
+    assert rc == 0 and "intervals: 95%, over bags and runs" in out, out
+    rc, _ = run_cli(["plot", "--study", STUDY, "--studies-dir", str(studies)], capsys)
+    assert rc == 0
+    html = (studies / STUDY / "report.html").read_text()
+    assert "2 runs, trial" in html and "over bags and runs]" in html and "over pairs and runs" not in html
+

@@ -426,7 +426,7 @@ def _uncertainty_lines(study, studies_dir=None) -> list[str]:
     comparison with the reference configuration."""
 
     from tuner.freeze import frozen_from_study, load_test_file, study_dir
-    from tuner.select import comparison_text, flat_text
+    from tuner.select import comparison_text, flat_text, interval_units
     try:
         f = frozen_from_study(study)
     except Exception as e:  # noqa: BLE001 - the rest of the report still draws
@@ -451,7 +451,7 @@ def _uncertainty_lines(study, studies_dir=None) -> list[str]:
         tci = m.get("mAA10_ci")
         line = (f"test ({_runs(len(t.get('runs') or []))}, trial {t.get('trial')}): {METRIC} = "
                 + (f"{m.get('mAA10'):.3f}" if m.get("mAA10") is not None else "?")
-                + (f" [95% interval {tci[0]:.3f}, {tci[1]:.3f}, over pairs and runs]" if tci else "")
+                + (f" [95% interval {tci[0]:.3f}, {tci[1]:.3f}, over {interval_units(t)} and runs]" if tci else "")
                 + f", std over runs {(t.get('std') or {}).get('mAA10', 0.0):.3f}")
         out.append(f"<p><b>{html.escape(line)}</b><br>{html.escape(comparison_text(t.get('reference')))}</p>")
     return out

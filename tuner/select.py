@@ -310,6 +310,12 @@ BAG_TEST_INTERVAL_NOTE = (
     "pairs), two pseudo-bags per stratum, widened by the run-to-run variation shared by all bags")
 
 
+def interval_units(test: dict) -> str:
+    """What a test result's interval resamples: "bags" (a multiview test, :data:`BAG_TEST_INTERVAL_NOTE`) or
+    "pairs"."""
+    return "bags" if (test.get("interval") or {}).get("method") == BAG_TEST_INTERVAL_NOTE else "pairs"
+
+
 def pair_errors(records: list[dict]) -> list | None:
     """``[[scene, pair, err], ...]`` of a task's records when they are per-pair (stereo); None otherwise."""
     if not records or not all("err" in r and "pair" in r for r in records):

@@ -420,8 +420,8 @@ def test_table(t: dict) -> str:
                     + (f" (the budget is on the median estimator time: {med:.3g} s/pair)"
                        if isinstance(med, (int, float)) else ""))
     if t.get("interval"):
-        from tuner.select import BAG_TEST_INTERVAL_NOTE
-        units = "bags" if t["interval"].get("method") == BAG_TEST_INTERVAL_NOTE else "pairs"
+        from tuner.select import interval_units
+        units = interval_units(t)
         tail.append(f"intervals: 95%, over {units} and runs ({t['interval'].get('resamples')} resamples; how: "
                     "test.json 'interval')")
     if "reference" in t:
