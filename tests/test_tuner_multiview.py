@@ -299,3 +299,20 @@ def test_a_multiview_report_says_its_test_interval_is_over_bags(mv_study, capsys
     html = (studies / STUDY / "report.html").read_text()
     assert "2 runs, trial" in html and "over bags and runs]" in html and "over pairs and runs" not in html
 
+
+def test_the_multiview_results_table_names_no_estimator_as_best(mv_study, capsys):
+    """`tune results --task multiview` had a column 'best' reading 'degensac' in every row: the study's estimator,
+    which COLMAP's reconstruction never used (its column is already headed 'mAA10 COLMAP')."""
+    root, studies = mv_study
+    rc, _ = run_cli(["test", "--study", STUDY, "--studies-dir", str(studies), "--data", str(root),
+                     "--scenes", "fountain-P11", "--runs", "1", "--workers", "1", "--quiet"], capsys)
+    assert rc == 0
+    rc, out = run_cli(["results", "--task", "multiview", "--studies-dir", str(studies)], capsys)
+    assert rc == 0
+    header = [c.strip() for c in out.splitlines()[0].strip("|").split("|")]
+    assert "mAA10 COLMAP" in header and "best" not in header and "degensac" not in out, out
+    rc, out = run_cli(["results", "--task", "multiview", "--studies-dir", str(studies), "--format", "json"], capsys)
+    assert rc == 0
+    rows = json.loads(out)
+    assert rows and all("best" not in r for r in rows), rows
+

@@ -467,8 +467,9 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
     if shown and all(st.task == "multiview" for st in shown) and len(ests) == 1:
         # COLMAP reconstructs the bags with its own RANSAC: the study's estimator name would head a column of it
         ren = {f"mAA10 {ests[0]}": "mAA10 COLMAP", f"mAA10_ci {ests[0]}": "mAA10_ci COLMAP"}
-        rows = [{ren.get(k, k): v for k, v in r.items()} for r in rows]
-        cols = [ren.get(c, c) for c in cols]
+        # ... and a 'best' column would name that estimator in every row, as if it had won
+        rows = [{ren.get(k, k): v for k, v in r.items() if k != "best"} for r in rows]
+        cols = [ren.get(c, c) for c in cols if c != "best"]
     return rows, Columns(cols, caption=_results_caption(shown, sets, several))
 
 
