@@ -316,3 +316,13 @@ def test_the_multiview_results_table_names_no_estimator_as_best(mv_study, capsys
     rows = json.loads(out)
     assert rows and all("best" not in r for r in rows), rows
 
+
+def test_a_multiview_frozen_yaml_counts_no_bag_as_a_pair(mv_study):
+    """frozen.yaml's validation of a multiview study said 'pairs: 6' beside 'bags: 6' (a real study: 4 bags of 5
+    and 2 of 10 images, 130 pairs): the trial's count of evaluated units, bags, under the stereo name. Here 3 bags
+    of 5 images: 3 bags, 30 pairs, and no 'pairs: 3'."""
+    root, studies = mv_study
+    frozen = yaml.safe_load((studies / STUDY / "frozen.yaml").read_text())
+    v = frozen["validation"]
+    assert v["bags"] == 3
+    assert v.get("pairs") in (None, 30), v.get("pairs")
