@@ -326,3 +326,19 @@ def test_a_multiview_frozen_yaml_counts_no_bag_as_a_pair(mv_study):
     v = frozen["validation"]
     assert v["bags"] == 3
     assert v.get("pairs") in (None, 30), v.get("pairs")
+
+
+def test_evaluating_a_multiview_study_prints_no_estimator_setting(mv_study, capsys):
+    """`tune evaluate --config <multiview study>` headed its bag table 'sift (2000) | r=0.93 both | degensac
+    eta=0.5px Gamma=1000 | data ...' (a real study on Strecha): estimator values the multiview task never used
+    (COLMAP verifies the matches with its own RANSAC). The line names COLMAP's RANSAC instead; a stereo
+    evaluation of the same settings still shows them."""
+    root, studies = mv_study
+    rc, out = run_cli(["evaluate", "--config", STUDY, "--studies-dir", str(studies), "--data", str(root), "--scenes",
+                       "fountain-P11", "--workers", "1", "--quiet"], capsys)
+    assert rc == 0
+    head = [ln for ln in out.splitlines() if ln.startswith("sift (1024) |")]
+    assert len(head) == 1 and "COLMAP" in head[0] and "eta" not in head[0] and "Gamma" not in head[0], out
+    rc, out = run_cli(["evaluate", "--feature", "sift", "--num-features", "1024", "--data", str(root), "--scenes",
+                       "fountain-P11", "--max-iters", "500", "--quiet"], capsys)
+    assert rc == 0 and "degensac eta=0.5px Gamma=500" in out, out

@@ -196,9 +196,12 @@ def run(args) -> int:
         if source:
             print(source)
         c = conf
+        from pipeline.tasks import TASKS, is_timed
+        # multiview alone: COLMAP verifies the matches with its own RANSAC, the estimator's eta and Gamma play no part
+        geo = (f"{c.geometry.ransac} eta={c.geometry.threshold}px Gamma={c.geometry.max_iters}"
+               if any(is_timed(t) for t in task_list(args.task)) else "COLMAP's own RANSAC")
         print(f"{c.feature.name} ({c.feature.num_features}) | r={c.matching.ratio} {c.matching.strategy} | "
-              f"{c.geometry.ransac} eta={c.geometry.threshold}px Gamma={c.geometry.max_iters} | data {data}")
-        from pipeline.tasks import TASKS
+              f"{geo} | data {data}")
         for name in TASKS.names():
             if name in out:
                 task = TASKS.get(name)
