@@ -342,3 +342,22 @@ def test_evaluating_a_multiview_study_prints_no_estimator_setting(mv_study, caps
     rc, out = run_cli(["evaluate", "--feature", "sift", "--num-features", "1024", "--data", str(root), "--scenes",
                        "fountain-P11", "--max-iters", "500", "--quiet"], capsys)
     assert rc == 0 and "degensac eta=0.5px Gamma=500" in out, out
+
+
+def test_a_multiview_selection_note_names_no_budget_eta_or_gamma(mv_study):
+    """A multiview study's frozen selection note read 'the highest validation value within the budget' (no budget
+    applies: COLMAP runs its own RANSAC, every trial is feasible) and, with --select one-se / smooth, 'the one
+    closest to their centre in normalised (log eta, r, log Gamma)' of a study that searched r alone. The notes now
+    name what the study has: no budget, normalised (r)."""
+    import optuna
+    from tuner.select import select_trial
+    root, studies = mv_study
+    st = optuna.load_study(study_name=STUDY, storage=f"sqlite:///{studies / 'optuna.db'}")
+    notes = {rule: select_trial(st, rule)[1]["note"] for rule in ("best", "one-se", "smooth")}
+    assert notes["best"] == "the highest validation value", notes
+    for rule in ("one-se", "smooth"):
+        assert "eta" not in notes[rule] and "Gamma" not in notes[rule] and "normalised (r)" in notes[rule], notes
+    from tuner.plots import write_report
+    page = write_report(f"sqlite:///{studies / 'optuna.db'}", STUDY, studies / "r.html", studies_dir=studies).read_text()
+    assert "budget" not in page[page.index("<h1>"):page.index("</p>", page.index("optimum"))].replace(
+        "no estimator budget", ""), page[:3000]

@@ -487,7 +487,8 @@ def write_report(storage, study_name: str, out: Path | str, studies_dir: Path | 
     if best is not None:
         ps = ", ".join(f"{PARAM_SHORT.get(k, k)} = {v:.4g}" if isinstance(v, float) else f"{PARAM_SHORT.get(k, k)} = {v}"
                        for k, v in best.params.items())
-        head.append(f"<p><b>optimum (best within budget): trial {best.number}</b>, {METRIC} = {_value(best):.3f}; "
+        within = " within budget" if over else ""  # over: the trial counts name a budget (a timed task)
+        head.append(f"<p><b>optimum (best{within}): trial {best.number}</b>, {METRIC} = {_value(best):.3f}; "
                     f"{html.escape(ps)}</p>")
         head += _uncertainty_lines(study, studies_dir)
     body, first = [], True

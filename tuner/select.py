@@ -121,6 +121,9 @@ def standard_error(trial, objective: str = "mAA10") -> float | None:
 
 # ------------------------------------------------------------------------------------------ rules
 
+_SHORT = {"threshold": "eta", "ratio": "r", "max_iters": "Gamma"}  # the notes' names of the searched parameters
+
+
 def select_trial(study, rule: str | None = None, objective: str = "mAA10", k: int = SMOOTH_K):
     """(trial, info) of ``rule`` (see the module docstring); (None, info) when no trial is feasible.
 
@@ -131,11 +134,16 @@ def select_trial(study, rule: str | None = None, objective: str = "mAA10", k: in
     best = best_feasible(study)
     info: dict = {"rule": rule, "best_trial": None if best is None else best.number,
                   "best_value": None if best is None else _value(best), "note": ""}
+    from pipeline.tasks import is_timed
+    spec = study.user_attrs.get("search_space_resolved")
+    # a multiview study has no budget and searches r alone: its notes named the stereo budget, eta and Gamma
+    within = " within the budget" if is_timed(study.user_attrs.get("task", "stereo")) else ""
+    ps = sorted(numeric_params(spec).items(), key=lambda x: list(_SHORT).index(x[0]) if x[0] in _SHORT else len(_SHORT))
+    where = "normalised (" + ", ".join(("log " if p["log"] else "") + _SHORT.get(n, n) for n, p in ps) + ")"
     if best is None or rule == "best":
-        info["note"] = "the highest validation value within the budget"
+        info["note"] = f"the highest validation value{within}"
         return best, info
     cands = feasible_trials(study)
-    spec = study.user_attrs.get("search_space_resolved")
     X = coordinates(cands, spec)
     values = np.array([_value(t) for t in cands])
     if rule == "one-se":
@@ -150,7 +158,7 @@ def select_trial(study, rule: str | None = None, objective: str = "mAA10", k: in
         pick = min(idx, key=lambda i: (round(float(d[idx.index(i)]), 12), -values[i], cands[i].number))
         info.update(se=se, within_one_se=sorted(cands[i].number for i in idx),
                     note=f"{len(idx)} trial(s) within one SE ({se:.4f}) of the best: the one closest to their "
-                         "centre in normalised (log eta, r, log Gamma)")
+                         f"centre in {where}")
         return cands[pick], info
     # smooth
     kk = int(max(0, min(int(k), len(cands) - 1)))
@@ -165,7 +173,7 @@ def select_trial(study, rule: str | None = None, objective: str = "mAA10", k: in
         sm[i] = float(np.mean(np.concatenate([[values[i]], values[nn]])))
     pick = max(range(len(cands)), key=lambda i: (round(sm[i], 12), values[i], -cands[i].number))
     info.update(k=kk, smoothed_value=float(sm[pick]),
-                note=f"the best value averaged with its {kk} nearest trials in normalised (log eta, r, log Gamma)")
+                note=f"the best value averaged with its {kk} nearest trials in {where}")
     return cands[pick], info
 
 
