@@ -361,3 +361,26 @@ def test_a_multiview_selection_note_names_no_budget_eta_or_gamma(mv_study):
     page = write_report(f"sqlite:///{studies / 'optuna.db'}", STUDY, studies / "r.html", studies_dir=studies).read_text()
     assert "budget" not in page[page.index("<h1>"):page.index("</p>", page.index("optimum"))].replace(
         "no estimator budget", ""), page[:3000]
+
+
+def test_multiview_ranks_by_intervals_say_why_without_blaming_missing_pair_errors(mv_study, capsys, tmp_path):
+    """`tune results --task multiview` of two features (real studies on Strecha) shared a rank 'not significantly
+    different (95% intervals overlap (no pair errors in test.json: unpaired))', though both test.json hold every
+    run's bag errors: the ranking does not pair bags. The rule now says that."""
+    import shutil
+    root, studies = mv_study
+    mine = tmp_path / "studies"
+    shutil.copytree(studies, mine)
+    common = ["--studies-dir", str(mine), "--data", str(root), "--workers", "1", "--quiet"]
+    assert run_cli(["test", "--study", STUDY, "--scenes", "fountain-P11", "--runs", "1", *common], capsys)[0] == 0
+    rc, _ = run_cli(["--feature", "rootsift", "--num-features", "1024", "--ransac", "degensac", "--task", "multiview",
+                     "--bags", "5:3", "--n-trials", "1", "--scenes", "fountain-P11", "--test-scenes", "fountain-P11",
+                     "--test-runs", "1", "--reference", "none", *common], capsys)
+    assert rc == 0
+    rc, out = run_cli(["results", "--task", "multiview", "--studies-dir", str(mine)], capsys)
+    assert rc == 0
+    rows = [ln for ln in out.splitlines() if ln.startswith("|")][2:]
+    assert len(rows) == 2, out
+    assert "no pair errors in test.json" not in out, out
+    tie = [r for r in rows if "rank shared" in r]  # 3 bags each: intervals about [0.5, 1.0], overlapping
+    assert len(tie) == 1 and "the ranks of multiview tests do not pair their bags" in tie[0], out

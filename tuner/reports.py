@@ -433,7 +433,9 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
     else:
         ranked = rank_by_intervals([{"name": str(i), "mAA10": rows[i]["_best"][0], "mAA10_ci": rows[i]["_best"][3]}
                                     for i in scored])
-        rule = "95% intervals overlap (no pair errors in test.json: unpaired)"
+        rule = ("95% intervals overlap (unpaired: the ranks of multiview tests do not pair their bags)"
+                if shown and all(st.task == "multiview" for st in shown) else
+                "95% intervals overlap (no pair errors in test.json: unpaired)")
     order, leader = [], None  # leader: the first row of the current rank, which every row sharing it is compared with
     for r in ranked:
         i = int(r["name"])
