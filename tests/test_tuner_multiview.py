@@ -384,3 +384,18 @@ def test_multiview_ranks_by_intervals_say_why_without_blaming_missing_pair_error
     assert "no pair errors in test.json" not in out, out
     tie = [r for r in rows if "rank shared" in r]  # 3 bags each: intervals about [0.5, 1.0], overlapping
     assert len(tie) == 1 and "the ranks of multiview tests do not pair their bags" in tie[0], out
+
+
+def test_tune_studies_shows_no_infeasible_count_for_a_multiview_study(mv_study, capsys):
+    """`tune studies` listed a multiview study with 'infeasible 0': a count of trials over the estimator budget,
+    which a multiview study (COLMAP's own RANSAC, nothing of ours timed) does not have. The column is left out
+    when no study listed has a budget, and null in the JSON."""
+    root, studies = mv_study
+    rc, out = run_cli(["studies", "--studies-dir", str(studies)], capsys)
+    assert rc == 0
+    header = [c.strip() for c in out.splitlines()[0].strip("|").split("|")]
+    assert "complete" in header and "infeasible" not in header, out
+    rc, out = run_cli(["studies", "--studies-dir", str(studies), "--json"], capsys)
+    assert rc == 0
+    row = next(r for r in json.loads(out) if r["study"] == STUDY)
+    assert row["infeasible"] is None and row["complete"] == 2, row

@@ -682,14 +682,17 @@ def run_studies(args) -> int:
         from tuner.plots import frozen_trial
         rule = st.user_attrs.get("select") or "best"
         fz = frozen_trial(st) if st.user_attrs.get("imtune") else None  # --select one-se / smooth freeze another
+        from pipeline.tasks import is_timed
+        timed = is_timed(st.user_attrs.get("task", "stereo"))  # a multiview study has no budget to be over
         rows.append({"study": summ.study_name, "complete": c["complete"], "pruned": c["pruned"],
-                     "infeasible": c["infeasible"], "running": c["running"], "failed": c["fail"],
+                     "infeasible": c["infeasible"] if timed else None, "running": c["running"], "failed": c["fail"],
                      "best mAA10": trial_value(b) if b else None, "best trial": b.number if b else None,
                      "frozen trial": fz.number if fz else None, "frozen by": rule if fz else None})
     if args.json:
         print(json.dumps(_jsonable(rows), indent=2))
     elif rows:
-        print(render(rows, "markdown"))
+        cols = [k for k in rows[0] if k != "infeasible" or any(r["infeasible"] is not None for r in rows)]
+        print(render(rows, "markdown", cols))
     else:
         print("no studies", file=sys.stderr)
     if foreign and not args.json:
