@@ -67,6 +67,8 @@ def test_multiview_study_trials_and_frozen(mv_study):
         for k in ("mAA5", "mAA10", "SR", "RC", "NL", "TL", "bags", "accuracy", "by_size", "scenes"):
             assert k in ua, k
         assert ua["bags"] == 3 and list(ua["by_size"]) == ["5"]
+        # its timing said {"pairs": 3, "budget": 0.5, "ransac_seconds_total": 0.0}: 3 bags, no budget, nothing timed
+        assert ua["timing"]["bags"] == 3 and not {"pairs", "budget", "ransac_seconds_total"} & set(ua["timing"]), ua
         assert t.value == pytest.approx(ua["mAA10"]) and 0.0 <= t.value <= 1.0
         assert len(ua["scenes"]["fountain-P11"]["accuracy"]) == 10
     frozen = yaml.safe_load((studies / STUDY / "frozen.yaml").read_text())
