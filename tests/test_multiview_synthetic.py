@@ -182,3 +182,18 @@ def test_a_bag_size_no_bag_of_which_is_valid_is_said():
     notes = task.scene_notes(scene)
     assert len(notes) == 1 and "no bag of 10 images" in notes[0] and "scene s" in notes[0], notes
     assert MultiviewTask(MultiviewConfig(bags=((5, 3),))).scene_notes(scene) == []
+
+
+def test_fewer_distinct_bags_than_asked_are_said():
+    """A 10-image scene asked for 3 bags of 10 has one distinct bag of 10: the study recorded 1 and the findings
+    report's header said "10:3" without a word. Now the task's notes give the count."""
+    from pipeline.data.scene import ImageInfo, Scene, all_pairs
+    from pipeline.tasks.multiview import MultiviewConfig, MultiviewTask
+    names = [f"{k}.jpg" for k in range(10)]
+    obs = {n: (np.arange(200), np.zeros((200, 2))) for n in names}
+    scene = Scene("s", Path("."), {n: ImageInfo(n, Path(n), K=np.eye(3), R=np.eye(3), t=np.zeros(3)) for n in names},
+                  all_pairs(names), points3d=np.zeros((200, 3)), observations=obs)
+    notes = MultiviewTask(MultiviewConfig(bags=((5, 3), (10, 3)))).scene_notes(scene)
+    assert notes == ["scene s: 1 bag of 10 images, not 3: its 10 images give only 1 distinct bag passing the "
+                     "visibility rule (the protocol takes fewer where a scene has fewer)"], notes
+    assert MultiviewTask(MultiviewConfig(bags=((5, 3), (10, 1)))).scene_notes(scene) == []

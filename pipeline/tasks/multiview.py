@@ -509,6 +509,12 @@ class MultiviewTask(Task):
             notes.append(f"scene {scene.name}: no bag of {size} images in which each image sees >= "
                          f"{self.mv.min_points} of the bag's 3D points: size {size} is left out, and its multiview "
                          f"means are over the sizes {', '.join(map(str, sorted(bags)))} only")
+        for size, count in sorted(self.mv.bag_spec.items()):  # fewer bags than asked (the protocol allows it): said
+            got = len(bags.get(size, ())) if size <= n else count
+            if 0 < got < count:
+                notes.append(f"scene {scene.name}: {got} bag{'s' if got != 1 else ''} of {size} images, not {count}: its "
+                             f"{n} images give only {got} distinct bag{'s' if got != 1 else ''} passing the visibility "
+                             "rule (the protocol takes fewer where a scene has fewer)")
         return notes
 
     def for_run(self, conf: PipelineConfig, k: int):
