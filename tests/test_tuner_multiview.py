@@ -136,15 +136,21 @@ def test_a_multiview_study_label_names_no_estimator_setting(mv_study):
     assert "COLMAP" in label and "Γ" not in label, label
 
 
-def test_multiview_results_table_has_no_empty_column(mv_study, capsys):
-    """`tune results --task multiview` showed 'NF' and 'NI degensac' columns of '-' in every row (a multiview test
-    records neither features per image nor estimator inliers): a column no row has a value for is left out."""
+def _tested_results(mv_study, capsys) -> str:
+    """`tune test` of the module's study (1 run on fountain-P11), then `tune results --task multiview`: its output."""
     root, studies = mv_study
     rc, _ = run_cli(["test", "--study", STUDY, "--studies-dir", str(studies), "--data", str(root),
                      "--scenes", "fountain-P11", "--runs", "1", "--workers", "1", "--quiet"], capsys)
     assert rc == 0
     rc, out = run_cli(["results", "--task", "multiview", "--studies-dir", str(studies)], capsys)
     assert rc == 0
+    return out
+
+
+def test_multiview_results_table_has_no_empty_column(mv_study, capsys):
+    """`tune results --task multiview` showed 'NF' and 'NI degensac' columns of '-' in every row (a multiview test
+    records neither features per image nor estimator inliers): a column no row has a value for is left out."""
+    out = _tested_results(mv_study, capsys)
     table = [ln for ln in out.splitlines() if ln.startswith("|")]
     header = [c.strip() for c in table[0].strip("|").split("|")]
     cells = [[c.strip() for c in ln.strip("|").split("|")] for ln in table[2:]]
@@ -306,12 +312,8 @@ def test_a_multiview_report_says_its_test_interval_is_over_bags(mv_study, capsys
 def test_the_multiview_results_table_names_no_estimator_as_best(mv_study, capsys):
     """`tune results --task multiview` had a column 'best' reading 'degensac' in every row: the study's estimator,
     which COLMAP's reconstruction never used (its column is already headed 'mAA10 COLMAP')."""
-    root, studies = mv_study
-    rc, _ = run_cli(["test", "--study", STUDY, "--studies-dir", str(studies), "--data", str(root),
-                     "--scenes", "fountain-P11", "--runs", "1", "--workers", "1", "--quiet"], capsys)
-    assert rc == 0
-    rc, out = run_cli(["results", "--task", "multiview", "--studies-dir", str(studies)], capsys)
-    assert rc == 0
+    studies = mv_study[1]
+    out = _tested_results(mv_study, capsys)
     header = [c.strip() for c in out.splitlines()[0].strip("|").split("|")]
     assert "mAA10 COLMAP" in header and "best" not in header and "degensac" not in out, out
     rc, out = run_cli(["results", "--task", "multiview", "--studies-dir", str(studies), "--format", "json"], capsys)
