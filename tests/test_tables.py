@@ -330,4 +330,19 @@ def test_a_one_run_test_says_it_has_no_spread_not_std_0():
     head = test_table(t).splitlines()[0]
     assert "(1 run, mean; one run: no spread over runs" in head and "std" not in head, head
     t = {**t, "runs": [{}, {}, {}], "std": {"mAA10": 0.0107}}
-    assert "(3 runs, mean; mAA10 std 0.0107" in test_table(t).splitlines()[0]
+    assert "(3 runs, mean; mAA10 sample std over the runs 0.0107" in test_table(t).splitlines()[0]
+
+
+def test_a_reused_test_result_gets_the_sample_std_over_its_runs():
+    """A test.json written while the std over runs was the population one (ddof 0: 0.163 for runs at mAA(10) 0.2,
+    0.4, 0.6) kept it when `tune test` reused the file. It is recomputed from the runs' figures as the sample std
+    (0.2), the reference's too, and labelled (std_ddof 1); a file already labelled is left alone."""
+    from pipeline.tasks.stereo import StereoTask
+    from tuner.freeze import _refresh_std
+    runs = [{"mAA10": v, "mAA5": v / 2, "NI": 100.0 * v, "scenes": {}} for v in (0.2, 0.4, 0.6)]
+    old = {"runs": runs, "std": {"mAA10": 0.1633, "mAA5": 0.0816, "NI": 16.33},
+           "reference": {"runs": runs, "std": {"mAA10": 0.1633}}}
+    assert _refresh_std(old, StereoTask(jobs=1))
+    assert old["std"]["mAA10"] == pytest.approx(0.2) and old["std"]["NI"] == pytest.approx(20.0)
+    assert old["reference"]["std"]["mAA10"] == pytest.approx(0.2) and old["std_ddof"] == 1
+    assert not _refresh_std(old, StereoTask(jobs=1))

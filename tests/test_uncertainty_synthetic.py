@@ -626,3 +626,24 @@ def test_paired_bags_compare_the_same_bags_with_size_and_power():
     print(f"paired bags: significant {false / sims:.3f} under the null, {power / sims:.3f} at errors x 0.6")
     assert false / sims <= 0.09, false / sims  # nominal 5%; 3 binomial sd above it at 300 data sets
     assert power / sims >= 0.8, power / sims
+
+
+def test_run_std_is_the_sample_standard_deviation():
+    """"mean +- std over 3 runs" was the population std (ddof 0): 0.82 of the sample std at 3 runs. Runs whose
+    mAA(10) is 0.2, 0.4 and 0.6 exactly (pair errors 0 or failed) have sample std 0.2, whichever place computes it;
+    one run has none to measure (0)."""
+    from pipeline.metrics.uncertainty import combine_bag_runs_interval
+    from pipeline.tasks.stereo import StereoTask
+    runs = [[{"scene": "S", "pair": f"{i}|{i + 1}", "err": 0.0 if i < good else math.inf} for i in range(10)]
+            for good in (2, 4, 6)]
+    out = combine_runs_interval(runs, taus=(10,))
+    assert out["mAA10"] == pytest.approx(0.4, abs=1e-12)
+    assert out["mAA10_std"] == pytest.approx(0.2, abs=1e-12) and out["scenes"]["S"]["mAA10_std"] == pytest.approx(0.2)
+    assert combine_runs_interval(runs[:1], taus=(10,))["mAA10_std"] == 0.0
+    bags = [[{"scene": "S", "bag_size": 5, "bag": k, "images": [f"{k}{j}" for j in range(5)],
+              "errors": [0.0 if k < good else math.inf] * 10} for k in range(10)] for good in (2, 4, 6)]
+    assert combine_bag_runs_interval(bags, taus=(10,))["mAA10_std"] == pytest.approx(0.2, abs=1e-12)
+    figures = [{"mAA10": v, "mAA5": v, "NI": 100.0 * v, "scenes": {}} for v in (0.2, 0.4, 0.6)]
+    mean, std = StereoTask(jobs=1).aggregate(figures)
+    assert mean["mAA10"] == pytest.approx(0.4) and std["mAA10"] == pytest.approx(0.2) and std["NI"] == pytest.approx(20)
+    assert StereoTask(jobs=1).aggregate(figures[:1])[1]["mAA10"] == 0.0

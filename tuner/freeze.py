@@ -28,6 +28,7 @@ import yaml
 
 from pipeline.config_files import pipeline_from_dict  # noqa: F401  (re-exported)
 from pipeline.errors import ImtuneError
+from pipeline.metrics.uncertainty import STD_DDOF
 
 from pipeline.fileio import atomic_write  # noqa: E402  (re-exported: budget.py and the reports use it)
 
@@ -473,7 +474,9 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
              "reference": None if ref is None else ref[0].to_dict()}
     old = _previous_result(out_path, ident, frozen["study"]) if reuse else None
     if old is not None:
-        if sel.refresh_intervals(old, n_ci) and out_path is not None:  # an earlier imtune's intervals
+        changed = sel.refresh_intervals(old, n_ci)  # an earlier imtune's intervals
+        changed = _refresh_std(old, task) or changed  # ... or its population std over runs
+        if changed and out_path is not None:
             atomic_write(out_path, json.dumps(_plain(old), indent=2))
         return old
     cache = cache if cache is not None else H5Cache()
@@ -526,7 +529,8 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
                  **task.options()},
         "budget": {"test_seconds_per_pair": tb, "within_budget": within_budget(sec, tb),
                    "statistic": "median estimator seconds per pair"},
-        "runs": results, "mean": mean, "std": std, "interval": interval, "reference": reference_out,
+        "runs": results, "mean": mean, "std": std, "std_ddof": STD_DDOF, "interval": interval,
+        "reference": reference_out,
         "validation": frozen.get("validation"),
         "notes": vs.notes,  # where the task could not follow its options on a scene (bag sizes above its images)
         "code_version": code_version(),
@@ -544,6 +548,23 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
                                    "fingerprint": (prev.get("data") or {}).get("fingerprint")}
         atomic_write(out_path, json.dumps(out, indent=2))
     return out
+
+
+def _refresh_std(result: dict, task) -> bool:
+    """Recompute the std over runs of a test result written before it was the sample std (``std_ddof`` missing:
+    ddof 0, 0.82 of the sample std at 3 runs) from its runs' figures, its reference's too. Returns whether it
+    changed the result (the caller rewrites the file)."""
+    if result.get("std_ddof") == STD_DDOF or not result.get("runs"):
+        return False
+    try:
+        result["std"] = task.aggregate(result["runs"])[1]
+        ref = result.get("reference")
+        if isinstance(ref, dict) and ref.get("runs"):
+            ref["std"] = task.aggregate(ref["runs"])[1]
+    except (TypeError, ValueError, KeyError, AttributeError):  # runs that are not figures: left as they are
+        return False
+    result["std_ddof"] = STD_DDOF
+    return True
 
 
 def keep_earlier_file(path: Path) -> Path:

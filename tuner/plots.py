@@ -452,7 +452,8 @@ def _uncertainty_lines(study, studies_dir=None) -> list[str]:
         line = (f"test ({_runs(len(t.get('runs') or []))}, trial {t.get('trial')}): {METRIC} = "
                 + (f"{m.get('mAA10'):.3f}" if m.get("mAA10") is not None else "?")
                 + (f" [95% interval {tci[0]:.3f}, {tci[1]:.3f}, over {interval_units(t)} and runs]" if tci else "")
-                + f", std over runs {(t.get('std') or {}).get('mAA10', 0.0):.3f}")
+                + (f", sample std over runs {(t.get('std') or {}).get('mAA10', 0.0):.3f}"
+                   if len(t.get("runs") or []) > 1 else ", one run: no spread over runs"))
         out.append(f"<p><b>{html.escape(line)}</b><br>{html.escape(comparison_text(t.get('reference')))}</p>")
     return out
 

@@ -50,10 +50,13 @@ __all__ = ["pair_scores", "maa_from_errors", "maa_intervals", "bag_intervals", "
            "DIRECTION_RULE",
            "rank_with_ties", "rank_by_intervals", "combine_runs_interval", "combine_bag_runs_interval",
            "paired_bags", "stratified_interval",
-           "DEFAULT_RESAMPLES", "DEFAULT_LEVEL", "SCORE_RANGE", "format_p", "paired_relative"]
+           "DEFAULT_RESAMPLES", "DEFAULT_LEVEL", "SCORE_RANGE", "STD_DDOF", "format_p", "paired_relative"]
 
 DEFAULT_RESAMPLES = 2000
 DEFAULT_LEVEL = 0.95
+#: the standard deviation over repeated test runs is the sample one (``Task.aggregate``, the ``mAA<tau>_std`` of
+#: :func:`combine_runs_interval`): the runs are a sample of seeds; ddof 0 reads 0.82 of it at 3 runs
+STD_DDOF = 1
 #: the range of a pair's (a bag's) mAA score: the two pseudo-scores every scene's resamples include (module doc)
 SCORE_RANGE = (0.0, 1.0)
 
@@ -716,7 +719,8 @@ def _combine_runs(per_run: list[dict], weights: dict, n_resamples: int, seed: in
     """The estimate of :func:`combine_runs_interval` (steps 1-4) on scores already computed: ``per_run`` one
     ``{(stratum, unit): score}`` per run, ``weights`` {stratum: weight} (summing to 1; a unit weighs its stratum's
     weight / the stratum's unit count). Stereo: strata are scenes, units pairs; multiview: strata are (scene, bag
-    size), units bags. Returns {"value", "ci", "std" (over runs, ddof 0)}."""
+    size), units bags. Returns {"value", "ci", "std" (the sample std over runs, ddof 1: :data:`STD_DDOF`; 0 for
+    one run)}."""
     R = len(per_run)
     z = float(stats.norm.ppf(0.5 + level / 2))
     keys = list(dict.fromkeys(k for pr in per_run for k in pr))
@@ -750,7 +754,8 @@ def _combine_runs(per_run: list[dict], weights: dict, n_resamples: int, seed: in
             else:
                 h = t * math.sqrt(V)
                 lo, hi = M - h, M + h
-    return {"value": M, "ci": [max(0.0, float(lo)), min(1.0, float(hi))], "std": float(np.std(run_vals))}
+    std = float(np.std(run_vals, ddof=STD_DDOF)) if R > STD_DDOF else 0.0
+    return {"value": M, "ci": [max(0.0, float(lo)), min(1.0, float(hi))], "std": std}
 
 
 def combine_runs_interval(runs: Sequence[Sequence[Mapping]], taus: Sequence[int] = (5, 10),
@@ -773,8 +778,8 @@ def combine_runs_interval(runs: Sequence[Sequence[Mapping]], taus: Sequence[int]
        with the Welch-Satterthwaite df = V^2 / ((G / R)^2 / (R - 1)), since G rests on R - 1 degrees of
        freedom); where V_b = 0, M -/+ t_df sqrt(V). G = 0 or one run: the bootstrap interval as is.
 
-    Returns ``{"mAA5": M, "mAA5_ci": [lo', hi'], "mAA5_std": std over runs (ddof 0, as the test run's
-    "std"), ..., "runs": R, "scenes": {name: the same per scene}}``."""
+    Returns ``{"mAA5": M, "mAA5_ci": [lo', hi'], "mAA5_std": the sample std over runs (ddof 1, as the test
+    run's "std": :data:`STD_DDOF`; 0 for one run), ..., "runs": R, "scenes": {name: the same per scene}}``."""
     runs = [list(r) for r in runs]
     names = _scene_order([x for run in runs for x in run], None)
     out: dict = {"runs": len(runs), "scenes": {n: {} for n in names}}

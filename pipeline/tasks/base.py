@@ -13,7 +13,8 @@ What a task declares (class attributes, read by the tuner, which has no task-spe
 - ``uses``: the searched parameters it consumes (names of ``tuner.protocol``'s table: ``ratio``,
   ``strategy``, ``threshold``, ``max_iters``); a study never searches a parameter its task does not use;
 - ``summary_keys``: the figures it reports; repeated runs are aggregated over these (mean, std);
-- ``std_keys``: the figures whose run-to-run standard deviation is reported;
+- ``std_keys``: the figures whose run-to-run standard deviation is reported (the sample standard deviation, ddof 1:
+  :data:`STD_DDOF`);
 - ``columns``: the columns of its readable per-scene table;
 - ``objective``: the figure a study maximises (mAA(10 deg));
 - ``space_file``: the search-space file used by default (None: the estimator family's file);
@@ -41,6 +42,7 @@ from typing import Callable, ClassVar
 import numpy as np
 
 from pipeline.config import PipelineConfig
+from pipeline.metrics.uncertainty import STD_DDOF
 from pipeline.registry import Registry
 
 TASKS = Registry("task")
@@ -165,7 +167,11 @@ class Task(abc.ABC):
 
     def aggregate(self, runs: list[dict]) -> tuple[dict, dict]:
         """Mean and standard deviation over repeated runs (``figures`` dicts) of every summary key, overall
-        and per scene (numbers and equal-length lists are averaged elementwise; None values are skipped)."""
+        and per scene (numbers and equal-length lists are averaged elementwise; None values are skipped).
+
+        The standard deviation is the *sample* one (ddof 1, :data:`STD_DDOF`): the runs are a sample of the
+        estimator's seeds, and "mean +- std over 3 runs" estimates their spread; the population form (ddof 0)
+        reads sqrt(2/3) = 0.82 of it at 3 runs. One run: 0 (no spread measured; the callers say "one run")."""
         def stats(parts, keys):
             mean, std = {}, {}
             for k in keys:
@@ -173,7 +179,7 @@ class Task(abc.ABC):
                 if vals:
                     a = np.asarray(vals, float)
                     mean[k] = np.mean(a, axis=0).tolist()
-                    std[k] = np.std(a, axis=0).tolist()
+                    std[k] = (np.std(a, axis=0, ddof=STD_DDOF) if len(vals) > STD_DDOF else np.zeros_like(a[0])).tolist()
             return mean, std
         mean, std = stats(runs, self.summary_keys)
         mean["scenes"] = {}

@@ -408,7 +408,8 @@ def test_table(t: dict) -> str:
     std = t.get("std", {}).get(task.objective, 0.0)
     n_runs = len(t.get("runs", []))
     # one run has no spread over runs: "std 0" read as a perfectly stable result
-    spread = f"{task.objective} std {_fmt(std)}" if n_runs > 1 else "one run: no spread over runs"
+    spread = (f"{task.objective} sample std over the runs {_fmt(std)}" if n_runs > 1 else
+              "one run: no spread over runs")
     head = f"{task.name} test ({n_runs} run{'s' if n_runs != 1 else ''}, mean; {spread}"
     if task.budget_seconds(m) is not None:
         head += (f"; within the {b.get('test_seconds_per_pair')} s/pair test budget: "
