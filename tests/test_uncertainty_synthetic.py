@@ -628,6 +628,31 @@ def test_paired_bags_compare_the_same_bags_with_size_and_power():
     assert power / sims >= 0.8, power / sims
 
 
+def test_paired_bags_match_bags_by_their_images_not_their_index():
+    """paired_bags keyed a bag by (scene, size, index): two studies whose bags were drawn otherwise (another bag seed,
+    another count of a smaller size: one generator draws the sizes in turn) paired different images under one index.
+    The same bags listed in another order, with identical pair errors per bag, are the same method: difference 0,
+    [0, 0], p 1; bags of other images are not paired at all (bags_differ says why)."""
+    from pipeline.metrics.uncertainty import paired_bags
+    rng = np.random.default_rng(31)
+    a = []
+    for k in range(8):  # bags of very different difficulty: pairing the wrong ones shows at once
+        imgs = [f"{k}-{j}.jpg" for j in range(5)]
+        a.append({"scene": "S", "bag_size": 5, "bag": k, "images": imgs,
+                  "errors": list(rng.exponential(0.5 + 3 * k, 10))})
+    b = [dict(r, bag=7 - r["bag"]) for r in a]  # the same bags, drawn in another order
+    res = paired_bags(a, b)
+    assert res["difference"] == 0.0 and res["ci"] == [0.0, 0.0] and res["p_value"] == 1.0 and res["pairs"] == 8
+    from pipeline.metrics.uncertainty import bags_differ
+    assert bags_differ(a, b) is None
+    other = [dict(r, images=[f"x{n}" for n in r["images"]]) for r in a]
+    assert "bags differ" in bags_differ(a, other)
+    with pytest.raises(ValueError, match="bags differ"):
+        paired_bags(a, other)
+    old = [{k: v for k, v in r.items() if k != "images"} for r in a]  # a test.json of an earlier imtune
+    assert "rerun `tune test`" in bags_differ(a, old)
+
+
 def test_run_std_is_the_sample_standard_deviation():
     """"mean +- std over 3 runs" was the population std (ddof 0): 0.82 of the sample std at 3 runs. Runs whose
     mAA(10) is 0.2, 0.4 and 0.6 exactly (pair errors 0 or failed) have sample std 0.2, whichever place computes it;

@@ -340,15 +340,19 @@ def _as_records(errors: list) -> list[dict]:
 
 
 def bag_errors(records: list[dict]) -> list | None:
-    """``[[scene, bag size, bag, [pair errors deg]], ...]`` of a task's records when they are bags (multiview);
-    None otherwise."""
+    """``[[scene, bag size, bag, [pair errors deg], [images]], ...]`` of a task's records when they are bags
+    (multiview); None otherwise. The images are the bag's identity: two studies' bags are compared bag by bag only
+    where they are the same images (``pipeline.metrics.uncertainty.bags_differ``), whatever their index."""
     if not records or not all("errors" in r and "bag_size" in r and "bag" in r for r in records):
         return None
-    return [[r["scene"], int(r["bag_size"]), int(r["bag"]), list(r["errors"])] for r in records]
+    return [[r["scene"], int(r["bag_size"]), int(r["bag"]), list(r["errors"])]
+            + ([[str(n) for n in r["images"]]] if r.get("images") else []) for r in records]
 
 
 def _as_bags(errors: list) -> list[dict]:
-    return [{"scene": sc, "bag_size": size, "bag": b, "errors": [_err(e) for e in errs]} for sc, size, b, errs in errors]
+    """Bag records of :func:`bag_errors`' entries (4 fields in a test.json of an earlier imtune: no images)."""
+    return [{"scene": e[0], "bag_size": e[1], "bag": e[2], "errors": [_err(x) for x in e[3]],
+             **({"images": list(e[4])} if len(e) > 4 and e[4] else {})} for e in errors]
 
 
 def unit_errors(records: list[dict]) -> list | None:
@@ -359,8 +363,9 @@ def unit_errors(records: list[dict]) -> list | None:
 
 
 def _is_bags(errors: list) -> bool:
-    """Bag entries are ``[scene, size, bag, [errors]]``, pair entries ``[scene, pair, err]``."""
-    return bool(errors) and len(errors[0]) == 4
+    """Bag entries are ``[scene, size, bag, [errors], [images]]`` (no images: an earlier imtune's), pair entries
+    ``[scene, pair, err]``."""
+    return bool(errors) and len(errors[0]) >= 4
 
 
 def errors_key(errors: list) -> str:

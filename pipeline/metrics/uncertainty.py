@@ -49,7 +49,7 @@ from pipeline.metrics.pose import mean_average_accuracy
 __all__ = ["pair_scores", "maa_from_errors", "maa_intervals", "bag_intervals", "paired_bootstrap", "paired_direction",
            "DIRECTION_RULE",
            "rank_with_ties", "rank_by_intervals", "combine_runs_interval", "combine_bag_runs_interval",
-           "paired_bags", "stratified_interval",
+           "paired_bags", "bags_differ", "is_bag_records", "stratified_interval",
            "DEFAULT_RESAMPLES", "DEFAULT_LEVEL", "SCORE_RANGE", "STD_DDOF", "format_p", "paired_relative"]
 
 DEFAULT_RESAMPLES = 2000
@@ -478,9 +478,34 @@ def _run_differences(records_a, records_b, common, names, tau) -> list[np.ndarra
 # ------------------------------------------------------------------------------------------ multiview runs
 
 def _bag_unit(r: Mapping) -> tuple:
-    """A bag record's key: ((scene, bag size), bag index) -- the same bags in every run (only COLMAP's seed
-    varies) and for every configuration (bags are drawn from the scene's ground truth)."""
-    return (r["scene"], int(r["bag_size"])), int(r["bag"])
+    """A bag record's key: ((scene, bag size), its images) -- what makes two records the same bag. The runs of one
+    test reconstruct the same bags (only COLMAP's seed varies); two configurations do only where their bags were
+    drawn alike (the bag seed, the sizes and counts -- one generator draws every size in turn -- and the scene's 3D
+    points), so the bag index alone can name another bag in each. A record without its images (a test.json of an
+    earlier imtune) is keyed by its index, which names the same bag only within one test."""
+    imgs = r.get("images")
+    st = (r["scene"], int(r["bag_size"]))
+    return (st, tuple(str(x) for x in imgs)) if imgs else (st, int(r["bag"]))
+
+
+def is_bag_records(records: Sequence[Mapping]) -> bool:
+    """Whether records are multiview bag records ("scene", "bag_size", "errors"), not stereo pair records."""
+    return bool(records) and all("errors" in r and "bag_size" in r for r in records)
+
+
+def bags_differ(bags_a: Sequence[Mapping], bags_b: Sequence[Mapping]) -> str | None:
+    """Why two sets of bag records (each maybe several runs' records) cannot be compared bag by bag, or None when
+    they hold the same bags (scene, size and images; :func:`_bag_unit`). A reason names what to do about it."""
+    def known(recs):
+        return all(r.get("images") for r in recs)
+    if not (known(bags_a) and known(bags_b)):
+        return ("a test.json of an earlier imtune does not record its bags' images, so its bags cannot be matched "
+                "(rerun `tune test` to record them)")
+    ka, kb = {_bag_unit(r) for r in bags_a}, {_bag_unit(r) for r in bags_b}
+    if ka != kb:
+        return (f"the bags differ ({len(ka - kb)} of {len(ka)} bags only in one, {len(kb - ka)} of {len(kb)} only in "
+                "the other: another bag seed, bag sizes or counts, scenes, or 3D points)")
+    return None
 
 
 def _bag_weights(strata: Iterable[tuple], scene_names: Sequence[str]) -> dict:
@@ -521,7 +546,9 @@ def paired_bags(bags_a: Sequence[Mapping], bags_b: Sequence[Mapping], tau: int =
     for :func:`combine_bag_runs_interval`, each bag's mAA(tau) averaged over the runs; records carrying their
     ``run`` index let the comparison see a run effect). The same bootstrap, sign-flip test, verdict rule and
     keys, with bags for pairs ("pairs": the common bags) and strata (scene, bag size) weighted as the task
-    averages them."""
+    averages them. Bags are matched on their scene, size and images (:func:`_bag_unit`), never on their index
+    alone, which names other images under another bag seed or bag count; :func:`bags_differ` says whether two
+    sets hold the same bags. Raises ValueError when no bag is common to both."""
     tau = int(tau)
 
     def scores(records):
@@ -540,8 +567,8 @@ def paired_bags(bags_a: Sequence[Mapping], bags_b: Sequence[Mapping], tau: int =
     sa, sb = scores(bags_a), scores(bags_b)
     common = [k for k in sa if k in sb]
     if not common:
-        raise ValueError(f"no common bag between the two sets of records ({len(sa)} and {len(sb)} bags): they were "
-                         "not evaluated on the same bags")
+        why = bags_differ(bags_a, bags_b) or "they were not evaluated on the same bags"
+        raise ValueError(f"no common bag between the two sets of records ({len(sa)} and {len(sb)} bags): {why}")
     names = list(dict.fromkeys(k[0][0] for k in common))
     ra, rb = by_run(bags_a), by_run(bags_b)
     runs = sorted(set(ra) & set(rb), key=str) if ra and rb else []
