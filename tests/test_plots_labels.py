@@ -296,3 +296,25 @@ def test_contour_legend_names_its_black_and_grey_points(tmp_path):
     dots = {tr.name: tr for tr in fig.data if tr.type == "scatter" and len(tr.x or ()) > 0}
     assert set(dots) == {FEASIBLE, INFEASIBLE}, set(dots)
     assert all(tr.showlegend is not False for tr in dots.values())
+
+
+def test_eta_curves_sit_at_the_geometric_centres_of_their_log_bins(tmp_path):
+    """The best-mAA-per-eta-bin curve is drawn on a log eta axis: its bins are equal in log eta, and each point sits
+    at its bin's geometric centre (the middle on that axis), not the arithmetic one. Two trials at 0.1 and 10 px
+    make two bins, [0.1, 1] and [1, 10] px: points at 0.316 and 3.16 px (arithmetic centres: 0.55 and 5.5)."""
+    import optuna
+    from optuna.distributions import FloatDistribution
+    from optuna.trial import create_trial
+    from tuner.plots import fig_eta_curves
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    storage = f"sqlite:///{tmp_path / 'o.db'}"
+    st = optuna.create_study(study_name="eta", storage=storage, direction="maximize")
+    st.set_user_attr("imtune", 1)
+    st.set_user_attr("task", "stereo")
+    dist = {"threshold": FloatDistribution(0.05, 20.0, log=True)}
+    for eta, v in ((0.1, 0.4), (10.0, 0.6)):
+        st.add_trial(create_trial(params={"threshold": eta}, distributions=dist, value=v))
+    fig = fig_eta_curves(storage, st)
+    (tr,) = fig.data
+    assert fig.layout.xaxis.type == "log"
+    assert list(tr.x) == pytest.approx([10 ** -0.5, 10 ** 0.5], rel=2e-3) and list(tr.y) == [0.4, 0.6]
