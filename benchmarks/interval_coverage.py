@@ -12,7 +12,11 @@ Monte-Carlo count over 400,000 pairs. Every figure applies imtune's own function
   true difference), one run or three runs per method, with and without a run effect shared by all pairs;
 - ``runs``: coverage of ``combine_runs_interval`` (three runs, per-pair seed noise, optional shared run effect);
 - ``ranking``: ``rank_with_ties`` on k methods with the same error distribution: how often a table splits one off
-  rank 1 (a false "significantly worse").
+  rank 1 (a false "significantly worse");
+- ``bags``: two multiview methods on the same bags with a known common bag effect (each bag's difficulty scales
+  both methods' errors; some bags fail for both): ``paired_bags`` (the per-bag differences) against the unpaired
+  stratified bootstrap of the difference and against "95% intervals overlap" (``bag_intervals``, the rule
+  `tune results` falls back to): coverage of the true B - A, mean width, and the rate of "different".
 
     python benchmarks/interval_coverage.py                  # all, 1000 data sets each (about 3 min on 2 cores)
     python benchmarks/interval_coverage.py paired --sims 400
@@ -47,8 +51,9 @@ from scipy import stats
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.metrics.uncertainty import (combine_runs_interval, maa_intervals, pair_scores,  # noqa: E402
-                                          paired_bootstrap, rank_with_ties, stratified_interval)
+from pipeline.metrics.uncertainty import (bag_intervals, combine_runs_interval, maa_from_errors,  # noqa: E402
+                                          maa_intervals, pair_scores, paired_bags, paired_bootstrap, rank_with_ties,
+                                          stratified_interval)
 
 # scene kinds: LogNormal(mu, sigma) error in degrees, failure probability
 KINDS = {"easy": (-1.0, 0.5, 0.02), "good": (0.0, 0.7, 0.05), "mid": (0.5, 0.8, 0.10), "hard": (1.2, 0.9, 0.20)}
@@ -210,17 +215,88 @@ def ranking(sims: int, resamples: int) -> None:
         print(f"  {k} methods: {split / n_sims:.3f} of {n_sims} tables", flush=True)
 
 
+# (scene, bag size) -> (bags, mu of the bag's difficulty LogNormal(mu, 1.0) in degrees, probability that the bag fails
+# for every method): the protocol's sizes at the counts a small scene gives
+BAGS = {("A", 5): (25, 0.3, 0.05), ("A", 10): (12, 0.8, 0.10), ("B", 5): (20, 0.6, 0.10), ("B", 10): (8, 1.2, 0.15)}
+BAG_SD, PAIR_SD = 1.0, 0.4  # sd of log difficulty across bags (the common bag effect), of per-pair noise
+
+
+def bag_draw(rng, shrink: float, bag_sd: float = BAG_SD):
+    """Bag records of A and of B on the same bags: a pair's error = shrink x the bag's difficulty x its own noise."""
+    a, b = [], []
+    for (scene, size), (count, mu, fail) in BAGS.items():
+        n = size * (size - 1) // 2
+        for k in range(count):
+            d = rng.lognormal(mu, bag_sd)
+            dead = rng.random() < fail
+            imgs = [f"{scene}{size}-{k}-{j}" for j in range(size)]
+            for sh, out in ((1.0, a), (shrink, b)):
+                e = np.full(n, np.inf) if dead else sh * d * rng.lognormal(0, PAIR_SD, n)
+                out.append({"scene": scene, "bag_size": size, "bag": k, "images": imgs, "errors": list(e)})
+    return a, b
+
+
+def bag_truth(shrink: float, bag_sd: float = BAG_SD) -> float:
+    """True B - A of the multiview mAA(10) (mean over a scene's sizes, then scenes): a bag's mAA is the mean of its
+    pairs' scores, so its expectation is a pair's, by Monte Carlo over 10^6 pairs per stratum."""
+    rng = np.random.default_rng(97)
+    n = 1_000_000
+    per_scene: dict = {}
+    for (scene, _), (_, mu, fail) in BAGS.items():
+        d = rng.lognormal(mu, bag_sd, n)
+        alive = rng.random(n) >= fail
+        noise = rng.lognormal(0, PAIR_SD, n)
+        diff = [pair_scores(np.where(alive, sh * d * noise, np.inf)).mean() for sh in (1.0, shrink)]
+        per_scene.setdefault(scene, []).append(diff[1] - diff[0])
+    return float(np.mean([np.mean(v) for v in per_scene.values()]))
+
+
+def bags(sims: int, resamples: int) -> None:
+    print("== two multiview methods on the same bags with a common bag effect (4 strata, 8-25 bags): paired_bags vs "
+          "the unpaired bootstrap of B - A vs '95% intervals overlap'; coverage of the true B - A [mean width], "
+          "rate of 'different'")
+    for bag_sd, shrink in ((BAG_SD, 1.0), (BAG_SD, 0.85), (BAG_SD, 0.7), (0.3, 1.0), (0.3, 0.85), (0.3, 0.7)):
+        truth = bag_truth(shrink, bag_sd) if shrink != 1.0 else 0.0
+        rng = np.random.default_rng(11)
+        cov = {"paired": 0, "unpaired": 0}
+        width = {"paired": 0.0, "unpaired": 0.0}
+        diff = {"paired": 0, "unpaired": 0, "overlap": 0}
+        for i in range(sims):
+            a, b = bag_draw(rng, shrink, bag_sd)
+            p = paired_bags(a, b, seed=i, n_resamples=resamples)
+            strata = list(BAGS)
+            w = {st: 1.0 / (2 * sum(1 for s2 in strata if s2[0] == st[0])) for st in strata}
+            ga = [np.array([maa_from_errors(r["errors"]) for r in a if (r["scene"], r["bag_size"]) == st]) for st in strata]
+            gb = [np.array([maa_from_errors(r["errors"]) for r in b if (r["scene"], r["bag_size"]) == st]) for st in strata]
+            u = stratified_interval(gb + ga, [w[st] for st in strata] + [-w[st] for st in strata], seed=i,
+                                    n_resamples=resamples, expand=True)
+            ia, ib = bag_intervals(a, taus=(10,), seed=i, n_resamples=resamples), \
+                bag_intervals(b, taus=(10,), seed=i, n_resamples=resamples)
+            for k, ci in (("paired", p["ci"]), ("unpaired", u)):
+                cov[k] += ci[0] <= truth <= ci[1]
+                width[k] += (ci[1] - ci[0]) / sims
+            diff["paired"] += p["significant"]
+            diff["unpaired"] += not (u[0] <= 0 <= u[1])
+            (la, ha), (lb, hb) = ia["mAA10_ci"], ib["mAA10_ci"]
+            diff["overlap"] += hb < la or ha < lb
+        print(f"  bag effect sd {bag_sd:g}, true B - A {truth:+.4f}: paired {cov['paired'] / sims:.3f} [{width['paired']:.3f}], "
+              f"significant {diff['paired'] / sims:.3f}; unpaired {cov['unpaired'] / sims:.3f} "
+              f"[{width['unpaired']:.3f}], CI excludes 0 {diff['unpaired'] / sims:.3f}; intervals disjoint "
+              f"{diff['overlap'] / sims:.3f}", flush=True)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("what", nargs="*", default=["intervals", "paired", "runs", "ranking"],
-                    help="intervals, paired, runs, ranking")
+    ap.add_argument("what", nargs="*", default=["intervals", "paired", "runs", "ranking", "bags"],
+                    help="intervals, paired, runs, ranking, bags")
     ap.add_argument("--sims", type=int, default=1000, help="simulated data sets per setting (default 1000)")
     ap.add_argument("--resamples", type=int, default=1000, help="bootstrap resamples / sign patterns (default 1000)")
     a = ap.parse_args(argv)
     warnings.simplefilter("ignore")
     t0 = time.perf_counter()
     for w in a.what:
-        {"intervals": intervals, "paired": paired, "runs": runs_coverage, "ranking": ranking}[w](a.sims, a.resamples)
+        {"intervals": intervals, "paired": paired, "runs": runs_coverage, "ranking": ranking,
+         "bags": bags}[w](a.sims, a.resamples)
     print(f"{time.perf_counter() - t0:.0f} s")
     return 0
 

@@ -101,3 +101,60 @@ def test_the_results_table_says_it_shows_test_numbers_and_what_they_are(tmp_path
                   "NF: features per image"):
         assert words in cap, (words, cap)
     assert "\\caption{Test results on the test scenes" in render_table(rows, cols, "latex")
+
+
+def bag_runs(difficulty, shrink, runs=2, images=None, rng=None):
+    """test.json ``bag_errors`` of a multiview test: per run ``[scene, size, bag, [pair errors], [images]]`` on the
+    given bags (their difficulty shared by every method: the common bag effect); ``shrink`` scales the errors,
+    ``images`` renames the bags' images (other bags), each run adds per-pair seed noise."""
+    rng = rng or np.random.default_rng(0)
+    out = []
+    for _ in range(runs):
+        run = []
+        for (sc, size, k), d in difficulty.items():
+            imgs = (images or (lambda s, b, n: [f"{s}-{b}-{i:04d}.jpg" for i in range(n)]))(f"{sc}{size}", k, size)
+            e = shrink * d * rng.lognormal(0, 0.1, d.size)
+            run.append([sc, size, k, ["inf" if not math.isfinite(x) else float(x) for x in e], [str(x) for x in imgs]])
+        out.append(run)
+    return out
+
+
+def make_bag_study(tmp_path, name, feature, runs):
+    from pipeline.metrics.uncertainty import combine_bag_runs_interval
+    from tuner.select import _as_bags
+    iv = combine_bag_runs_interval([_as_bags(r) for r in runs], taus=(10,))
+    d = study_dir(tmp_path, name)
+    d.mkdir(parents=True, exist_ok=True)
+    (d / "test.json").write_text(json.dumps({"runs": [{"seed": k, "bag_errors": r} for k, r in enumerate(runs)]}))
+    return StudyInfo(name=name, task="multiview", feature=feature, num_features=2048, ransac="degensac", attrs={},
+                     best=None, n_complete=1, test={"mAA10": iv["mAA10"], "runs": len(runs), "mAA10_ci": iv["mAA10_ci"]})
+
+
+def test_multiview_ranks_pair_the_same_bags_and_say_why_when_bags_differ(tmp_path):
+    """`tune results --task multiview` ranked by overlapping intervals even where both studies were tested on the
+    same bags: with each bag's difficulty shared by both methods (known truth: B's errors are 0.7 x A's on every
+    pair of every bag), B shared rank 1 with A. Tested on the same bags (scene, size, images) the ranks now pair
+    them; on other bags (another bag draw) they fall back to the intervals and the ties column says why."""
+    rng = np.random.default_rng(7)
+    diff = {}
+    for sc, size, count in (("Herz-Jesus-P8", 5, 12), ("entry-P10", 5, 12), ("entry-P10", 8, 4)):
+        for k in range(count):
+            diff[(sc, size, k)] = rng.lognormal(0.8, 1.0) * rng.lognormal(0, 0.3, size * (size - 1) // 2)
+    runs_a = bag_runs(diff, 1.0, rng=rng)
+    a = make_bag_study(tmp_path, "a", "sift", runs_a)
+    b = make_bag_study(tmp_path, "b", "rootsift", bag_runs(diff, 0.7, rng=rng))
+    assert b.test["mAA10_ci"][0] <= a.test["mAA10_ci"][1]  # unpaired, the intervals overlap
+    rows, _ = results_rows([a, b], studies_dir=tmp_path)
+    assert [(r["feature"], r["rank"]) for r in rows] == [("rootsift", 1), ("sift", 2)], rows
+    assert rows[1]["ties"] == ""
+    twin = make_bag_study(tmp_path, "c", "orb", [list(reversed(r)) for r in runs_a])  # A's bags in another order
+    rows, _ = results_rows([a, twin], studies_dir=tmp_path)
+    assert [r["rank"] for r in rows] == [1, 1] and "paired bootstrap and sign-flip test on the test bags" in rows[1]["ties"]
+    # another bag draw: the same scenes and sizes, other images under the same indices
+    other = make_bag_study(tmp_path, "d", "rootsift", bag_runs(diff, 0.7, rng=rng,
+                                                               images=lambda s, k, n: [f"x{s}{k}-{i}" for i in range(n)]))
+    warned = []
+    rows, _ = results_rows([a, other], studies_dir=tmp_path, warn=warned.append)
+    assert [r["rank"] for r in rows] == [1, 1], rows
+    assert "95% intervals overlap (unpaired: " in rows[1]["ties"] and "the bags differ" in rows[1]["ties"], rows
+    assert len(warned) == 1 and "the multiview ranks are not paired" in warned[0]

@@ -368,10 +368,12 @@ def test_a_multiview_selection_note_names_no_budget_eta_or_gamma(mv_study):
         "no estimator budget", ""), page[:3000]
 
 
-def test_multiview_ranks_by_intervals_say_why_without_blaming_missing_pair_errors(mv_study, capsys, tmp_path):
+def test_multiview_ranks_pair_the_bags_two_studies_were_tested_on(mv_study, capsys, tmp_path):
     """`tune results --task multiview` of two features (real studies on Strecha) shared a rank 'not significantly
     different (95% intervals overlap (no pair errors in test.json: unpaired))', though both test.json hold every
-    run's bag errors: the ranking does not pair bags. The rule now says that."""
+    run's bag errors; then 'the ranks of multiview tests do not pair their bags'. Both were tested on the same 3
+    bags (one bag draw of the same images and ground truth): each test.json now records its bags' images, and the
+    ranks compare the two studies bag by bag (paired bootstrap and sign-flip test on the test bags)."""
     import shutil
     root, studies = mv_study
     mine = tmp_path / "studies"
@@ -386,9 +388,14 @@ def test_multiview_ranks_by_intervals_say_why_without_blaming_missing_pair_error
     assert rc == 0
     rows = [ln for ln in out.splitlines() if ln.startswith("|")][2:]
     assert len(rows) == 2, out
-    assert "no pair errors in test.json" not in out, out
-    tie = [r for r in rows if "rank shared" in r]  # 3 bags each: intervals about [0.5, 1.0], overlapping
-    assert len(tie) == 1 and "the ranks of multiview tests do not pair their bags" in tie[0], out
+    assert "no pair errors in test.json" not in out and "unpaired" not in out, out
+    from tuner.freeze import study_dir
+    bags = [sorted(tuple(b[4]) for b in json.loads((study_dir(mine, name) / "test.json").read_text())["runs"][0]
+                   ["bag_errors"]) for name in (STUDY, "rootsift-1024-degensac-multiview")]
+    assert bags[0] == bags[1] and len(bags[0]) == 3, bags
+    second = rows[1]
+    # 3 common bags: no paired test rejects on 3 units (the interval is [-1, 1]), so the rank is shared
+    assert "rank shared" in second and "paired bootstrap and sign-flip test on the test bags" in second, out
 
 
 def test_tune_studies_shows_no_infeasible_count_for_a_multiview_study(mv_study, capsys):

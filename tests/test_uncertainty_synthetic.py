@@ -653,6 +653,28 @@ def test_paired_bags_match_bags_by_their_images_not_their_index():
     assert "rerun `tune test`" in bags_differ(a, old)
 
 
+def test_ranking_multiview_methods_pairs_their_bags():
+    """Ranks of multiview methods came from overlapping intervals (unpaired): with a bag's difficulty shared by
+    both methods, B better on every bag by a known margin shared rank 1 with A. rank_with_ties on bag records
+    compares them bag by bag (paired_bags): B alone at rank 1; the same method twice still shares it."""
+    from pipeline.metrics.uncertainty import bag_intervals, rank_with_ties
+    rng = np.random.default_rng(32)
+    a, b, a2 = [], [], []
+    for k in range(20):
+        d = rng.lognormal(0.8, 1.0)  # the common bag effect
+        imgs = [f"{k}-{j}" for j in range(5)]
+        noise = rng.lognormal(0, 0.3, 10)
+        for sh, out in ((1.0, a), (0.7, b), (1.0, a2)):
+            out.append({"scene": "S", "bag_size": 5, "bag": k, "images": imgs, "errors": list(sh * d * noise)})
+    ia, ib = bag_intervals(a, taus=(10,))["mAA10_ci"], bag_intervals(b, taus=(10,))["mAA10_ci"]
+    assert ib[0] <= ia[1]  # unpaired, the intervals overlap: a shared rank
+    ranked = rank_with_ties([("A", a), ("B", b)])
+    assert [(r["name"], r["rank"]) for r in ranked] == [("B", 1), ("A", 2)], ranked
+    assert ranked[1]["comparison"]["units"] == "bags" and ranked[1]["comparison"]["pairs"] == 20
+    same = rank_with_ties([("A", a), ("A2", a2)])
+    assert [r["rank"] for r in same] == [1, 1]
+
+
 def test_run_std_is_the_sample_standard_deviation():
     """"mean +- std over 3 runs" was the population std (ddof 0): 0.82 of the sample std at 3 runs. Runs whose
     mAA(10) is 0.2, 0.4 and 0.6 exactly (pair errors 0 or failed) have sample std 0.2, whichever place computes it;

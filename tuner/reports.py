@@ -347,6 +347,8 @@ def _pair_error(e) -> float:
 
 
 def _pair_runs(d: dict) -> list[list[dict]] | None:
+    """Each test run's records: stereo pair records, or multiview bag records (``bag_errors``: scene, bag size,
+    bag, pair errors and, written since December 2026, the bag's images)."""
     out = []
     for r in d.get("runs") or []:
         if r.get("pair_errors") is not None:
@@ -354,6 +356,12 @@ def _pair_runs(d: dict) -> list[list[dict]] | None:
         elif r.get("pair_records") is not None:
             out.append([{"scene": x["scene"], "pair": x["pair"], "err": _pair_error(x["err"])}
                         for x in r["pair_records"]])
+        elif r.get("bag_errors") is not None:
+            from tuner.select import _as_bags
+            bags = _as_bags(r["bag_errors"])
+            for b in bags:
+                b["errors"] = [_pair_error(e) for e in b["errors"]]
+            out.append(bags)
         else:
             return None
     return out or None
@@ -375,11 +383,14 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
     pairs resampled within scenes, widened by the run-to-run variation), else the test summary's
     ``mAA10_ci``. Ranks: each feature (by its best estimator's study) is compared with the first (best) feature of
     the rank above it; it shares that rank when the difference is not significant — by the paired bootstrap on the common test
-    pairs (:func:`~pipeline.metrics.uncertainty.rank_with_ties`) where both have pair errors, else when their
-    intervals overlap (:func:`~pipeline.metrics.uncertainty.rank_by_intervals`, unpaired and conservative).
+    pairs (:func:`~pipeline.metrics.uncertainty.rank_with_ties`) where both have pair errors, for multiview studies on
+    the test bags (:func:`~pipeline.metrics.uncertainty.paired_bags`) where every row's test holds the same bags
+    (scene, size and images), else when their intervals overlap
+    (:func:`~pipeline.metrics.uncertainty.rank_by_intervals`, unpaired and conservative; the column says why).
     The ``ties`` column says which rule shared a rank, or that no interval was available. ``--format json``
     adds ``mAA10_ci <est>`` lists and ``studies``. ``warn(line)``: told of a test.json that cannot be read."""
-    from pipeline.metrics.uncertainty import combine_runs_interval, rank_by_intervals, rank_with_ties
+    from pipeline.metrics.uncertainty import (bags_differ, combine_bag_runs_interval, combine_runs_interval,
+                                              is_bag_records, rank_by_intervals, rank_with_ties)
     tested = [s for s in studies if s.test]
     ests = _estimators(tested)
     shown = [st for group in _groups(tested).values() for st in _by_estimator(group).values()]
@@ -406,7 +417,8 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
             runs = _test_pair_runs(s, studies_dir, warn) if s and m is not None else None
             ci = s.test.get("mAA10_ci") if s else None
             if runs:
-                ci = combine_runs_interval(runs, taus=(10,), n_resamples=n_resamples, seed=seed)["mAA10_ci"]
+                combine = combine_bag_runs_interval if is_bag_records(runs[0]) else combine_runs_interval
+                ci = combine(runs, taus=(10,), n_resamples=n_resamples, seed=seed)["mAA10_ci"]
             row[f"NI {e}"] = round(float(ni), 1) if ni is not None else None
             if fmt == "json":
                 row[f"mAA10 {e}"] = round(float(m), 4) if m is not None else None
@@ -424,26 +436,40 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
         rows.append(row)
     scored = [i for i, r in enumerate(rows) if r["_best"] is not None]
     name = {i: f"{rows[i]['feature']} ({rows[i]['features']})" for i in range(len(rows))}
-    if scored and all(rows[i]["_best"][2] for i in scored):  # pair errors everywhere: paired tests
-        ranked = rank_with_ties([(str(i), [{**x, "run": k} for k, run in enumerate(rows[i]["_best"][2]) for x in run])
-                                 for i in scored],
-                                n_resamples=n_resamples, seed=seed)
-        rule = ("paired bootstrap and sign-flip test on the test pairs, Bonferroni over the "
-                f"{max(1, len(scored) * (len(scored) - 1) // 2)} pairs of methods")
+    recs = {i: [{**x, "run": k} for k, run in enumerate(rows[i]["_best"][2] or []) for x in run] for i in scored}
+    kinds = {is_bag_records(recs[i]) for i in scored if recs[i]}
+    unpaired = None  # why the ranks cannot pair: then they share where the 95% intervals overlap
+    if not scored or not all(recs[i] for i in scored):
+        unpaired = "no pair errors in test.json" if not (shown and all(st.task == "multiview" for st in shown)) \
+            else "no bag errors in test.json"
+    elif len(kinds) > 1:
+        unpaired = "stereo pairs beside multiview bags"
+    elif kinds == {True}:  # multiview: paired only on the same bags (scene, size, images) for every row
+        for i in scored[1:]:
+            why = bags_differ(recs[scored[0]], recs[i])
+            if why:
+                unpaired = f"{name[i]} and {name[scored[0]]}: {why}"
+                break
+    if unpaired is None:  # the same pairs (bags) everywhere: paired tests
+        ranked = rank_with_ties([(str(i), recs[i]) for i in scored], n_resamples=n_resamples, seed=seed)
+        rule = (f"paired bootstrap and sign-flip test on the test {'bags' if kinds == {True} else 'pairs'}, "
+                f"Bonferroni over the {max(1, len(scored) * (len(scored) - 1) // 2)} pairs of methods")
     else:
         ranked = rank_by_intervals([{"name": str(i), "mAA10": rows[i]["_best"][0], "mAA10_ci": rows[i]["_best"][3]}
                                     for i in scored])
-        rule = ("95% intervals overlap (unpaired: the ranks of multiview tests do not pair their bags)"
-                if shown and all(st.task == "multiview" for st in shown) else
-                "95% intervals overlap (no pair errors in test.json: unpaired)")
+        rule = f"95% intervals overlap (unpaired: {unpaired})"
+        if warn is not None and kinds == {True} and "differ" in unpaired:
+            warn(f"the multiview ranks are not paired: {unpaired}; they share a rank where the 95% intervals "
+                 "overlap (conservative)")
     order, leader = [], None  # leader: the first row of the current rank, which every row sharing it is compared with
     for r in ranked:
         i = int(r["name"])
         rows[i]["rank"] = r["rank"]
         if r["shared"]:
             rows[i]["ties"] = f"rank shared with {name[leader]}: not significantly different ({rule})"
-        elif "no common pairs" in r.get("note", ""):
-            rows[i]["ties"] = f"not compared with {name[leader]}: no common test pairs"
+        elif "no common" in r.get("note", ""):
+            rows[i]["ties"] = (f"not compared with {name[leader]}: no common test "
+                               f"{'bags' if kinds == {True} else 'pairs'}")
         elif rows[i]["_best"][3] is None and rule.startswith("95%"):
             rows[i]["ties"] = "no interval: ranked by value alone"
         else:

@@ -638,7 +638,9 @@ def rank_with_ties(items, tau: int = 10, n_resamples: int = DEFAULT_RESAMPLES, s
     """Rank methods by mAA(tau), sharing ranks where a difference is not significant.
 
     items: ``[(name, records), ...]`` or ``[{"name", "records"}, ...]``, records as for
-    :func:`paired_bootstrap` (several runs' records may be concatenated: they are averaged per pair).
+    :func:`paired_bootstrap` (several runs' records may be concatenated: they are averaged per pair), or multiview
+    bag records as for :func:`paired_bags` (every item's: then each comparison is :func:`paired_bags` on the common
+    bags, and the mAA the multiview task's weighting of bags, sizes and scenes).
     The methods are ordered by mAA(tau) (highest first; ties keep the given order); each one is compared
     by :func:`paired_bootstrap` with the *leader* of the rank above it (the first, best method holding that rank;
     it as A, this one as B) and shares that rank when the difference is not significant (its CI contains 0, or
@@ -663,13 +665,9 @@ def rank_with_ties(items, tau: int = 10, n_resamples: int = DEFAULT_RESAMPLES, s
     alpha = (1.0 - level) / n_pairs_of_methods
     level_each = 1.0 - alpha  # Bonferroni over every pair of methods (docstring)
     resamples_each = int(min(100_000, max(int(n_resamples), math.ceil(20.0 / alpha))))
-    vals = []
-    for name, recs in named:
-        sc = _mean_scores(recs, tau)
-        by_scene: dict = {}
-        for (scene, _), v in sc.items():
-            by_scene.setdefault(scene, []).append(v)
-        vals.append(float(np.mean([np.mean(v) for v in by_scene.values()])) if by_scene else 0.0)
+    bags = bool(named) and all(is_bag_records(recs) for _, recs in named)
+    compare = paired_bags if bags else paired_bootstrap
+    vals = [_bag_value(recs, tau) if bags else _pair_value(recs, tau) for _, recs in named]
     order = sorted(range(len(named)), key=lambda i: -vals[i])
     out: list[dict] = []
     for pos, i in enumerate(order):
@@ -679,10 +677,10 @@ def rank_with_ties(items, tau: int = 10, n_resamples: int = DEFAULT_RESAMPLES, s
             lead = next(k for k, r in enumerate(out) if r["rank"] == out[-1]["rank"])  # the rank's leader
             above = out[lead]
             try:
-                cmp = paired_bootstrap(named[order[lead]][1], recs, tau=tau, n_resamples=resamples_each, seed=seed,
-                                       level=level_each)
+                cmp = compare(named[order[lead]][1], recs, tau=tau, n_resamples=resamples_each, seed=seed,
+                              level=level_each)
             except ValueError:  # evaluated on different pairs: nothing to pair, never a shared rank
-                row["note"] = f"not compared with {above['name']}: no common pairs"
+                row["note"] = f"not compared with {above['name']}: no common {'bags' if bags else 'pairs'}"
                 out.append(row)
                 continue
             cmp = {k: v for k, v in cmp.items() if k != "scenes"}
@@ -701,6 +699,24 @@ def rank_with_ties(items, tau: int = 10, n_resamples: int = DEFAULT_RESAMPLES, s
                                f"[{lo:+.4f}, {hi:+.4f}] ({how})")
         out.append(row)
     return out
+
+
+def _pair_value(records: Sequence[Mapping], tau: int) -> float:
+    """The stereo mAA(tau) of pair records (runs averaged per pair): the mean over scenes of the scenes' means."""
+    by_scene: dict = {}
+    for (scene, _), v in _mean_scores(records, tau).items():
+        by_scene.setdefault(scene, []).append(v)
+    return float(np.mean([np.mean(v) for v in by_scene.values()])) if by_scene else 0.0
+
+
+def _bag_value(records: Sequence[Mapping], tau: int) -> float:
+    """The multiview mAA(tau) of bag records (runs averaged per bag), weighted as the task averages: the mean over
+    each (scene, size) stratum's bags, over a scene's sizes, then over the scenes."""
+    acc: dict = {}
+    for r in records:
+        acc.setdefault(_bag_unit(r), []).append(maa_from_errors(r["errors"], tau))
+    w = _bag_weights((k[0] for k in acc), _scene_order(records, None))
+    return float(sum(wst * np.mean([np.mean(v) for k, v in acc.items() if k[0] == st]) for st, wst in w.items()))
 
 
 def rank_by_intervals(items: Sequence[Mapping], key: str = "mAA10") -> list[dict]:
