@@ -284,3 +284,29 @@ def test_an_earlier_test_json_of_the_same_scenes_and_pairs_is_not_called_another
     other = earlier_test_line({"data": {**now, "scenes": ["entry-P10"], "pairs": 3}, "earlier_test": same})
     assert other.startswith("the study's earlier test.json measured another test set (Herz-Jesus-P8, entry-P10; 16")
     assert earlier_test_line({"data": now}) is None
+
+
+def test_a_reused_multiview_test_result_gets_the_current_intervals_and_one_without_bag_images_is_rerun(tmp_path):
+    """A multiview test.json whose interval an earlier imtune made another way kept it: the refresh read only
+    stereo ``pair_errors``, so the bag errors beside it were never used. And `tune test --reuse` (and every reuse of a
+    test.json) handed back a multiview test whose bags carry no images, so `tune results` could never pair its bags
+    with another study's. Now the interval is recomputed from the bag errors (bags resampled within each scene and
+    size: 12 bags of 10 pairs all within 1 deg in each run, a stale [1, 1] -> an interval below 1), and such a
+    file is not reused: the test runs again and records its bags' images."""
+    import json
+    from tuner.freeze import _previous_result
+    bags = [["A", 5, k, [0.2] * 10, [f"{k}-{j}" for j in range(5)]] for k in range(12)]
+    result = {"study": "s", "runs": [{"bag_errors": bags, "mAA10": 1.0} for _ in range(3)],
+              "mean": {"mAA10": 1.0, "mAA5": 1.0, "mAA10_ci": [1.0, 1.0], "mAA5_ci": [1.0, 1.0]},
+              "interval": {"method": "bootstrap over bags (an earlier imtune)", "level": 0.95}, "identity": {"x": 1}}
+    assert sel.refresh_intervals(json.loads(json.dumps(result)), 500)
+    r = json.loads(json.dumps(result))
+    sel.refresh_intervals(r, 500)
+    assert r["mean"]["mAA10_ci"][0] < 0.95 and r["interval"]["method"] == sel.BAG_TEST_INTERVAL_NOTE
+    p = tmp_path / "test.json"
+    p.write_text(json.dumps(result))
+    assert _previous_result(p, {"x": 1}, "s") is not None  # images recorded: reused
+    for run in result["runs"]:
+        run["bag_errors"] = [b[:4] for b in run["bag_errors"]]
+    p.write_text(json.dumps(result))
+    assert _previous_result(p, {"x": 1}, "s") is None  # no images: rerun

@@ -120,6 +120,8 @@ def _previous_result(out_path: Path | None, ident: dict, study: str | None = Non
     old, _ = load_test_file(out_path, study, refresh=False)  # run_test refreshes and rewrites it
     if old is None:
         return None  # none, or unreadable: rerun the test rather than trust it
+    if any(len(e) == 4 for r in old.get("runs") or [] for e in (r.get("bag_errors") or []) if isinstance(e, list)):
+        return None  # multiview bags without their images (an earlier imtune): rerun, so that ranks can pair them
     have, want = old.get("identity"), _plain(ident)
     if have == want:
         return old

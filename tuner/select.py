@@ -418,23 +418,30 @@ def compare_reference(ref_errors: list, errors: list, n_resamples: int) -> dict 
     return paired_bootstrap(a, b, tau=10, n_resamples=int(n_resamples or 2000))
 
 
+def _run_errors(run: dict) -> list | None:
+    """A stored test run's :func:`unit_errors`: its ``pair_errors`` (stereo) or ``bag_errors`` (multiview)."""
+    e = run.get("pair_errors")
+    return e if e is not None else run.get("bag_errors")
+
+
 def refresh_intervals(result: dict, n_resamples: int) -> bool:
     """Recompute a stored test result's intervals from its runs' pair errors when an earlier imtune made them with
     another method (``interval.method`` is not :data:`TEST_INTERVAL_NOTE`): the mean's (overall, per scene), the
     reference's and the paired comparison with it. A reused test.json then shows the numbers `tune results` and
     `tune findings` compute from the same pair errors. Returns whether it changed anything (the caller rewrites
-    the file); False with no interval method recorded, ``n_resamples`` 0 or no pair errors."""
+    the file); False with no interval method recorded, ``n_resamples`` 0 or no pair errors (multiview: its runs'
+    ``bag_errors``, read the same way)."""
     iv = result.get("interval")
     if not isinstance(iv, dict) or iv.get("method") in (TEST_INTERVAL_NOTE, BAG_TEST_INTERVAL_NOTE) or not n_resamples:
         return False
-    errors = [r.get("pair_errors") for r in result.get("runs") or []]
+    errors = [_run_errors(r) for r in result.get("runs") or []]
     new = test_interval(result.setdefault("mean", {}), errors, n_resamples)
     if new is None:
         return False
     result["interval"] = new
     ref = result.get("reference")
     if isinstance(ref, dict) and ref.get("runs"):
-        rerr = [r.get("pair_errors") for r in ref["runs"]]
+        rerr = [_run_errors(r) for r in ref["runs"]]
         test_interval(ref.setdefault("mean", {}), rerr, n_resamples)
         cmp = compare_reference(rerr, errors, n_resamples)
         if cmp is not None:

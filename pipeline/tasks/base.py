@@ -179,7 +179,8 @@ class Task(abc.ABC):
                 if vals:
                     a = np.asarray(vals, float)
                     mean[k] = np.mean(a, axis=0).tolist()
-                    std[k] = (np.std(a, axis=0, ddof=STD_DDOF) if len(vals) > STD_DDOF else np.zeros_like(a[0])).tolist()
+                    sd = np.std(a, axis=0, ddof=STD_DDOF) if len(vals) > STD_DDOF else np.zeros_like(a[0])
+                    std[k] = sd.tolist()
             return mean, std
         mean, std = stats(runs, self.summary_keys)
         mean["scenes"] = {}
