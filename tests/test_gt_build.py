@@ -276,3 +276,39 @@ def test_sfm_ground_truth_on_a_posed_scene_says_it_replaces_the_scenes_poses(tmp
     assert "in place of them" in err[0] and "--method auto keeps them" in err[0]
     rc = main([*common, "--gt-dir", str(tmp_path / "gt-auto")])
     assert rc == 0 and capsys.readouterr().err.strip() == ""
+
+
+def test_a_scene_whose_sfm_fails_does_not_stop_the_others(tmp_path, capsys):
+    """`tune data build-gt` on a data folder of several scenes stopped at the first scene whose SfM failed: the
+    scenes after it were left unbuilt (their pairs then evaluated without co-visibility). Now every scene that can
+    be built is built, each failed one is one line naming it and what to do, and the exit code is 2."""
+    import shutil
+    from tests.conftest import DATA, copy_strecha_subset
+    from tuner.cli import main
+    data = copy_strecha_subset(tmp_path / "data", ["0003.jpg", "0004.jpg", "0005.jpg"])
+    bad = data / "unrelated" / "images"  # three images of three different scenes: nothing to reconstruct
+    bad.mkdir(parents=True)
+    for k, (scene, image) in enumerate([("fountain-P11", "0000.jpg"), ("entry-P10", "0009.jpg"),
+                                        ("Herz-Jesus-P8", "0007.jpg")]):
+        shutil.copy(DATA / "strecha" / scene / "images" / image, bad / f"{k}.jpg")
+    gt_dir = tmp_path / "gt"
+    capsys.readouterr()
+    rc = main(["data", "build-gt", "--data", str(data), "--scenes", "unrelated,fountain-P11", "--gt-dir", str(gt_dir),
+               "--quiet", "--num-features", "1024", "--max-image-size", "1024"])
+    out, err = capsys.readouterr()
+    assert rc == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("tune: error: scene unrelated: SfM registered fewer than 2 images"), err
+    assert "leave it out with --scenes" in lines[0], err
+    assert out.startswith("fountain-P11: poses: 3/3 images registered"), out  # the scene after it was built
+    built = find_ground_truth(load_scene(data, "fountain-P11"), gt_dir)
+    assert built is not None and load_ground_truth(built).names == ["0003.jpg", "0004.jpg", "0005.jpg"]
+    assert find_ground_truth(load_scene(data, "unrelated"), gt_dir) is None
+    rc = main(["data", "build-gt", "--data", str(data), "--scenes", "unrelated,fountain-P11", "--gt-dir", str(gt_dir),
+               "--quiet", "--num-features", "1024", "--max-image-size", "1024", "--json"])
+    out, err = capsys.readouterr()
+    report = json.loads(out)
+    assert rc == 2 and report["unrelated"]["error"].startswith("scene unrelated: SfM registered fewer than 2 images")
+    assert report["fountain-P11"]["registered"] == 3  # kept (reused), not rebuilt nor dropped
+    assert len(err.strip().splitlines()) == 1, err

@@ -351,7 +351,8 @@ def build_from_images(scene, conf: GTConfig = GTConfig(), work: Path | None = No
         model = largest_model(recs or {})
         if model is None or model.num_reg_images() < 2:
             raise ImtuneError(f"scene {scene.name}: SfM registered fewer than 2 images "
-                              f"({len(scene.images)} images; too few matches between them)")
+                              f"({len(scene.images)} images; too few matches between them): no ground truth written; "
+                              "add overlapping views of the scene, or leave it out with --scenes")
         id_to_name = {}
         rel_to_name = {}
         for name, iid in ids.items():

@@ -149,16 +149,24 @@ def run_build_gt(args) -> int:
             print(f"warning: --method sfm on {', '.join(posed)}, whose images have known poses and K: every later "
                   "command evaluates against the SfM reconstruction's poses in place of them (--method auto keeps "
                   "them; rebuild with it and --force to go back)", file=sys.stderr, flush=True)
+    from pipeline.data.ground_truth import find_ground_truth
     for sc in scenes:  # before any scene is built (a build takes minutes)
         if choose_method(sc, args.method) == "poses":
             check_poses_scene(sc)
-    report = {}
+        find_ground_truth(sc, args.gt_dir)  # a file or folder in the way of its gt.h5: one line, now
+    report, failed = {}, {}
     for sc in scenes:
         t0 = time.perf_counter()
         say = (lambda m, n=sc.name: print(f"{n}: {m}", file=sys.stderr, flush=True)) if not (args.quiet or args.json) \
             else None
         total = len(sc.images)
-        gt, path = build_ground_truth(sc, args.gt_dir, conf, force=args.force, progress=say)
+        try:
+            gt, path = build_ground_truth(sc, args.gt_dir, conf, force=args.force, progress=say)
+        except ImtuneError as e:  # this scene's SfM failed: the later scenes are still built
+            msg = str(e)
+            failed[sc.name] = msg if msg.startswith(f"scene {sc.name}:") else f"scene {sc.name}: {msg}"
+            report[sc.name] = {"error": failed[sc.name]}
+            continue
         m = gt.meta
         rep = m.get("reprojection", {})
         report[sc.name] = {"method": gt.method, "images": total, "registered": len(gt.names),
@@ -176,4 +184,6 @@ def run_build_gt(args) -> int:
                 print(f"{sc.name}: dropped (not registered): {', '.join(r['dropped'])}")
     if args.json:
         print(json.dumps(report, indent=2))
-    return 0
+    for msg in failed.values():  # one line per scene not built (those built above are kept)
+        print(f"tune: error: {msg}", file=sys.stderr)
+    return 2 if failed else 0
