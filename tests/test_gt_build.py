@@ -312,3 +312,60 @@ def test_a_scene_whose_sfm_fails_does_not_stop_the_others(tmp_path, capsys):
     assert rc == 2 and report["unrelated"]["error"].startswith("scene unrelated: SfM registered fewer than 2 images")
     assert report["fountain-P11"]["registered"] == 3  # kept (reused), not rebuilt nor dropped
     assert len(err.strip().splitlines()) == 1, err
+
+
+def _strecha_pairs_list(dst, names, stranger=("entry-P10", "0009.jpg")):
+    """A pairs-with-GT list scene (``pairs_with_gt.txt``) of real Strecha fountain-P11 images with their laser-scan
+    relative poses, plus one image of another scene paired with each of them (a plausible pose: SfM cannot register
+    it). Returns the scene folder."""
+    import shutil
+    from pipeline.data.scene import Pair
+    from tests.conftest import DATA
+    root = DATA / "strecha"
+    if not root.exists():
+        pytest.skip(f"real data not found at {root} (expected ../shared beside the project)")
+    src = load_scene(root, "fountain-P11")
+    (dst / "images").mkdir(parents=True)
+    lines = []
+
+    def line(a, b, Ka, Kb, R, t):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, t
+        return " ".join([a, b, "0", "0"] + [repr(float(v)) for v in (*Ka.ravel(), *Kb.ravel(), *T.ravel())])
+    for k, a in enumerate(names):
+        shutil.copy(src.images[a].path, dst / "images" / a)
+        for b in names[k + 1:]:
+            R, t = src.relative_pose(Pair(a, b))
+            lines.append(line(a, b, src.images[a].K, src.images[b].K, R, t))
+    other = load_scene(root, stranger[0]).images[stranger[1]]
+    shutil.copy(other.path, dst / "images" / "stranger.jpg")
+    for a in names:
+        lines.append(line(a, "stranger.jpg", src.images[a].K, other.K, np.eye(3), np.array([1.0, 0.0, 0.0])))
+    (dst / "pairs_with_gt.txt").write_text("\n".join(lines) + "\n")
+    return dst
+
+
+def test_pairs_dropped_by_an_sfm_ground_truth_are_said(tmp_path, capsys):
+    """A pairs list whose SfM ground truth (`tune data build-gt`, no absolute poses: SfM) left an image unregistered
+    had every pair with that image dropped from evaluation without a word: `tune evaluate` reported fewer pairs than
+    listed. Now one warning names the scene, how many listed pairs are evaluated and dropped, and the image, and the
+    JSON result keeps it in the task's notes."""
+    from tuner.cli import main
+    names = ["0003.jpg", "0004.jpg", "0005.jpg", "0006.jpg"]
+    data = _strecha_pairs_list(tmp_path / "listed", names)
+    gt_dir = tmp_path / "gt"
+    capsys.readouterr()
+    rc = main(["data", "build-gt", "--data", str(data), "--gt-dir", str(gt_dir), "--quiet", "--json",
+               "--num-features", "1024", "--max-image-size", "1024"])
+    out, err = capsys.readouterr()
+    built = json.loads(out)["listed"]
+    assert rc == 0 and built["method"] == "sfm" and built["dropped"] == ["stranger.jpg"], (out, err)
+    rc = main(["evaluate", "--data", str(data), "--gt-dir", str(gt_dir), "--num-features", "512", "--jobs", "1",
+               "--cache", str(tmp_path / "cache"), "--quiet", "--json", "--covisibility", "0"])
+    out, err = capsys.readouterr()
+    res = json.loads(out)["stereo"]
+    note = ("scene listed: 6 of 10 listed pairs evaluated (4 dropped because the SfM ground truth (tune data build-gt) "
+            "did not register 1 image: stranger.jpg)")
+    assert rc == 0 and res["pairs"] == 6, (res["pairs"], err)
+    assert res["notes"] == [note], res.get("notes")
+    assert err.strip().splitlines() == [f"warning: {note}"], err

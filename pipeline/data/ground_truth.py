@@ -522,7 +522,8 @@ def attach_ground_truth(scene, gt_dir: Path | str | None = None, required: bool 
     """Give ``scene`` its built ground truth, if any: 3D points and observations (unless the loader
     provided them), and the co-visibility of its pairs (where unknown, or always with
     ``overwrite_covisibility``). For SfM ground truth also K, R, t of every image; images the SfM did
-    not register are dropped from the scene (and from its pairs). Returns True if a ground truth was
+    not register are dropped from the scene (and from its pairs: the stereo task's notes say how many, of how many
+    listed, and which images). ``scene.built`` records the method and those counts. Returns True if a ground truth was
     attached; with ``required`` a missing one raises ImtuneError with the command that builds it."""
     p = find_ground_truth(scene, gt_dir)
     if p is None:
@@ -532,10 +533,13 @@ def attach_ground_truth(scene, gt_dir: Path | str | None = None, required: bool 
         return False
     gt = load_ground_truth(p)
     idx = {n: k for k, n in enumerate(gt.names)}
+    listed = len(scene.pairs)
+    scene.built = {"method": gt.method, "images": len(scene.images), "registered": len(scene.images),
+                   "unregistered": [], "pairs_listed": listed, "pairs_dropped": 0}
     if gt.method == "sfm":
-        for n in list(scene.images):
-            if n not in idx:
-                del scene.images[n]
+        unregistered = [n for n in scene.images if n not in idx]
+        for n in unregistered:
+            del scene.images[n]
         for n, k in idx.items():
             if n in scene.images:
                 info = scene.images[n]
@@ -543,6 +547,8 @@ def attach_ground_truth(scene, gt_dir: Path | str | None = None, required: bool 
                 if info.size is None:
                     info.size = (int(gt.sizes[k][0]), int(gt.sizes[k][1]))
         scene.pairs = [q for q in scene.pairs if q.i in scene.images and q.j in scene.images]
+        scene.built.update(registered=len(scene.images), unregistered=unregistered,
+                           pairs_dropped=listed - len(scene.pairs))
     if scene.observations is None:
         scene.points3d = gt.points3d
         scene.observations = {n: gt.observations[n] for n in gt.names if n in scene.images}

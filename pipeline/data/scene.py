@@ -62,6 +62,9 @@ class Scene:
     bags: dict[int, list[tuple[str, ...]]] | None = None
     source: str = ""  # loader name
     truth_id: str | None = None  # the ground truth as loaded (truth_digest), set by load_scene: keys built ground truth
+    # the ground truth `tune data build-gt` built, once attached (pipeline.data.ground_truth.attach_ground_truth):
+    # method ("poses" / "sfm"), images, registered, unregistered (names), pairs_listed, pairs_dropped
+    built: dict | None = None
 
     def truth_digest(self) -> str:
         """12 hex of the scene's ground truth as it stands: its format and every image's K, R, t and every pair's

@@ -290,8 +290,32 @@ class StereoTask(Task):
     OFF_CENTRE = 0.1
 
     def scene_notes(self, scene: Scene) -> list[str]:
-        """Images whose principal point lies far from their centre (more than OFF_CENTRE of their size): intrinsics
-        for another image size (images resized, K not) that the formats stating no size cannot refuse."""
+        """Pairs an SfM ground truth left out (an image it did not register: no pose, no pair), with the count of
+        pairs evaluated out of those listed; and images whose principal point lies far from their centre (more than
+        OFF_CENTRE of their size): intrinsics for another image size (images resized, K not) that the formats
+        stating no size cannot refuse."""
+        return self._dropped_notes(scene) + self._off_centre_notes(scene)
+
+    def _dropped_notes(self, scene: Scene) -> list[str]:
+        b = scene.built or {}
+        dropped = int(b.get("pairs_dropped") or 0)
+        if not dropped:
+            return []
+        listed = int(b.get("pairs_listed") or 0)
+        kept = len(scene.pairs)
+        selected = len(scene.select_pairs(self.min_covisibility))
+        evaluated = len(self.evaluation_units(scene))
+        gone = list(b.get("unregistered") or [])
+        shown = ", ".join(gone[:10]) + (f" and {len(gone) - 10} more" if len(gone) > 10 else "")
+        why = [f"{dropped} dropped because the SfM ground truth (tune data build-gt) did not register "
+               f"{len(gone)} image{'s' if len(gone) != 1 else ''}: {shown}"]
+        if kept > selected:
+            why.append(f"{kept - selected} below co-visibility {self.min_covisibility:g}")
+        if selected > evaluated:
+            why.append(f"{selected - evaluated} left out by max_pairs {self.max_pairs}")
+        return [f"scene {scene.name}: {evaluated} of {listed} listed pairs evaluated ({'; '.join(why)})"]
+
+    def _off_centre_notes(self, scene: Scene) -> list[str]:
         off: dict[str, tuple] = {}  # image -> (size, cx, cy, distance), in the order found
         for p in self.evaluation_units(scene):
             for n, K in zip((p.i, p.j), scene.intrinsics(p)):
