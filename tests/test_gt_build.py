@@ -276,6 +276,13 @@ def test_sfm_ground_truth_on_a_posed_scene_says_it_replaces_the_scenes_poses(tmp
     assert "in place of them" in err[0] and "--method auto keeps them" in err[0]
     rc = main([*common, "--gt-dir", str(tmp_path / "gt-auto")])
     assert rc == 0 and capsys.readouterr().err.strip() == ""
+    # what the reports then name as the scene's ground truth (Scene.truth_origin)
+    scene = load_scene(data, "fountain-P11")
+    assert attach_ground_truth(scene, tmp_path / "gt-sfm")
+    assert scene.truth_origin() == ("imtune's SfM reconstruction (tune data build-gt, pycolmap; 4 of 4 images "
+                                    "registered), in place of the scene's own poses (Strecha's laser-scan cameras)")
+    scene = load_scene(data, "fountain-P11")
+    assert scene.truth_origin() == "the scene's own poses (Strecha's laser-scan cameras)"  # nothing built attached
 
 
 def test_a_scene_whose_sfm_fails_does_not_stop_the_others(tmp_path, capsys):
@@ -369,3 +376,8 @@ def test_pairs_dropped_by_an_sfm_ground_truth_are_said(tmp_path, capsys):
     assert rc == 0 and res["pairs"] == 6, (res["pairs"], err)
     assert res["notes"] == [note], res.get("notes")
     assert err.strip().splitlines() == [f"warning: {note}"], err
+    # the pairs' relative poses evaluated are still the list's own: SfM gave the co-visibility and the pairs kept
+    scene = load_scene(data)
+    assert attach_ground_truth(scene, gt_dir)
+    assert scene.truth_origin() == ("the scene's own poses (its pairs list); co-visibility from imtune's SfM (tune data "
+                                    "build-gt, 4 of 5 images registered)")

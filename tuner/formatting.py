@@ -229,3 +229,20 @@ def gamma_max_text(gmax, fixed=None, unit: str = "") -> str:
     if gmax is not None:
         return f"Gamma_max = {gmax}{unit}" if unit else f"Gamma_max {gmax}"
     return "Gamma_max not calibrated" + (" (max_iters fixed)" if "max_iters" in (fixed or {}) else "")
+
+
+def ground_truth_origins(scenes) -> dict:
+    """scene name -> where the poses it is evaluated against come from (:meth:`pipeline.data.scene.Scene.truth_origin`:
+    the scene's own, or imtune's SfM by `tune data build-gt`), what a study, test.json and reports record."""
+    return {s.name: s.truth_origin() for s in scenes}
+
+
+def ground_truth_text(origins) -> str | None:
+    """One line of recorded :func:`ground_truth_origins`, the scenes of one origin together ("A, B: origin; C:
+    other"); None when nothing was recorded (a study or test.json written before imtune recorded it)."""
+    if not isinstance(origins, dict) or not origins:
+        return None
+    groups: dict[str, list[str]] = {}
+    for name, origin in origins.items():
+        groups.setdefault(str(origin), []).append(str(name))
+    return "; ".join(f"{', '.join(names)}: {origin}" for origin, names in groups.items())

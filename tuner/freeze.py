@@ -457,6 +457,7 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
     override the task's options (stereo pairs per scene; multiview bag processes)."""
     from pipeline.cache import H5Cache
     from tuner.evaluate import load_scenes
+    from tuner.formatting import ground_truth_origins
     from tuner.objective import ValidationSet
     from tuner.protocol import within_budget
     from tuner.version import code_version
@@ -528,7 +529,9 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
         "feature": frozen.get("feature"), "num_features": frozen.get("num_features"), "ransac": frozen.get("ransac"),
         "params": frozen.get("params"), "fixed": frozen.get("fixed"),
         "data": {"root": str(data_root), "scenes": names, "fingerprint": vs.fingerprint, "pairs": vs.n_pairs,
-                 **task.options()},
+                 **task.options(),
+                 # where each test scene's poses come from: its own (laser scan, calibration) or imtune's SfM
+                 "ground_truth": ground_truth_origins(vs.scene_objs)},
         "budget": {"test_seconds_per_pair": tb, "within_budget": within_budget(sec, tb),
                    "statistic": "median estimator seconds per pair"},
         "runs": results, "mean": mean, "std": std, "std_ddof": STD_DDOF, "interval": interval,

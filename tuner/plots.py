@@ -455,6 +455,23 @@ def _uncertainty_lines(study, studies_dir=None) -> list[str]:
                 + (f", sample std over runs {(t.get('std') or {}).get('mAA10', 0.0):.3f}"
                    if len(t.get("runs") or []) > 1 else ", one run: no spread over runs"))
         out.append(f"<p><b>{html.escape(line)}</b><br>{html.escape(comparison_text(t.get('reference')))}</p>")
+    out += _ground_truth_lines(f, t)
+    return out
+
+
+def _ground_truth_lines(frozen: dict, test: dict | None) -> list[str]:
+    """Where the validation and test scenes' poses come from (their own: a laser scan, a calibration, a pairs list;
+    or imtune's SfM by `tune data build-gt`), as the study and test.json recorded it, with the tasks' notes on the
+    scenes (pairs an SfM ground truth dropped, of those listed)."""
+    from tuner.formatting import ground_truth_text
+    out = []
+    for role, d, notes in (("validation", frozen.get("data") or {}, (frozen.get("data") or {}).get("notes")),
+                           ("test", (test or {}).get("data") or {}, (test or {}).get("notes"))):
+        if role == "test" and test is None:
+            continue
+        origin = ground_truth_text(d.get("ground_truth")) or "not recorded (written before imtune recorded it)"
+        out.append(f"<p>{html.escape(f'{role} ground truth: {origin}')}"
+                   + "".join(f"<br><i>{html.escape(f'{role} {n}')}</i>" for n in notes or []) + "</p>")
     return out
 
 

@@ -504,6 +504,7 @@ def setup_study(s: TuneSettings) -> StudyContext:
     from tuner.budget import calibrate
     from tuner.objective import Objective
     from tuner.protocol import blank_searched
+    from tuner.formatting import ground_truth_origins
     from tuner.space import SearchSpace
     from tuner.storage import check_studies_dir, default_studies_dir, open_storage
     _quiet_optuna(s.verbose)
@@ -549,7 +550,10 @@ def setup_study(s: TuneSettings) -> StudyContext:
         "search_space": space.spec(), "search_space_source": space.source,
         "data_fingerprint": vs.fingerprint,
         "data": {"root": str(s.data_root), "val_scenes": vs.scene_names, "test_scenes": test_scene_names(s),
-                 "min_covisibility": s.min_covisibility, "max_pairs": s.max_pairs, "pairs": vs.n_pairs},
+                 "min_covisibility": s.min_covisibility, "max_pairs": s.max_pairs, "pairs": vs.n_pairs,
+                 # where the validation scenes' poses come from (their own, or imtune's SfM), and the task's notes
+                 # on them (pairs an SfM ground truth dropped): what the reports say beside validation figures
+                 "ground_truth": ground_truth_origins(vs.scene_objs), "notes": vs.notes},
         "budget": {"seconds_per_pair": float(s.budget), "test_seconds_per_pair": float(s.test_budget),
                    "statistic": "median estimator seconds per pair"},
         "code_version": code_version(),

@@ -13,6 +13,16 @@ from pathlib import Path
 import numpy as np
 
 
+#: loader name -> where a scene of that format has its own ground-truth poses from (what reports name)
+OWN_POSES = {
+    "strecha": "Strecha's laser-scan cameras",
+    "imc_pt2020": "IMC-PT calibration files",
+    "imc2022": "IMC 2022 calibration.csv",
+    "colmap": "its COLMAP model",
+    "pairs_with_gt": "its pairs list",
+}
+
+
 @dataclass
 class ImageInfo:
     """One image. ``size`` is (width, height) in px of the file on disk; K is 3x3 for that size."""
@@ -65,6 +75,25 @@ class Scene:
     # the ground truth `tune data build-gt` built, once attached (pipeline.data.ground_truth.attach_ground_truth):
     # method ("poses" / "sfm"), images, registered, unregistered (names), pairs_listed, pairs_dropped
     built: dict | None = None
+
+    def truth_origin(self) -> str:
+        """Where the poses this scene is evaluated against come from, one phrase for reports: the scene's own
+        (Strecha's laser-scan cameras, IMC-PT's calibration, a pairs list's relative poses) or imtune's SfM
+        reconstruction (`tune data build-gt`: an image folder, or ``--method sfm``); and what a built ground truth
+        adds (co-visibility from its 3D points)."""
+        own = OWN_POSES.get(self.source)
+        b = self.built or {}
+        if b.get("method") == "sfm":
+            reg = f"{b.get('registered')} of {b.get('images')} images registered"
+            if self.pairs and all(p.R is not None and p.t is not None for p in self.pairs):
+                # each pair's listed relative pose is what is evaluated; SfM gave co-visibility and the pairs kept
+                return f"the scene's own poses ({own}); co-visibility from imtune's SfM (tune data build-gt, {reg})"
+            return (f"imtune's SfM reconstruction (tune data build-gt, pycolmap; {reg})"
+                    + (f", in place of the scene's own poses ({own})" if own else ""))
+        if own is None:
+            return "none (no poses: build them with `tune data build-gt`)"
+        return f"the scene's own poses ({own})" + ("; co-visibility from 3D points triangulated with them (tune data "
+                                                   "build-gt)" if b.get("method") == "poses" else "")
 
     def truth_digest(self) -> str:
         """12 hex of the scene's ground truth as it stands: its format and every image's K, R, t and every pair's

@@ -375,6 +375,10 @@ def _frozen_notes(f: dict) -> str:
     printed once on stderr by `tune` and are kept in frozen.yaml under ``warnings``)."""
     from tuner.select import flat_text
     lines = []
+    from tuner.formatting import ground_truth_text
+    origin = ground_truth_text((f.get("data") or {}).get("ground_truth"))
+    if origin:  # where the validation figures' poses come from (a study created before this was recorded: none)
+        lines.append(f"validation ground truth: {origin}")
     sel = f.get("selection") or {}
     if sel:
         lines.append(f"selection: {sel.get('rule')} (best trial #{sel.get('best_trial')}"
@@ -428,6 +432,10 @@ def test_table(t: dict) -> str:
     if "reference" in t:
         from tuner.select import comparison_text
         tail.append(comparison_text(t.get("reference")))
+    from tuner.formatting import ground_truth_text
+    origin = ground_truth_text((t.get("data") or {}).get("ground_truth"))
+    tail.append(f"ground truth: {origin}" if origin else "ground truth: not recorded (a test.json written before imtune "
+                "recorded it: rerun `tune test` to record it)")
     return head + ")\n" + render(rows, "markdown", cols) + "".join("\n" + x for x in tail)
 
 

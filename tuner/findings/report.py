@@ -9,6 +9,7 @@ import json
 import math
 from pathlib import Path
 
+from pipeline.errors import ImtuneError
 from tuner.findings.analysis import __doc__ as RULES_DOC
 from tuner.findings.definitions import BY_ID, SMALL_GAIN
 
@@ -68,6 +69,18 @@ def _ci(ci, d=4):
     return "-" if not ci else f"[{_num(float(ci[0]), d)}, {_num(float(ci[1]), d)}]"
 
 
+def ground_truth_line(fs, names: list) -> str:
+    """Where the scenes' poses come from (their own: Strecha's laser scan, a calibration, a pairs list; or imtune's
+    SfM by `tune data build-gt`), as the stereo studies see them (the default ground-truth folder)."""
+    from tuner.evaluate import load_scenes
+    from tuner.formatting import ground_truth_origins, ground_truth_text
+    try:
+        scenes = load_scenes(Path(fs.data_root), list(names), split="all") if names else []
+    except ImtuneError as e:  # the report of a run that could not load them says why elsewhere
+        return f"unknown ({e})"
+    return ground_truth_text(ground_truth_origins(scenes)) or "none"
+
+
 def settings_lines(fs) -> list[str]:
     m = fs.mode()
     from tuner.findings import resolved_splits
@@ -88,6 +101,7 @@ def settings_lines(fs) -> list[str]:
         f"budget: {fs.budget:g} s per pair on validation (median estimator time), {fs.test_budget:g} s on test",
         f"data: {fs.data_root}; validation scenes: {', '.join(val) or 'none'}; test scenes: {', '.join(test) or 'none'} "
         f"(from {split_source})",
+        f"ground truth: {ground_truth_line(fs, val + test)}",
         f"storage: {storage_label(fs.storage, fs.studies_dir)}; studies dir: {fs.studies_dir}",
         f"intervals: 95%, stratified bootstrap over test pairs ({fs.n_resamples} resamples, seed {fs.seed}); "
         f"paired differences on the same pairs; p: two-sided paired sign-flip test (Monte Carlo, {fs.n_resamples} "

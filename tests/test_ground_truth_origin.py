@@ -1,0 +1,84 @@
+"""Reports say where a scene's ground truth comes from: the scene's own poses (Strecha's laser-scan cameras) or a
+reconstruction imtune built by SfM (`tune data build-gt` on an image folder). One real short study: validation on
+4 fountain-P11 images (own poses, points triangulated with them), test on 4 Herz-Jesus-P8 images given as a plain
+image folder (SfM poses); the study's attributes, frozen settings, test.json, `tune test`'s table, the HTML report
+and the findings header each name both."""
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from tests.conftest import DATA, ROOT, copy_strecha_subset
+
+STRECHA = DATA / "strecha"
+pytestmark = pytest.mark.skipif(not STRECHA.is_dir(), reason=f"real data not found at {STRECHA}")
+OWN = ("the scene's own poses (Strecha's laser-scan cameras); co-visibility from 3D points triangulated with them "
+       "(tune data build-gt)")
+SFM = "imtune's SfM reconstruction (tune data build-gt, pycolmap; 4 of 4 images registered)"
+
+
+def tune(*args, env):
+    r = subprocess.run([sys.executable, "-m", "tuner", *map(str, args)], capture_output=True, text=True, cwd=ROOT,
+                       env=env, timeout=900)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return r
+
+
+@pytest.fixture(scope="module")
+def tested(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("origin")
+    data = copy_strecha_subset(tmp / "data", ["0003.jpg", "0004.jpg", "0005.jpg", "0006.jpg"])
+    herz = data / "herz" / "images"  # no camera files: a plain image folder, its poses by SfM
+    herz.mkdir(parents=True)
+    for n in ["0002.jpg", "0003.jpg", "0004.jpg", "0005.jpg"]:
+        shutil.copy(STRECHA / "Herz-Jesus-P8" / "images" / n, herz / n)
+    env = dict(os.environ, IMTUNE_CACHE=str(tmp / "cache"), IMTUNE_GT=str(tmp / "gt"))
+    built = json.loads(tune("data", "build-gt", "--data", data, "--json", "--num-features", "2048",
+                            "--max-image-size", "1024", env=env).stdout)
+    assert built["fountain-P11"]["method"] == "poses" and built["herz"]["method"] == "sfm", built
+    assert built["herz"]["registered"] == 4, built  # SFM's count below
+    studies = tmp / "studies"
+    run = tune("--data", data, "--feature", "sift", "--num-features", "1024", "--ransac", "cv-ransac",
+               "--scenes", "fountain-P11", "--test-scenes", "herz", "--n-trials", "1", "--test-runs", "1",
+               "--budget", "0.1", "--calibration-pairs", "2", "--studies-dir", studies, "--jobs", "1", "--quiet",
+               env=env)
+    test = tune("test", "--study", "sift-1024-cv-ransac-stereo", "--studies-dir", studies, "--runs", "1", "--jobs",
+                "1", "--quiet", env=env)
+    return dict(tmp=tmp, data=data, env=env, studies=studies, run=run, test=test,
+                name="sift-1024-cv-ransac-stereo")
+
+
+def test_test_json_and_tune_test_name_the_test_scenes_ground_truth(tested):
+    t = json.loads((tested["studies"] / tested["name"] / "test.json").read_text())
+    assert t["data"]["ground_truth"] == {"herz": SFM}
+    assert f"ground truth: herz: {SFM}" in tested["test"].stdout.splitlines(), tested["test"].stdout
+
+
+def test_the_study_and_its_frozen_settings_name_the_validation_ground_truth(tested):
+    import yaml
+    frozen = yaml.safe_load((tested["studies"] / tested["name"] / "frozen.yaml").read_text())
+    assert frozen["data"]["ground_truth"] == {"fountain-P11": OWN}
+    out = tested["run"].stdout.splitlines()
+    assert f"validation ground truth: fountain-P11: {OWN}" in out, tested["run"].stdout
+    assert f"ground truth: herz: {SFM}" in out, tested["run"].stdout
+
+
+def test_the_html_report_names_both(tested):
+    import html
+    report = tested["studies"] / tested["name"] / "report.html"
+    tune("plot", "--study", tested["name"], "--studies-dir", tested["studies"], "--out", report, env=tested["env"])
+    text = report.read_text()
+    assert html.escape(f"validation ground truth: fountain-P11: {OWN}") in text
+    assert html.escape(f"test ground truth: herz: {SFM}") in text
+
+
+def test_the_findings_header_names_both(tested, monkeypatch):
+    from tuner.findings import FindingsSettings
+    from tuner.findings.report import settings_lines
+    monkeypatch.setenv("IMTUNE_GT", tested["env"]["IMTUNE_GT"])
+    lines = settings_lines(FindingsSettings(data_root=tested["data"], studies_dir=tested["studies"], quick=True,
+                                            val_scenes=["fountain-P11"], test_scenes=["herz"]))
+    assert f"ground truth: fountain-P11: {OWN}; herz: {SFM}" in lines, lines
