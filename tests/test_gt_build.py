@@ -283,6 +283,9 @@ def test_sfm_ground_truth_on_a_posed_scene_says_it_replaces_the_scenes_poses(tmp
                                     "registered), in place of the scene's own poses (Strecha's laser-scan cameras)")
     scene = load_scene(data, "fountain-P11")
     assert scene.truth_origin() == "the scene's own poses (Strecha's laser-scan cameras)"  # nothing built attached
+    assert attach_ground_truth(scene, tmp_path / "gt-auto")
+    assert scene.truth_origin() == ("the scene's own poses (Strecha's laser-scan cameras); co-visibility from 3D "
+                                    "points triangulated with them (tune data build-gt)")
 
 
 def test_a_scene_whose_sfm_fails_does_not_stop_the_others(tmp_path, capsys):
