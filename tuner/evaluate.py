@@ -81,7 +81,8 @@ def evaluate_config(conf: PipelineConfig, data_root: Path, scenes=None, cache_di
     built ground truth lives; intermediate: add an "intermediate" section (repeatability, matching scores,
     ``pipeline.tasks.intermediate``); ci_resamples: bootstrap resamples of the mAA intervals (``mAA5_ci``,
     ``mAA10_ci``; None: the task's default, 2000; 0: none); jobs: stereo pair worker processes (None: every
-    usable CPU; the records do not depend on it). Raises ImtuneError when there is nothing to evaluate."""
+    usable CPU; the records do not depend on it). ``ground_truth``: scene name -> where the poses it is evaluated
+    against come from (``Scene.truth_origin``). Raises ImtuneError when there is nothing to evaluate."""
     from pipeline.cache import H5Cache
     from pipeline.tasks import make_task, task_list
     _check_arguments(conf, max_pairs, ci_resamples, workers)
@@ -90,7 +91,9 @@ def evaluate_config(conf: PipelineConfig, data_root: Path, scenes=None, cache_di
     if not scene_objs:
         raise ImtuneError(f"no scenes in {data_root} (see `tune data scenes --data {data_root}`)")
     cache = H5Cache(cache_dir)
-    out = {"config": conf.to_dict(), "data": str(data_root), "scenes": [s.name for s in scene_objs]}
+    from tuner.formatting import ground_truth_origins
+    out = {"config": conf.to_dict(), "data": str(data_root), "scenes": [s.name for s in scene_objs],
+           "ground_truth": ground_truth_origins(scene_objs)}  # each scene's poses: its own, or imtune's SfM
     for name in names:
         t = make_task(name, min_covisibility=min_covisibility, max_pairs=max_pairs, mv=multiview, workers=workers,
                       keep_models=keep_models, progress=progress, jobs=jobs,

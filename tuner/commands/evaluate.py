@@ -202,6 +202,8 @@ def run(args) -> int:
                if any(is_timed(t) for t in task_list(args.task)) else "COLMAP's own RANSAC")
         print(f"{c.feature.name} ({c.feature.num_features}) | r={c.matching.ratio} {c.matching.strategy} | "
               f"{geo} | data {data}")
+        from tuner.formatting import ground_truth_text
+        print(f"ground truth: {ground_truth_text(out.get('ground_truth'))}")
         for name in TASKS.names():
             if name in out:
                 task = TASKS.get(name)
