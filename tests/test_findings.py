@@ -17,7 +17,13 @@ from tuner.findings import analysis as A
 from tuner.findings.definitions import BY_ID, FINDINGS, StudySpec
 from tuner.findings.runner import FindingsSettings, StudyOutcome, data_tag, study_name
 
-KEYS = {"id", "claim", "paper", "measured", "difference", "ci", "p_value", "verdict", "studies"}
+KEYS = {"id", "claim", "paper", "measured", "difference", "ci", "p_value", "verdict", "studies", "this_run"}
+
+
+def _finding(res: dict, i: int) -> dict:
+    """Finding ``i`` of a findings.json object (which lists every finding, whatever --only ran)."""
+    (f,) = [f for f in res["findings"] if f["id"] == i]
+    return f
 
 
 # ------------------------------------------------------------------------------------------ rules
@@ -248,9 +254,11 @@ def test_findings_1_and_4_end_to_end(subset, tmp_path, monkeypatch, capsys):
     assert rc == 0, err
     res = json.loads(out)
     assert set(res) == {"findings", "report"}
-    assert [f["id"] for f in res["findings"]] == [1, 4]
+    assert [f["id"] for f in res["findings"]] == list(range(1, 13))  # every finding, those not run said so
+    assert [f["id"] for f in res["findings"] if f["this_run"] == "ran"] == [1, 4]
     on_disk = json.loads((sdir / "findings" / "findings.json").read_text())
-    assert on_disk["findings"] == res["findings"]
+    assert on_disk == res
+    res = {**res, "findings": [_finding(res, 1), _finding(res, 4)]}
     assert res["report"] == str(sdir / "findings" / "report.html")
     html = (sdir / "findings" / "report.html").read_text()
     md = (sdir / "findings" / "report.md").read_text()
@@ -318,7 +326,8 @@ def test_findings_1_and_4_end_to_end(subset, tmp_path, monkeypatch, capsys):
     assert "compute recorded by the" in md
     # a relative difference says what it is relative to (A of "B vs A"; it said "the latter")
     if res["findings"][0]["difference"] is not None and res["findings"][0]["measured"].get("relative_difference"):
-        assert "relative to defaults)" in md and "% [95% CI " in md and "the latter" not in md
+        measured = md.split("\n## 1. ", 1)[1].split("\n## ", 1)[0]  # finding 2's quoted paper says "the latter"
+        assert "relative to defaults)" in measured and "% [95% CI " in measured and "the latter" not in measured
     # each optimum warning (on a bound, Gamma_max at the ceiling, ...) names its study: twenty studies share stderr
     from tuner.freeze import frozen_from_study
     from tuner.diagnostics import optimum_warnings
@@ -340,9 +349,97 @@ def test_findings_1_and_4_end_to_end(subset, tmp_path, monkeypatch, capsys):
     assert rc == 0, err
     assert _trial_count(storage) == before
     res2 = json.loads(out2)
-    for x, y in zip(res["findings"], res2["findings"]):
+    for x, y in zip(res["findings"], [_finding(res2, 1), _finding(res2, 4)]):
         assert (x["verdict"], x["difference"], x["ci"], x["studies"]) == (y["verdict"], y["difference"], y["ci"],
                                                                          y["studies"])
+
+
+def test_a_subset_run_keeps_every_finding_in_the_report(subset, tmp_path, monkeypatch, capsys):
+    """`--only 3` after `--only 1` rewrote report.html, report.md and findings.json with finding 3 alone: finding 1
+    vanished from what a researcher reads. Now every finding is listed: the selected one run, finding 1 re-analysed
+    from its finished studies with the very numbers of its own run (no new trial, no new test run), the others "not
+    run yet" with the command that runs them; the header says which this run ran."""
+    import optuna
+
+    monkeypatch.setenv("IMTUNE_CACHE", str(tmp_path / "cache"))
+    sdir = tmp_path / "studies"
+    common = ["--data", str(subset), "--studies-dir", str(sdir), "--quick", "--trials", "2", "--max-pairs", "3",
+              "--ci-resamples", "300", "--jobs", "1", "--json"]
+    storage = f"sqlite:///{sdir / 'optuna.db'}"
+    rc, out, err = _cli(["findings", "--only", "1"] + common, capsys)
+    assert rc == 0, err
+    first = json.loads((sdir / "findings" / "findings.json").read_text())
+    f1 = _finding(first, 1)
+    assert f1["verdict"] in ("holds", "does not hold", "inconclusive"), f1["measured"]
+    trials = _trial_count(storage)
+    mtimes = {n: (sdir / n / "test.json").stat().st_mtime_ns for n in f1["studies"]}
+
+    rc, out, err = _cli(["findings", "--only", "3"] + common, capsys)
+    assert rc == 0, err
+    res = json.loads(out)
+    assert res == json.loads((sdir / "findings" / "findings.json").read_text())  # --json prints findings.json
+    assert [f["id"] for f in res["findings"]] == list(range(1, 13))
+    by = {f["id"]: f for f in res["findings"]}
+    assert f1["this_run"] == "ran" and [f["id"] for f in first["findings"] if f["this_run"] == "ran"] == [1]
+    assert by[3]["this_run"] == "ran" and by[3]["verdict"] in ("holds", "does not hold", "inconclusive")
+    # finding 1: from its studies, its numbers those of its own run, nothing run again for it
+    assert by[1]["this_run"] == "reused"
+    assert {k: v for k, v in by[1].items() if k != "this_run"} == {k: v for k, v in f1.items() if k != "this_run"}
+    assert all(_trial_count(storage)[n] == trials[n] for n in f1["studies"])
+    assert all((sdir / n / "test.json").stat().st_mtime_ns == mtimes[n] for n in f1["studies"])
+    # the rest: not run yet, each with the command that runs it on the same studies
+    from tuner.cli import build_parser
+    from tuner.commands.findings import settings
+    cli = build_parser()
+    for i in range(1, 13):
+        if i in (1, 3):
+            continue
+        f = by[i]
+        assert f["this_run"] == "not run yet" and f["verdict"] == "not run yet" and f["studies"] == [], f
+        cmd = f["measured"]["command"]
+        assert cmd.startswith(f"tune findings --quick --only {i} ") and cmd in f["measured"]["reason"]
+        fs = settings(cli.parse_args(cmd.split()[1:]))
+        mine = FindingsSettings(data_root=subset, studies_dir=sdir, quick=True, trials=2, max_pairs=3)
+        assert fs.only == [i] and fs.n_resamples == 300
+        assert [study_name(sp, fs) for sp in BY_ID[i].studies.values()] == \
+            [study_name(sp, mine) for sp in BY_ID[i].studies.values()]
+    # finding 2 waits for the studies it lacks, not for the one finding 1 ran (its cv-ransac is finding 1's tuned)
+    assert set(by[2]["measured"]["pending"]) == {"magsac", "degensac", "gcransac", "pyransac"}
+    md = (sdir / "findings" / "report.md").read_text()
+    html = (sdir / "findings" / "report.html").read_text()
+    head = md.splitlines()[2]
+    assert head.startswith("- this run: findings 3 (--only 3); re-analysed from their finished studies in the "
+                           "storage (no new trial or test run): 1; not run yet: 2, 4-12"), head
+    for i in range(1, 13):
+        assert f"<section id='finding-{i}'>" in html and f"\n## {i}. " in md
+    assert f"| 1 | {BY_ID[1].title} | {f1['verdict']} |" in md and "not run yet" in html
+    assert len(optuna.get_all_study_names(storage)) == 3  # defaults, tuned, gamma1000: nothing else created
+
+
+def test_a_study_not_finished_is_not_reused(subset, tmp_path, monkeypatch):
+    """Reuse only: a study short of the run's trial target, or whose optimum has no test result for the run's test
+    settings, is "not finished" (reuse_study says why), and reading it adds no trial and runs no test."""
+    from tuner.findings.runner import reuse_study, run_study
+    monkeypatch.setenv("IMTUNE_CACHE", str(tmp_path / "cache"))
+
+    def fs(**kw):
+        return FindingsSettings(data_root=subset, studies_dir=tmp_path / "studies", quick=True, max_pairs=3, jobs=1,
+                                n_resamples=300, progress=False, **{"trials": 2, **kw})
+    spec = BY_ID[1].studies["defaults"]
+    assert reuse_study(spec, fs(), cache=None).pending == "no study of that name in the storage yet"
+    ran = run_study(spec, fs(), cache=None)
+    assert ran.ok, ran.reason
+    again = reuse_study(spec, fs(), cache=None)
+    assert again.ok and not again.pending and again.test == ran.test and again.test_runs == ran.test_runs
+    assert again.frozen["trial"] == ran.frozen["trial"] and again.compute == ran.compute
+    storage = f"sqlite:///{tmp_path / 'studies' / 'optuna.db'}"
+    before = _trial_count(storage)
+    more = reuse_study(spec, fs(trials=3), cache=None)
+    assert not more.ok and more.pending == "2 of 3 trials finished"
+    runs = reuse_study(spec, fs(test_runs=2), cache=None)
+    assert not runs.ok and runs.pending == f"its optimum (trial #{ran.frozen['trial']}) has no test result yet"
+    assert _trial_count(storage) == before
+    assert json.loads((tmp_path / "studies" / ran.name / "test.json").read_text())["identity"]["runs"] == 1
 
 
 def test_the_report_header_names_the_scenes_and_where_they_come_from(subset, tmp_path):
@@ -387,7 +484,7 @@ def test_too_few_scenes_lists_every_finding_with_reason(subset, tmp_path, monkey
                          "--json"], capsys)
     assert rc == 0, err
     res = json.loads(out)
-    assert [f["id"] for f in res["findings"]] == [1, 12]
+    assert [f["id"] for f in res["findings"]] == list(range(1, 13))
     for f in res["findings"]:
         assert set(f) == KEYS and f["verdict"] == "not run" and f["studies"] == []
         # one scene in all: a split cannot help, the reason says what can
@@ -559,7 +656,7 @@ def test_findings_on_other_data_share_the_storage_and_a_copy_reuses_the_studies(
                              "--trials", "2", "--max-pairs", "3", "--ci-resamples", "200", "--jobs", "1", "--json"],
                             capsys)
         assert rc == 0, err
-        f = json.loads(out)["findings"][0]
+        f = _finding(json.loads(out), 3)
         assert f["verdict"] != "not run" and "exists with" not in json.dumps(f), f
         return set(f["studies"])
 
@@ -611,7 +708,7 @@ def test_two_workers_share_the_studies(subset, tmp_path):
     outs = [p.communicate(timeout=600) for p in procs]
     for p, (out, err) in zip(procs, outs):
         assert p.returncode == 0, err
-        f = json.loads(out)["findings"][0]
+        f = _finding(json.loads(out), 1)
         assert f["verdict"] in ("holds", "does not hold", "inconclusive"), f["measured"]
     from optuna.trial import TrialState
     storage = f"sqlite:///{sdir / 'optuna.db'}"
@@ -633,7 +730,7 @@ def test_finding_6_builds_its_multiview_ground_truth_apart_from_the_stereo_studi
     rc, out, err = _cli(["findings", "--data", str(subset), "--studies-dir", str(sdir), "--quick", "--only", "6",
                          "--trials", "2", "--max-pairs", "3", "--ci-resamples", "200", "--jobs", "1", "--json"], capsys)
     assert rc == 0, err
-    f = json.loads(out)["findings"][0]
+    f = _finding(json.loads(out), 6)
     mv = f["measured"]["studies"]["multiview"]
     assert mv["ok"], mv  # it ran: before, "no multiview bags and no 3D points ... run `tune data build-gt`"
     assert "ratio" in mv["params"]

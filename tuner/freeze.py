@@ -445,7 +445,7 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
              cache=None, runs: int = 3, max_pairs: int | None = None, test_budget: float | None = None,
              progress: bool = False, reuse: bool = True, workers: int | None = None, reference: str | None = None,
              jobs: int | None = None,
-             ci_resamples: int | None = None, gt_dir=None) -> dict:
+             ci_resamples: int | None = None, gt_dir=None, compute: bool = True) -> dict | None:
     """Evaluate the frozen configuration with its task on the test scenes ``runs`` times (the k-th run with the
     task's k-th seed: ``Task.for_run``) and aggregate (``Task.aggregate``: mean and std). Each run keeps its pair
     errors (``pair_errors``; multiview: its bags' pair errors, ``bag_errors``); the mean carries the 95% interval of ``tuner.select.test_interval`` (``interval``
@@ -454,7 +454,8 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
     pairs and runs and compared by a paired bootstrap (``reference.comparison``). Writes
     ``<studies_dir>/<study>/test.json`` when ``studies_dir`` is given; with ``reuse``, an existing test.json for
     the same trial, configuration, task options and data is returned as is. ``max_pairs`` / ``workers``
-    override the task's options (stereo pairs per scene; multiview bag processes)."""
+    override the task's options (stereo pairs per scene; multiview bag processes). ``compute`` False: only that
+    reusable test.json, or None when there is none (nothing evaluated, nothing written but a refreshed interval)."""
     from pipeline.cache import H5Cache
     from tuner.evaluate import load_scenes
     from tuner.formatting import ground_truth_origins
@@ -482,6 +483,8 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
         if changed and out_path is not None:
             atomic_write(out_path, json.dumps(_plain(old), indent=2))
         return old
+    if not compute:
+        return None
     cache = cache if cache is not None else H5Cache()
     t_start = time.perf_counter()
     vs.prepare(conf, cache, progress=progress)

@@ -494,6 +494,32 @@ def load_study_space(s: TuneSettings, task):
     return space
 
 
+def study_identity(s: TuneSettings, task, space, vs, base: PipelineConfig) -> dict:
+    """The user attributes a new study of these settings records before its calibration: among them what
+    :func:`check_compatible` compares when a study of that name is resumed (search space, pipeline, validation data,
+    task options, budget). ``vs``: the settings' :func:`open_validation`; ``base``: ``s.base`` with the estimator
+    seed set."""
+    from tuner.formatting import ground_truth_origins
+    from tuner.protocol import blank_searched
+    return {
+        "imtune": SCHEMA, "task": task.name, "task_options": task.options(),
+        "feature": feature_label(base), "feature_name": base.feature.name,
+        "num_features": base.feature.num_features, "ransac": base.geometry.ransac,
+        "pipeline": blank_searched(base, list(space.params) + list(space.fixed)),
+        "search_space": space.spec(), "search_space_source": space.source,
+        "data_fingerprint": vs.fingerprint,
+        "data": {"root": str(s.data_root), "val_scenes": vs.scene_names, "test_scenes": test_scene_names(s),
+                 "min_covisibility": s.min_covisibility, "max_pairs": s.max_pairs, "pairs": vs.n_pairs,
+                 # where the validation scenes' poses come from (their own, or imtune's SfM), and the task's notes
+                 # on them (pairs an SfM ground truth dropped): what the reports say beside validation figures
+                 "ground_truth": ground_truth_origins(vs.scene_objs), "notes": vs.notes},
+        "budget": {"seconds_per_pair": float(s.budget), "test_seconds_per_pair": float(s.test_budget),
+                   "statistic": "median estimator seconds per pair"},
+        "code_version": code_version(),
+        "seed": int(s.seed or 0),
+    }
+
+
 def setup_study(s: TuneSettings) -> StudyContext:
     """Open the storage, load the validation data, create or resume the study (checking that it was
     created with the same settings), calibrate the budget if the study is new, build the objective."""
@@ -503,8 +529,6 @@ def setup_study(s: TuneSettings) -> StudyContext:
     from pipeline.tasks.pool import resolve_jobs
     from tuner.budget import calibrate
     from tuner.objective import Objective
-    from tuner.protocol import blank_searched
-    from tuner.formatting import ground_truth_origins
     from tuner.space import SearchSpace
     from tuner.storage import check_studies_dir, default_studies_dir, open_storage
     _quiet_optuna(s.verbose)
@@ -542,23 +566,7 @@ def setup_study(s: TuneSettings) -> StudyContext:
     if pinned:
         s.warn(pinned)
     base = dataclasses.replace(s.base, geometry=dataclasses.replace(s.base.geometry, seed=int(s.seed or 0)))
-    mine = {
-        "imtune": SCHEMA, "task": task.name, "task_options": task.options(),
-        "feature": feature_label(base), "feature_name": base.feature.name,
-        "num_features": base.feature.num_features, "ransac": base.geometry.ransac,
-        "pipeline": blank_searched(base, list(space.params) + list(space.fixed)),
-        "search_space": space.spec(), "search_space_source": space.source,
-        "data_fingerprint": vs.fingerprint,
-        "data": {"root": str(s.data_root), "val_scenes": vs.scene_names, "test_scenes": test_scene_names(s),
-                 "min_covisibility": s.min_covisibility, "max_pairs": s.max_pairs, "pairs": vs.n_pairs,
-                 # where the validation scenes' poses come from (their own, or imtune's SfM), and the task's notes
-                 # on them (pairs an SfM ground truth dropped): what the reports say beside validation figures
-                 "ground_truth": ground_truth_origins(vs.scene_objs), "notes": vs.notes},
-        "budget": {"seconds_per_pair": float(s.budget), "test_seconds_per_pair": float(s.test_budget),
-                   "statistic": "median estimator seconds per pair"},
-        "code_version": code_version(),
-        "seed": int(s.seed or 0),
-    }
+    mine = study_identity(s, task, space, vs, base)
     study = None
     try:
         study = optuna.load_study(study_name=name, storage=storage)
@@ -658,6 +666,16 @@ def trial_counts(study) -> dict:
     return counts
 
 
+def trial_target(s: TuneSettings, space) -> int:
+    """How many finished (COMPLETE or PRUNED) trials a worker runs the study to: ``s.n_trials``, else
+    :data:`DEFAULT_TRIALS` (the grid sampler: the grid's size), at most the grid's size with the grid sampler.
+    ``space``: the study's resolved search space."""
+    n_target = s.n_trials or (space.grid_size() if s.sampler == "grid" else DEFAULT_TRIALS)
+    if s.sampler == "grid":
+        n_target = min(n_target, space.grid_size())
+    return n_target
+
+
 def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
     """Run trials until the study holds ``s.n_trials`` finished trials (or ``s.timeout``)."""
     import optuna
@@ -665,9 +683,7 @@ def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
 
     from tuner.storage import fail_stale_trials
     study = ctx.study
-    n_target = s.n_trials or (ctx.space.grid_size() if s.sampler == "grid" else DEFAULT_TRIALS)
-    if s.sampler == "grid":
-        n_target = min(n_target, ctx.space.grid_size())
+    n_target = trial_target(s, ctx.space)
     from tuner.seeding import worker_seeded
     startup = s.startup_trials or max(3, min(10, (n_target or 50) // 5))
     # each worker's sampler seed derives from --seed and its first trial number: the same --seed in two

@@ -26,7 +26,9 @@ def register(sub) -> None:
     ap.add_argument("--data", default=None, help=DATA_HELP)
     ap.add_argument("--quick", action="store_true",
                     help="reduced but real: 2048 features, 10 trials per study, 12 pairs per scene, 1 test run")
-    ap.add_argument("--only", default=None, metavar="ID,...", help="only these findings (ids 1-12)")
+    ap.add_argument("--only", default=None, metavar="ID,...",
+                    help="run only these findings (ids 1-12); the report still lists every finding: the others "
+                         "re-analysed from their studies when all are finished, else 'not run yet' with the command")
     ap.add_argument("--jobs", type=positive_int, default=None,
                     help="pair processes per trial (where the tree has the pair pool; default: the study's)")
     ap.add_argument("--val-scenes", type=scene_list, default=None, help="comma-separated validation scenes (default: the data split)")
@@ -52,20 +54,25 @@ def _scenes(v):
     return [n.strip() for n in v.split(",") if n.strip()] if v else None
 
 
-def run(args) -> int:
-    from tuner.findings import FindingsSettings, parse_only, run_findings
-    from tuner.findings.report import _jsonable, summary_lines
+def settings(args):
+    """The FindingsSettings of parsed `tune findings` arguments."""
+    from tuner.findings import FindingsSettings, parse_only
     from tuner.options import resolve_data
     from tuner.storage import default_studies_dir
     only = parse_only(args.only)
     sdir = Path(args.studies_dir).expanduser().resolve() if args.studies_dir else default_studies_dir()
     quiet = args.quiet or args.json
-    fs = FindingsSettings(data_root=resolve_data(args.data), storage=args.storage, studies_dir=sdir, quick=args.quick,
-                          only=only, jobs=args.jobs, trials=args.trials, max_pairs=args.max_pairs,
-                          test_runs=args.test_runs, cache_dir=args.cache, seed=args.seed,
-                          val_scenes=_scenes(args.val_scenes), test_scenes=_scenes(args.test_scenes),
-                          n_resamples=args.ci_resamples, progress=not quiet)
-    out = run_findings(fs)
+    return FindingsSettings(data_root=resolve_data(args.data), storage=args.storage, studies_dir=sdir,
+                            quick=args.quick, only=only, jobs=args.jobs, trials=args.trials, max_pairs=args.max_pairs,
+                            test_runs=args.test_runs, cache_dir=args.cache, seed=args.seed,
+                            val_scenes=_scenes(args.val_scenes), test_scenes=_scenes(args.test_scenes),
+                            n_resamples=args.ci_resamples, progress=not quiet)
+
+
+def run(args) -> int:
+    from tuner.findings import run_findings
+    from tuner.findings.report import _jsonable, summary_lines
+    out = run_findings(settings(args))
     if args.json:
         print(json.dumps(_jsonable(out), indent=2))
         return 0

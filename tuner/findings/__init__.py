@@ -2,7 +2,8 @@
 
     from tuner.findings import FindingsSettings, run_findings
     out = run_findings(FindingsSettings(data_root=Path("data/strecha"), quick=True, only=[1, 4]))
-    out["findings"][0]["verdict"]      # "holds" | "does not hold" | "inconclusive" | "not run"
+    out["findings"][0]["verdict"]      # "holds" | "does not hold" | "inconclusive" | "not run" | "not run yet"
+    out["findings"][0]["this_run"]     # "ran" (selected) | "reused" (from its finished studies) | "not run yet"
     out["report"]                      # <studies dir>/findings/report.html (report.md, findings.json beside it)
 
 Each finding (:data:`tuner.findings.definitions.FINDINGS`) names its studies; each study is an ordinary imtune
@@ -16,9 +17,14 @@ import time
 from pathlib import Path
 
 from pipeline.errors import ImtuneError
-from tuner.findings.analysis import NOT_RUN, analyse
+from tuner.findings.analysis import NOT_RUN, NOT_RUN_YET, analyse
 from tuner.findings.definitions import BY_ID, FINDINGS, Finding, StudySpec  # noqa: F401
-from tuner.findings.runner import FindingsSettings, StudyOutcome, run_study, study_name  # noqa: F401
+from tuner.findings.runner import (FindingsSettings, StudyOutcome, findings_command, reuse_study,  # noqa: F401
+                                   run_study, study_name)
+
+#: ``this_run`` of a finding in findings.json: its studies run (or resumed, or reused by `tune`) by this invocation;
+#: not selected (--only) and re-analysed from its finished studies; not selected and not all of them finished
+THIS_RUN_RAN, THIS_RUN_REUSED = "ran", "reused"
 
 __all__ = ["FindingsSettings", "run_findings", "FINDINGS", "BY_ID", "parse_only", "check_scenes", "check_settings"]
 
@@ -166,10 +172,31 @@ def preflight(fs: FindingsSettings) -> None:
             check_task_scene(stereo, sc, role, f"or choose other {role} scenes with {flag}")
 
 
+def _reuse_outcomes(f, fs: FindingsSettings, cache, done: dict, reused: dict) -> dict:
+    """role -> outcome of a finding this run does not select: a study this run ran (``done``), else
+    :func:`reuse_study` (once per study and need)."""
+    needs_regions = f.rule == "regions"
+    outcomes = {}
+    for role, spec in f.studies.items():
+        name = study_name(spec, fs)
+        o = done.get(name)
+        if o is None or (needs_regions and o.ok and o.val_ci is None):
+            key = (name, needs_regions)
+            if key not in reused:
+                reused[key] = reuse_study(spec, fs, cache, need_regions=needs_regions)
+            o = reused[key]
+        outcomes[role] = o
+    return outcomes
+
+
 def run_findings(fs: FindingsSettings, write: bool = True) -> dict:
-    """Run (or resume) the studies of the selected findings, analyse them and write the report. Returns
-    ``{"findings": [{"id", "claim", "paper", "measured", "difference", "ci", "p_value", "verdict",
-    "studies"}], "report": PATH}`` (the object findings.json holds)."""
+    """Run (or resume) the studies of the selected findings (``fs.only``; None: all), analyse them and write the
+    report. Every finding is reported: one not selected is re-analysed from its studies in the storage when all
+    of them are finished (:func:`reuse_study`: no trial, no test run), and is otherwise "not run yet" with the
+    command that runs it. Returns ``{"findings": [{"id", "claim", "paper", "measured", "difference", "ci",
+    "p_value", "verdict", "studies", "this_run"}], "report": PATH}`` (the object findings.json holds), the
+    findings in id order; ``this_run``: "ran" (selected), "reused" (not selected, from its finished studies) or
+    "not run yet"."""
     from pipeline.cache import H5Cache
     from tuner.storage import default_studies_dir
     t0 = time.perf_counter()
@@ -189,7 +216,7 @@ def run_findings(fs: FindingsSettings, write: bool = True) -> dict:
         preflight(fs)
     cache = H5Cache(fs.cache_dir)
     done: dict[str, StudyOutcome] = {}  # study name -> outcome (studies shared between findings run once)
-    results = []
+    ran: dict[int, dict] = {}  # finding id -> role -> outcome, for the findings this run runs
     for f in selected:
         fs.say(f"finding {f.id}: {f.title}")
         outcomes = {}
@@ -204,17 +231,38 @@ def run_findings(fs: FindingsSettings, write: bool = True) -> dict:
                     if not o.ok:
                         fs.say(f"  {name}: not run ({o.reason})")
                 outcomes[role] = o
-            a = analyse(f, outcomes, n_resamples=fs.n_resamples, seed=fs.seed)
-        else:
+        ran[f.id] = outcomes
+    # every finding is reported: those not selected from their studies when all are finished (reuse only)
+    reused: dict[tuple, StudyOutcome] = {}
+    results = []
+    for f in FINDINGS:
+        outcomes, this_run = ran.get(f.id), THIS_RUN_RAN
+        if outcomes is None:
+            this_run = THIS_RUN_REUSED if no_data is None else NOT_RUN_YET
+            outcomes = _reuse_outcomes(f, fs, cache, done, reused) if no_data is None else {}
+        if no_data is not None:
             a = {"measured": {"reason": no_data}, "difference": None, "ci": None, "p_value": None, "verdict": NOT_RUN}
+        elif any(o.pending for o in outcomes.values()):
+            this_run = NOT_RUN_YET
+            waiting = {role: o.pending for role, o in outcomes.items() if o.pending}
+            cmd = findings_command(fs, [f.id])
+            a = {"measured": {"reason": "not run yet: " + "; ".join(f"{r}: {w}" for r, w in waiting.items())
+                                        + f"; run it with: {cmd}", "pending": waiting, "command": cmd},
+                 "difference": None, "ci": None, "p_value": None, "verdict": NOT_RUN_YET}
+        else:
+            a = analyse(f, outcomes, n_resamples=fs.n_resamples, seed=fs.seed)
         a["measured"]["rule"] = f.rule
         if f.notes:
             a["measured"]["notes"] = f.notes
+        ok = a["verdict"] != NOT_RUN_YET and outcomes
         results.append({"id": f.id, "claim": f.claim, "paper": f.paper, "measured": a["measured"],
                         "difference": a["difference"], "ci": a["ci"], "p_value": a["p_value"],
                         "verdict": a["verdict"],
-                        "studies": [o.name for o in outcomes.values() if o.ok] if outcomes else []})
-        fs.say(f"  -> {a['verdict']}")
+                        "studies": [o.name for o in outcomes.values() if o.ok] if ok else [],
+                        "this_run": this_run})
+        if f.id in ran or a["verdict"] != NOT_RUN_YET:
+            fs.say(f"finding {f.id}{'' if f.id in ran else ' (not selected: from its finished studies)'} "
+                   f"-> {a['verdict']}")
     out = {"findings": results, "report": None}
     if write:
         from tuner.findings.report import write_report

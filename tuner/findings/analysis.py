@@ -32,6 +32,8 @@ from pipeline.metrics.uncertainty import (DEFAULT_LEVEL, combine_runs_interval, 
 from tuner.findings.definitions import SMALL_GAIN, Finding
 
 HOLDS, FAILS, UNSURE, NOT_RUN = "holds", "does not hold", "inconclusive", "not run"
+#: a finding `tune findings --only` did not select and whose studies are not all finished (its report says the command)
+NOT_RUN_YET = "not run yet"
 #: the band two flat regions must fit in to count as the same optimum: ("abs", width) or ("ratio", max / min)
 SAME_BAND = {"ratio": ("abs", 0.05), "threshold": ("ratio", 1.5)}
 #: the unit of a region parameter's values (the ratio test r has none)
@@ -294,4 +296,4 @@ def _extras(f: Finding, outcomes: dict, n_resamples: int = 2000, seed: int = 0) 
 
 
 __all__ = ["analyse", "directional", "small_gain", "combine", "flat_region", "compare_regions", "group_status",
-           "HOLDS", "FAILS", "UNSURE", "NOT_RUN", "DEFAULT_LEVEL"]
+           "HOLDS", "FAILS", "UNSURE", "NOT_RUN", "NOT_RUN_YET", "DEFAULT_LEVEL"]

@@ -267,6 +267,8 @@ def _difference_text(f: dict) -> str:
     m = f["measured"]
     if f["verdict"] == "not run":
         return f"Not run here: {m.get('reason') or m.get('missing')}"
+    if f["verdict"] == "not run yet":
+        return f"Not run yet (not selected by --only, and its studies are not all finished): {m.get('reason')}"
     if m.get("rule") == "regions":
         parts = []
         from tuner.findings.analysis import UNITS
@@ -406,6 +408,37 @@ def check_outputs(studies_dir) -> None:
                               "choose another --studies-dir")
 
 
+def _ids(ids: list) -> str:
+    """[1, 2, 3, 5, 7, 8, 9] -> "1-3, 5, 7-9"."""
+    parts: list[list[int]] = []
+    for i in sorted(ids):
+        if parts and i == parts[-1][-1] + 1:
+            parts[-1].append(i)
+        else:
+            parts.append([i])
+    return ", ".join(str(p[0]) if len(p) == 1 else f"{p[0]}-{p[-1]}" for p in parts)
+
+
+def this_run_line(out: dict, fs) -> str:
+    """The report's first header line: which findings this invocation ran (``--only``), which it re-analysed from
+    their finished studies and which are not run yet, with the command that runs those."""
+    from tuner.findings.runner import findings_command
+    by: dict[str, list] = {}
+    for f in out["findings"]:
+        by.setdefault(f.get("this_run", "ran"), []).append(f["id"])
+    ran = by.get("ran", [])
+    if not by.get("reused") and not by.get("not run yet"):
+        return f"this run: every finding ({_ids(ran)})"
+    line = f"this run: findings {_ids(ran)} (--only {','.join(map(str, ran))})"
+    if by.get("reused"):
+        line += (f"; re-analysed from their finished studies in the storage (no new trial or test run): "
+                 f"{_ids(by['reused'])}")
+    if by.get("not run yet"):
+        line += (f"; not run yet: {_ids(by['not run yet'])} (their studies are not all finished; run them with "
+                 f"{findings_command(fs, by['not run yet'])})")
+    return line
+
+
 def write_report(out: dict, fs, seconds: float = 0.0) -> Path:
     """Write report.md, report.html and findings.json under ``<studies dir>/findings``; returns report.html."""
     from tuner.freeze import atomic_write
@@ -417,7 +450,8 @@ def write_report(out: dict, fs, seconds: float = 0.0) -> Path:
     report = root / "report.html"
     out["report"] = str(report)
     when = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-    head = settings_lines(fs) + [f"wall time of this run: {seconds / 60:.1f} min; written {when}"]
+    head = [this_run_line(out, fs)] + settings_lines(fs) + [f"wall time of this run: {seconds / 60:.1f} min; "
+                                                            f"written {when}"]
     total = compute_total(out)
     if total is not None:  # the header only: findings.json keeps its two keys
         head.append(_compute_line(total))
@@ -437,7 +471,8 @@ def write_report(out: dict, fs, seconds: float = 0.0) -> Path:
             md += [f"Settings: {d.notes}", ""]
         versus = paper_comparison(f)
         md += [f"Measured: {_difference_text(f)}", ""] + ([f"Paper vs here: {versus}", ""] if versus else [])
-        md += [_md_table(STUDY_COLS, _study_rows(f)), ""]
+        rows = _study_rows(f)  # none for a finding not run (yet)
+        md += [_md_table(STUDY_COLS, rows), ""] if rows else []
         warns = study_warnings(f)
         md += [f"Warnings (the studies' frozen settings): {'; '.join(warns)}", ""] if warns else []
         fig = plot_finding(f)
@@ -452,7 +487,7 @@ def write_report(out: dict, fs, seconds: float = 0.0) -> Path:
             + (f"<p><b>Settings</b>: {html.escape(d.notes)}</p>" if d.notes else "")
             + f"<p><b>Measured</b>: {html.escape(_difference_text(f))}</p>"
             + (f"<p><b>Paper vs here</b>: {html.escape(versus)}</p>" if versus else "")
-            + _html_table(STUDY_COLS, _study_rows(f))
+            + (_html_table(STUDY_COLS, rows) if rows else "")
             + (f"<p><b>Warnings</b> (the studies' frozen settings): {html.escape('; '.join(warns))}</p>" if warns else "")
             + div
             + (f"<p><b>Studies</b>: {links}</p>" if links else "") + "</section>")
@@ -461,7 +496,7 @@ def write_report(out: dict, fs, seconds: float = 0.0) -> Path:
     body.append(f"<h2>How the verdicts are decided</h2><pre>{html.escape(rules_text(''))}</pre>")
     style = ("body{font-family:sans-serif;max-width:70em;margin:1em auto;line-height:1.4}table{border-collapse:collapse}"
              "td,th{border:1px solid #ccc;padding:2px 6px;font-size:90%}.v{padding:0 4px}.holds{background:#cfc}"
-             ".does-not-hold{background:#fcc}.inconclusive{background:#eee}.not-run{background:#ffd}")
+             ".does-not-hold{background:#fcc}.inconclusive{background:#eee}.not-run,.not-run-yet{background:#ffd}")
     atomic_write(report, "<!doctype html><html><head><meta charset='utf-8'><title>imtune findings</title>"
                          f"<style>{style}</style></head><body>{''.join(body)}</body></html>")
     atomic_write(root / "report.md", "\n".join(md))

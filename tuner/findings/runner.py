@@ -79,6 +79,7 @@ class StudyOutcome:
     trials: list = field(default_factory=list)  # (params, value) of feasible COMPLETE trials
     best: tuple | None = None  # (params, value) of the best feasible trial
     val_ci: list | None = None  # 95% interval of the best trial's validation mAA(10)
+    pending: str = ""  # reuse only (reuse_study): why the study is not finished yet ("" when it is, or cannot run)
     compute: dict = field(default_factory=dict)  # the study's own seconds: calibration, trials, test (see below)
 
 
@@ -318,8 +319,9 @@ def _evaluate_runs(frozen: dict, data_root: Path, scene_names: list, split: str,
     return out
 
 
-def test_records(frozen: dict, test: dict, records_dir: Path, cache) -> tuple[list, str]:
-    """(per-run pair records of the test result, note). See the module docstring."""
+def test_records(frozen: dict, test: dict, records_dir: Path, cache, compute: bool = True) -> tuple[list | None, str]:
+    """(per-run pair records of the test result, note). See the module docstring. ``compute`` False: (None, "") when
+    the records would have to be evaluated again."""
     stored = records_from_test(test)
     if stored is not None:
         return stored, "pair errors from test.json"
@@ -329,6 +331,8 @@ def test_records(frozen: dict, test: dict, records_dir: Path, cache) -> tuple[li
     cached = _cached_runs(old, ident, len(test["runs"]))
     if cached is not None:
         return cached, str(old.get("note", ""))
+    if not compute:
+        return None, ""
     fz = {"task": test.get("task", "stereo"), "task_options": test.get("task_options"), "config": frozen["config"]}
     got = _evaluate_runs(fz, Path(test["data"]["root"]), test["data"]["scenes"], "test", len(test["runs"]), cache)
     runs = [[{"scene": r["scene"], "pair": r["pair"], "err": _err(r["err"])} for r in recs] for recs, _ in got]
@@ -344,10 +348,12 @@ def test_records(frozen: dict, test: dict, records_dir: Path, cache) -> tuple[li
     return runs, note
 
 
-def validation_interval(study, frozen: dict, best, records_dir: Path, cache, n_resamples: int) -> list | None:
+def validation_interval(study, frozen: dict, best, records_dir: Path, cache, n_resamples: int,
+                        compute: bool = True) -> list | None:
     """95% interval of the best feasible trial's validation mAA(10): its own ``mAA10_ci`` attribute when the
     trial recorded one, else a bootstrap of its configuration's records re-evaluated on the validation pairs
-    (cached in ``records/<study>-val.json``), shifted to the trial's value."""
+    (cached in ``records/<study>-val.json``), shifted to the trial's value. ``compute`` False: None when the
+    records are not cached (nothing evaluated)."""
     ci = best.user_attrs.get("mAA10_ci")
     if ci:
         return [float(ci[0]), float(ci[1])]
@@ -362,6 +368,8 @@ def validation_interval(study, frozen: dict, best, records_dir: Path, cache, n_r
     ident = _plain({"trial": best.number, "config": conf.to_dict(), "fingerprint": attrs.get("data_fingerprint")})
     task = task_of(attrs)
     recs = _cached_val_records(_read_json(path), ident, task.records_key == "bag_records")
+    if recs is None and not compute:
+        return None
     if recs is None:
         fz = {"task": attrs.get("task", "stereo"), "task_options": attrs.get("task_options"), "config": conf.to_dict()}
         (recs, _), = _evaluate_runs(fz, Path(frozen["data"]["root"]), attrs["data"]["val_scenes"], "val", 1, cache)
@@ -455,6 +463,127 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
     out.compute = study_compute(study, out.test)
     out.ok = True
     return out
+
+
+def reuse_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool = False) -> StudyOutcome:
+    """The outcome :func:`run_study` would give, read from the storage and the study's folder alone when the study
+    is finished: it holds its target of finished trials, its current optimum has a reusable test.json (the one
+    ``tune`` would reuse: same trial, configuration, test data and runs) and the records the statistics need are
+    stored or cached. No trial, no test run, no evaluation, no ground truth built; nothing written to the storage.
+    A study that is not finished comes back with ``pending`` saying why (``ok`` False); one that could not run
+    here (an unavailable feature, a study of that name with other settings) with ``reason``, as from
+    :func:`run_study`. `tune findings --only` re-analyses the findings it does not run this way."""
+    import optuna
+    from optuna.trial import TrialState
+
+    from tuner.freeze import frozen_from_study, run_test, study_data_root, study_dir
+    from tuner.protocol import best_feasible, trial_within_budget
+    from tuner.space import SearchSpace
+    from tuner.study import (IncompatibleStudy, check_compatible, load_study_space, open_validation, study_identity,
+                             trial_target)
+    name = study_name(spec, fs)
+    out = StudyOutcome(spec=spec, name=name)
+    why = unavailable(spec)
+    if why:
+        out.reason = why
+        return out
+    s = tune_settings(spec, fs)
+    s.progress = False
+    sdir = Path(s.studies_dir)
+    try:
+        study = optuna.load_study(study_name=name, storage=_storage(fs, sdir))
+    except KeyError:
+        out.pending = "no study of that name in the storage yet"
+        return out
+    attrs = dict(study.user_attrs)
+    if not attrs.get("imtune"):
+        out.pending = "the study is being created"
+        return out
+    try:
+        task = s.make_task()
+        space = load_study_space(s, task)
+        vs = open_validation(s, task)  # the validation scenes' metadata (multiview: the 3D points built for it)
+        base = dataclasses.replace(s.base, geometry=dataclasses.replace(s.base.geometry, seed=int(s.seed or 0)))
+        check_compatible(name, attrs, study_identity(s, task, space, vs, base))
+    except IncompatibleStudy as e:  # as run_study says it
+        out.reason = (f"could not run: {str(e).split('; rerun')[0]}; findings studies have fixed names: give this "
+                      "run a storage of its own (--studies-dir DIR or --storage URL)")
+        return out
+    except ImtuneError as e:
+        out.pending = f"its validation data cannot be read without running it ({e})"
+        return out
+    target = trial_target(s, SearchSpace.from_spec(attrs["search_space_resolved"]))
+    finished = len(study.get_trials(deepcopy=False, states=(TrialState.COMPLETE, TrialState.PRUNED)))
+    if finished < target:
+        out.pending = f"{finished} of {target} trials finished"
+        return out
+    best = best_feasible(study)
+    if best is None:  # what tune() stops on
+        out.reason = (f"could not run: study {name!r}: no feasible completed trial yet (all over the "
+                      f"{attrs['budget']['seconds_per_pair']} s budget, pruned or failed); run more trials")
+        return out
+    try:
+        out.frozen = frozen_from_study(study, s.select)  # what freeze() writes, not written here
+        if spec.test:
+            out.test = run_test(out.frozen, study_data_root(out.frozen, s.data_root), sdir, scenes=s.test_scenes,
+                                runs=s.test_runs, max_pairs=s.max_pairs, reuse=True, workers=s.workers,
+                                reference=s.reference, jobs=s.jobs, ci_resamples=s.ci_resamples, gt_dir=s.gt_dir,
+                                compute=False)
+            if out.test is None:
+                out.pending = f"its optimum (trial #{out.frozen['trial']}) has no test result yet"
+                return out
+    except ImtuneError as e:
+        out.pending = f"its results cannot be read ({e})"
+        return out
+    records_dir = sdir / "findings" / "records"
+    out.attrs = attrs
+    out.best = (dict(best.params), float(best.value))
+    out.trials = [(dict(t.params), float(t.value)) for t in study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
+                  if t.value is not None and trial_within_budget(t)]
+    if out.test is not None:
+        out.test_path = str(study_dir(sdir, name) / "test.json")
+        out.test_runs, out.records_note = test_records(out.frozen, out.test, records_dir, cache, compute=False)
+        if out.test_runs is None:
+            out.pending = "the pair errors of its test are not stored yet"
+            return out
+    if need_regions:
+        out.val_ci = validation_interval(study, out.frozen, best, records_dir, cache, fs.n_resamples, compute=False)
+        if out.val_ci is None:
+            out.pending = "the validation interval of its optimum is not computed yet"
+            return out
+    out.compute = study_compute(study, out.test)
+    out.ok = True
+    return out
+
+
+def findings_command(fs: FindingsSettings, ids) -> str:
+    """The `tune findings` command that runs findings ``ids`` with ``fs``'s settings (same studies, same storage; a
+    storage URL's password masked)."""
+    import shlex
+
+    from tuner.storage import storage_label
+    from tuner.findings.definitions import FINDINGS
+    words = ["tune", "findings"] + (["--quick"] if fs.quick else [])
+    words += ["--only", ",".join(str(i) for i in ids)] if len(ids) < len(FINDINGS) else []
+    words += ["--data", str(fs.data_root)]
+    if fs.studies_dir is not None:
+        words += ["--studies-dir", str(fs.studies_dir)]
+    if fs.storage:
+        words += ["--storage", storage_label(fs.storage, fs.studies_dir)]
+    for flag, v in (("--val-scenes", fs.val_scenes), ("--test-scenes", fs.test_scenes)):
+        if v:
+            words += [flag, ",".join(v)]
+    if fs.cache_dir:
+        words += ["--cache", str(fs.cache_dir)]
+    for flag, v, default in (("--seed", fs.seed, 0), ("--trials", fs.trials, None), ("--max-pairs", fs.max_pairs, None),
+                             ("--test-runs", fs.test_runs, None), ("--ci-resamples", fs.n_resamples, 2000)):
+        if v != default:
+            words += [flag, str(v)]
+    cmd = " ".join(shlex.quote(w) for w in words)
+    if float(fs.budget) != DEFAULT_BUDGET or float(fs.test_budget) != 1.0:  # no command-line flag: Python only
+        cmd += (f" (with budget={fs.budget:g}, test_budget={fs.test_budget:g}: from Python, "
+                f"run_findings(FindingsSettings(..., only={list(ids)})))")
+    return cmd
 
 
 def study_compute(study, test: dict | None) -> dict:
