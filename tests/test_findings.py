@@ -945,6 +945,25 @@ def test_finding_2s_order_uses_shared_ranks_not_bare_greater_than_signs():
     assert ("magsac ~ gcransac" in order or "gcransac ~ magsac" in order) and order.startswith("degensac > "), order
 
 
+def test_finding_2s_order_without_one_estimator_still_uses_shared_ranks():
+    """A --quick report whose DEGENSAC study had no feasible trial read, under finding 2 "not run", "test mAA(10)
+    order here: pyransac > magsac > gcransac > cv-ransac" on 3 test pairs: the early "not run" return skipped the
+    ranking and the line fell back to bare '>' between point estimates the paired test never compared. With
+    magsac's and gcransac's errors identical and degensac missing, the line must show them tied."""
+    from tuner.findings.report import paper_comparison
+    rng = np.random.default_rng(1)
+    base = {(sc, i): float(rng.uniform(0.1, 1.0)) for sc in ("s1", "s2") for i in range(30)}
+    level = {"magsac": 2.0, "gcransac": 2.0, "pyransac": 4.0, "cv-ransac": 12.0}
+    outcomes = {r: _outcome(r, [{p: e + level[r] for p, e in base.items()}]) for r in level}
+    outcomes["degensac"] = StudyOutcome(spec=BY_ID[2].studies["degensac"], name="d", reason="no feasible trial")
+    a = A.analyse(BY_ID[2], outcomes, n_resamples=500)
+    assert a["verdict"] == "not run"
+    order = paper_comparison({"id": 2, "measured": a["measured"]}).split("test mAA(10) order here: ")[1]
+    assert "magsac > gcransac" not in order and "gcransac > magsac" not in order, order
+    assert "magsac ~ gcransac" in order or "gcransac ~ magsac" in order, order
+    assert "degensac" not in order, order
+
+
 def test_finding_7s_flat_regions_are_drawn_on_a_log_eta_axis():
     """Finding 7's figure drew eta on a linear axis: MAGSAC's region (0.57-9.7 px) squeezed the others (0.1-1.6 px)
     into the left sixth of the plot, where their optima could not be told apart; eta is searched on a log scale,

@@ -213,8 +213,10 @@ def analyse(f: Finding, outcomes: dict, n_resamples: int = 2000, seed: int = 0) 
             measured["relations"] = [c for _, c in computed if c is not None]
             key_roles = f.key or rels[0]
             key = relation(outcomes, *key_roles, n_resamples, seed)
-            if key is None:
-                return {**out, "verdict": NOT_RUN, "measured": {**measured, "reason": _reason(missing)}}
+            if key is None:  # the figures of the studies that ran still stand beside "not run" (finding 2's
+                # ranking with shared ranks: without it the report ordered them by point estimate, '>' untested)
+                return {**out, "verdict": NOT_RUN, "measured": {**measured, **_extras(f, outcomes, n_resamples, seed),
+                                                                "reason": _reason(missing)}}
             measured["key"] = f"{key_roles[1]} vs {key_roles[0]}"
             if f.rule == "small_gain":
                 st = small_gain(key["ci"])
