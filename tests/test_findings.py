@@ -1126,6 +1126,31 @@ def test_a_gamma_max_at_the_search_ceiling_is_reported_as_a_lower_bound_with_the
     assert R.study_warnings(f) == [f"degensac: {warn}"]
 
 
+def test_a_gamma_max_at_the_ceiling_does_not_claim_the_budget_never_bound_when_trials_ran_over_it():
+    """A --quick report's DoG + MKD row read "Gamma_max >= 1,000,000 (the search ceiling: the budget never bound
+    Gamma)" while its own freeze warning said 1 of 2 completed trials ran over the 0.5 s budget (and the 2k SIFT
+    DEGENSAC studies, every trial over it, had the same ceiling). The ceiling says only that the calibration, at its
+    r and eta, never reached the budget: the row says that, and counts the trials that ran over it."""
+    from tuner.budget import GAMMA_CEILING
+    from tuner.findings import report as R
+    over = _outcome("over", [{("s1", 0): 1.0, ("s1", 1): 2.0}])
+    over.attrs = {"budget": {"gamma_max": GAMMA_CEILING, "seconds_per_pair": 0.5}}
+    over.over_budget = 1
+    within = _outcome("within", [{("s1", 0): 1.0, ("s1", 1): 2.0}])
+    within.attrs = {"budget": {"gamma_max": GAMMA_CEILING, "seconds_per_pair": 0.5}}
+    fo, fw = A.study_figures(over, 200), A.study_figures(within, 200)
+    f = {"id": 2, "measured": {"studies": {"magsac": {**fo, "mAA10": 0.45}, "pyransac": {**fw, "mAA10": 0.5}}}}
+    rows = {r[0]: r[-1] for r in R._study_rows(f)}
+    assert "never bound" not in rows["magsac"] and "never bound" not in rows["pyransac"], rows
+    assert fo["trials_over_budget"] == 1 and fw["trials_over_budget"] == 0
+    assert rows["magsac"].startswith("Gamma_max >= 1,000,000 (the search ceiling: the calibration never reached the "
+                                     "budget, yet 1 completed trial ran over it); "), rows
+    assert rows["pyransac"].startswith("Gamma_max >= 1,000,000 (the search ceiling: the calibration never reached "
+                                       "the budget); "), rows
+    txt = R.paper_comparison(f)
+    assert "never bound" not in txt and "1 magsac trial(s) ran over it" in txt, txt
+
+
 def test_finding_12s_measured_line_states_its_key_relation_once():
     """Finding 12's key is the learned feature best on validation: its Measured line gave that relation as the key,
     then again among the others ("aliked (the best on validation of ...) vs rootsift: 0.1458 ...; ...; aliked vs

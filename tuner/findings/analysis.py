@@ -129,7 +129,7 @@ def study_figures(o, n_resamples: int) -> dict:
              trials=len(o.trials), compute=dict(o.compute or {}),
              # Gamma_max at the search ceiling is a lower bound (the budget never bound it), not a measured cap;
              # the freeze's warnings (that, an optimum on a bound of the space) qualify the frozen values shown
-             gamma_max_at_ceiling=gamma_ceiling_warning(budget) is not None,
+             gamma_max_at_ceiling=gamma_ceiling_warning(budget) is not None, trials_over_budget=o.over_budget,
              warnings=[str(w) for w in (o.frozen or {}).get("warnings") or []])
     if o.test is not None and o.test_runs:
         ci = combine_runs_interval(o.test_runs, taus=(5, 10), n_resamples=n_resamples)

@@ -177,7 +177,9 @@ def paper_comparison(f: dict) -> str | None:
             txt = ("Gamma at 0.5 s: paper " + ", ".join(f"{r} {v // 1000}k" for r, v in paper.items())
                    + "; here Gamma_max " + ", ".join((f"{r} >= {v:,}" if r in ceiling else f"{r} {v:,}") if v
                                                      else f"{r} -" for r, v in g.items())
-                   + (" ('>=': the search ceiling; the budget never bound Gamma there)" if ceiling else "")
+                   + (" ('>=': the search ceiling; the calibration never reached the budget there"
+                      + "".join(f"; {st[r]['trials_over_budget']} {r} trial(s) ran over it" for r in ceiling
+                                if st[r].get("trials_over_budget")) + ")" if ceiling else "")
                    + "; frozen Gamma " + ", ".join(f"{r} {int(v):,}" if v else f"{r} -" for r, v in frozen.items())
                    + "; test mAA(10) order here: " + order)
     elif f["id"] == 4:
@@ -209,11 +211,19 @@ def _study_rows(f: dict) -> list[list[str]]:
         rows.append([role, s["study"], _num(s.get("mAA10")), _ci(s.get("mAA10_ci")), _num(s.get("mAA5")), ps,
                      f"Gamma_max {'>= ' if s.get('gamma_max_at_ceiling') else ''}"
                      f"{format(s['gamma_max'], ',') if s.get('gamma_max') else '-'}"
-                     f"{' (the search ceiling: the budget never bound Gamma)' if s.get('gamma_max_at_ceiling') else ''}; "
+                     f"{_ceiling_note(s) if s.get('gamma_max_at_ceiling') else ''}; "
                      f"{s.get('trials', 0)} feasible trials; "
                      f"{s.get('pairs') or '-'} test pairs x {s.get('test_runs') or '-'} "
                      f"run{'' if s.get('test_runs') == 1 else 's'}{cost}"])
     return rows
+
+
+def _ceiling_note(s: dict) -> str:
+    """What a Gamma_max at the search ceiling means for one study: the calibration (at its own r and eta) never
+    reached the budget; it said "the budget never bound Gamma" beside trials that ran over the budget."""
+    over = s.get("trials_over_budget") or 0
+    return (" (the search ceiling: the calibration never reached the budget"
+            + (f", yet {over} completed trial{'s' * (over != 1)} ran over it" if over else "") + ")")
 
 
 def study_warnings(f: dict) -> list[str]:

@@ -77,6 +77,7 @@ class StudyOutcome:
     records_note: str = ""
     attrs: dict = field(default_factory=dict)
     trials: list = field(default_factory=list)  # (params, value) of feasible COMPLETE trials
+    over_budget: int = 0  # COMPLETE trials over the budget B (infeasible)
     best: tuple | None = None  # (params, value) of the best feasible trial
     val_ci: list | None = None  # 95% interval of the best trial's validation mAA(10)
     pending: str = ""  # reuse only (reuse_study): why the study is not finished yet ("" when it is, or cannot run)
@@ -449,8 +450,9 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
     out.attrs = dict(study.user_attrs)
     best = best_feasible(study)
     out.best = (dict(best.params), float(best.value)) if best is not None else None
-    out.trials = [(dict(t.params), float(t.value)) for t in study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
-                  if t.value is not None and trial_within_budget(t)]
+    complete = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
+    out.trials = [(dict(t.params), float(t.value)) for t in complete if t.value is not None and trial_within_budget(t)]
+    out.over_budget = sum(not trial_within_budget(t) for t in complete)
     if out.test is not None:
         out.test_path = str(study_dir(sdir, name) / "test.json")
         try:
@@ -538,8 +540,9 @@ def reuse_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool
     records_dir = sdir / "findings" / "records"
     out.attrs = attrs
     out.best = (dict(best.params), float(best.value))
-    out.trials = [(dict(t.params), float(t.value)) for t in study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
-                  if t.value is not None and trial_within_budget(t)]
+    complete = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
+    out.trials = [(dict(t.params), float(t.value)) for t in complete if t.value is not None and trial_within_budget(t)]
+    out.over_budget = sum(not trial_within_budget(t) for t in complete)
     if out.test is not None:
         out.test_path = str(study_dir(sdir, name) / "test.json")
         out.test_runs, out.records_note = test_records(out.frozen, out.test, records_dir, cache, compute=False)
