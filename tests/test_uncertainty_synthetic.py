@@ -503,6 +503,24 @@ def test_a_paired_interval_on_five_pairs_or_fewer_excludes_no_difference():
     assert six["scenes"]["t"]["ci"] == [-1.0, 1.0] and six["ci"][0] > 0 and six["significant"]
 
 
+def test_a_relative_interval_on_five_pairs_or_fewer_excludes_no_difference():
+    """The findings report printed beside a difference's 95% CI [-1, 1] (p 0.26, three test pairs) a relative one
+    of "+114.3% [95% CI +42.9%, +inf%]": on n <= 5 pairs the sign flips give p >= 2 / 2^n >= 0.0625 whatever the
+    data, so no interval at 95% may exclude a relative difference of 0 either; its whole range is -100% (B scores
+    0) to unbounded. Three pairs, each B better (A scores 0.5, B 1.0): before, [+1.0, +1.0]."""
+    from pipeline.metrics.uncertainty import paired_relative
+
+    def recs(errs, scene="s"):
+        return [{"scene": scene, "pair": f"p{i}", "err": float(e)} for i, e in enumerate(errs)]
+    three = paired_relative(recs([5.5] * 3), recs([0.5] * 3))
+    assert three["relative"] == pytest.approx(1.0) and three["ci"] == [-1.0, math.inf]
+    assert paired_bootstrap(recs([5.5] * 3), recs([0.5] * 3))["ci"] == [-1.0, 1.0]  # the difference's, alike
+    # six pairs (two scenes of three): the exact test can reject (p = 2 / 64), the bootstrap interval is kept
+    six = paired_relative(recs([5.5] * 3) + recs([5.5] * 3, "t"), recs([0.5] * 3) + recs([0.5] * 3, "t"))
+    assert six["ci"] == [pytest.approx(1.0), pytest.approx(1.0)]
+    assert paired_relative(recs([0.5, 3.0]), recs([0.5, 3.0]))["ci"] == [0.0, 0.0]  # identical: exactly 0
+
+
 def test_the_interval_of_a_relative_difference_covers_the_true_ratio():
     """Finding 1 quotes a relative loss (the paper's -29.3%) and finding 3 a relative gain (+10-15%); imtune printed
     the relative difference with no interval. Dividing the CI of B - A by the estimated mAA of A would ignore that
