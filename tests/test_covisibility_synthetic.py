@@ -153,3 +153,20 @@ def test_breakdown_by_covisibility_bins():
     assert by_threshold([0.5, 2.5, math.inf])["3"] == pytest.approx(2 / 3)
     m = mean_breakdown([b, by_covisibility(recs[:2])])
     assert m["0+"]["pairs"] == 6
+
+
+@pytest.mark.parametrize("n_images,big", [(14, 10), (40, 25)])  # every 10-subset enumerated; 25-bags grown
+def test_the_bags_of_one_size_do_not_depend_on_the_count_of_another(n_images, big):
+    """One generator drew every size in turn: asking 6 bags of 5 in place of 3 changed every bag of 10 and 25, so
+    two studies run with other --bags could not be paired on their common sizes. Each size now has its own
+    generator, seeded by (seed, size)."""
+    scene = synthetic_scene(n_images=n_images, n_points=4000, arc_deg=120, keep=0.9)
+    pts = {n: o[0] for n, o in scene.observations.items()}
+    three = sample_bags(list(scene.images), pts, {5: 3, big: 4}, min_points=100, seed=7)
+    six = sample_bags(list(scene.images), pts, {5: 6, big: 4}, min_points=100, seed=7)
+    alone = sample_bags(list(scene.images), pts, {big: 4}, min_points=100, seed=7)
+    assert len(three[big]) == 4 and len(set(three[big])) == 4
+    assert three[big] == six[big] == alone[big]
+    assert six[5][:3] == three[5] and len(set(six[5])) == 6  # more bags of a size: the first ones stay
+    other = sample_bags(list(scene.images), pts, {5: 3, big: 4}, min_points=100, seed=8)
+    assert other[big] != three[big]  # the seed still draws the bags

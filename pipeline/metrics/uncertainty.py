@@ -486,8 +486,9 @@ def _run_differences(records_a, records_b, common, names, tau) -> list[np.ndarra
 def _bag_unit(r: Mapping) -> tuple:
     """A bag record's key: ((scene, bag size), its images) -- what makes two records the same bag. The runs of one
     test reconstruct the same bags (only COLMAP's seed varies); two configurations do only where their bags were
-    drawn alike (the bag seed, the sizes and counts -- one generator draws every size in turn -- and the scene's 3D
-    points), so the bag index alone can name another bag in each. A record without its images (a test.json of an
+    drawn alike (the bag seed and the scene's 3D points; each bag size has its own generator, seeded by the bag seed
+    and the size, so another count of one size changes no other size's bags and more bags of a size keep the first
+    ones), so the bag index alone can name another bag in each. A record without its images (a test.json of an
     earlier imtune) is keyed by its index, which names the same bag only within one test."""
     imgs = r.get("images")
     st = (r["scene"], int(r["bag_size"]))

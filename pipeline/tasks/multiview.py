@@ -57,7 +57,8 @@ class MultiviewConfig:
 
     bags: ((size, count), ...) — the protocol's ((5, 100), (10, 50), (25, 25)); sizes clipped to the scene.
     min_points: each image of a bag must see at least this many of the bag's 3D points.
-    bag_seed: seed of the bag sampling.
+    bag_seed: seed of the bag sampling (each bag size draws from its own generator, seeded by (bag_seed, size):
+        ``pipeline.data.bags.sample_bags``).
     intrinsics: "colmap" (official: COLMAP estimates them, EXIF or 1.2 x long side), "prior" (known K as a
         refined prior) or "fixed" (known K, not refined). See ``pipeline.colmap_db``.
     pair_min_points: write matches only for bag pairs sharing at least this many ground-truth 3D points
