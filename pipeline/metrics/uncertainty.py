@@ -49,7 +49,7 @@ from pipeline.metrics.pose import mean_average_accuracy
 __all__ = ["pair_scores", "maa_from_errors", "maa_intervals", "bag_intervals", "paired_bootstrap", "paired_direction",
            "DIRECTION_RULE",
            "rank_with_ties", "rank_by_intervals", "combine_runs_interval", "combine_bag_runs_interval",
-           "paired_bags", "bags_differ", "is_bag_records", "stratified_interval",
+           "paired_bags", "bags_differ", "is_bag_records", "stratified_interval", "holm", "bonferroni",
            "DEFAULT_RESAMPLES", "DEFAULT_LEVEL", "SCORE_RANGE", "STD_DDOF", "format_p", "paired_relative"]
 
 DEFAULT_RESAMPLES = 2000
@@ -633,6 +633,30 @@ def paired_direction(ci, p_value: float | None = None, level: float = DEFAULT_LE
 
 # ------------------------------------------------------------------------------------------ ranking
 
+def holm(p_values: Sequence[float]) -> list[float]:
+    """Holm's step-down adjusted p-values (Holm 1979), in the given order: sorted ascending, the i-th of m (from 0)
+    is ``max over j <= i of min(1, (m - j) p_(j))``; reject where the adjusted p < alpha, which holds the family-wise
+    error rate at alpha for any dependence between the tests. Hand-written: scipy has no Holm
+    (``scipy.stats.false_discovery_control`` is Benjamini-Hochberg's FDR) and statsmodels is not a dependency."""
+    p = [float(x) for x in p_values]
+    m = len(p)
+    out = [1.0] * m
+    running = 0.0
+    for rank, i in enumerate(sorted(range(m), key=lambda j: p[j])):
+        running = max(running, min(1.0, (m - rank) * p[i]))
+        out[i] = running
+    return out
+
+
+def bonferroni(level: float, m: int, n_resamples: int = DEFAULT_RESAMPLES) -> tuple[float, float, int]:
+    """(level_each, alpha_each, resamples_each) of m comparisons made together at family level ``level``: each at
+    alpha / m (Bonferroni), with at least 20 / alpha_each bootstrap and sign-flip resamples (at most 100,000) so
+    that a p-value can reach alpha_each and the interval's tails rest on enough resamples. m <= 1: unchanged."""
+    m = max(1, int(m))
+    alpha = (1.0 - level) / m
+    return 1.0 - alpha, alpha, int(min(100_000, max(int(n_resamples), math.ceil(20.0 / alpha))))
+
+
 def _item(it) -> tuple[str, Sequence[Mapping]]:
     if isinstance(it, Mapping):
         return str(it["name"]), it["records"]
@@ -669,9 +693,7 @@ def rank_with_ties(items, tau: int = 10, n_resamples: int = DEFAULT_RESAMPLES, s
     tau = int(tau)
     named = [_item(it) for it in items]
     n_pairs_of_methods = max(1, len(named) * (len(named) - 1) // 2)
-    alpha = (1.0 - level) / n_pairs_of_methods
-    level_each = 1.0 - alpha  # Bonferroni over every pair of methods (docstring)
-    resamples_each = int(min(100_000, max(int(n_resamples), math.ceil(20.0 / alpha))))
+    level_each, alpha, resamples_each = bonferroni(level, n_pairs_of_methods, n_resamples)  # every pair (docstring)
     bags = bool(named) and all(is_bag_records(recs) for _, recs in named)
     compare = paired_bags if bags else paired_bootstrap
     vals = [_bag_value(recs, tau) if bags else _pair_value(recs, tau) for _, recs in named]

@@ -79,7 +79,8 @@ def run(args) -> int:
                   "are not held out (give --scenes its test scenes for a fair comparison)", file=sys.stderr)
     if args.json:
         objs = [{"a": c["a"], "b": c["b"], "overall": c["overall"], "scenes": c["scenes"],
-                 "verdict_rule": res["verdict_rule"]} for c in res["comparisons"]]
+                 "verdict_rule": res["verdict_rule"], **({"adjustment": res["adjustment"]} if res["adjustment"] else {})}
+                for c in res["comparisons"]]
         print(json.dumps(_jsonable(objs[0] if len(objs) == 1 else objs), indent=2))
         return 0
     print(f"data {res['data']} | scenes {', '.join(res['scenes'])} | {args.ci_resamples} resamples, seed {args.seed}")
@@ -89,7 +90,11 @@ def run(args) -> int:
               f"({s['pairs']} pairs)")
     for i, c in enumerate(res["comparisons"], 1):
         tag = "B" if len(res["comparisons"]) == 1 else f"B{i}"
-        print(f"\n{tag} vs A: mAA(10) difference B - A (> 0: B better), 95% bootstrap CI, paired sign-flip p")
+        what = ("95% bootstrap CI, paired sign-flip p" if len(res["comparisons"]) == 1 else
+                f"{100 * c['overall']['ci_level']:.4g}% bootstrap CI, paired sign-flip p Holm-adjusted")
+        print(f"\n{tag} vs A: mAA(10) difference {tag} - A (> 0: {tag} better), {what}")
         print(render(comparison_rows(c), "markdown"))
     print(f"verdict: {DIRECTION_RULE} (the rule of tune findings)")
+    if res["adjustment"]:
+        print(f"multiplicity: {res['adjustment']}")
     return 0
