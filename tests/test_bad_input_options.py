@@ -454,8 +454,9 @@ def test_compare_states_its_verdict_rule(tiny, tmp_path, capsys):
 
 
 def test_compare_says_a_multiview_study_runs_with_untuned_eta_and_gamma(tiny, tmp_path, capsys):
-    """A multiview study tunes r only (COLMAP runs its own RANSAC); `tune compare` ran its frozen eta 0.5 px and
-    Gamma on the stereo pairs and labelled it like any tuned study. It now says so on stderr (the JSON is unchanged)."""
+    """A multiview study tunes r only (COLMAP runs its own RANSAC); `tune compare --task stereo` runs its frozen eta
+    0.5 px and Gamma on the stereo pairs and says so on stderr (the JSON is unchanged). Without --task a multiview
+    study is compared on bags (test_tuner_multiview::test_compare_of_a_multiview_study_pairs_its_bags)."""
     import yaml
     sdir = tmp_path / "studies"
     (sdir / "mv").mkdir(parents=True)
@@ -467,13 +468,33 @@ def test_compare_says_a_multiview_study_runs_with_untuned_eta_and_gamma(tiny, tm
     conf.write_text(yaml.safe_dump({"config": {"feature": {"name": "sift", "num_features": 256},
                                                "geometry": {"ransac": "degensac", "max_iters": 1000}}}))
     rc, out, err = _cli(["compare", conf, "mv", "--data", tiny, "--cache", tmp_path / "cache", "--studies-dir", sdir,
-                         "--quiet", "--ci-resamples", "200"], capsys)
+                         "--quiet", "--ci-resamples", "200", "--task", "stereo"], capsys)
     assert rc == 0, err
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0] == ("warning: mv is a multiview study: it tuned ratio only; on these stereo "
                                             "pairs it runs with its file's eta 0.5 px and Gamma 1000 as they are, "
                                             "untuned"), err
     assert "| no significant difference |" in out or "better |" in out
+
+def test_compare_of_a_stereo_and_a_multiview_study_is_refused(tiny, tmp_path, capsys):
+    """`tune compare S MV` of a stereo and a multiview study: each was tuned for another task, and the comparison ran
+    on stereo pairs, MV with an eta and Gamma never tuned. Without --task it is now one line naming both and the two
+    --task values; a multiview option given to a stereo comparison is refused the same way."""
+    import yaml
+    sdir = tmp_path / "studies"
+    config = {"feature": {"name": "sift", "num_features": 256}, "matching": {"ratio": 0.74},
+              "geometry": {"ransac": "degensac", "threshold": 0.5, "max_iters": 1000}}
+    for name, task, params in (("mv", "multiview", {"ratio": 0.74}), ("s", "stereo", {"ratio": 0.74, "threshold": 0.5})):
+        (sdir / name).mkdir(parents=True)
+        (sdir / name / "frozen.yaml").write_text(yaml.safe_dump({"study": name, "trial": 0, "task": task,
+                                                                 "params": params, "config": config}))
+    common = ["--data", tiny, "--cache", tmp_path / "cache", "--studies-dir", sdir, "--quiet", "--ci-resamples", "200"]
+    rc, _, err = _cli(["compare", "s", "mv", *common], capsys)
+    _one_line_error(rc, err, "s is a stereo study", "mv a multiview study", "--task stereo", "--task multiview")
+    rc, _, err = _cli(["compare", "s", "s", "--bags", "5:3", *common], capsys)
+    _one_line_error(rc, err, "--bags", "--task multiview")
+    assert not (tmp_path / "cache").exists()  # refused before any evaluation
+
 
 # ------------------------------------------------------------------------------ 11. what an interrupted command says
 

@@ -411,3 +411,31 @@ def test_tune_studies_shows_no_infeasible_count_for_a_multiview_study(mv_study, 
     assert rc == 0
     row = next(r for r in json.loads(out) if r["study"] == STUDY)
     assert row["infeasible"] is None and row["complete"] == 2, row
+
+
+def test_compare_of_a_multiview_study_pairs_its_bags(mv_study, tmp_path, capsys):
+    """`tune compare STUDY B` of a multiview study evaluated it on stereo pairs, with an eta and Gamma it never
+    tuned, where a researcher asks how its tuned r reconstructs. A multiview study is now compared on the same
+    multiview bags (COLMAP), paired over the bags (uncertainty.paired_bags, as `tune results --task multiview`)."""
+    root, studies = mv_study
+    other = tmp_path / "r99.yaml"  # the same features, no ratio test: other matches, the same bags
+    other.write_text(yaml.safe_dump({"config": {"feature": {"name": "sift", "num_features": 1024},
+                                                "matching": {"ratio": 0.99}}}))
+    common = ["--data", str(root), "--scenes", "fountain-P11", "--studies-dir", str(studies), "--bags", "5:3",
+              "--workers", "1", "--quiet", "--ci-resamples", "200"]
+    from tuner.cli import main
+    capsys.readouterr()
+    rc = main(["compare", STUDY, str(other), STUDY, *common, "--json"])
+    out, err = capsys.readouterr()
+    assert rc == 0, err
+    res = json.loads(out)
+    assert [c["task"] for c in res] == ["multiview"] * 2 and "stereo pairs" not in err, err
+    vs_other, vs_self = (c["overall"] for c in res)
+    assert vs_other["pairs"] == 3 and vs_self["pairs"] == 3  # the 3 bags of 5, common to all
+    assert vs_self["difference"] == 0.0 and vs_self["p_value"] == 1.0 and vs_self["ci"] == [0.0, 0.0]
+    assert vs_other["ci_level"] == 0.975 and vs_other["comparisons"] == 2  # two comparisons: adjusted together
+    rc = main(["compare", STUDY, str(other), *common])
+    out = capsys.readouterr().out
+    assert rc == 0 and "multiview bags (COLMAP; paired over the same bags)" in out and "(3 bags)" in out, out
+    header = next(ln for ln in out.splitlines() if ln.startswith("| scene"))
+    assert [c.strip() for c in header.split("|")][1:3] == ["scene", "bags"], out  # bags counted, not pairs

@@ -16,15 +16,17 @@ both evaluated, its stratified bootstrap CI, a two-sided sign-flip p-value, over
 by the rule of `tune findings` (:func:`pipeline.metrics.uncertainty.paired_direction`): "B better" / "A better"
 only when the CI excludes 0 and the sign-flip test agrees (p < 0.05), else "no significant difference". With
 more than two sources the k - 1 comparisons are adjusted together (:func:`compare_records`: Bonferroni-level CIs,
-Holm-adjusted p-values), so that "significant" keeps its 5% over the whole table.
+Holm-adjusted p-values), so that "significant" keeps its 5% over the whole table. Multiview studies are compared
+on the same multiview bags, paired over bags (``compare(..., task="multiview")``; :func:`comparison_task`).
 """
 from __future__ import annotations
 
 from pathlib import Path
 
 from pipeline.errors import ImtuneError
-from pipeline.metrics.uncertainty import (DEFAULT_LEVEL, DEFAULT_RESAMPLES, DIRECTION_RULE, bonferroni, format_p, holm,
-                                          maa_intervals, paired_bootstrap, paired_direction)
+from pipeline.metrics.uncertainty import (DEFAULT_LEVEL, DEFAULT_RESAMPLES, DIRECTION_RULE, bag_intervals, bonferroni,
+                                          format_p, holm, is_bag_records, maa_intervals, paired_bags,
+                                          paired_bootstrap, paired_direction)
 
 COMPARISON_KEYS = ("mAA10_a", "mAA10_b", "difference", "ci", "p_value", "significant", "pairs", "dropped_a",
                    "dropped_b")  # + "p_value_unadjusted", "ci_level", "comparisons", "verdict" (compare_records)
@@ -63,16 +65,47 @@ def load_sources(specs: list[str], studies_dir: Path | str) -> list:
 def _records(section: dict) -> list[dict]:
     recs = section.get("pair_records")
     if recs is None:
+        recs = section.get("bag_records")
+    if recs is None:
         recs = section.get("records")
     if recs is None:
-        raise ImtuneError("the stereo evaluation returned no pair records (internal: with_pairs ignored)")
+        raise ImtuneError("the evaluation returned no pair or bag records (internal: with_pairs ignored)")
     return recs
+
+
+def source_task(src) -> str:
+    """The task a source was tuned for: its study's (frozen.yaml ``task``), else "stereo" (a configuration file)."""
+    return (getattr(src, "frozen", None) or {}).get("task") or "stereo"
+
+
+def comparison_task(specs: list[str], sources: list, task: str | None = None) -> str:
+    """The task `tune compare` evaluates the sources on: ``task`` when given, else the task their studies were tuned
+    for (configuration files go with either): a multiview study is compared on bags, as it was tuned. Studies of two
+    tasks and no ``task``: one-line ImtuneError naming one of each (neither task is the one the other was tuned
+    for)."""
+    if task:
+        return task
+    tuned = {}
+    for spec, src in zip(specs, sources):
+        if getattr(src, "frozen", None):
+            tuned.setdefault(source_task(src), spec)
+    if len(tuned) > 1:
+        (t1, s1), (t2, s2) = list(tuned.items())[:2]
+        raise ImtuneError(f"{s1} is a {t1} study and {s2} a {t2} study: each was tuned for another task; give "
+                          f"--task {t1} or --task {t2} to compare them on that task (the other study then runs with "
+                          "settings never tuned for it)")
+    return next(iter(tuned), "stereo")
 
 
 def compare(sources: list, data_root: Path | str, scenes=None, *, cache_dir=None, min_covisibility: float | None = 0.1,
             progress: bool = False, n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0,
-            level: float = DEFAULT_LEVEL) -> dict:
-    """Evaluate every source on the same stereo pairs and compare each with the first.
+            level: float = DEFAULT_LEVEL, task: str = "stereo", multiview=None, workers: int | None = None,
+            gt_dir=None, keep_models=None) -> dict:
+    """Evaluate every source on the same stereo pairs (``task`` "stereo") or the same multiview bags ("multiview":
+    ``multiview`` a MultiviewConfig, None the protocol's; ``workers`` parallel bag processes; ``keep_models`` a folder
+    for COLMAP's models; ``gt_dir`` where built ground truth lives, as for `tune evaluate`) and compare each with
+    the first: on bags by :func:`pipeline.metrics.uncertainty.paired_bags` (bags matched by their images, "pairs"
+    then counts the common bags, ``units`` "bags").
 
     sources: objects with ``conf`` (PipelineConfig) and ``label`` (see :func:`load_sources`).
     Returns ``{"data", "scenes", "sources": [{"label", "config", "mAA10", "mAA5", "mAA10_ci", "mAA5_ci",
@@ -87,23 +120,30 @@ def compare(sources: list, data_root: Path | str, scenes=None, *, cache_dir=None
         hit = next((res for conf, res in done if conf == src.conf), None)
         if hit is None:
             hit = evaluate_config(src.conf, Path(data_root), scenes, cache_dir=cache_dir,
-                                  min_covisibility=min_covisibility, progress=progress, with_pairs=True)
+                                  min_covisibility=min_covisibility, progress=progress, with_pairs=True, task=task,
+                                  gt_dir=gt_dir, **({"multiview": multiview, "workers": workers,
+                                                     "keep_models": keep_models} if task == "multiview" else {}))
             done.append((src.conf, hit))
         evaluated.append(hit)
     out_sources = []
     for src, res in zip(sources, evaluated):
-        st = res["stereo"]
-        ci = maa_intervals(_records(st), n_resamples=n_resamples, seed=seed, level=level, scenes=list(st["scenes"]))
+        st = res[task]
+        interval = bag_intervals if task == "multiview" else maa_intervals
+        ci = interval(_records(st), n_resamples=n_resamples, seed=seed, level=level, scenes=list(st["scenes"]))
+        unit = "bags" if task == "multiview" else "pairs"
         out_sources.append({
             "label": src.label, "config": res["config"], "mAA10": st["mAA10"], "mAA5": st["mAA5"],
-            "mAA10_ci": ci["mAA10_ci"], "mAA5_ci": ci["mAA5_ci"], "pairs": st["pairs"],
-            "scenes": {n: {"mAA10": s["mAA10"], "mAA5": s["mAA5"], "pairs": s["pairs"], **ci["scenes"].get(n, {})}
+            "mAA10_ci": ci["mAA10_ci"], "mAA5_ci": ci["mAA5_ci"], unit: st[unit],
+            "scenes": {n: {"mAA10": s["mAA10"], "mAA5": s["mAA5"], unit: s.get(unit), **ci["scenes"].get(n, {})}
                        for n, s in st["scenes"].items()}})
-    comparisons = compare_records([(src.label, _records(res["stereo"])) for src, res in zip(sources, evaluated)],
+    comparisons = compare_records([(src.label, _records(res[task])) for src, res in zip(sources, evaluated)],
                                   n_resamples=n_resamples, seed=seed, level=level)
-    return {"data": str(data_root), "scenes": evaluated[0]["scenes"], "level": level, "n_resamples": n_resamples,
-            "seed": seed, "sources": out_sources, "comparisons": comparisons, "verdict_rule": DIRECTION_RULE,
-            "adjustment": adjustment_note(len(comparisons), level)}
+    out = {"data": str(data_root), "scenes": evaluated[0]["scenes"], "task": task, "level": level,
+           "n_resamples": n_resamples, "seed": seed, "sources": out_sources, "comparisons": comparisons,
+           "verdict_rule": DIRECTION_RULE, "adjustment": adjustment_note(len(comparisons), level)}
+    if task == "multiview" and evaluated[0]["multiview"].get("notes"):
+        out["notes"] = evaluated[0]["multiview"]["notes"]
+    return out
 
 
 def compare_records(named: list[tuple[str, list]], *, n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0,
@@ -123,10 +163,12 @@ def compare_records(named: list[tuple[str, list]], *, n_resamples: int = DEFAULT
     if m <= 1:
         resamples_each = int(n_resamples)
     label_a, recs_a = named[0]
+    paired = paired_bags if is_bag_records(recs_a) else paired_bootstrap  # bag records: the multiview task's
     comparisons = []
     for label, recs in named[1:]:
-        pb = paired_bootstrap(recs_a, recs, tau=10, n_resamples=resamples_each, seed=seed, level=level_each)
-        comparisons.append({"a": label_a, "b": label, "overall": {k: pb[k] for k in COMPARISON_KEYS},
+        pb = paired(recs_a, recs, tau=10, n_resamples=resamples_each, seed=seed, level=level_each)
+        comparisons.append({"a": label_a, "b": label, "units": pb.get("units", "pairs"),
+                            "overall": {k: pb[k] for k in COMPARISON_KEYS},
                             "scenes": {n: {k: s[k] for k in COMPARISON_KEYS} for n, s in pb["scenes"].items()}})
     families = [[c["overall"] for c in comparisons]]
     for name in dict.fromkeys(n for c in comparisons for n in c["scenes"]):
@@ -164,12 +206,12 @@ def verdict(c: dict, level: float = DEFAULT_LEVEL) -> str:
 
 
 def comparison_rows(comp: dict, level: float = DEFAULT_LEVEL) -> list[dict]:
-    """Table rows of one comparison: one per scene, then "overall"."""
+    """Table rows of one comparison: one per scene, then "overall" (a "bags" column in place of "pairs" on bags)."""
     pct = f"{100 * comp['overall'].get('ci_level', level):.4g}%"
     adjusted = comp["overall"].get("comparisons", 1) > 1
     rows = []
     for name, c in list(comp["scenes"].items()) + [("overall", comp["overall"])]:
-        rows.append({"scene": name, "pairs": c["pairs"], "mAA10 A": f"{c['mAA10_a']:.4f}",
+        rows.append({"scene": name, comp.get("units", "pairs"): c["pairs"], "mAA10 A": f"{c['mAA10_a']:.4f}",
                      "mAA10 B": f"{c['mAA10_b']:.4f}", "B - A": f"{c['difference']:+.4f}",
                      f"{pct} CI": f"[{c['ci'][0]:+.4f}, {c['ci'][1]:+.4f}]",
                      "p (Holm)" if adjusted else "p": format_p(c["p_value"], 1.0 - level),

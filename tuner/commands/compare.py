@@ -1,10 +1,11 @@
-"""`tune compare A B [C ...]`: paired comparison of configurations on the same stereo pairs.
+"""`tune compare A B [C ...]`: paired comparison of configurations on the same stereo pairs (or multiview bags).
 
     tune compare sift-2048-degensac-stereo opencv-defaults.yaml --scenes entry-P10
     tune compare a.yaml b.yaml c.json --json
 
 Each of A, B, ... is a study name (its frozen settings), a frozen.yaml, a configuration file or an IMC
-benchmark method JSON. Python: :func:`tuner.compare.compare`.
+benchmark method JSON. Multiview studies are compared on the same multiview bags (``--task``, ``--bags``, ...):
+paired over bags, as `tune results --task multiview` ranks them. Python: :func:`tuner.compare.compare`.
 """
 from __future__ import annotations
 
@@ -32,6 +33,11 @@ def register(sub) -> None:
     d.add_argument("--covisibility", type=unit_float, default=0.1, help="minimum pair co-visibility where known")
     d.add_argument("--cache", default=None, help="cache folder (else $IMTUNE_CACHE or ~/.cache/imtune)")
     d.add_argument("--studies-dir", default=None, help="where studies live (default $IMTUNE_STUDIES, else studies/)")
+    d.add_argument("--task", choices=["stereo", "multiview"], default=None,
+                   help="compare on stereo pairs or on multiview bags (default: the task the studies were tuned for; "
+                        "configuration files alone: stereo)")
+    from tuner.options import add_multiview_options
+    add_multiview_options(ap)
     s = ap.add_argument_group("statistics")
     s.add_argument("--ci-resamples", type=resamples_int, default=2000, help="bootstrap / sign-flip resamples")
     s.add_argument("--seed", type=seed_int, default=0, help="seed of the resampling (estimator seeds come from each config)")
@@ -39,6 +45,8 @@ def register(sub) -> None:
     o.add_argument("--json", action="store_true",
                    help='one JSON object {"overall", "scenes"} (a list of them for more than two configurations)')
     o.add_argument("--quiet", action="store_true", help="no progress bars")
+    from tuner.options import track_explicit
+    track_explicit(ap)  # a multiview option typed while the comparison runs on stereo pairs is refused
     ap.set_defaults(func=run)
 
 
@@ -54,13 +62,22 @@ def run(args) -> int:
     sdir = Path(args.studies_dir).expanduser().resolve() if args.studies_dir else default_studies_dir()
     sources = load_sources(args.sources, sdir)
     from pipeline.tasks import is_timed
+    from tuner.compare import comparison_task, source_task
+    from tuner.options import check_multiview_only, multiview_config
+    task = comparison_task(args.sources, sources, args.task)  # a multiview study is compared on bags
+    check_multiview_only(args, [task])
     for spec, src in zip(args.sources, sources):
-        task = (src.frozen or {}).get("task") or "stereo"
-        if not is_timed(task):  # its eta and Gamma were never tuned (multiview): compared as they are, say so
-            tuned = ", ".join((src.frozen or {}).get("params") or {}) or "nothing"
-            print(f"warning: {spec} is a {task} study: it tuned {tuned} only; on these stereo pairs it "
+        tuned_for = source_task(src)
+        if not src.frozen or tuned_for == task:
+            continue
+        tuned = ", ".join((src.frozen or {}).get("params") or {}) or "nothing"
+        if not is_timed(tuned_for):  # its eta and Gamma were never tuned (multiview): compared as they are, say so
+            print(f"warning: {spec} is a {tuned_for} study: it tuned {tuned} only; on these stereo pairs it "
                   f"runs with its file's eta {src.conf.geometry.threshold:g} px and Gamma {src.conf.geometry.max_iters} "
                   "as they are, untuned", file=sys.stderr)
+        else:
+            print(f"warning: {spec} is a {tuned_for} study: its {tuned} were tuned on {tuned_for} pairs, not for "
+                  f"these {task} bags", file=sys.stderr)
     seen: dict = {}
     for spec, src in zip(args.sources, sources):  # the same configuration twice: a difference of 0 by construction
         key = json.dumps(src.conf.to_dict(), sort_keys=True, default=str)
@@ -69,8 +86,13 @@ def run(args) -> int:
                   "construction (same pairs, same seeds), not a finding", file=sys.stderr)
         seen.setdefault(key, spec)
     data = resolve_data(args.data)
+    mv = ({"multiview": multiview_config(args, seed=0), "workers": args.workers, "keep_models": args.keep_models}
+          if task == "multiview" else {})
     res = compare(sources, data, args.scenes, cache_dir=args.cache, min_covisibility=args.covisibility,
-                  progress=not (args.quiet or args.json), n_resamples=args.ci_resamples, seed=args.seed)
+                  progress=not (args.quiet or args.json), n_resamples=args.ci_resamples, seed=args.seed, task=task,
+                  gt_dir=args.gt_dir, **mv)
+    for note in res.get("notes") or []:  # where the bags could not follow --bags (a small scene)
+        print(f"warning: {note}", file=sys.stderr)
     for spec, src in zip(args.sources, sources):  # a tuned study measured on its own validation pairs is favoured
         tuned_on = sorted(set(res["scenes"]) & set(((src.frozen or {}).get("data") or {}).get("val_scenes") or []))
         if tuned_on:
@@ -79,15 +101,19 @@ def run(args) -> int:
                   "are not held out (give --scenes its test scenes for a fair comparison)", file=sys.stderr)
     if args.json:
         objs = [{"a": c["a"], "b": c["b"], "overall": c["overall"], "scenes": c["scenes"],
-                 "verdict_rule": res["verdict_rule"], **({"adjustment": res["adjustment"]} if res["adjustment"] else {})}
+                 "task": res["task"], "verdict_rule": res["verdict_rule"],
+                 **({"adjustment": res["adjustment"]} if res["adjustment"] else {})}
                 for c in res["comparisons"]]
         print(json.dumps(_jsonable(objs[0] if len(objs) == 1 else objs), indent=2))
         return 0
-    print(f"data {res['data']} | scenes {', '.join(res['scenes'])} | {args.ci_resamples} resamples, seed {args.seed}")
+    unit = "bags" if task == "multiview" else "pairs"
+    on = "multiview bags (COLMAP; paired over the same bags)" if task == "multiview" else "stereo pairs"
+    print(f"data {res['data']} | scenes {', '.join(res['scenes'])} | {on} | {args.ci_resamples} resamples, "
+          f"seed {args.seed}")
     for i, s in enumerate(res["sources"]):
         tag = "A" if i == 0 else ("B" if len(res["sources"]) == 2 else f"B{i}")
         print(f"{tag}: {s['label']}  mAA10 {s['mAA10']:.4f} [{s['mAA10_ci'][0]:.4f}, {s['mAA10_ci'][1]:.4f}] "
-              f"({s['pairs']} pairs)")
+              f"({s[unit]} {unit})")
     for i, c in enumerate(res["comparisons"], 1):
         tag = "B" if len(res["comparisons"]) == 1 else f"B{i}"
         what = ("95% bootstrap CI, paired sign-flip p" if len(res["comparisons"]) == 1 else
