@@ -475,6 +475,7 @@ def test_compare_says_a_multiview_study_runs_with_untuned_eta_and_gamma(tiny, tm
                                             "pairs it runs with its file's eta 0.5 px and Gamma 1000 as they are, "
                                             "untuned"), err
     assert "| no significant difference |" in out or "better |" in out
+    assert "B: mv (trial #0): sift 256 · r 0.74 both · degensac η 0.5 px, Γ 1000 " in out, out  # what runs here
 
 def test_compare_of_a_stereo_and_a_multiview_study_is_refused(tiny, tmp_path, capsys):
     """`tune compare S MV` of a stereo and a multiview study: each was tuned for another task, and the comparison ran

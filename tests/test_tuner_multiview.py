@@ -437,5 +437,7 @@ def test_compare_of_a_multiview_study_pairs_its_bags(mv_study, tmp_path, capsys)
     rc = main(["compare", STUDY, str(other), *common])
     out = capsys.readouterr().out
     assert rc == 0 and "multiview bags (COLMAP; paired over the same bags)" in out and "(3 bags)" in out, out
+    b_line = next(ln for ln in out.splitlines() if ln.startswith("B: r99"))
+    assert "COLMAP" in b_line and "degensac" not in b_line and "Γ" not in b_line, b_line  # not the unused estimator
     header = next(ln for ln in out.splitlines() if ln.startswith("| scene"))
     assert [c.strip() for c in header.split("|")][1:3] == ["scene", "bags"], out  # bags counted, not pairs

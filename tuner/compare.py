@@ -97,6 +97,17 @@ def comparison_task(specs: list[str], sources: list, task: str | None = None) ->
     return next(iter(tuned), "stereo")
 
 
+def task_label(src, task: str) -> str:
+    """A source's label naming what verifies its matches on ``task``: a configuration file compared on multiview bags
+    was labelled 'degensac η 0.5 px, Γ 50000' (an estimator COLMAP never used), a multiview study on stereo pairs
+    'COLMAP from our tentative matches' (its eta and Gamma do run there)."""
+    from pipeline.config_files import config_label
+    for tail in {config_label(src.conf, source_task(src)), config_label(src.conf)}:
+        if src.label.endswith(tail):
+            return src.label[: len(src.label) - len(tail)] + config_label(src.conf, task)
+    return src.label
+
+
 def compare(sources: list, data_root: Path | str, scenes=None, *, cache_dir=None, min_covisibility: float | None = 0.1,
             progress: bool = False, n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0,
             level: float = DEFAULT_LEVEL, task: str = "stereo", multiview=None, workers: int | None = None,
@@ -126,17 +137,18 @@ def compare(sources: list, data_root: Path | str, scenes=None, *, cache_dir=None
             done.append((src.conf, hit))
         evaluated.append(hit)
     out_sources = []
-    for src, res in zip(sources, evaluated):
+    labels = [task_label(src, task) for src in sources]
+    for src, res, label in zip(sources, evaluated, labels):
         st = res[task]
         interval = bag_intervals if task == "multiview" else maa_intervals
         ci = interval(_records(st), n_resamples=n_resamples, seed=seed, level=level, scenes=list(st["scenes"]))
         unit = "bags" if task == "multiview" else "pairs"
         out_sources.append({
-            "label": src.label, "config": res["config"], "mAA10": st["mAA10"], "mAA5": st["mAA5"],
+            "label": label, "config": res["config"], "mAA10": st["mAA10"], "mAA5": st["mAA5"],
             "mAA10_ci": ci["mAA10_ci"], "mAA5_ci": ci["mAA5_ci"], unit: st[unit],
             "scenes": {n: {"mAA10": s["mAA10"], "mAA5": s["mAA5"], unit: s.get(unit), **ci["scenes"].get(n, {})}
                        for n, s in st["scenes"].items()}})
-    comparisons = compare_records([(src.label, _records(res[task])) for src, res in zip(sources, evaluated)],
+    comparisons = compare_records([(label, _records(res[task])) for label, res in zip(labels, evaluated)],
                                   n_resamples=n_resamples, seed=seed, level=level)
     out = {"data": str(data_root), "scenes": evaluated[0]["scenes"], "task": task, "level": level,
            "n_resamples": n_resamples, "seed": seed, "sources": out_sources, "comparisons": comparisons,
