@@ -243,7 +243,8 @@ def test_ground_truth_from_poses_of_two_images_is_refused_not_written_empty(tmp_
     """`tune data build-gt` on a scene of 2 posed images wrote a ground truth of 0 points (COLMAP triangulates no point
     seen in only two images): its one pair then had co-visibility 0, and `tune evaluate` found "nothing to evaluate"
     (in a data set of several scenes, that scene's pairs were left out without a word). Now one line naming the scene,
-    before any scene is built, nothing written, and the pair is still evaluated."""
+    nothing written, and the pair is still evaluated (the other scenes of a data folder are still built:
+    test_a_posed_scene_of_two_images_is_one_failed_scene_the_others_built)."""
     from tests.conftest import copy_strecha_subset
     from tuner.cli import main
     data = copy_strecha_subset(tmp_path / "data", ["0004.jpg", "0005.jpg"])
@@ -387,3 +388,27 @@ def test_pairs_dropped_by_an_sfm_ground_truth_are_said(tmp_path, capsys):
                "--cache", str(tmp_path / "cache"), "--quiet", "--covisibility", "0"])
     out, err = capsys.readouterr()
     assert rc == 0 and f"ground truth: listed: {origin}" in out.splitlines(), out
+
+
+def test_a_posed_scene_of_two_images_is_one_failed_scene_the_others_built(tmp_path, capsys):
+    """`tune data build-gt` on a data folder where one posed scene has 2 images refused the whole run before building
+    anything (the other scenes left without co-visibility). Now that scene is one more failed scene (its line at the
+    end, exit 2) and the others are built."""
+    from tests.conftest import copy_strecha_subset
+    from tuner.cli import main
+    data = copy_strecha_subset(tmp_path / "data", ["0004.jpg", "0005.jpg"])
+    copy_strecha_subset(data, ["0000.jpg", "0001.jpg", "0002.jpg"], scene="Herz-Jesus-P8")
+    gt_dir = tmp_path / "gt"
+    capsys.readouterr()
+    rc = main(["data", "build-gt", "--data", str(data), "--scenes", "fountain-P11,Herz-Jesus-P8", "--gt-dir",
+               str(gt_dir), "--quiet", "--num-features", "1024", "--max-image-size", "1024"])
+    out, err = capsys.readouterr()
+    assert rc == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("tune: error: scene fountain-P11: ground truth from known poses "
+                                                   "needs at least 3 images, it has 2"), err
+    assert out.startswith("Herz-Jesus-P8: poses: 3/3 images registered"), out
+    built = find_ground_truth(load_scene(data, "Herz-Jesus-P8"), gt_dir)
+    assert built is not None and load_ground_truth(built).names == ["0000.jpg", "0001.jpg", "0002.jpg"]
+    assert find_ground_truth(load_scene(data, "fountain-P11"), gt_dir) is None
+

@@ -142,7 +142,7 @@ def run_build_gt(args) -> int:
             print(f"warning: --camera-model {args.camera_model} is not used for {', '.join(posed)}: their images have "
                   "known poses and K (--method auto triangulates with them); --method sfm reconstructs with it",
                   file=sys.stderr, flush=True)
-    from pipeline.data.ground_truth import check_poses_scene, choose_method
+    from pipeline.data.ground_truth import choose_method
     if args.method == "sfm":  # a scene's own poses (Strecha's laser scans) are replaced in every later command
         posed = [sc.name for sc in scenes if choose_method(sc, "auto") == "poses"]
         if posed:
@@ -151,8 +151,6 @@ def run_build_gt(args) -> int:
                   "them; rebuild with it and --force to go back)", file=sys.stderr, flush=True)
     from pipeline.data.ground_truth import find_ground_truth
     for sc in scenes:  # before any scene is built (a build takes minutes)
-        if choose_method(sc, args.method) == "poses":
-            check_poses_scene(sc)
         find_ground_truth(sc, args.gt_dir)  # a file or folder in the way of its gt.h5: one line, now
     report, failed = {}, {}
     for sc in scenes:
@@ -162,7 +160,7 @@ def run_build_gt(args) -> int:
         total = len(sc.images)
         try:
             gt, path = build_ground_truth(sc, args.gt_dir, conf, force=args.force, progress=say)
-        except ImtuneError as e:  # this scene's SfM failed: the later scenes are still built
+        except ImtuneError as e:  # this scene failed (too few posed images, its SfM): the other scenes are still built
             msg = str(e)
             failed[sc.name] = msg if msg.startswith(f"scene {sc.name}:") else f"scene {sc.name}: {msg}"
             report[sc.name] = {"error": failed[sc.name]}
