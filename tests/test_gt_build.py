@@ -412,3 +412,33 @@ def test_a_posed_scene_of_two_images_is_one_failed_scene_the_others_built(tmp_pa
     assert built is not None and load_ground_truth(built).names == ["0000.jpg", "0001.jpg", "0002.jpg"]
     assert find_ground_truth(load_scene(data, "fountain-P11"), gt_dir) is None
 
+
+def test_an_exception_from_colmap_is_the_scenes_one_line_not_a_traceback(tmp_path):
+    """An exception from pycolmap inside `tune data build-gt` (here its database cannot be written: a process whose
+    files may not grow, as on a full disk; COLMAP raises "RuntimeError: No registered database factory succeeded")
+    went up as a traceback that stopped the loop over scenes. Now each scene is its own one-line failure naming the
+    scene, the COLMAP step and the cause; every scene is tried; exit 2."""
+    import os
+    import resource
+    import signal
+    import subprocess
+    import sys
+    from tests.conftest import ROOT, copy_strecha_subset
+    data = copy_strecha_subset(tmp_path / "data", ["0003.jpg", "0004.jpg", "0005.jpg"])
+    copy_strecha_subset(data, ["0000.jpg", "0001.jpg", "0002.jpg"], scene="Herz-Jesus-P8")
+    env = dict(os.environ, IMTUNE_CACHE=str(tmp_path / "cache"), IMTUNE_GT=str(tmp_path / "gt"))
+    env.pop("IMTUNE_DEBUG", None)
+
+    def no_room():  # writes fail with EFBIG ("File too large") in place of killing the process
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (1024, 1024))  # room for tempfile's probe, not a database page
+    r = subprocess.run([sys.executable, "-m", "tuner", "data", "build-gt", "--data", str(data), "--scenes",
+                        "fountain-P11,Herz-Jesus-P8", "--num-features", "512", "--max-image-size", "1024", "--quiet"],
+                       cwd=ROOT, env=env, capture_output=True, text=True, timeout=300, preexec_fn=no_room)
+    assert r.returncode == 2, r.stderr
+    assert "Traceback" not in r.stderr, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 2, r.stderr
+    for line, scene in zip(lines, ["fountain-P11", "Herz-Jesus-P8"]):
+        assert line.startswith(f"tune: error: scene {scene}: COLMAP feature extraction failed (RuntimeError: "), line
+        assert "has free space" in line, line

@@ -147,6 +147,27 @@ class GroundTruth:
 
 # ------------------------------------------------------------------------------------------ building
 
+class _colmap_step:
+    """``with _colmap_step(scene, "feature extraction", work):`` turns an exception from pycolmap (or the file system
+    under it) into the scene's one-line ImtuneError naming the step and the cause: a RuntimeError from COLMAP (its
+    database could not be written: a full disk) went up as a traceback that stopped `tune data build-gt` before the
+    other scenes. ImtuneError passes through unchanged."""
+
+    def __init__(self, scene, what: str, work: Path):
+        self.scene, self.what, self.work = scene, what, work
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, e, tb):
+        if e is None or isinstance(e, ImtuneError) or not isinstance(e, Exception):
+            return False
+        cause = " ".join(str(e).split()) or "no message"
+        raise ImtuneError(f"scene {self.scene.name}: COLMAP {self.what} failed ({type(e).__name__}: {cause[:200]}); "
+                          f"check that its images are readable and that the work folder {self.work.parent} has free "
+                          "space (TMPDIR chooses another)") from None
+
+
 def _image_root(scene) -> tuple[Path, dict[str, str]]:
     """A folder holding every image of the scene and name -> path relative to it (COLMAP image names)."""
     paths = {n: Path(info.path).resolve() for n, info in scene.images.items()}
@@ -172,14 +193,18 @@ def _extract_and_match(scene, conf: GTConfig, work: Path, known_K: bool, progres
     ro.camera_model = "PINHOLE" if known_K else conf.camera_model
     t0 = time.perf_counter()
     progress(f"extracting SIFT on {len(rel)} images")
-    pycolmap.extract_features(str(db), str(img_root), sorted(rel.values()), pycolmap.CameraMode.PER_IMAGE, ro, eo,
-                              pycolmap.Device.cpu)
+    with _colmap_step(scene, "feature extraction", work):
+        pycolmap.extract_features(str(db), str(img_root), sorted(rel.values()), pycolmap.CameraMode.PER_IMAGE, ro,
+                                  eo, pycolmap.Device.cpu)
     secs = {"extract": time.perf_counter() - t0}
     back = {v: k for k, v in rel.items()}
     ids: dict[str, int] = {}
-    d = pycolmap.Database.open(str(db))
+    with _colmap_step(scene, "database reading", work):
+        d = pycolmap.Database.open(str(db))
     try:
-        for im in d.read_all_images():
+        with _colmap_step(scene, "database reading", work):
+            images = d.read_all_images()
+        for im in images:
             if im.name not in back:
                 continue
             name = back[im.name]
@@ -193,7 +218,8 @@ def _extract_and_match(scene, conf: GTConfig, work: Path, known_K: bool, progres
                                       f"its intrinsics are for {w}x{h}")
                 cam.params = [K[0, 0], K[1, 1], K[0, 2] + PIXEL_OFFSET, K[1, 2] + PIXEL_OFFSET]
                 cam.has_prior_focal_length = True
-                d.update_camera(cam)
+                with _colmap_step(scene, "database writing", work):
+                    d.update_camera(cam)
     finally:
         d.close()
     missing = sorted(set(rel) - set(ids))
@@ -206,7 +232,8 @@ def _extract_and_match(scene, conf: GTConfig, work: Path, known_K: bool, progres
     mo.sift.max_ratio = float(conf.max_ratio)
     vo = pycolmap.TwoViewGeometryOptions()
     vo.ransac.random_seed = int(conf.seed)
-    pycolmap.match_exhaustive(str(db), mo, pycolmap.ExhaustivePairingOptions(), vo, pycolmap.Device.cpu)
+    with _colmap_step(scene, "exhaustive matching", work):
+        pycolmap.match_exhaustive(str(db), mo, pycolmap.ExhaustivePairingOptions(), vo, pycolmap.Device.cpu)
     secs["match"] = time.perf_counter() - t0
     return db, ids, img_root, secs
 
@@ -280,11 +307,13 @@ def build_from_poses(scene, conf: GTConfig = GTConfig(), work: Path | None = Non
     try:
         db, ids, img_root, secs = _extract_and_match(scene, conf, work, known_K=True, progress=progress)
         rec = pycolmap.Reconstruction()
-        d = pycolmap.Database.open(str(db))
+        with _colmap_step(scene, "database reading", work):
+            d = pycolmap.Database.open(str(db))
         try:
             for name, iid in ids.items():
-                im = d.read_image(iid)
-                cam = d.read_camera(im.camera_id)
+                with _colmap_step(scene, "database reading", work):
+                    im = d.read_image(iid)
+                    cam = d.read_camera(im.camera_id)
                 rec.add_camera_with_trivial_rig(cam)
                 info = scene.images[name]
                 pose = pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(info.R, float)), np.asarray(info.t, float).reshape(3))

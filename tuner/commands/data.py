@@ -160,8 +160,9 @@ def run_build_gt(args) -> int:
         total = len(sc.images)
         try:
             gt, path = build_ground_truth(sc, args.gt_dir, conf, force=args.force, progress=say)
-        except ImtuneError as e:  # this scene failed (too few posed images, its SfM): the other scenes are still built
-            msg = str(e)
+        except (ImtuneError, OSError) as e:  # this scene failed (too few posed images, SfM, COLMAP, its work folder):
+            # the other scenes are still built
+            msg = str(e) if isinstance(e, ImtuneError) else f"cannot build its ground truth ({e})"
             failed[sc.name] = msg if msg.startswith(f"scene {sc.name}:") else f"scene {sc.name}: {msg}"
             report[sc.name] = {"error": failed[sc.name]}
             continue
