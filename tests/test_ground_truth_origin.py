@@ -81,3 +81,54 @@ def test_the_findings_header_names_both(tested, monkeypatch):
     lines = settings_lines(FindingsSettings(data_root=tested["data"], studies_dir=tested["studies"], quick=True,
                                             val_scenes=["fountain-P11"], test_scenes=["herz"]))
     assert f"ground truth: fountain-P11: {OWN}; herz: {SFM}" in lines, lines
+
+
+def test_tune_results_and_table_name_the_ground_truth_in_their_caption(tested):
+    """`tune results` and `tune table` did not say where the scenes' poses come from, which a reader comparing the
+    figures with the paper's needs beside them: results (test numbers) the test scenes', table (validation optima)
+    the validation scenes'. One origin for every row: a caption line."""
+    env, studies = tested["env"], tested["studies"]
+    results = tune("results", "--studies-dir", studies, env=env).stdout
+    caption = [ln for ln in results.splitlines() if ln.startswith("Table: ")]
+    assert len(caption) == 1 and caption[0].endswith(f" Test ground truth: herz: {SFM}."), results
+    assert "| ground truth" not in results  # one origin: no column
+    table = tune("table", "--studies-dir", studies, env=env).stdout
+    caption = [ln for ln in table.splitlines() if ln.startswith("Table: ")]
+    assert len(caption) == 1 and caption[0].endswith(f" Validation ground truth: fountain-P11: {OWN}."), table
+    latex = tune("table", "--studies-dir", studies, "--format", "latex", env=env).stdout
+    assert "Validation ground truth: fountain-P11: the scene's own poses (Strecha's laser-scan cameras)." in latex
+    rows = json.loads(tune("results", "--studies-dir", studies, "--format", "json", env=env).stdout)
+    assert [r["ground truth"] for r in rows] == [f"herz: {SFM}"], rows
+    rows = json.loads(tune("table", "--studies-dir", studies, "--format", "json", env=env).stdout)
+    assert [r["val ground truth"] for r in rows] == [f"fountain-P11: {OWN}"], rows
+
+
+def test_an_older_study_beside_a_new_one_reads_not_recorded_in_a_column(tested, tmp_path):
+    """A storage holding a study recorded before imtune recorded the ground truth (no 'ground_truth' in its data or
+    test summary) beside one that has it: the origins differ, so each row says its own in a 'ground truth' column
+    (results) or 'val ground truth' column (table), the older one 'not recorded'. The older study here is a copy of
+    the tested one, as another feature, with those records removed, in a copy of the real storage."""
+    import optuna
+    from tests.conftest import copy_studies
+    studies = copy_studies(tested["studies"], tmp_path / "studies")
+    url = f"sqlite:///{studies / 'optuna.db'}"
+    optuna.copy_study(from_study_name=tested["name"], from_storage=url, to_storage=url,
+                      to_study_name="old-rootsift-1024-cv-ransac-stereo")
+    old = optuna.load_study(study_name="old-rootsift-1024-cv-ransac-stereo", storage=url)
+    data = {k: v for k, v in old.user_attrs["data"].items() if k != "ground_truth"}
+    test = {k: v for k, v in old.user_attrs["test"].items() if k != "ground_truth"}
+    old.set_user_attr("data", data)
+    old.set_user_attr("test", test)
+    old.set_user_attr("feature", "rootsift")
+    env = tested["env"]
+    rows = json.loads(tune("results", "--studies-dir", studies, "--format", "json", env=env).stdout)
+    got = {r["feature"]: r["ground truth"] for r in rows}
+    assert got == {"sift": f"herz: {SFM}", "rootsift": "not recorded (written before imtune recorded it)"}, rows
+    results = tune("results", "--studies-dir", studies, env=env).stdout
+    assert "| ground truth" in results.splitlines()[0], results
+    assert results.splitlines()[-1].endswith(" Test ground truth of each row's best study: column 'ground truth'.")
+    table = tune("table", "--studies-dir", studies, env=env).stdout
+    head = table.splitlines()[0]
+    assert "| val ground truth" in head, table
+    assert any("not recorded (written before imtune recorded it)" in ln for ln in table.splitlines()[2:4]), table
+    assert table.splitlines()[-1].endswith(" Validation ground truth of each row's study: column 'val ground truth'.")

@@ -96,7 +96,8 @@ def test_settings_table_latex_exact():
     assert tex[2] == (r"\caption{Optimal settings on the validation scenes fountain-P11: ratio test $r$ (stereo: from "
                       r"the estimator study with the best validation mAA($10^\circ$); multiview: COLMAP), inlier "
                       r"threshold $\eta$ (px) and maximum iterations $\Gamma$ of each estimator under the time budget "
-                      r"$B = 0.5$\,s per pair (median estimator time).}")
+                      r"$B = 0.5$\,s per pair (median estimator time). Validation ground truth: not recorded (written "
+                      r"before imtune recorded it).}")  # these studies' records predate it
     assert tex[3:] == [
         r"\begin{tabular}{lrrrrrrrrlrr}",
         r"\toprule",
@@ -148,7 +149,8 @@ def test_settings_table_multiview_only():
     assert list(cols) == ["feature", "features", "r_multiview", "mAA10 mv val"]
     tex = render_table(rows, cols, "latex").splitlines()
     assert tex[2] == (r"\caption{Optimal ratio test $r$ for multiview reconstruction (COLMAP, which runs its own "
-                      r"RANSAC) on the validation scenes fountain\_P11.}")
+                      r"RANSAC) on the validation scenes fountain\_P11. Validation ground truth: not recorded (written "
+                      r"before imtune recorded it).}")
     assert tex[3] == r"\begin{tabular}{lrrr}" and tex[7] == r"sift & 1024 & 0.93 & 0.400 \\"
 
 

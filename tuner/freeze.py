@@ -604,6 +604,8 @@ def test_summary(result: dict) -> dict:
     scalars = {k: v for k, v in m.items() if k != "scenes" and not isinstance(v, (list, dict))}
     return {"trial": result.get("trial"), "task": result.get("task", "stereo"), "runs": len(result.get("runs", [])),
             "scenes": result["data"]["scenes"], **scalars,
+            # where each test scene's poses come from (Scene.truth_origin); absent in a test.json written before
+            "ground_truth": result["data"].get("ground_truth"),
             **{f"{k}_std": v for k, v in (result.get("std") or {}).items() if not isinstance(v, list)},
             "within_budget": result.get("budget", {}).get("within_budget"),
             **{k: v for k, v in m.items() if k.endswith("_ci")},  # 95% intervals of the mean over runs

@@ -212,6 +212,26 @@ def _settings_caption(studies: list[StudyInfo], multiview: list[StudyInfo], per_
     return plain, tex
 
 
+GROUND_TRUTH_NOT_RECORDED = "not recorded (written before imtune recorded it)"
+
+
+def _truth(origins) -> str:
+    """One line of recorded ground-truth origins (scene -> :meth:`pipeline.data.scene.Scene.truth_origin`), or that an
+    older record does not say."""
+    from tuner.formatting import ground_truth_text
+    return ground_truth_text(origins) or GROUND_TRUTH_NOT_RECORDED
+
+
+def _val_truth(s: StudyInfo) -> str:
+    """Where a study's validation scenes' poses come from, as the study recorded it."""
+    return _truth((s.attrs.get("data") or {}).get("ground_truth"))
+
+
+def _test_truth(s: StudyInfo) -> str:
+    """Where a study's test scenes' poses come from, as its test (test.json, the study's test summary) recorded it."""
+    return _truth((s.test or {}).get("ground_truth"))
+
+
 def _val_set(s: StudyInfo) -> str:
     """What a study was tuned on: its validation scenes and pairs (e.g. ``fountain-P11 (55 pairs)``)."""
     d = s.attrs.get("data") or {}
@@ -229,7 +249,9 @@ def settings_rows(studies: list[StudyInfo], fmt: str = "markdown",
     pair; one ``B <est>`` column per estimator when the studies differ). ``columns`` is a
     :class:`tuner.formatting.Columns` with the caption of the LaTeX form; ``multiview`` studies fill
     ``r_multiview`` (an empty column without them, as the paper's table has it, unless ``multiview_column`` is
-    False: a table asked for one task only). ``warn(line)``: told when the stereo studies shown were tuned on
+    False: a table asked for one task only). Where the validation poses come from (the study's recorded
+    ``data.ground_truth``, "not recorded" for an older study) ends the caption when every row's study says the same,
+    else is a ``val ground truth`` column (always one in ``json``). ``warn(line)``: told when the stereo studies shown were tuned on
     different validation sets (scenes or pairs)."""
     from tuner.formatting import Columns
     multiview = list(multiview or [])
@@ -268,6 +290,8 @@ def settings_rows(studies: list[StudyInfo], fmt: str = "markdown",
             bs = {_budget(s) for s in group} - {None}
             row["B"] = bs.pop() if len(bs) == 1 else None
         row["r from"] = top.ransac if top else None
+        truth_of = top or mv_top
+        row["val ground truth"] = _val_truth(truth_of) if truth_of else None
         row["mAA10 val"] = _num(trial_value(top.best), 4) if top else None
         row["mAA10 mv val"] = _num(trial_value(mv_top.best), 4) if mv_top else None
         for key, st in (("mAA10 val", top), ("mAA10 mv val", mv_top)):  # the optimum's 95% interval
@@ -300,10 +324,18 @@ def settings_rows(studies: list[StudyInfo], fmt: str = "markdown",
         names += ["r from", "mAA10 val"]
     if multiview:
         names.append("mAA10 mv val")
+    # where the validation poses come from: the caption when every row's study says the same, else a column
+    truths = {r["val ground truth"] for r in rows if r["val ground truth"] is not None}
+    if len(truths) > 1 or fmt == "json":
+        names.append("val ground truth")
     if fmt == "json":
         names += (["mAA10 val ci"] if studies else []) + (["mAA10 mv val ci"] if multiview else [])
         names += ["studies"] + (["multiview_studies"] if multiview else [])
     plain, tex = _settings_caption(studies, multiview, per_est_budget)
+    from tuner.formatting import latex_escape
+    truth = (f" Validation ground truth: {truths.pop()}." if len(truths) == 1 else
+             " Validation ground truth of each row's study: column 'val ground truth'." if truths else "")
+    plain, tex = plain + truth, tex + latex_escape(truth)
     labels = {"r": "$r$ stereo", "r from": "$r$ from", "r_multiview": "$r$ multiview", "B": "$B$ (s)",
               "mAA10 val": "val.\\ mAA($10^\\circ$)", "mAA10 mv val": "val.\\ multiview mAA($10^\\circ$)"}
     for e in ests:
@@ -387,7 +419,9 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
     the test bags (:func:`~pipeline.metrics.uncertainty.paired_bags`) where every row's test holds the same bags
     (scene, size and images), else when their intervals overlap
     (:func:`~pipeline.metrics.uncertainty.rank_by_intervals`, unpaired and conservative; the column says why).
-    The ``ties`` column says which rule shared a rank, or that no interval was available. ``--format json``
+    The ``ties`` column says which rule shared a rank, or that no interval was available. Where the test poses come
+    from (test.json's ``data.ground_truth`` of each row's best study, "not recorded" for an older one) ends the
+    caption when every row says the same, else is a ``ground truth`` column (always one in ``json``). ``--format json``
     adds ``mAA10_ci <est>`` lists and ``studies``. ``warn(line)``: told of a test.json that cannot be read."""
     from pipeline.metrics.uncertainty import (bags_differ, combine_bag_runs_interval, combine_runs_interval,
                                               is_bag_records, rank_by_intervals, rank_with_ties)
@@ -430,6 +464,7 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
         row["best"] = best[1] if best else None
         if several:
             row["test set"] = _test_set(by_est[best[1]]) if best else None
+        row["ground truth"] = _test_truth(by_est[best[1]]) if best else None  # the test poses of its best study
         row["_best"] = best
         if fmt == "json":
             row["studies"] = {s.ransac: {"study": s.name, **s.test} for s in by_est.values()}
@@ -486,7 +521,9 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
     cols = ["rank", "feature", "features", "NF"]
     for e in ests:
         cols += [f"NI {e}", f"mAA10 {e}"] + ([f"mAA10_ci {e}"] if fmt == "json" else [])
-    cols += ["best"] + (["test set"] if several else []) + ["ties"]
+    truths = {r["ground truth"] for r in rows if r["ground truth"] is not None}
+    cols += ["best"] + (["test set"] if several else []) + (["ground truth"] if len(truths) > 1 or fmt == "json"
+                                                            else []) + ["ties"]
     # NF / NI that no row has (a multiview test records neither): left out, not a column of '-'
     cols = [c for c in cols if not (c == "NF" or c.startswith("NI ")) or any(r.get(c) is not None for r in rows)]
     if fmt == "json":
@@ -498,10 +535,10 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
         # ... and a 'best' column would name that estimator in every row, as if it had won
         rows = [{ren.get(k, k): v for k, v in r.items() if k != "best"} for r in rows]
         cols = [ren.get(c, c) for c in cols if c != "best"]
-    return rows, Columns(cols, caption=_results_caption(shown, sets, several))
+    return rows, Columns(cols, caption=_results_caption(shown, sets, several, truths))
 
 
-def _results_caption(shown: list[StudyInfo], sets: dict, several: bool) -> str:
+def _results_caption(shown: list[StudyInfo], sets: dict, several: bool, truths: set | None = None) -> str:
     """What the results table shows: test numbers, on which scenes and pairs, over how many runs, with which
     interval (the settings table says its numbers are the validation scenes'; this one said nothing)."""
     where = f"the test scenes {next(iter(sets))}" if len(sets) == 1 and not several else \
@@ -515,8 +552,11 @@ def _results_caption(shown: list[StudyInfo], sets: dict, several: bool) -> str:
     else:
         what = ("NF: features per image; per estimator NI: inliers per pair and mAA(10°) [95% interval over pairs "
                 "and runs]")
+    truths = set(truths or ())
+    truth = (f" Test ground truth: {truths.pop()}." if len(truths) == 1 else
+             " Test ground truth of each row's best study: column 'ground truth'." if truths else "")
     return (f"Test results on {where}, {n}: {what}; rank by each feature's best mAA(10°), shared with the "
-            f"rank's first row where the difference to it is not significant (column 'ties').")
+            f"rank's first row where the difference to it is not significant (column 'ties').{truth}")
 
 
 def _test_set(s: StudyInfo) -> str:
