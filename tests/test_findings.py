@@ -1187,3 +1187,38 @@ def test_finding_1s_relative_interval_uses_the_runs_seed_and_resamples():
                                n_resamples=300, seed=s)["ci"] for s in (0, 7)}
     assert want[0] != want[7]
     assert got == want, (got, want)
+
+
+def test_a_study_that_could_not_be_frozen_still_counts_in_the_compute(subset, tmp_path, monkeypatch):
+    """A --quick header read "compute recorded by the N studies" without the 5 DEGENSAC studies that had no feasible
+    trial (72 s of trials, 31 s of their shared calibration): a study that could not be frozen gave the report no
+    compute, though the run spent it. A real study whose every trial runs over a 1e-6 s budget now counts: its
+    trial durations (read from the storage) and calibration are in the total, and the line says how many studies
+    could not be frozen."""
+    import optuna
+
+    from pipeline.cache import H5Cache
+    from tuner.findings.report import _compute_line, compute_total
+    from tuner.findings.runner import run_study
+    from tuner.protocol import trial_within_budget
+    monkeypatch.setenv("IMTUNE_CACHE", str(tmp_path / "cache"))
+    fs = FindingsSettings(data_root=subset, studies_dir=tmp_path / "studies", quick=True, trials=2, max_pairs=3,
+                          test_runs=1, jobs=1, budget=1e-6, n_resamples=200, progress=False)
+    o = run_study(BY_ID[1].studies["tuned"], fs, H5Cache(tmp_path / "cache"))
+    assert not o.ok and "no feasible completed trial" in o.reason, o.reason
+    study = optuna.load_study(study_name=o.name, storage=f"sqlite:///{tmp_path / 'studies' / 'optuna.db'}")
+    trials = [t for t in study.trials if t.datetime_complete is not None]
+    assert len(trials) == 2 and not any(trial_within_budget(t) for t in trials)
+    spent = sum((t.datetime_complete - t.datetime_start).total_seconds() for t in trials)
+    cal = study.user_attrs["budget"]["calibration"]["seconds"]
+    unfrozen = A.study_figures(o, 200)
+    known = {"study": "K", "ok": True, "compute": {"calibration_seconds": 60.0, "calibration_created": "t0",
+                                                  "trial_seconds": 600.0, "trials": 5, "test_seconds": 120.0}}
+    t = compute_total({"findings": [{"measured": {"studies": {"tuned": unfrozen}}},
+                                    {"measured": {"studies": {"x": known}}}]})
+    assert t["studies"] == 2 and t["not_frozen"] == [o.name], t
+    assert t["trial_seconds"] == pytest.approx(600.0 + spent) and t["calibration_seconds"] == pytest.approx(60.0 + cal)
+    assert t["total_seconds"] == pytest.approx(780.0 + spent + cal) and t["tests_not_timed"] == []
+    line = _compute_line(t)
+    assert line.startswith("compute recorded by the 2 studies, 1 of which could not be frozen"), line
+    assert "test 2.0 min" in line, line

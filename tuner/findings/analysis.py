@@ -121,6 +121,8 @@ def study_figures(o, n_resamples: int) -> dict:
     d = {"study": o.name, "label": o.spec.text(), "ok": o.ok}
     if not o.ok:
         d["reason"] = o.reason
+        if o.compute:  # it ran trials (a calibration) and could not be frozen: the run's compute still counts them
+            d.update(compute=dict(o.compute), frozen=o.frozen is not None)
         return d
     budget = (o.attrs.get("budget") or {})
     from tuner.diagnostics import gamma_ceiling_warning

@@ -369,12 +369,16 @@ def study_reports(out: dict, fs) -> dict:
 def compute_total(out: dict) -> dict | None:
     """The compute the report's studies recorded, each study once (a shared calibration once): calibration,
     trials (COMPLETE and PRUNED) and test seconds, summed; what a run resumed across sessions cost in all, less
-    the feature extraction, k-NN tables and ground truth that the cache holds. None without studies."""
-    seen = {}
+    the feature extraction, k-NN tables and ground truth that the cache holds. Every study the run used counts,
+    also one that ran its trials and could not be frozen (no feasible trial: ``frozen`` False), whose number is
+    ``not_frozen``. None without studies."""
+    seen, unfrozen = {}, set()
     for f in out["findings"]:
         for st in ((f.get("measured") or {}).get("studies") or {}).values():
-            if st.get("ok") and st.get("compute"):
+            if st.get("compute"):
                 seen[st["study"]] = st["compute"]
+                if not st.get("ok") and not st.get("frozen", False):
+                    unfrozen.add(st["study"])
     if not seen:
         return None
     cals = {}
@@ -386,13 +390,16 @@ def compute_total(out: dict) -> dict | None:
     missing = sorted(n for n, c in seen.items() if c.get("test_seconds") is None and c.get("tested", True))
     cal = sum(cals.values())
     return {"studies": len(seen), "calibration_seconds": cal, "trial_seconds": trial, "test_seconds": test,
-            "total_seconds": cal + trial + test, "tests_not_timed": missing}
+            "total_seconds": cal + trial + test, "tests_not_timed": missing, "not_frozen": sorted(unfrozen)}
 
 
 def _compute_line(c: dict) -> str:
     untimed = len(c["tests_not_timed"])
     test = "test not recorded" if untimed and untimed == c["studies"] else f"test {c['test_seconds'] / 60:.1f} min"
-    line = (f"compute recorded by the {c['studies']} studies: {c['total_seconds'] / 3600:.2f} h (calibration "
+    nf = len(c.get("not_frozen") or [])
+    studies = f"the {c['studies']} stud{'y' if c['studies'] == 1 else 'ies'}" + (
+        f", {nf} of which could not be frozen: their reasons in the findings' tables" if nf else "")
+    line = (f"compute recorded by {studies}: {c['total_seconds'] / 3600:.2f} h (calibration "
             f"{c['calibration_seconds'] / 60:.1f} min, trials {c['trial_seconds'] / 3600:.2f} h, {test}; features, "
             "k-NN tables and ground truth come from the cache and are not counted)")
     if 0 < untimed < c["studies"]:

@@ -438,6 +438,7 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
         return out
     except ImtuneError as e:
         out.reason = f"could not run: {e}"
+        out.compute = _spent(name, fs, Path(s.studies_dir))  # e.g. no feasible trial: it still cost its trials
         return out
     out.frozen, out.test = res["frozen"], res["test"]
     sdir = Path(s.studies_dir)
@@ -459,6 +460,7 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
             out.test_runs, out.records_note = test_records(out.frozen, out.test, records_dir, cache)
         except ImtuneError as e:
             out.reason = f"test records: {e}"
+            out.compute = study_compute(study, out.test)  # frozen and tested: its compute counts all the same
             return out
     if need_regions and best is not None:
         out.val_ci = validation_interval(study, out.frozen, best, records_dir, cache, fs.n_resamples)
@@ -523,6 +525,7 @@ def reuse_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool
     if best is None:  # what tune() stops on
         out.reason = (f"could not run: study {name!r}: no feasible completed trial yet (all over the "
                       f"{attrs['budget']['seconds_per_pair']} s budget, pruned or failed); run more trials")
+        out.compute = study_compute(study, None)
         return out
     try:
         out.frozen = frozen_from_study(study, s.select)  # what freeze() writes, not written here
@@ -603,6 +606,19 @@ def study_compute(study, test: dict | None) -> dict:
     return {"calibration_seconds": cal.get("seconds"), "calibration_created": cal.get("created"),
             "trial_seconds": float(sum(secs)), "trials": len(secs),
             "tested": test is not None, "test_seconds": (test or {}).get("wall_seconds")}
+
+
+def _spent(name: str, fs: FindingsSettings, sdir: Path) -> dict:
+    """:func:`study_compute` of a study that ran (some of) its trials and then could not be frozen (no feasible
+    trial: every one over the budget), which the run's compute must still count; {} when there is no such study
+    in the storage (it failed before any trial) or the storage cannot be read."""
+    import optuna
+    try:
+        study = optuna.load_study(study_name=name, storage=_storage(fs, sdir))
+    except Exception:  # noqa: BLE001 - no study, or a storage the error above already explains
+        return {}
+    c = study_compute(study, None)
+    return c if c["trials"] or c["calibration_seconds"] is not None else {}
 
 
 def _test_now(study, frozen: dict, s) -> dict:
