@@ -105,7 +105,7 @@ def test_compute_total_counts_each_study_and_each_calibration_once():
     assert t["studies"] == 3 and t["calibration_seconds"] == 50.0 and t["trial_seconds"] == 1000.0
     assert t["test_seconds"] == 120.0 and t["total_seconds"] == 1170.0 and t["tests_not_timed"] == ["B"]
     line = _compute_line(t)
-    assert "3 studies: 0.33 h" in line and "test 2.0 min" in line and "1 test(s) written before" in line
+    assert "3 studies: 0.33 h" in line and "test 2.0 min" in line and "1 test written before" in line
     assert compute_total({"findings": [{"measured": {}}]}) is None
     # a study that runs no test (finding 6's multiview study) is not a test "written before test time was recorded"
     m = st("M", 10.0, "t2", 50.0, None)
@@ -408,7 +408,7 @@ def test_a_subset_run_keeps_every_finding_in_the_report(subset, tmp_path, monkey
     md = (sdir / "findings" / "report.md").read_text()
     html = (sdir / "findings" / "report.html").read_text()
     head = md.splitlines()[2]
-    assert head.startswith("- this run: findings 3 (--only 3); re-analysed from their finished studies in the "
+    assert head.startswith("- this run: finding 3 (--only 3); re-analysed from their finished studies in the "
                            "storage (no new trial or test run): 1; not run yet: 2, 4-12"), head
     for i in range(1, 13):
         assert f"<section id='finding-{i}'>" in html and f"\n## {i}. " in md
@@ -1148,7 +1148,7 @@ def test_a_gamma_max_at_the_ceiling_does_not_claim_the_budget_never_bound_when_t
     assert rows["pyransac"].startswith("Gamma_max >= 1,000,000 (the search ceiling: the calibration never reached "
                                        "the budget); "), rows
     txt = R.paper_comparison(f)
-    assert "never bound" not in txt and "1 magsac trial(s) ran over it" in txt, txt
+    assert "never bound" not in txt and "1 magsac trial ran over it" in txt, txt
 
 
 def test_finding_12s_measured_line_states_its_key_relation_once():
@@ -1222,3 +1222,35 @@ def test_a_study_that_could_not_be_frozen_still_counts_in_the_compute(subset, tm
     line = _compute_line(t)
     assert line.startswith("compute recorded by the 2 studies, 1 of which could not be frozen"), line
     assert "test 2.0 min" in line, line
+
+
+def test_the_report_says_counts_in_their_number_and_the_trial_target_beside_what_the_studies_hold(tmp_path):
+    """A --quick report read "1 feasible trials", "1 test pairs", "1 magsac trial(s) ran over it", "1 test(s) written
+    before ...", "this run: findings 3 (--only 3)"; and its header's "trials per study: 10" was the target, while a
+    study reused from a run with more --trials held 14 (its optimum frozen among all of them). Counts now take the
+    right number, and the header says the target and the range the report's studies hold."""
+    if not (DATA / "strecha").exists():
+        pytest.skip(f"real data not found at {DATA / 'strecha'} (expected ../shared beside the project)")
+    from tuner.findings import report as R
+    one = {"study": "one", "ok": True, "mAA10": 0.5, "trials": 1, "pairs": 1, "test_runs": 1, "gamma_max": 5000,
+           "compute": {"trials": 10}}
+    more = {"study": "more", "ok": True, "mAA10": 0.4, "trials": 2, "pairs": 24, "test_runs": 3, "gamma_max": 5000,
+            "compute": {"trials": 14}}
+    f = {"id": 1, "measured": {"studies": {"defaults": one, "tuned": more}}}
+    notes = {r[0]: r[-1] for r in R._study_rows(f)}
+    assert "; 1 feasible trial; 1 test pair x 1 run" in notes["defaults"], notes
+    assert "; 2 feasible trials; 24 test pairs x 3 runs" in notes["tuned"], notes
+    fs = FindingsSettings(data_root=DATA / "strecha", studies_dir=tmp_path / "studies", quick=True)
+    line = next(ln for ln in R.settings_lines(fs, {"findings": [f]}) if ln.startswith("trials per study: "))
+    assert line.startswith("trials per study: target 10 (the multiview study: its r grid, at most as many); the 2 "
+                           "studies of this report hold 10-14 finished trials per study; pairs per scene: 12"), line
+    same = {"findings": [{"id": 1, "measured": {"studies": {"defaults": one}}}]}
+    line = next(ln for ln in R.settings_lines(fs, same) if ln.startswith("trials per study: "))
+    assert "target 10 (the multiview study: its r grid, at most as many); the study of this report holds 10 " \
+           "finished trials; pairs" in line, line
+    t = {"studies": 2, "calibration_seconds": 60.0, "trial_seconds": 600.0, "test_seconds": 60.0,
+         "total_seconds": 720.0, "tests_not_timed": ["B"], "not_frozen": []}
+    assert "; 1 test written before test time was recorded" in R._compute_line(t)
+    assert R._compute_line({**t, "studies": 1, "tests_not_timed": []}).startswith("compute recorded by the 1 study:")
+    ran = {"findings": [{"id": 3, "this_run": "ran"}, {"id": 1, "this_run": "reused"}]}
+    assert R.this_run_line(ran, fs).startswith("this run: finding 3 (--only 3);")

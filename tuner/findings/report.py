@@ -59,6 +59,12 @@ def _p(v) -> str:
     return _num(v, 3)
 
 
+def _n(count, word: str, plural: str | None = None) -> str:
+    """"1 feasible trial", "2 feasible trials": a count with its noun in the right number (``plural``: when not
+    ``word`` + "s")."""
+    return f"{count} {word if count == 1 else (plural or word + 's')}"
+
+
 def _p_is(v) -> str:
     """"p = 0.005" or "p < 0.001"."""
     t = _p(v)
@@ -81,7 +87,26 @@ def ground_truth_line(fs, names: list) -> str:
     return ground_truth_text(ground_truth_origins(scenes)) or "none"
 
 
-def settings_lines(fs) -> list[str]:
+def trials_held(out: dict | None) -> str:
+    """What the run's studies hold, beside the trial target: a study reused from an earlier run with a larger
+    --trials holds more (its optimum is frozen among all of them). "" without studies that record it."""
+    held = {}
+    for f in (out or {}).get("findings") or []:
+        for st in ((f.get("measured") or {}).get("studies") or {}).values():
+            n = (st.get("compute") or {}).get("trials")
+            if n is not None:
+                held[st["study"]] = int(n)
+    if not held:
+        return ""
+    lo, hi = min(held.values()), max(held.values())
+    if len(held) == 1:
+        return f"; the study of this report holds {_n(lo, 'finished trial')}"
+    span = f"{lo} finished trials each" if lo == hi else f"{lo}-{hi} finished trials per study"
+    return f"; the {len(held)} studies of this report hold {span}"
+
+
+def settings_lines(fs, out: dict | None = None) -> list[str]:
+    """The report's header lines on the run's settings; ``out`` (the findings) adds the trials its studies hold."""
     m = fs.mode()
     from tuner.findings import resolved_splits
     from tuner.findings.runner import multiview_bags, multiview_notes
@@ -93,7 +118,8 @@ def settings_lines(fs) -> list[str]:
     return [
         f"mode: {mode}",
         f"features per image: {m['num_features']} (finding 9 also runs {2048 if m['num_features'] == 8000 else 8000})",
-        f"trials per study: {m['trials_effective']} (the multiview study: its r grid, at most as many); pairs per scene: {m['max_pairs'] or 'all'}; "
+        f"trials per study: target {m['trials_effective']} (the multiview study: its r grid, at most as many)"
+        f"{trials_held(out)}; pairs per scene: {m['max_pairs'] or 'all'}; "
         f"test runs: {m['test_runs']}; multiview bags (size:count): "
         + ", ".join(f"{size}:{count}" for size, count in multiview_bags(fs))
         + ("" if m.get("multiview_bags") else " (the protocol's)")
@@ -178,7 +204,7 @@ def paper_comparison(f: dict) -> str | None:
                    + "; here Gamma_max " + ", ".join((f"{r} >= {v:,}" if r in ceiling else f"{r} {v:,}") if v
                                                      else f"{r} -" for r, v in g.items())
                    + (" ('>=': the search ceiling; the calibration never reached the budget there"
-                      + "".join(f"; {st[r]['trials_over_budget']} {r} trial(s) ran over it" for r in ceiling
+                      + "".join(f"; {_n(st[r]['trials_over_budget'], r + ' trial')} ran over it" for r in ceiling
                                 if st[r].get("trials_over_budget")) + ")" if ceiling else "")
                    + "; frozen Gamma " + ", ".join(f"{r} {int(v):,}" if v else f"{r} -" for r, v in frozen.items())
                    + "; test mAA(10) order here: " + order)
@@ -212,8 +238,8 @@ def _study_rows(f: dict) -> list[list[str]]:
                      f"Gamma_max {'>= ' if s.get('gamma_max_at_ceiling') else ''}"
                      f"{format(s['gamma_max'], ',') if s.get('gamma_max') else '-'}"
                      f"{_ceiling_note(s) if s.get('gamma_max_at_ceiling') else ''}; "
-                     f"{s.get('trials', 0)} feasible trials; "
-                     f"{s.get('pairs') or '-'} test pairs x {s.get('test_runs') or '-'} "
+                     f"{_n(s.get('trials', 0), 'feasible trial')}; "
+                     f"{_n(s['pairs'], 'test pair') if s.get('pairs') else '- test pairs'} x {s.get('test_runs') or '-'} "
                      f"run{'' if s.get('test_runs') == 1 else 's'}{cost}"])
     return rows
 
@@ -285,7 +311,7 @@ def _difference_text(f: dict) -> str:
         unit = f" {UNITS[m['parameter']]}" if UNITS.get(m["parameter"]) else ""
         for role, r in (m.get("regions") or {}).items():
             parts.append(f"{role}: optimum {m['parameter']} = {_num(r['optimum'], 3)}{unit}, flat region "
-                         f"{_ci(r['region'], 3)}{unit} ({r['trials_within']} of {r['trials']} feasible trials with "
+                         f"{_ci(r['region'], 3)}{unit} ({r['trials_within']} of {_n(r['trials'], 'feasible trial')} with "
                          f"validation mAA(10) within the optimum's 95% interval {_ci(r['validation_ci'], 3)})")
         for g in m.get("groups") or []:
             parts.append(f"{g['group']}: {g['status']}" + (f" (missing: {', '.join(g['missing'])})" if g["missing"] else ""))
@@ -403,7 +429,7 @@ def _compute_line(c: dict) -> str:
             f"{c['calibration_seconds'] / 60:.1f} min, trials {c['trial_seconds'] / 3600:.2f} h, {test}; features, "
             "k-NN tables and ground truth come from the cache and are not counted)")
     if 0 < untimed < c["studies"]:
-        line += f"; {len(c['tests_not_timed'])} test(s) written before test time was recorded: not counted"
+        line += f"; {_n(untimed, 'test')} written before test time was recorded: not counted"
     return line
 
 
@@ -446,7 +472,7 @@ def this_run_line(out: dict, fs) -> str:
     ran = by.get("ran", [])
     if not by.get("reused") and not by.get("not run yet"):
         return f"this run: every finding ({_ids(ran)})"
-    line = f"this run: findings {_ids(ran)} (--only {','.join(map(str, ran))})"
+    line = f"this run: finding{'s' * (len(ran) != 1)} {_ids(ran)} (--only {','.join(map(str, ran))})"
     if by.get("reused"):
         line += (f"; re-analysed from their finished studies in the storage (no new trial or test run): "
                  f"{_ids(by['reused'])}")
@@ -467,7 +493,7 @@ def write_report(out: dict, fs, seconds: float = 0.0) -> Path:
     report = root / "report.html"
     out["report"] = str(report)
     when = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-    head = [this_run_line(out, fs)] + settings_lines(fs) + [f"wall time of this run: {seconds / 60:.1f} min; "
+    head = [this_run_line(out, fs)] + settings_lines(fs, out) + [f"wall time of this run: {seconds / 60:.1f} min; "
                                                             f"written {when}"]
     total = compute_total(out)
     if total is not None:  # the header only: findings.json keeps its two keys

@@ -519,7 +519,7 @@ def reuse_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool
     target = trial_target(s, SearchSpace.from_spec(attrs["search_space_resolved"]))
     finished = len(study.get_trials(deepcopy=False, states=(TrialState.COMPLETE, TrialState.PRUNED)))
     if finished < target:
-        out.pending = f"{finished} of {target} trials finished"
+        out.pending = f"{finished} of {target} trial{'s' * (target != 1)} finished"
         return out
     best = best_feasible(study)
     if best is None:  # what tune() stops on
