@@ -1254,3 +1254,34 @@ def test_the_report_says_counts_in_their_number_and_the_trial_target_beside_what
     assert R._compute_line({**t, "studies": 1, "tests_not_timed": []}).startswith("compute recorded by the 1 study:")
     ran = {"findings": [{"id": 3, "this_run": "ran"}, {"id": 1, "this_run": "reused"}]}
     assert R.this_run_line(ran, fs).startswith("this run: finding 3 (--only 3);")
+
+
+@pytest.mark.parametrize("fid", [6, 7])
+def test_findings_6_and_7_without_one_feature_say_why_there_is_no_difference(fid):
+    """A --quick run whose SIFT DEGENSAC study had no feasible trial showed, for findings 6 and 7, 'inconclusive'
+    with no difference and nothing else in the summary table and the printed summary (finding 2, not run for the
+    same study, said why). The key difference (optimal value, sift - rootsift) now names the missing side and its
+    reason there, and each group's 'missing' says why."""
+    from tuner.findings.report import _compared, _difference_text, summary_lines
+    f = BY_ID[fid]
+    param = f.region_param
+    outcomes = {}
+    for role in f.studies:
+        if role == "sift":
+            outcomes[role] = StudyOutcome(spec=f.studies[role], name="synthetic-sift",
+                                          reason="could not run: no feasible completed trial yet")
+            continue
+        v = 0.85 if param == "ratio" else 1.0
+        o = StudyOutcome(spec=StudySpec(owner=99, variant=role), name=f"synthetic-{role}", ok=True,
+                         frozen={"params": {param: v}, "value": 0.8}, attrs={"budget": {}})
+        o.best, o.trials, o.val_ci = ({param: v}, 0.8), [({param: v}, 0.8), ({param: v * 0.9}, 0.75)], [0.7, 0.9]
+        outcomes[role] = o
+    a = A.analyse(f, outcomes)
+    res = {"id": fid, "verdict": a["verdict"], "difference": a["difference"], "ci": None, "p_value": None,
+           "measured": {**a["measured"], "rule": f.rule}}
+    assert a["difference"] is None and a["verdict"] == "inconclusive", a
+    why = f"no optimal {param} difference sift - rootsift: sift: could not run: no feasible completed trial yet"
+    assert _compared(res) == why, _compared(res)
+    line = summary_lines([res])[1]
+    assert why in line and f.title in line, line
+    assert "(missing: sift: could not run: no feasible completed trial yet)" in _difference_text(res)

@@ -242,16 +242,22 @@ def analyse(f: Finding, outcomes: dict, n_resamples: int = 2000, seed: int = 0) 
         return {**out, "measured": measured, "difference": key["difference"], "ci": key["ci"],
                 "p_value": key["p_value"], "verdict": st}
     # regions
-    regions = {}
+    regions, absent = {}, {}
     for role, o in outcomes.items():
         if not (o.ok and o.best and o.val_ci):
+            absent[role] = (o.reason or o.pending or "no result" if not o.ok else
+                            "no feasible trial" if not o.best else "no validation interval of its optimum")
             continue
         reg = flat_region(o.trials, o.best, o.val_ci[0], f.region_param)
-        if reg is not None:
+        if reg is None:
+            absent[role] = f"{f.region_param} was not searched"
+        else:
             regions[role] = {"optimum": float(o.best[0][f.region_param]), "region": reg,
                              "validation_mAA10": o.best[1], "validation_ci": o.val_ci,
                              "trials_within": sum(1 for p, v in o.trials if v >= o.val_ci[0]), "trials": len(o.trials)}
     measured["regions"] = regions
+    if absent:  # why a study has no region (its group then reads 'unclear', and the key difference may be missing)
+        measured["regions_missing"] = absent
     measured["parameter"] = f.region_param
     groups, statuses = [], []
     for label, roles in f.groups:
@@ -267,6 +273,10 @@ def analyse(f: Finding, outcomes: dict, n_resamples: int = 2000, seed: int = 0) 
     diff = regions[first[0]]["optimum"] - regions[first[1]]["optimum"] if len(first) >= 2 else None
     unit = f" ({UNITS[f.region_param]})" if UNITS.get(f.region_param) else ""
     measured["key"] = f"optimal {f.region_param}{unit}: {first[0]} - {first[1]}" if len(first) >= 2 else None
+    if diff is None:  # the table and the printed summary say why there is no difference, as for a finding not run
+        lost = [r for r in f.groups[0][1] if r not in regions]
+        measured["reason"] = (f"no optimal {f.region_param} difference {' - '.join(f.groups[0][1][:2])}: "
+                              + "; ".join(f"{r}: {absent.get(r, 'not in this finding')}" for r in lost))
     return {**out, "measured": measured, "difference": diff, "verdict": combine(statuses, "all")}
 
 

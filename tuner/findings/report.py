@@ -271,8 +271,8 @@ def _md_table(cols, rows) -> str:
 def _compared(f: dict) -> str:
     """What the headline difference is a difference of: "B - A" (test mAA(10)), or the parameter of a regions rule."""
     key = (f.get("measured") or {}).get("key")
-    if f.get("difference") is None or not key:
-        return "-"
+    if f.get("difference") is None or not key:  # why not, where the analysis says it (a study that did not run)
+        return (f.get("measured") or {}).get("reason") or "-"
     text = key.replace(" vs ", " - ", 1) if " vs " in key else key
     deciders = (f.get("measured") or {}).get("decided_by")
     if deciders:  # the verdict combines several relations and the key alone would read otherwise
@@ -314,7 +314,10 @@ def _difference_text(f: dict) -> str:
                          f"{_ci(r['region'], 3)}{unit} ({r['trials_within']} of {_n(r['trials'], 'feasible trial')} with "
                          f"validation mAA(10) within the optimum's 95% interval {_ci(r['validation_ci'], 3)})")
         for g in m.get("groups") or []:
-            parts.append(f"{g['group']}: {g['status']}" + (f" (missing: {', '.join(g['missing'])})" if g["missing"] else ""))
+            why = m.get("regions_missing") or {}
+            parts.append(f"{g['group']}: {g['status']}" + (
+                f" (missing: {'; '.join(f'{r}: {why[r]}' if r in why else r for r in g['missing'])})"
+                if g["missing"] else ""))
         return "; ".join(parts)
     rel = m.get("relative_difference")
     txt = (f"{m.get('key')}: difference {_num(f['difference'])} mAA(10), 95% CI {_ci(f['ci'])}, "
