@@ -1220,7 +1220,8 @@ def test_a_study_that_could_not_be_frozen_still_counts_in_the_compute(subset, tm
     assert t["trial_seconds"] == pytest.approx(600.0 + spent) and t["calibration_seconds"] == pytest.approx(60.0 + cal)
     assert t["total_seconds"] == pytest.approx(780.0 + spent + cal) and t["tests_not_timed"] == []
     line = _compute_line(t)
-    assert line.startswith("compute recorded by the 2 studies, 1 of which could not be frozen"), line
+    assert line.startswith("compute recorded by the 2 studies (1 of which could not be frozen; their reasons in the "
+                           "findings' tables): "), line
     assert "test 2.0 min" in line, line
 
 

@@ -427,7 +427,7 @@ def _compute_line(c: dict) -> str:
     test = "test not recorded" if untimed and untimed == c["studies"] else f"test {c['test_seconds'] / 60:.1f} min"
     nf = len(c.get("not_frozen") or [])
     studies = f"the {c['studies']} stud{'y' if c['studies'] == 1 else 'ies'}" + (
-        f", {nf} of which could not be frozen: their reasons in the findings' tables" if nf else "")
+        f" ({nf} of which could not be frozen; their reasons in the findings' tables)" if nf else "")
     line = (f"compute recorded by {studies}: {c['total_seconds'] / 3600:.2f} h (calibration "
             f"{c['calibration_seconds'] / 60:.1f} min, trials {c['trial_seconds'] / 3600:.2f} h, {test}; features, "
             "k-NN tables and ground truth come from the cache and are not counted)")
