@@ -262,7 +262,7 @@ def test_findings_1_and_4_end_to_end(subset, tmp_path, monkeypatch, capsys):
     assert res["report"] == str(sdir / "findings" / "report.html")
     html = (sdir / "findings" / "report.html").read_text()
     md = (sdir / "findings" / "report.md").read_text()
-    assert "--quick" in html and "trials per study: 2" in md and "pairs per scene: 3" in md
+    assert "--quick" in html and "trials per study: target 2 " in md and "pairs per scene: 3" in md
     assert "features per image: 2048 (finding 9 also runs 8000)" in md
     # the scenes the numbers come from, by name (the subset has no splits.yaml: Strecha's default split)
     assert "validation scenes: fountain-P11; test scenes: entry-P10 (from the default split)" in md
