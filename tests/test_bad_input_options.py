@@ -452,6 +452,34 @@ def test_compare_states_its_verdict_rule(tiny, tmp_path, capsys):
     assert rc == 0 and res["overall"]["verdict"] == "no significant difference" and "sign-flip" in res["verdict_rule"]
 
 
+def test_compare_of_several_sources_states_the_adjusted_levels_in_its_verdict_rule(tiny, tmp_path, capsys):
+    """With three sources the two comparisons with A are one family: the table gave 97.5% CIs and Holm-adjusted p,
+    but the verdict line under it still read 'the 95% CI of B - A excludes 0 ... (p < 0.05)', a level it does not
+    use. The line (and the JSON's verdict_rule) now names the Bonferroni level 1 - 0.05 / 2 = 97.5% and the
+    Holm-adjusted p; the comparisons' own ci_level says the same."""
+    import json
+
+    import yaml
+    conf = tmp_path / "a.yaml"
+    conf.write_text(yaml.safe_dump({"config": {"feature": {"name": "sift", "num_features": 256},
+                                               "geometry": {"ransac": "degensac", "max_iters": 1000}}}))
+    common = [conf, conf, conf, "--data", tiny, "--cache", tmp_path / "cache", "--studies-dir", tmp_path, "--quiet",
+              "--ci-resamples", "200"]
+    rc, out, err = _cli(["compare", *common], capsys)
+    assert rc == 0, err
+    verdict_line = next(line for line in out.splitlines() if line.startswith("verdict: "))
+    assert verdict_line == ("verdict: Bi or A is better only when the 97.5% CI of Bi - A excludes 0 and the paired "
+                            "sign-flip test agrees (its p Holm-adjusted over the 2 comparisons < 0.05); otherwise no "
+                            "significant difference (the rule of tune findings, adjusted for multiplicity)"), out
+    assert "95% CI" not in verdict_line and "97.5% bootstrap CI" in out and "multiplicity: 2 comparisons" in out
+    rc, out, err = _cli(["compare", *common, "--json"], capsys)
+    res = json.loads(out)
+    assert rc == 0 and len(res) == 2
+    for c in res:
+        assert c["overall"]["ci_level"] == pytest.approx(0.975)
+        assert "97.5% CI" in c["verdict_rule"] and "Holm-adjusted" in c["verdict_rule"]
+
+
 
 def test_compare_says_a_multiview_study_runs_with_untuned_eta_and_gamma(tiny, tmp_path, capsys):
     """A multiview study tunes r only (COLMAP runs its own RANSAC); `tune compare --task stereo` runs its frozen eta

@@ -152,7 +152,7 @@ def compare(sources: list, data_root: Path | str, scenes=None, *, cache_dir=None
                                   n_resamples=n_resamples, seed=seed, level=level)
     out = {"data": str(data_root), "scenes": evaluated[0]["scenes"], "task": task, "level": level,
            "n_resamples": n_resamples, "seed": seed, "sources": out_sources, "comparisons": comparisons,
-           "verdict_rule": DIRECTION_RULE, "adjustment": adjustment_note(len(comparisons), level)}
+           "verdict_rule": verdict_rule(len(comparisons), level), "adjustment": adjustment_note(len(comparisons), level)}
     if task == "multiview" and evaluated[0]["multiview"].get("notes"):
         out["notes"] = evaluated[0]["multiview"]["notes"]
     return out
@@ -202,6 +202,18 @@ def adjustment_note(m: int, level: float = DEFAULT_LEVEL) -> str:
     return (f"{m} comparisons with A, held at {1 - level:.2g} together: each CI at the Bonferroni level "
             f"{100 * level_each:.4g}% (1 - {1 - level:.2g} / {m}), each p Holm-adjusted over the {m} (per scene: over "
             f"the {m} on that scene) and compared with {1 - level:.2g}")
+
+
+def verdict_rule(m: int, level: float = DEFAULT_LEVEL) -> str:
+    """The verdict rule in words at the levels it is applied with m comparisons with the first source:
+    DIRECTION_RULE for one; for m > 1 the Bonferroni level of each CI and the Holm-adjusted p (the printed
+    rule read '95% CI ... p < 0.05' above a table of 98.33% CIs and adjusted p-values)."""
+    if m <= 1:
+        return DIRECTION_RULE
+    level_each = bonferroni(level, m)[0]
+    return (f"Bi or A is better only when the {100 * level_each:.4g}% CI of Bi - A excludes 0 and the paired sign-flip "
+            f"test agrees (its p Holm-adjusted over the {m} comparisons < {1 - level:.2g}); otherwise no significant "
+            "difference")
 
 
 def _with_verdict(c: dict, level: float) -> dict:

@@ -13,7 +13,6 @@ import json
 import sys
 
 from pipeline.errors import ImtuneError
-from pipeline.metrics.uncertainty import DIRECTION_RULE
 from tuner.commands.evaluate import _jsonable  # the same JSON rendering as tune evaluate
 from tuner.options import DATA_HELP
 
@@ -120,7 +119,8 @@ def run(args) -> int:
                 f"{100 * c['overall']['ci_level']:.4g}% bootstrap CI, paired sign-flip p Holm-adjusted")
         print(f"\n{tag} vs A: mAA(10) difference {tag} - A (> 0: {tag} better), {what}")
         print(render(comparison_rows(c), "markdown"))
-    print(f"verdict: {DIRECTION_RULE} (the rule of tune findings)")
+    print(f"verdict: {res['verdict_rule']} (the rule of tune findings"
+          + (", adjusted for multiplicity)" if res["adjustment"] else ")"))
     if res["adjustment"]:
         print(f"multiplicity: {res['adjustment']}")
     return 0
