@@ -259,9 +259,15 @@ def _repeats(ps):
     return rep
 
 
+# Gamma pinned low and a generous budget: every trial is within budget whatever the machine's load, so a run
+# exits 0 (the 0.2 s budget of `quick` with a calibrated Gamma_max left a single trial over budget under CI's
+# load: "no feasible completed trial yet", exit 2). The seed tests search r and eta: a repeat is a repeat of both.
+FEASIBLE = ["--fix", "max_iters=2000", "--budget", "5"]
+
+
 def test_same_seed_in_two_workers_does_not_repeat_parameters(tmp_path, data3, cache):
     storage = f"sqlite:///{tmp_path}/optuna.db"
-    args = quick(data3, tmp_path / "studies", storage, "seeded")  # --seed 1, TPE
+    args = quick(data3, tmp_path / "studies", storage, "seeded", *FEASIBLE)  # --seed 1, TPE
     r = tune(*args, "--n-trials", 1, cache=cache)
     assert r.returncode == 0, r.stderr[-2000:]
     workers = [_start([*args, "--n-trials", 12], cache) for _ in range(2)]
@@ -280,8 +286,8 @@ def test_same_seed_in_two_workers_does_not_repeat_parameters(tmp_path, data3, ca
 def test_same_seed_resume_does_not_repeat_but_a_fresh_study_reproduces(tmp_path, data3, cache):
     a, b = f"sqlite:///{tmp_path}/a.db", f"sqlite:///{tmp_path}/b.db"
     for storage, n in ((a, 3), (a, 6), (b, 3)):
-        r = tune(*quick(data3, tmp_path / "studies", storage, "resume", "--sampler", "random"), "--n-trials", n,
-                 cache=cache)
+        r = tune(*quick(data3, tmp_path / "studies", storage, "resume", "--sampler", "random", *FEASIBLE),
+                 "--n-trials", n, cache=cache)
         assert r.returncode == 0, r.stderr[-2000:]
     pa, pb = _params(a, "resume"), _params(b, "resume")
     assert len(pa) == 6 and _repeats(pa) == [], _repeats(pa)
