@@ -16,6 +16,14 @@ DATA = SHARED / "data"
 
 os.environ.setdefault("TORCH_HOME", str((SHARED / "weights" / "torch").resolve()))
 
+# Every `tune` and StereoTask a test starts evaluates its pairs in-process (--jobs 1) unless the test names --jobs:
+# the README's test command already runs one test file per CPU, and a pool of spawned pair workers per command on
+# a few tiny pairs doubled each command's CPU seconds (a 4-trial study: 21 s with --jobs 1, 37 s with the default
+# 2, the same wall time alone) and made timed tests share cores with another file's pool. The pool has its own
+# tests, which pass --jobs (test_parallel_pairs, test_pool_stop, the kill and signal tests); tests of the default
+# itself delete the variable.
+os.environ["IMTUNE_JOBS"] = "1"
+
 # A test run started in the background by a non-interactive shell (`bash .ci/run &`, nohup, a CI runner's job)
 # inherits SIGINT ignored, and so would every `tune` the tests start and this process itself: the Ctrl-C tests
 # (SIGINT -> exit 130) would see their signal ignored, as a background `tune` rightly ignores it. A terminal's
@@ -23,6 +31,22 @@ os.environ.setdefault("TORCH_HOME", str((SHARED / "weights" / "torch").resolve()
 # reset to the default in a child at exec, so every `tune` started here installs Python's KeyboardInterrupt).
 if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+# The test files that take longest in one process (seconds, from `--durations=0` of a CI run on 2 cores), started
+# first: pytest-xdist hands whole files (--dist loadfile) to its processes in collection order (pyproject:
+# --no-loadscope-reorder; its own reorder, by number of tests, put these few-test, minute-long files last, and
+# the run ended on one of them while the other process idled). Files not listed keep their order after these.
+SLOWEST_FILES = ("test_tuner_study.py", "test_faults_processes.py", "test_findings.py", "test_pareto.py",
+                 "test_faults_storage.py", "test_intervals_real.py", "test_gt_build.py", "test_warm_start.py",
+                 "test_ground_truth_origin.py", "test_evaluate_config.py", "test_cli_evaluate.py",
+                 "test_credentials.py", "test_viz_multiview.py", "test_tuner_postgres.py",
+                 "test_dashboard_browser.py", "test_parallel_pairs.py", "test_tuner_multiview.py")
+
+
+def pytest_collection_modifyitems(session, config, items):
+    rank = {name: i for i, name in enumerate(SLOWEST_FILES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: a file's tests keep their order
 
 
 def require(path: Path) -> Path:

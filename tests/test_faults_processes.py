@@ -85,7 +85,8 @@ def _wait_for_fresh_running(p, storage, name, after: int, timeout=300):
 def test_kill9_five_times_in_one_study(tmp_path, data4, cache):
     storage = f"sqlite:///{tmp_path}/optuna.db"
     target = 9
-    args = quick(data4, tmp_path / "studies", storage, "kill5", "--n-trials", target, *SLOW)
+    # with its pair pool, as users run it (the process group's kill takes the workers too)
+    args = quick(data4, tmp_path / "studies", storage, "kill5", "--n-trials", target, "--jobs", 2, *SLOW)
     killed, last = [], -1
     history = []  # (completed before the kill, completed after)
     ever: set[int] = set()  # every trial number seen COMPLETE at any point

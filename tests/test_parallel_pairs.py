@@ -269,6 +269,32 @@ def test_jobs_bad_input_and_note(data4, cache):
         StereoTask(jobs=0)
 
 
+def test_imtune_jobs_sets_the_default_and_a_bad_value_is_one_line(tmp_path, data4, cache, monkeypatch):
+    """$IMTUNE_JOBS is --jobs' default (the tests set it to 1, conftest); unset, the default is every usable CPU;
+    --jobs overrides it; a malformed value stops `tune` with one line naming the variable (exit 2), never silently
+    every CPU."""
+    from pipeline.cpus import available_cpus
+    from pipeline.errors import ImtuneError
+    from pipeline.tasks.stereo import StereoTask
+    monkeypatch.delenv("IMTUNE_JOBS")
+    assert StereoTask().jobs == available_cpus()
+    monkeypatch.setenv("IMTUNE_JOBS", "3")
+    assert StereoTask().jobs == 3 and StereoTask(jobs=2).jobs == 2
+    for bad in ("0", "-1", "two", "1.5"):
+        monkeypatch.setenv("IMTUNE_JOBS", bad)
+        with pytest.raises(ImtuneError, match="IMTUNE_JOBS"):
+            StereoTask()
+        r = tune("evaluate", "--data", data4, "--scenes", "fountain-P11", "--num-features", "2048", "--max-iters",
+                 "1000", "--quiet", cache=cache)
+        lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+        assert r.returncode == 2 and len(lines) == 1 and f"IMTUNE_JOBS={bad!r}" in lines[0], r.stderr[-2000:]
+    monkeypatch.setenv("IMTUNE_JOBS", "2")  # the pool, started by the variable alone: the calibration says 2 jobs
+    r = tune("calibrate", "--data", data4, "--scenes", "fountain-P11", "--num-features", "2048", "--pairs", "3",
+             "--budget", "0.05", "--studies-dir", tmp_path, "--json", "--quiet", cache=cache)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert json.loads(r.stdout)["calibration"]["jobs"] == 2
+
+
 def test_calibration_times_as_many_estimators_as_jobs(tmp_path, data4, cache):
     cals = {}
     for jobs in (1, 2):

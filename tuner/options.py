@@ -317,10 +317,11 @@ def jobs_count(s: str) -> int:
 
 
 def add_jobs_option(ap: argparse.ArgumentParser) -> None:
-    """``--jobs N``: stereo pairs evaluated by N worker processes (default: every CPU this process may use)."""
+    """``--jobs N``: stereo pairs evaluated by N worker processes (default: $IMTUNE_JOBS, else every CPU this process
+    may use)."""
     ap.add_argument("--jobs", type=jobs_count, default=None, metavar="N",
                     help="worker processes evaluating stereo pairs, and estimators timed at once by the budget "
-                         "calibration (default: every CPU this process may use; 1: no pool)")
+                         "calibration (default: $IMTUNE_JOBS, else every CPU this process may use; 1: no pool)")
 
 
 def task_options(args: argparse.Namespace, **overrides) -> dict:

@@ -35,7 +35,7 @@ import signal
 import threading
 from dataclasses import asdict, dataclass, field
 
-from pipeline.cpus import available_cpus
+from pipeline.cpus import default_jobs
 from pipeline.errors import ImtuneError
 
 #: the failure recorded for the item a dead worker was evaluating
@@ -47,9 +47,9 @@ _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "N
 
 
 def resolve_jobs(jobs: int | None) -> int:
-    """``jobs`` as a process count: None -> every usable CPU; below 1 -> ImtuneError."""
+    """``jobs`` as a process count: None -> ``$IMTUNE_JOBS``, else every usable CPU; below 1 -> ImtuneError."""
     if jobs is None:
-        return available_cpus()
+        return default_jobs()
     try:
         n = int(jobs)
     except (TypeError, ValueError):
