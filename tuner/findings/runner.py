@@ -419,13 +419,9 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
     from tuner.freeze import study_dir
     from tuner.protocol import best_feasible, trial_within_budget
     from tuner.study import IncompatibleStudy, tune
-    name = study_name(spec, fs)
-    out = StudyOutcome(spec=spec, name=name)
-    why = unavailable(spec)
-    if why:
-        out.reason = why
+    name, out, s = _open_outcome(spec, fs)
+    if s is None:
         return out
-    s = tune_settings(spec, fs)
     try:
         ensure_multiview_ground_truth(spec, fs)
         res = tune(s)
@@ -433,8 +429,7 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
         out.reason = str(e)
         return out
     except IncompatibleStudy as e:  # its name says data and budget: another pipeline or search space remains
-        out.reason = (f"could not run: {str(e).split('; rerun')[0]}; findings studies have fixed names: give this "
-                      "run a storage of its own (--studies-dir DIR or --storage URL)")
+        out.reason = _incompatible_reason(e)
         return out
     except ImtuneError as e:
         out.reason = f"could not run: {e}"
@@ -469,6 +464,20 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
     return out
 
 
+def _open_outcome(spec: StudySpec, fs: FindingsSettings):
+    """(study name, its empty outcome, its TuneSettings); the settings are None when the study cannot run here
+    (an unavailable feature: ``out.reason`` says why)."""
+    out = StudyOutcome(spec=spec, name=study_name(spec, fs))
+    out.reason = unavailable(spec) or ""
+    return out.name, out, (None if out.reason else tune_settings(spec, fs))
+
+
+def _incompatible_reason(e) -> str:
+    """A findings study's name is fixed: one of that name with other settings asks for a storage of its own."""
+    return (f"could not run: {str(e).split('; rerun')[0]}; findings studies have fixed names: give this run a "
+            "storage of its own (--studies-dir DIR or --storage URL)")
+
+
 def reuse_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool = False) -> StudyOutcome:
     """The outcome :func:`run_study` would give, read from the storage and the study's folder alone when the study
     is finished: it holds its target of finished trials, its current optimum has a reusable test.json (the one
@@ -485,13 +494,9 @@ def reuse_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool
     from tuner.space import SearchSpace
     from tuner.study import (IncompatibleStudy, check_compatible, load_study_space, open_validation, study_identity,
                              trial_target)
-    name = study_name(spec, fs)
-    out = StudyOutcome(spec=spec, name=name)
-    why = unavailable(spec)
-    if why:
-        out.reason = why
+    name, out, s = _open_outcome(spec, fs)
+    if s is None:
         return out
-    s = tune_settings(spec, fs)
     s.progress = False
     sdir = Path(s.studies_dir)
     try:
@@ -510,8 +515,7 @@ def reuse_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool
         base = dataclasses.replace(s.base, geometry=dataclasses.replace(s.base.geometry, seed=int(s.seed or 0)))
         check_compatible(name, attrs, study_identity(s, task, space, vs, base))
     except IncompatibleStudy as e:  # as run_study says it
-        out.reason = (f"could not run: {str(e).split('; rerun')[0]}; findings studies have fixed names: give this "
-                      "run a storage of its own (--studies-dir DIR or --storage URL)")
+        out.reason = _incompatible_reason(e)
         return out
     except ImtuneError as e:
         out.pending = f"its validation data cannot be read without running it ({e})"
