@@ -27,8 +27,8 @@ from __future__ import annotations
 
 import math
 
-from pipeline.metrics.uncertainty import (DEFAULT_LEVEL, combine_runs_interval, paired_bootstrap, paired_direction,
-                                          paired_relative)
+from pipeline.metrics.uncertainty import (DEFAULT_LEVEL, bonferroni, combine_runs_interval, paired_bootstrap,
+                                          paired_direction, paired_relative)
 from tuner.findings.definitions import SMALL_GAIN, Finding
 
 HOLDS, FAILS, UNSURE, NOT_RUN = "holds", "does not hold", "inconclusive", "not run"
@@ -174,17 +174,16 @@ def _bonferroni_decider(computed: list, statuses: list[str], how: str, outcomes:
     decider = FAILS if how == "all" else HOLDS
     if m < 2 or decider not in statuses:
         return statuses
-    alpha = (1.0 - DEFAULT_LEVEL) / m
-    resamples = int(min(100_000, max(int(n_resamples), math.ceil(20.0 / alpha))))
+    level, _, resamples = bonferroni(DEFAULT_LEVEL, m, n_resamples)
     out = list(statuses)
     for i, ((roles, c), st) in enumerate(zip(computed, statuses)):
         if st != decider or c is None:
             continue
         oa, ob = outcomes[roles[0]], outcomes[roles[1]]
         pb = paired_bootstrap(_flat(oa.test_runs), _flat(ob.test_runs), tau=10, n_resamples=resamples, seed=seed,
-                              level=1.0 - alpha)
-        c["level"], c["ci_at_level"], c["p_value_at_level"] = 1.0 - alpha, pb["ci"], pb["p_value"]
-        if directional(pb["ci"], pb["p_value"], 1.0 - alpha) != st:
+                              level=level)
+        c["level"], c["ci_at_level"], c["p_value_at_level"] = level, pb["ci"], pb["p_value"]
+        if directional(pb["ci"], pb["p_value"], level) != st:
             out[i] = UNSURE
     return out
 
