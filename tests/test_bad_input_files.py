@@ -997,8 +997,10 @@ def test_a_study_without_its_imtune_attributes_is_one_line(attr, tmp_path, data3
     import sqlite3
     sd = tmp_path / "studies"
     env = {"IMTUNE_CACHE": str(tmp_path / "cache")}
+    # Gamma pinned and a 5 s budget: its one trial must be feasible (in CI, a calibrated Gamma_max under load once
+    # put it over the 0.5 s default: 'no feasible completed trial yet', a correct stop this test is not about)
     r = tune("run", "--data", data3, "--studies-dir", sd, "--study", "s", "--num-features", "256", "--n-trials", "1",
-             "--jobs", "1", "--no-test", "--quiet", env=env)
+             "--fix", "max_iters=1000", "--budget", "5", "--jobs", "1", "--no-test", "--quiet", env=env)
     assert r.returncode == 0, r.stderr[-2000:]
     with sqlite3.connect(sd / "optuna.db") as c:
         c.execute("DELETE FROM study_user_attributes WHERE key = ?", (attr,))

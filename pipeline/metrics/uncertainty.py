@@ -42,7 +42,6 @@ import math
 from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
-from scipy import stats
 
 from pipeline.metrics.pose import mean_average_accuracy
 
@@ -59,6 +58,13 @@ DEFAULT_LEVEL = 0.95
 STD_DDOF = 1
 #: the range of a pair's (a bag's) mAA score: the two pseudo-scores every scene's resamples include (module doc)
 SCORE_RANGE = (0.0, 1.0)
+
+
+def _stats():
+    """scipy.stats, imported on first use: it takes about 1 s to import, and every `tune` command (its help, a
+    one-line error) imports this module through the task registry."""
+    from scipy import stats
+    return stats
 
 
 # ------------------------------------------------------------------------------------------ scores
@@ -121,8 +127,8 @@ def _expanded_level(groups, weights, level: float) -> float:
     if V <= 0 or V_plugin <= 0:
         return level
     df = V * V / sum(p[0] ** 2 / (p[2] - 1) for p in parts if p[0] > 0)
-    q = math.sqrt(V / V_plugin) * float(stats.t.ppf(0.5 + level / 2, df))
-    return float(1.0 - 2.0 * stats.norm.sf(q))
+    q = math.sqrt(V / V_plugin) * float(_stats().t.ppf(0.5 + level / 2, df))
+    return float(1.0 - 2.0 * _stats().norm.sf(q))
 
 
 def _stratified(groups, weights, n_resamples, seed, level, method="percentile",
@@ -154,8 +160,8 @@ def _stratified(groups, weights, n_resamples, seed, level, method="percentile",
         return const + sum(wi * np.mean(s, axis=axis) for wi, s in zip(ws, samples))
 
     def run(m):
-        res = stats.bootstrap(tuple(g for g, _ in var), statistic, n_resamples=int(n_resamples), vectorized=True,
-                              paired=False, confidence_level=level, method=m, rng=np.random.default_rng(seed))
+        res = _stats().bootstrap(tuple(g for g, _ in var), statistic, n_resamples=int(n_resamples), vectorized=True,
+                                 paired=False, confidence_level=level, method=m, rng=np.random.default_rng(seed))
         ci = [float(res.confidence_interval.low), float(res.confidence_interval.high)]
         return ci, float(res.standard_error)
     if method == "BCa":
@@ -326,14 +332,14 @@ def _paired_stats(groups_a, groups_b, n_resamples, seed, level, method, run_diff
         # and that of t = difference / sqrt(V) (both must reject).
         V = se * se + G / R
         df = V * V / ((G / R) ** 2 / (R - 1))
-        t = float(stats.t.ppf(0.5 + level / 2, df))
-        z = float(stats.norm.ppf(0.5 + level / 2))
+        t = float(_stats().t.ppf(0.5 + level / 2, df))
+        z = float(_stats().norm.ppf(0.5 + level / 2))
         if se > 0:
             k = t * math.sqrt(V) / (z * se)
             ci = [diff - (diff - ci[0]) * k, diff + (ci[1] - diff) * k]
         else:
             ci = [diff - t * math.sqrt(V), diff + t * math.sqrt(V)]
-        p = max(p, float(2.0 * stats.t.sf(abs(diff) / math.sqrt(V), df)))
+        p = max(p, float(2.0 * _stats().t.sf(abs(diff) / math.sqrt(V), df)))
         run_note = {"run_variance": G, "runs": R, "df": df}
     if d.size and 2.0 / 2.0 ** d.size >= round(1.0 - level, 12):
         # n pairs whose sign flips cannot give p < 1 - level (n <= 5 at 95%): no paired test rejects any difference,
@@ -464,8 +470,8 @@ def paired_relative(records_a: Sequence[Mapping], records_b: Sequence[Mapping], 
     # (d_i - rel * a_i) / mAA_a (d = b - a), whose stratified mean is the ratio's first-order error
     lin = [(x[1] - x[0] - rel * x[0]) / ma for x in var]
     expanded = _expanded_level(lin, [w] * len(lin), level)
-    res = stats.bootstrap(tuple(var), statistic, n_resamples=int(n_resamples), vectorized=True, paired=False,
-                          confidence_level=expanded, method="percentile", rng=np.random.default_rng(seed), axis=-1)
+    res = _stats().bootstrap(tuple(var), statistic, n_resamples=int(n_resamples), vectorized=True, paired=False,
+                             confidence_level=expanded, method="percentile", rng=np.random.default_rng(seed), axis=-1)
     ci = [float(v) if v < _UNBOUNDED else math.inf
           for v in (res.confidence_interval.low, res.confidence_interval.high)]
     return {"relative": rel, "ci": [min(ci[0], rel), max(ci[1], rel)], "pairs": len(common)}
@@ -804,7 +810,7 @@ def _combine_runs(per_run: list[dict], weights: dict, n_resamples: int, seed: in
     size), units bags. Returns {"value", "ci", "std" (the sample std over runs, ddof 1: :data:`STD_DDOF`; 0 for
     one run)}."""
     R = len(per_run)
-    z = float(stats.norm.ppf(0.5 + level / 2))
+    z = float(_stats().norm.ppf(0.5 + level / 2))
     keys = list(dict.fromkeys(k for pr in per_run for k in pr))
     groups, wgroups, wpair, vpair = [], [], [], []
     for st, wst in weights.items():
@@ -829,7 +835,7 @@ def _combine_runs(per_run: list[dict], weights: dict, n_resamples: int, seed: in
             V = Vb + G / R
             # Welch-Satterthwaite: G rests on R - 1 degrees of freedom, V_b on (practically) infinitely many
             df = V * V / ((G / R) ** 2 / (R - 1))
-            t = float(stats.t.ppf(0.5 + level / 2, df))
+            t = float(_stats().t.ppf(0.5 + level / 2, df))
             if Vb > 0:
                 k = t * math.sqrt(V) / (z * math.sqrt(Vb))
                 lo, hi = M - (M - lo) * k, M + (hi - M) * k
