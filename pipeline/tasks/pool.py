@@ -35,7 +35,7 @@ import signal
 import threading
 from dataclasses import asdict, dataclass, field
 
-from pipeline.cpus import default_jobs
+from pipeline.cpus import available_cpus
 from pipeline.errors import ImtuneError
 
 #: the failure recorded for the item a dead worker was evaluating
@@ -46,10 +46,22 @@ _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "N
                 "VECLIB_MAXIMUM_THREADS")
 
 
+#: the environment variable giving the default of ``--jobs`` (a batch job's share of a node, a shared machine)
+JOBS_VAR = "IMTUNE_JOBS"
+
+
 def resolve_jobs(jobs: int | None) -> int:
-    """``jobs`` as a process count: None -> ``$IMTUNE_JOBS``, else every usable CPU; below 1 -> ImtuneError."""
+    """``jobs`` as a process count: None -> ``$IMTUNE_JOBS``, else every usable CPU; below 1 -> ImtuneError (a
+    malformed ``$IMTUNE_JOBS`` too, naming it: never silently every CPU)."""
     if jobs is None:
-        return default_jobs()
+        raw = os.environ.get(JOBS_VAR, "").strip()
+        if not raw:
+            return available_cpus()
+        try:
+            return resolve_jobs(int(raw))
+        except (ValueError, ImtuneError):
+            raise ImtuneError(f"{JOBS_VAR}={raw!r}: expected an integer >= 1 (the default of --jobs); unset it to "
+                              "use every CPU") from None
     try:
         n = int(jobs)
     except (TypeError, ValueError):

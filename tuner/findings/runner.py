@@ -419,9 +419,10 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
     from tuner.freeze import study_dir
     from tuner.protocol import best_feasible, trial_within_budget
     from tuner.study import IncompatibleStudy, tune
-    name, out, s = _open_outcome(spec, fs)
+    out, s = _open_outcome(spec, fs)
     if s is None:
         return out
+    name = out.name
     try:
         ensure_multiview_ground_truth(spec, fs)
         res = tune(s)
@@ -465,11 +466,11 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
 
 
 def _open_outcome(spec: StudySpec, fs: FindingsSettings):
-    """(study name, its empty outcome, its TuneSettings); the settings are None when the study cannot run here
-    (an unavailable feature: ``out.reason`` says why)."""
+    """(the study's empty outcome, its TuneSettings); the settings are None when the study cannot run here (an
+    unavailable feature: ``out.reason`` says why)."""
     out = StudyOutcome(spec=spec, name=study_name(spec, fs))
     out.reason = unavailable(spec) or ""
-    return out.name, out, (None if out.reason else tune_settings(spec, fs))
+    return out, (None if out.reason else tune_settings(spec, fs))
 
 
 def _incompatible_reason(e) -> str:
@@ -494,9 +495,10 @@ def reuse_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool
     from tuner.space import SearchSpace
     from tuner.study import (IncompatibleStudy, check_compatible, load_study_space, open_validation, study_identity,
                              trial_target)
-    name, out, s = _open_outcome(spec, fs)
+    out, s = _open_outcome(spec, fs)
     if s is None:
         return out
+    name = out.name
     s.progress = False
     sdir = Path(s.studies_dir)
     try:
