@@ -16,7 +16,7 @@ import urllib.request
 import pytest
 
 from tests.conftest import DATA, ROOT, copy_strecha_subset
-from tests.test_faults_storage import SLOW, _env, completed, finished, one_line_error, quick, trials, tune
+from tests.test_faults_storage import FEASIBLE, SLOW, _env, completed, finished, one_line_error, quick, trials, tune
 
 pytestmark = pytest.mark.skipif(not (DATA / "strecha").is_dir(), reason=f"real data not found at {DATA / 'strecha'}")
 
@@ -260,10 +260,6 @@ def _repeats(ps):
     return rep
 
 
-# Gamma pinned low and a generous budget: every trial is within budget whatever the machine's load, so a run
-# exits 0 (the 0.2 s budget of `quick` with a calibrated Gamma_max left a single trial over budget under CI's
-# load: "no feasible completed trial yet", exit 2). The seed tests search r and eta: a repeat is a repeat of both.
-FEASIBLE = ["--fix", "max_iters=2000", "--budget", "5"]
 
 
 def test_same_seed_in_two_workers_does_not_repeat_parameters(tmp_path, data3, cache):

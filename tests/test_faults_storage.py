@@ -60,6 +60,12 @@ def quick(data, studies, storage, study, *extra):
 # slow trials (Gamma pinned high, eta small: ~0.3 s per pair) so that a fault lands inside a trial
 SLOW = ["--fix", "max_iters=150000", "--fix", "threshold=0.2", "--budget", "5"]
 
+# Gamma pinned low and a generous budget: every trial is within budget whatever the machine's load, so a run
+# exits 0 (the 0.2 s budget of `quick` with a calibrated Gamma_max left a single trial over budget under CI's
+# load: "no feasible completed trial yet", exit 2). The seed tests (test_faults_processes) search r and eta: a
+# repeat is a repeat of both.
+FEASIBLE = ["--fix", "max_iters=2000", "--budget", "5"]
+
 
 def one_line_error(r) -> str:
     assert r.returncode == 2, (r.returncode, r.stdout[-1000:], r.stderr[-3000:])
@@ -362,7 +368,7 @@ def test_invalid_counts(tmp_path, cache, args, needle):
 def test_heartbeat_zero_is_off(tmp_path, data3, cache):
     storage = f"sqlite:///{tmp_path}/optuna.db"
     r = tune(*quick(data3, tmp_path / "studies", storage, "hb0")[:-2], "--heartbeat", "0", "--n-trials", "1",
-             cache=cache)
+             *FEASIBLE, cache=cache)
     assert r.returncode == 0, r.stderr[-2000:]
     import sqlite3
     con = sqlite3.connect(tmp_path / "optuna.db")
@@ -389,7 +395,7 @@ def tuned(tmp_path_factory, data3, cache):
     """A real study with frozen settings, its storage and studies folder (to copy and damage)."""
     tmp = tmp_path_factory.mktemp("tuned")
     storage = f"sqlite:///{tmp}/optuna.db"
-    r = tune(*quick(data3, tmp / "studies", storage, "s"), "--n-trials", "2", cache=cache)
+    r = tune(*quick(data3, tmp / "studies", storage, "s"), "--n-trials", "2", *FEASIBLE, cache=cache)
     assert r.returncode == 0, r.stderr[-2000:]
     assert (tmp / "studies" / "s" / "frozen.yaml").is_file()
     return tmp
