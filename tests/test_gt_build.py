@@ -442,3 +442,33 @@ def test_an_exception_from_colmap_is_the_scenes_one_line_not_a_traceback(tmp_pat
     for line, scene in zip(lines, ["fountain-P11", "Herz-Jesus-P8"]):
         assert line.startswith(f"tune: error: scene {scene}: COLMAP feature extraction failed (RuntimeError: "), line
         assert "has free space" in line, line
+
+
+@pytest.mark.parametrize("kind", ["zeros", "truncated-eoi"])
+def test_a_corrupt_jpeg_is_refused_before_colmap_reads_it(tmp_path, capsys, kind):
+    """A JPEG whose middle is overwritten (end marker intact), or cut short with an end marker appended, passes the
+    scene's marker walk; COLMAP's extraction decoded it into a damaged image without a word and `build-gt` built on
+    it (the pair evaluation itself refuses such a file: test_bad_input_pipeline). `build-gt` now checks every image
+    as the pair path does, before COLMAP: one line naming the file, nothing built."""
+    from pipeline.data.imagefile import jpeg_end
+    from tests.conftest import copy_strecha_subset
+    from tuner.cli import main
+    data = copy_strecha_subset(tmp_path / "data", ["0003.jpg", "0004.jpg", "0005.jpg"])
+    p = data / "fountain-P11" / "images" / "0004.jpg"
+    b = bytearray(p.read_bytes())
+    n = len(b)
+    if kind == "zeros":
+        b[n // 2: n // 2 + 8192] = bytes(8192)
+    else:
+        b = b[: n // 2] + b"\xff\xd9"
+    assert jpeg_end(bytes(b)) is not None  # the scene's own check (the end marker walk) passes
+    p.write_bytes(bytes(b))
+    gt_dir = tmp_path / "gt"
+    capsys.readouterr()
+    rc = main(["data", "build-gt", "--data", str(data), "--gt-dir", str(gt_dir), "--quiet", "--num-features", "1024",
+               "--max-image-size", "1024"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "\n" not in err, err
+    assert err.startswith(f"tune: error: scene fountain-P11: corrupt JPEG {p}: libjpeg reports"), err
+    assert "replace the file or remove it from the scene" in err, err
+    assert not list(gt_dir.rglob("gt.h5"))

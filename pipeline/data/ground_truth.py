@@ -169,11 +169,23 @@ class _colmap_step:
 
 
 def _image_root(scene) -> tuple[Path, dict[str, str]]:
-    """A folder holding every image of the scene and name -> path relative to it (COLMAP image names)."""
+    """A folder holding every image of the scene and name -> path relative to it (COLMAP image names); each image
+    is checked whole first (ImtuneError naming the scene and the file)."""
+    from pipeline.data.imagefile import check_image_bytes, check_jpeg_decode
     paths = {n: Path(info.path).resolve() for n, info in scene.images.items()}
     for n, p in paths.items():
         if not p.is_file():
             raise ImtuneError(f"scene {scene.name}: image not found: {p}")
+        # COLMAP decodes a damaged JPEG without a word (a middle overwritten, a cut with an end marker appended):
+        # the same checks as the pair path's (pipeline.data.resize.load_image), before COLMAP reads the file
+        try:
+            data = p.read_bytes()
+            check_image_bytes(p, data)
+            check_jpeg_decode(p, data)
+        except ImtuneError as e:
+            raise ImtuneError(f"scene {scene.name}: {e}") from None
+        except OSError as e:
+            raise ImtuneError(f"scene {scene.name}: cannot read image {p}: {e.strerror or e}") from None
     root = Path(os.path.commonpath([str(p.parent) for p in paths.values()]))
     return root, {n: str(p.relative_to(root)) for n, p in paths.items()}
 
