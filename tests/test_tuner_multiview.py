@@ -413,6 +413,31 @@ def test_tune_studies_shows_no_infeasible_count_for_a_multiview_study(mv_study, 
     assert row["infeasible"] is None and row["complete"] == 2, row
 
 
+def test_compare_of_a_multiview_study_uses_the_bags_it_was_tested_on(mv_study, tmp_path, capsys):
+    """`tune compare STUDY B` without --bags evaluated a multiview study on the protocol's default bags, not those it
+    was tuned and is tested on (`tune test` reads them from its frozen file): its numbers there were not its test's,
+    unsaid. Now the bags the studies recorded when they agree; a typed --bags is used as given, with a warning naming
+    the study tested on others."""
+    root, studies = mv_study
+    other = tmp_path / "r99.yaml"
+    other.write_text(yaml.safe_dump({"config": {"feature": {"name": "sift", "num_features": 1024},
+                                                "matching": {"ratio": 0.99}}}))
+    common = ["--data", str(root), "--scenes", "fountain-P11", "--studies-dir", str(studies), "--workers", "1",
+              "--quiet", "--ci-resamples", "200", "--json"]
+    from tuner.cli import main
+    capsys.readouterr()
+    rc = main(["compare", STUDY, str(other), *common])  # the study's --bags 5:3 (the mv_study fixture)
+    out, err = capsys.readouterr()
+    assert rc == 0, err
+    assert json.loads(out)["overall"]["pairs"] == 3 and "was tested with" not in err, (out[-500:], err)
+    rc = main(["compare", STUDY, str(other), *common, "--bags", "5:2"])
+    out, err = capsys.readouterr()
+    assert rc == 0, err
+    assert json.loads(out)["overall"]["pairs"] == 2, out[-500:]
+    assert (f"warning: {STUDY} was tested with bags 5:3 (here 5:2); all are compared on these bags (as given)"
+            in err), err
+
+
 def test_compare_of_a_multiview_study_pairs_its_bags(mv_study, tmp_path, capsys):
     """`tune compare STUDY B` of a multiview study evaluated it on stereo pairs, with an eta and Gamma it never
     tuned, where a researcher asks how its tuned r reconstructs. A multiview study is now compared on the same

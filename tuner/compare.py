@@ -97,6 +97,46 @@ def comparison_task(specs: list[str], sources: list, task: str | None = None) ->
     return next(iter(tuned), "stereo")
 
 
+#: MultiviewConfig fields that choose the bags and how COLMAP runs them -> the `tune compare` options setting them
+BAG_OPTIONS = {"bags": "bags", "min_points": "bag_min_points", "bag_seed": "bag_seed", "intrinsics": "mv_intrinsics"}
+
+
+def _option_text(field: str, value) -> str:
+    return ",".join(f"{s}:{c}" for s, c in value) if field == "bags" else str(value)
+
+
+def study_bags(specs: list[str], sources: list, given, typed) -> tuple:
+    """The multiview settings `tune compare` evaluates every source on, and a warning or None. ``given``: the
+    command line's MultiviewConfig (the protocol's defaults where no option is typed); ``typed``: the option dests
+    typed (:func:`tuner.options.explicit_options`). Without a typed bag option, the settings the multiview studies
+    among the sources recorded (their frozen task options, which their test runs use) when they all agree; else
+    ``given``, with a warning naming a study tested with other settings (its numbers here are not its test's)."""
+    import dataclasses
+
+    from pipeline.tasks.multiview import MultiviewConfig
+    fields = [f.name for f in dataclasses.fields(MultiviewConfig) if f.name != "seed"]  # COLMAP's seed: the command's
+    recorded = {}
+    for spec, src in zip(specs, sources):
+        fz = getattr(src, "frozen", None) or {}
+        if fz.get("task") == "multiview" and isinstance(fz.get("task_options"), dict):
+            recorded[spec] = dataclasses.replace(given, **{k: v for k, v in fz["task_options"].items() if k in fields})
+    typed_bag = bool(set(typed) & set(BAG_OPTIONS.values()))
+    first = next(iter(recorded.values()), None)
+    if first is None:
+        return given, None
+    if not typed_bag and all(mv == first for mv in recorded.values()):
+        return first, None
+    other = [spec for spec, mv in recorded.items() if mv != given]
+    if not other:
+        return given, None
+    mv = recorded[other[0]]
+    diff = ", ".join(f"{k} {_option_text(k, getattr(mv, k))} (here {_option_text(k, getattr(given, k))})"
+                     for k in fields if getattr(mv, k) != getattr(given, k))
+    why = ("as given" if typed_bag else
+           "the studies' settings differ: the protocol's defaults; give --bags ... to choose")
+    return given, f"{other[0]} was tested with {diff}; all are compared on these bags ({why})"
+
+
 def task_label(src, task: str) -> str:
     """A source's label naming what verifies its matches on ``task``: a configuration file compared on multiview bags
     was labelled 'degensac η 0.5 px, Γ 50000' (an estimator COLMAP never used), a multiview study on stereo pairs

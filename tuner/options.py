@@ -252,11 +252,12 @@ def config_over(base: PipelineConfig, args: argparse.Namespace, where: str = "co
     return conf, used
 
 
-def add_multiview_options(ap: argparse.ArgumentParser) -> None:
-    """Options of the multiview task (`tune evaluate --task multiview`)."""
+def add_multiview_options(ap: argparse.ArgumentParser, bags_default: str = "the protocol's 100/50/25") -> None:
+    """Options of the multiview task (`tune evaluate --task multiview`); ``bags_default``: --bags' default, as its
+    help says it."""
     g = ap.add_argument_group("multiview")
     g.add_argument("--bags", default=None,
-                   help="bag sizes[:counts], e.g. 5,10,25 or 5:100,10:50,25:25 (default: the protocol's 100/50/25)")
+                   help=f"bag sizes[:counts], e.g. 5,10,25 or 5:100,10:50,25:25 (default: {bags_default})")
     g.add_argument("--bag-min-points", type=count_int, default=100, help="each image must see this many of the bag's 3D points")
     g.add_argument("--bag-seed", type=seed_int, default=0, help="seed of the bag sampling")
     g.add_argument("--mv-intrinsics", default="colmap", choices=["colmap", "prior", "fixed"],

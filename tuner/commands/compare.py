@@ -5,7 +5,8 @@
 
 Each of A, B, ... is a study name (its frozen settings), a frozen.yaml, a configuration file or an IMC
 benchmark method JSON. Multiview studies are compared on the same multiview bags (``--task``, ``--bags``, ...):
-paired over bags, as `tune results --task multiview` ranks them. Python: :func:`tuner.compare.compare`.
+paired over bags, as `tune results --task multiview` ranks them; without ``--bags``, ``--bag-min-points``,
+``--bag-seed`` or ``--mv-intrinsics``, on the bags the studies recorded (those of their test runs) when they agree. Python: :func:`tuner.compare.compare`.
 """
 from __future__ import annotations
 
@@ -36,7 +37,8 @@ def register(sub) -> None:
                    help="compare on stereo pairs or on multiview bags (default: the task the studies were tuned for; "
                         "configuration files alone: stereo)")
     from tuner.options import add_multiview_options
-    add_multiview_options(ap)
+    add_multiview_options(ap, bags_default="the multiview studies' recorded bags when they agree, else the "
+                                           "protocol's 100/50/25")
     s = ap.add_argument_group("statistics")
     s.add_argument("--ci-resamples", type=resamples_int, default=2000, help="bootstrap / sign-flip resamples")
     s.add_argument("--seed", type=seed_int, default=0, help="seed of the resampling (estimator seeds come from each config)")
@@ -85,8 +87,14 @@ def run(args) -> int:
                   "construction (same pairs, same seeds), not a finding", file=sys.stderr)
         seen.setdefault(key, spec)
     data = resolve_data(args.data)
-    mv = ({"multiview": multiview_config(args, seed=0), "workers": args.workers, "keep_models": args.keep_models}
-          if task == "multiview" else {})
+    mv = {}
+    if task == "multiview":  # on the bags the multiview studies were tested on, unless bag options are typed
+        from tuner.compare import study_bags
+        from tuner.options import explicit_options
+        conf, warn = study_bags(args.sources, sources, multiview_config(args, seed=0), explicit_options(args))
+        if warn:
+            print(f"warning: {warn}", file=sys.stderr)
+        mv = {"multiview": conf, "workers": args.workers, "keep_models": args.keep_models}
     res = compare(sources, data, args.scenes, cache_dir=args.cache, min_covisibility=args.covisibility,
                   progress=not (args.quiet or args.json), n_resamples=args.ci_resamples, seed=args.seed, task=task,
                   gt_dir=args.gt_dir, **mv)
