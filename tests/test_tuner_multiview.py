@@ -413,24 +413,18 @@ def test_tune_studies_shows_no_infeasible_count_for_a_multiview_study(mv_study, 
     assert row["infeasible"] is None and row["complete"] == 2, row
 
 
-def test_compare_of_a_multiview_study_uses_the_bags_it_was_tested_on(mv_study, tmp_path, capsys):
-    """`tune compare STUDY B` without --bags evaluated a multiview study on the protocol's default bags, not those it
-    was tuned and is tested on (`tune test` reads them from its frozen file): its numbers there were not its test's,
-    unsaid. Now the bags the studies recorded when they agree; a typed --bags is used as given, with a warning naming
-    the study tested on others."""
+def test_compare_of_a_multiview_study_with_other_bags_says_so(mv_study, tmp_path, capsys):
+    """`tune compare STUDY B --bags 5:2` of a study tested on bags 5:3: the typed bags are used as given, and a warning
+    names the study tested on others (its numbers here are not its test's). Without --bags the study's recorded
+    bags are used (test_compare_of_a_multiview_study_pairs_its_bags)."""
     root, studies = mv_study
     other = tmp_path / "r99.yaml"
     other.write_text(yaml.safe_dump({"config": {"feature": {"name": "sift", "num_features": 1024},
                                                 "matching": {"ratio": 0.99}}}))
-    common = ["--data", str(root), "--scenes", "fountain-P11", "--studies-dir", str(studies), "--workers", "1",
-              "--quiet", "--ci-resamples", "200", "--json"]
     from tuner.cli import main
     capsys.readouterr()
-    rc = main(["compare", STUDY, str(other), *common])  # the study's --bags 5:3 (the mv_study fixture)
-    out, err = capsys.readouterr()
-    assert rc == 0, err
-    assert json.loads(out)["overall"]["pairs"] == 3 and "was tested with" not in err, (out[-500:], err)
-    rc = main(["compare", STUDY, str(other), *common, "--bags", "5:2"])
+    rc = main(["compare", STUDY, str(other), "--data", str(root), "--scenes", "fountain-P11", "--studies-dir",
+               str(studies), "--workers", "1", "--quiet", "--ci-resamples", "200", "--json", "--bags", "5:2"])
     out, err = capsys.readouterr()
     assert rc == 0, err
     assert json.loads(out)["overall"]["pairs"] == 2, out[-500:]
@@ -441,13 +435,15 @@ def test_compare_of_a_multiview_study_uses_the_bags_it_was_tested_on(mv_study, t
 def test_compare_of_a_multiview_study_pairs_its_bags(mv_study, tmp_path, capsys):
     """`tune compare STUDY B` of a multiview study evaluated it on stereo pairs, with an eta and Gamma it never
     tuned, where a researcher asks how its tuned r reconstructs. A multiview study is now compared on the same
-    multiview bags (COLMAP), paired over the bags (uncertainty.paired_bags, as `tune results --task multiview`)."""
+    multiview bags (COLMAP), paired over the bags (uncertainty.paired_bags, as `tune results --task multiview`); with
+    no --bags, on the bags the study was tested on (its frozen task options: 5:3; before, the protocol's defaults:
+    7 bags of this scene, unsaid)."""
     root, studies = mv_study
     other = tmp_path / "r99.yaml"  # the same features, no ratio test: other matches, the same bags
     other.write_text(yaml.safe_dump({"config": {"feature": {"name": "sift", "num_features": 1024},
                                                 "matching": {"ratio": 0.99}}}))
-    common = ["--data", str(root), "--scenes", "fountain-P11", "--studies-dir", str(studies), "--bags", "5:3",
-              "--workers", "1", "--quiet", "--ci-resamples", "200"]
+    common = ["--data", str(root), "--scenes", "fountain-P11", "--studies-dir", str(studies),
+              "--workers", "1", "--quiet", "--ci-resamples", "200"]  # no --bags: the study's 5:3
     from tuner.cli import main
     capsys.readouterr()
     rc = main(["compare", STUDY, str(other), STUDY, *common, "--json"])
@@ -455,6 +451,7 @@ def test_compare_of_a_multiview_study_pairs_its_bags(mv_study, tmp_path, capsys)
     assert rc == 0, err
     res = json.loads(out)
     assert [c["task"] for c in res] == ["multiview"] * 2 and "stereo pairs" not in err, err
+    assert "was tested with" not in err, err
     vs_other, vs_self = (c["overall"] for c in res)
     assert vs_other["pairs"] == 3 and vs_self["pairs"] == 3  # the 3 bags of 5, common to all
     assert vs_self["difference"] == 0.0 and vs_self["p_value"] == 1.0 and vs_self["ci"] == [0.0, 0.0]
