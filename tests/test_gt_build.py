@@ -356,11 +356,12 @@ def _strecha_pairs_list(dst, names, stranger=("entry-P10", "0009.jpg")):
     return dst
 
 
-def test_pairs_dropped_by_an_sfm_ground_truth_are_said(tmp_path, capsys):
+def test_pairs_of_an_image_the_sfm_did_not_register_keep_their_listed_poses(tmp_path, capsys):
     """A pairs list whose SfM ground truth (`tune data build-gt`, no absolute poses: SfM) left an image unregistered
-    had every pair with that image dropped from evaluation without a word: `tune evaluate` reported fewer pairs than
-    listed. Now one warning names the scene, how many listed pairs are evaluated and dropped, and the image, and the
-    JSON result keeps it in the task's notes."""
+    had every pair with that image dropped, whatever --covisibility said, though the list gives each pair its pose
+    and the SfM only the co-visibility. Now they stay on the list's poses at co-visibility 0 (the image sees none of
+    the SfM's points): the default filter (0.1) leaves them out, --covisibility 0 evaluates them; one warning names the
+    scene, the pairs evaluated of those listed and the image, and the JSON result keeps it in the task's notes."""
     from tuner.cli import main
     names = ["0003.jpg", "0004.jpg", "0005.jpg", "0006.jpg"]
     data = _strecha_pairs_list(tmp_path / "listed", names)
@@ -371,18 +372,27 @@ def test_pairs_dropped_by_an_sfm_ground_truth_are_said(tmp_path, capsys):
     out, err = capsys.readouterr()
     built = json.loads(out)["listed"]
     assert rc == 0 and built["method"] == "sfm" and built["dropped"] == ["stranger.jpg"], (out, err)
-    rc = main(["evaluate", "--data", str(data), "--gt-dir", str(gt_dir), "--num-features", "512", "--jobs", "1",
-               "--cache", str(tmp_path / "cache"), "--quiet", "--json", "--covisibility", "0"])
+    common = ["evaluate", "--data", str(data), "--gt-dir", str(gt_dir), "--num-features", "512", "--jobs", "1",
+              "--cache", str(tmp_path / "cache"), "--quiet"]
+    rc = main([*common, "--json", "--pairs", "--covisibility", "0"])
     out, err = capsys.readouterr()
     res = json.loads(out)["stereo"]
-    note = ("scene listed: 6 of 10 listed pairs evaluated (4 dropped because the SfM ground truth (tune data build-gt) "
-            "did not register 1 image: stranger.jpg)")
-    assert rc == 0 and res["pairs"] == 6, (res["pairs"], err)
+    note = ("scene listed: 10 of 10 listed pairs evaluated (4 hold an image the SfM ground truth (tune data build-gt) "
+            "did not register (stranger.jpg): co-visibility 0)")
+    assert rc == 0 and res["pairs"] == 10, (res["pairs"], err)  # 6 before: the 4 dropped whatever --covisibility
     assert res["notes"] == [note], res.get("notes")
     assert err.strip().splitlines() == [f"warning: {note}"], err
+    assert {f"{a}|stranger.jpg" for a in names} <= {r["pair"] for r in res["pair_records"]}
     origin = ("the scene's own poses (its pairs list); co-visibility from imtune's SfM (tune data build-gt, 4 of 5 "
               "images registered)")
     assert json.loads(out)["ground_truth"] == {"listed": origin}
+    rc = main([*common, "--json"])  # the default co-visibility filter, 0.1
+    out, err = capsys.readouterr()
+    res = json.loads(out)["stereo"]
+    assert rc == 0 and res["pairs"] <= 6, (res["pairs"], err)
+    assert res["notes"][0].startswith(f"scene listed: {res['pairs']} of 10 listed pairs evaluated (4 hold an image "
+                                      "the SfM ground truth (tune data build-gt) did not register (stranger.jpg): "
+                                      "co-visibility 0; "), res["notes"]
     # the pairs' relative poses evaluated are still the list's own: SfM gave the co-visibility and the pairs kept
     rc = main(["evaluate", "--data", str(data), "--gt-dir", str(gt_dir), "--num-features", "512", "--jobs", "1",
                "--cache", str(tmp_path / "cache"), "--quiet", "--covisibility", "0"])

@@ -579,23 +579,32 @@ def attach_ground_truth(scene, gt_dir: Path | str | None = None, required: bool 
                    "unregistered": [], "pairs_listed": listed, "pairs_dropped": 0}
     if gt.method == "sfm":
         unregistered = [n for n in scene.images if n not in idx]
+        # a pair with its own relative pose (a pairs list: R, t and K per pair) needs no pose from the SfM: it stays,
+        # with its images, registered or not, and the co-visibility filter decides (its co-visibility is 0: the
+        # unregistered image sees none of the SfM's points); it was dropped whatever --covisibility said
+        own = {n for q in scene.pairs if q.R is not None and q.t is not None for n in (q.i, q.j)}
         for n in unregistered:
-            del scene.images[n]
+            if n not in own:
+                del scene.images[n]
         for n, k in idx.items():
             if n in scene.images:
                 info = scene.images[n]
                 info.K, info.R, info.t = gt.K[k].copy(), gt.R[k].copy(), gt.t[k].copy()
                 if info.size is None:
                     info.size = (int(gt.sizes[k][0]), int(gt.sizes[k][1]))
-        scene.pairs = [q for q in scene.pairs if q.i in scene.images and q.j in scene.images]
-        scene.built.update(registered=len(scene.images), unregistered=unregistered,
-                           pairs_dropped=listed - len(scene.pairs))
+        scene.pairs = [q for q in scene.pairs if q.i in scene.images and q.j in scene.images
+                       and ((q.i in idx and q.j in idx) or (q.R is not None and q.t is not None))]
+        scene.built.update(registered=len(idx.keys() & scene.images.keys()), unregistered=unregistered,
+                           pairs_dropped=listed - len(scene.pairs),
+                           pairs_unregistered=sum(1 for q in scene.pairs if q.i not in idx or q.j not in idx))
     if scene.observations is None:
         scene.points3d = gt.points3d
         scene.observations = {n: gt.observations[n] for n in gt.names if n in scene.images}
     for q in scene.pairs:
         if (q.covisibility is None or overwrite_covisibility) and q.i in idx and q.j in idx:
             q.covisibility = float(gt.covisibility[idx[q.i], idx[q.j]])
+        elif (q.covisibility is None or overwrite_covisibility) and gt.method == "sfm":
+            q.covisibility = 0.0  # an image the SfM did not register sees none of its 3D points
     fill_covisibility(scene)
     return True
 

@@ -73,7 +73,8 @@ class Scene:
     source: str = ""  # loader name
     truth_id: str | None = None  # the ground truth as loaded (truth_digest), set by load_scene: keys built ground truth
     # the ground truth `tune data build-gt` built, once attached (pipeline.data.ground_truth.attach_ground_truth):
-    # method ("poses" / "sfm"), images, registered, unregistered (names), pairs_listed, pairs_dropped
+    # method ("poses" / "sfm"), images, registered, unregistered (names), pairs_listed, pairs_dropped,
+    # pairs_unregistered (pairs kept on their own poses that hold an unregistered image: co-visibility unknown)
     built: dict | None = None
 
     def truth_origin(self) -> str:

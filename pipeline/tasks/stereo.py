@@ -291,7 +291,7 @@ class StereoTask(Task):
 
     def scene_notes(self, scene: Scene) -> list[str]:
         """Pairs an SfM ground truth left out (an image it did not register: no pose, no pair), with the count of
-        pairs evaluated out of those listed; and images whose principal point lies far from their centre (more than
+        pairs evaluated out of those listed (pairs with their own listed poses stay, at co-visibility 0); and images whose principal point lies far from their centre (more than
         OFF_CENTRE of their size): intrinsics for another image size (images resized, K not) that the formats
         stating no size cannot refuse."""
         return self._dropped_notes(scene) + self._off_centre_notes(scene)
@@ -299,16 +299,24 @@ class StereoTask(Task):
     def _dropped_notes(self, scene: Scene) -> list[str]:
         b = scene.built or {}
         dropped = int(b.get("pairs_dropped") or 0)
-        if not dropped:
+        gone = list(b.get("unregistered") or [])
+        on_own = int(b.get("pairs_unregistered") or 0)
+        if not dropped and not on_own:
             return []
         listed = int(b.get("pairs_listed") or 0)
         kept = len(scene.pairs)
         selected = len(scene.select_pairs(self.min_covisibility))
         evaluated = len(self.evaluation_units(scene))
-        gone = list(b.get("unregistered") or [])
-        shown = ", ".join(gone[:10]) + (f" and {len(gone) - 10} more" if len(gone) > 10 else "")
-        why = [f"{dropped} dropped because the SfM ground truth (tune data build-gt) did not register "
-               f"{len(gone)} image{'s' if len(gone) != 1 else ''}: {shown}"]
+        if dropped:
+            shown = ", ".join(gone[:10]) + (f" and {len(gone) - 10} more" if len(gone) > 10 else "")
+            why = [f"{dropped} dropped because the SfM ground truth (tune data build-gt) did not register "
+                   f"{len(gone)} image{'s' if len(gone) != 1 else ''}: {shown}"]
+        else:  # pairs on their own listed poses: the co-visibility filter decides
+            paired = {n for q in scene.pairs for n in (q.i, q.j)}
+            held = [n for n in gone if n in paired]
+            shown = ", ".join(held[:10]) + (f" and {len(held) - 10} more" if len(held) > 10 else "")
+            why = [f"{on_own} hold{'s' if on_own == 1 else ''} {'an image' if len(held) == 1 else 'images'} the SfM "
+                   f"ground truth (tune data build-gt) did not register ({shown}): co-visibility 0"]
         if kept > selected:
             why.append(f"{kept - selected} below co-visibility {self.min_covisibility:g}")
         if selected > evaluated:
