@@ -16,7 +16,7 @@ import urllib.request
 import pytest
 
 from tests.conftest import DATA, ROOT, copy_strecha_subset
-from tests.test_faults_storage import FEASIBLE, SLOW, _env, completed, finished, one_line_error, quick, trials, tune
+from tests.test_faults_storage import FEASIBLE, SLOW, _env, completed, finished, quick, trials, tune
 
 pytestmark = pytest.mark.skipif(not (DATA / "strecha").is_dir(), reason=f"real data not found at {DATA / 'strecha'}")
 
