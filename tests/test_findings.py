@@ -1223,6 +1223,10 @@ def test_a_study_that_could_not_be_frozen_still_counts_in_the_compute(subset, tm
     assert line.startswith("compute recorded by the 2 studies (1 of which could not be frozen; their reasons in the "
                            "findings' tables): "), line
     assert "test 2.0 min" in line, line
+    # the unfrozen study alone: it has no test run, and the header read "test 0.0 min" as if one had run in no time
+    alone = compute_total({"findings": [{"measured": {"studies": {"tuned": unfrozen}}}]})
+    assert alone["tested"] == 0 and " h, no test run; " in _compute_line(alone), _compute_line(alone)
+    assert "test 0.0 min" not in _compute_line(alone)
 
 
 def test_the_report_says_counts_in_their_number_and_the_trial_target_beside_what_the_studies_hold(tmp_path):

@@ -419,12 +419,15 @@ def compute_total(out: dict) -> dict | None:
     missing = sorted(n for n, c in seen.items() if c.get("test_seconds") is None and c.get("tested", True))
     cal = sum(cals.values())
     return {"studies": len(seen), "calibration_seconds": cal, "trial_seconds": trial, "test_seconds": test,
-            "total_seconds": cal + trial + test, "tests_not_timed": missing, "not_frozen": sorted(unfrozen)}
+            "total_seconds": cal + trial + test, "tests_not_timed": missing, "not_frozen": sorted(unfrozen),
+            "tested": sum(1 for c in seen.values() if c.get("tested", True))}
 
 
 def _compute_line(c: dict) -> str:
     untimed = len(c["tests_not_timed"])
     test = "test not recorded" if untimed and untimed == c["studies"] else f"test {c['test_seconds'] / 60:.1f} min"
+    if c.get("tested", 1) == 0:  # no study has a test run yet (none frozen, or --no-test): not "test 0.0 min"
+        test = "no test run"
     nf = len(c.get("not_frozen") or [])
     studies = f"the {c['studies']} stud{'y' if c['studies'] == 1 else 'ies'}" + (
         f" ({nf} of which could not be frozen; their reasons in the findings' tables)" if nf else "")
