@@ -19,7 +19,6 @@ Every value is validated by the stage dataclasses (one-line ImtuneError naming t
 from __future__ import annotations
 
 import dataclasses
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
