@@ -131,19 +131,26 @@ def test_every_estimator_recovers_a_known_pose_with_true_inliers(ransac):
     on a portrait pair with non-square, off-centre K, 0.5 px noise and 30% outliers. Measured (3 scenes each): pose
     error 0.09-2.6 deg (pyransac and cv-ransac the largest), inlier precision >= 0.99, recall 0.85-0.97 and 0.72 for
     cv-ransac (its eta bounds the epipolar-line distance in both images: its inliers' Sampson distance <= 0.7 eta);
-    the inliers' Sampson distance is <= eta (poselib's mask is scored before its final refinement: 1.02 eta)."""
+    the inliers' Sampson distance is <= eta (poselib's mask is scored before its final refinement: 1.02 eta).
+    pymagsac and pygcransac take no seed, so their pose error is a random variable: each scene is solved 8 times and
+    the bound is on the median of the 24 errors, with at most 2 above 6 deg. Measured for magsac++ (100 runs per
+    scene): median 0.65-1.34 deg, 90th percentile 1.6-2.9, max 6.7; a median of 3 single runs was >= 2 deg in 10%
+    of runs (the CI failure of Dec 2026), the rule below failed in none of 20,000 bootstrap draws."""
     from pipeline.geometry import get_estimator
     from pipeline.geometry.base import sampson_distance
     est = get_estimator(ransac)
+    draws = 1 if est.seedable else 8
     errs = []
     for seed in range(3):
         K1, K2, R, t, x1, x2, truth = _portrait_two_view(seed)
-        res = est.estimate(x1, x2, 1.0, 0.999999, 10000, seed=0, sizes=((640, 1024), (640, 1024)))
-        assert res.F is not None
-        inl = res.inliers
-        assert (inl & truth).sum() >= 0.98 * inl.sum() and (inl & truth).sum() >= 0.6 * truth.sum()
-        d = sampson_distance(res.F, x1, x2)[inl]
-        assert d.max() <= (1.15 if ransac == "poselib" else 1.0) + 1e-6, d.max()
-        R_est, t_est = pose_from_F(res.F, K1, K2, x1[inl], x2[inl])
-        errs.append(pose_error_deg(R, t, R_est, t_est)[0])
-    assert np.median(errs) < 2.0 and max(errs) < 6.0, errs
+        for _ in range(draws):
+            res = est.estimate(x1, x2, 1.0, 0.999999, 10000, seed=0, sizes=((640, 1024), (640, 1024)))
+            assert res.F is not None
+            inl = res.inliers
+            assert (inl & truth).sum() >= 0.98 * inl.sum() and (inl & truth).sum() >= 0.6 * truth.sum()
+            d = sampson_distance(res.F, x1, x2)[inl]
+            assert d.max() <= (1.15 if ransac == "poselib" else 1.0) + 1e-6, d.max()
+            R_est, t_est = pose_from_F(res.F, K1, K2, x1[inl], x2[inl])
+            errs.append(pose_error_deg(R, t, R_est, t_est)[0])
+    errs = np.asarray(errs)
+    assert np.median(errs) < 2.0 and (errs >= 6.0).sum() <= (0 if draws == 1 else 2), errs
