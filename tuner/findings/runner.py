@@ -385,7 +385,6 @@ def validation_interval(study, frozen: dict, best, records_dir: Path, cache, n_r
             r["err"] = _err(r["err"])
         iv = maa_intervals(recs, taus=(10,), n_resamples=n_resamples)
     # the interval's half-widths around its own point, placed at the trial's value (same pairs, same config)
-    from pipeline.metrics.uncertainty import maa_from_errors  # noqa: F401  (documented equivalence)
     lo, hi = iv["mAA10_ci"]
     point = float(best.user_attrs.get("mAA10", best.value if best.value is not None else 0.0))
     centre = _point(recs, task)
