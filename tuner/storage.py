@@ -727,16 +727,53 @@ def interrupt_in_chain(exc: BaseException) -> KeyboardInterrupt | None:
     return next((e for e in _chain(exc) if isinstance(e, KeyboardInterrupt)), None)
 
 
-def fail_interrupted_trials(study, numbers) -> list[int]:
-    """Mark FAIL the trials among ``numbers`` (this process's) still RUNNING after an interruption: one interrupted
-    while Optuna recorded it (see :func:`interrupt_in_chain`) is left RUNNING, and would wait for the heartbeat's
-    grace period before a resume could see it stale. Best effort (the storage may be the thing that failed);
-    returns the numbers marked."""
+def track_created_trials(storage) -> list[int]:
+    """The ids of the trials this process creates on ``storage`` (or takes from its waiting queue), appended as
+    the storage hands them out; the same list on every call for one storage object.
+
+    Written by hand because Optuna has no hook between creating a trial and calling the objective: a Ctrl-C in
+    that window (the trial's first read, the sampler's ``before_trial``) left a RUNNING trial that the objective
+    never saw (seen in CI, Dec 2026). Wraps the public ``create_new_trial`` and ``set_trial_state_values`` of the
+    storage object the study calls (``study._storage``: Optuna wraps an RDB storage in a cache that calls the RDB
+    storage's private ``_create_new_trial``, so wrapping the RDB storage itself would see nothing)."""
+    from optuna.trial import TrialState
+    ids = getattr(storage, "_imtune_created_trials", None)
+    if ids is not None:
+        return ids
+    ids = []
+    create, set_state = storage.create_new_trial, storage.set_trial_state_values
+
+    def create_new_trial(study_id, template_trial=None):
+        trial_id = create(study_id, template_trial)
+        ids.append(trial_id)
+        return trial_id
+
+    def set_trial_state_values(trial_id, state, values=None):
+        taken = set_state(trial_id, state, values)
+        if taken and state == TrialState.RUNNING:  # a waiting (enqueued) trial this process popped
+            ids.append(trial_id)
+        return taken
+
+    storage.create_new_trial = create_new_trial
+    storage.set_trial_state_values = set_trial_state_values
+    storage._imtune_created_trials = ids
+    return ids
+
+
+def fail_interrupted_trials(study, numbers, trial_ids=(), storage=None) -> list[int]:
+    """Mark FAIL the trials of this process still RUNNING after an interruption: those among ``numbers`` (the
+    objective's) and among ``trial_ids`` (ids on ``storage``, see :func:`track_created_trials`: a trial interrupted
+    before the objective saw it). One interrupted while Optuna recorded it (see :func:`interrupt_in_chain`) is
+    left RUNNING too, and would wait for the heartbeat's grace period before a resume could see it stale. Best
+    effort (the storage may be the thing that failed); returns the numbers marked."""
     from optuna.trial import TrialState
     marked = []
     try:
+        numbers = set(numbers)
+        for tid in list(trial_ids)[-2:] if storage is not None else ():  # one trial at a time: the last is running
+            numbers.add(storage.get_trial(tid).number)
         running = {t.number for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))}
-        for n in numbers:
+        for n in sorted(numbers):
             if n in running:
                 study.tell(n, state=TrialState.FAIL)
                 marked.append(n)

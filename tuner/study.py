@@ -693,6 +693,8 @@ def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
     pruner = make_pruner("none" if getattr(ctx.objective, "pareto", False) else s.pruner)
     study = optuna.load_study(study_name=ctx.name, storage=ctx.storage, sampler=sampler, pruner=pruner)
     ctx.study = study
+    from tuner.storage import track_created_trials
+    created = track_created_trials(study._storage)  # before the first trial: a Ctrl-C before the objective runs
     ctx.objective.sampler = s.sampler  # recorded in each trial: a resume may use another sampler than the creator
 
     def finished(st) -> int:
@@ -726,7 +728,7 @@ def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
     except BaseException as e:
         from tuner.storage import fail_interrupted_trials, interrupt_in_chain
         if isinstance(e, KeyboardInterrupt) or interrupt_in_chain(e) is not None:
-            fail_interrupted_trials(study, ctx.objective.trials_run[-1:])  # the trial this process was running
+            fail_interrupted_trials(study, ctx.objective.trials_run[-1:], created, study._storage)  # this process's
         raise
     finally:
         if bar is not None:

@@ -1,0 +1,46 @@
+"""Ctrl-C in Optuna's window between creating a trial and calling the objective (the trial's first read, the
+sampler's ``before_trial``): the trial must end FAIL, not RUNNING. CI hit this window at random in
+test_tuner_study.py::test_ctrl_c_keeps_completed_trials (Dec 2026): the trial had no parameters, no attributes,
+and stayed RUNNING, so a resume counted it as running until the heartbeat's grace period. Here a real SIGINT is
+sent to this process at a chosen point of that window, on a real short study (2048 SIFT, DEGENSAC, real Strecha
+images, SQLite storage)."""
+from __future__ import annotations
+
+import os
+import signal
+import time
+
+import pytest
+
+from tests.test_pruners import STRECHA, _settings, cache, data4  # noqa: F401 (fixtures)
+
+pytestmark = pytest.mark.skipif(not STRECHA.is_dir(), reason=f"real data not found at {STRECHA}")
+
+
+def test_ctrl_c_before_the_objective_sees_its_trial_leaves_no_running_trial(tmp_path, data4, cache, monkeypatch):
+    import optuna
+    from optuna.trial import TrialState
+    import tuner.study as study_mod
+
+    class SigintInThirdTrialsCreation(optuna.samplers.RandomSampler):
+        """Optuna's random sampler; at the third trial's ``before_trial`` (the trial exists in the storage, the
+        objective has not been called) this process gets a real SIGINT, as from Ctrl-C in the terminal."""
+        def before_trial(self, study, trial):
+            if trial.number == 2:
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(30)  # the signal interrupts this at once (KeyboardInterrupt)
+            super().before_trial(study, trial)
+
+    monkeypatch.setattr(study_mod, "make_sampler",
+                        lambda name, seed, space, startup=None: SigintInThirdTrialsCreation(seed=seed))
+    monkeypatch.setenv("IMTUNE_CACHE", str(cache))
+    s = _settings(data4, tmp_path, budget=50.0, study_name="ctrl-c-window", n_trials=5, jobs=1)
+    ctx = study_mod.setup_study(s)
+    t0 = time.monotonic()
+    with pytest.raises(KeyboardInterrupt):
+        study_mod.optimize(ctx, s)
+    assert time.monotonic() - t0 < 25  # the sleep was interrupted: the SIGINT landed where it was sent
+    st = optuna.load_study(study_name="ctrl-c-window", storage=s.storage)
+    states = [t.state for t in st.trials]
+    assert states == [TrialState.COMPLETE, TrialState.COMPLETE, TrialState.FAIL], states
+    assert st.trials[2].params == {}  # interrupted before the objective drew anything
