@@ -42,7 +42,8 @@ def tested(tmp_path_factory):
     studies = tmp / "studies"
     run = tune("--data", data, "--feature", "sift", "--num-features", "1024", "--ransac", "cv-ransac",
                "--scenes", "fountain-P11", "--test-scenes", "herz", "--n-trials", "1", "--test-runs", "1",
-               "--budget", "0.1", "--calibration-pairs", "2", "--studies-dir", studies, "--jobs", "1", "--quiet",
+               "--budget", "5", "--fix", "max_iters=2000", "--calibration-pairs", "2", "--studies-dir", studies,
+               "--jobs", "1", "--quiet",
                env=env)
     test = tune("test", "--study", "sift-1024-cv-ransac-stereo", "--studies-dir", studies, "--runs", "1", "--jobs",
                 "1", "--quiet", env=env)
@@ -123,7 +124,9 @@ def test_an_older_study_beside_a_new_one_reads_not_recorded_in_a_column(tested, 
     env = tested["env"]
     rows = json.loads(tune("results", "--studies-dir", studies, "--format", "json", env=env).stdout)
     got = {r["feature"]: r["ground truth"] for r in rows}
-    assert got == {"sift": f"herz: {SFM}", "rootsift": "not recorded (written before imtune recorded it)"}, rows
+    # (the fixture fixes Gamma at 2000, which the feature label says)
+    assert got == {"sift+Gamma2000": f"herz: {SFM}",
+                   "rootsift+Gamma2000": "not recorded (written before imtune recorded it)"}, rows
     results = tune("results", "--studies-dir", studies, env=env).stdout
     assert "| ground truth" in results.splitlines()[0], results
     assert results.splitlines()[-1].endswith(" Test ground truth of each row's best study: column 'ground truth'.")
@@ -132,3 +135,37 @@ def test_an_older_study_beside_a_new_one_reads_not_recorded_in_a_column(tested, 
     assert "| val ground truth" in head, table
     assert any("not recorded (written before imtune recorded it)" in ln for ln in table.splitlines()[2:4]), table
     assert table.splitlines()[-1].endswith(" Validation ground truth of each row's study: column 'val ground truth'.")
+    # `tune studies` says it per study too: a short cell in the table, the whole phrases in --json
+    listed = tune("studies", "--studies-dir", studies, env=env).stdout
+    cells = {ln.split("|")[1].strip(): ln.split("|")[-2].strip() for ln in listed.splitlines()[2:]}
+    assert listed.splitlines()[0].split("|")[-2].strip() == "ground truth", listed
+    assert cells == {tested["name"]: "val own poses; test SfM (build-gt)",
+                     "old-rootsift-1024-cv-ransac-stereo": "val not recorded; test not recorded"}, listed
+    rows = {r["study"]: r["ground_truth"] for r in json.loads(tune("studies", "--studies-dir", studies, "--json",
+                                                                     env=env).stdout)}
+    assert rows == {tested["name"]: {"validation": {"fountain-P11": OWN}, "test": {"herz": SFM}},
+                    "old-rootsift-1024-cv-ransac-stereo": {"validation": None, "test": None}}, rows
+
+
+def test_ground_truth_short_names_each_origin_truth_origin_gives():
+    """The table cell of `tune studies` for every phrase :meth:`Scene.truth_origin` writes (its own poses, SfM in
+    their place, SfM co-visibility of listed pairs, co-visibility from 3D points, none), scenes named when they
+    differ; a phrase it does not know is shown whole."""
+    import numpy as np
+    from pathlib import Path
+    from pipeline.data.scene import Pair, Scene
+    from tuner.formatting import ground_truth_short
+    sfm_built = {"method": "sfm", "registered": 4, "images": 5}
+    own = Scene(name="a", root=Path("."), images={}, source="strecha")
+    sfm = Scene(name="b", root=Path("."), images={}, source="folder", built=sfm_built)
+    listed = Scene(name="c", root=Path("."), images={}, source="pairs_with_gt", built=sfm_built,
+                   pairs=[Pair("x", "y", R=np.eye(3), t=np.array([1.0, 0, 0]))])
+    tri = Scene(name="d", root=Path("."), images={}, source="strecha", built={"method": "poses"})
+    bare = Scene(name="e", root=Path("."), images={}, source="folder")
+    o = {s.name: s.truth_origin() for s in (own, sfm, listed, tri, bare)}
+    assert [ground_truth_short({k: v}) for k, v in o.items()] == [
+        "own poses", "SfM (build-gt)", "own poses, SfM co-visibility", "own poses, co-visibility from 3D points",
+        "none"], o
+    assert ground_truth_short({"a": o["a"], "b": o["b"], "d": o["a"]}) == "a, d: own poses; b: SfM (build-gt)"
+    assert ground_truth_short({"a": "somebody's poses"}) == "somebody's poses"
+    assert ground_truth_short(None) == ground_truth_short({}) == "not recorded"

@@ -237,6 +237,35 @@ def ground_truth_origins(scenes) -> dict:
     return {s.name: s.truth_origin() for s in scenes}
 
 
+def ground_truth_short(origins) -> str:
+    """A table cell for recorded :func:`ground_truth_origins` (scene -> the phrase of
+    :meth:`pipeline.data.scene.Scene.truth_origin`): "own poses", "own poses, SfM co-visibility", "own poses,
+    co-visibility from 3D points", "SfM (build-gt)" or "none", the scenes named when they differ; "not recorded"
+    for a study or test.json written before imtune recorded it."""
+    if not isinstance(origins, dict) or not origins:
+        return "not recorded"
+
+    def short(origin: str) -> str:
+        if origin.startswith("imtune's SfM"):
+            return "SfM (build-gt)"
+        if origin.startswith("none"):
+            return "none"
+        if origin.startswith("the scene's own poses"):
+            if "co-visibility from imtune's SfM" in origin:
+                return "own poses, SfM co-visibility"
+            if "co-visibility from 3D points" in origin:
+                return "own poses, co-visibility from 3D points"
+            return "own poses"
+        return origin  # a phrase this function does not know: shown whole, never guessed
+
+    groups: dict[str, list[str]] = {}
+    for name, origin in origins.items():
+        groups.setdefault(short(str(origin)), []).append(str(name))
+    if len(groups) == 1:
+        return next(iter(groups))
+    return "; ".join(f"{', '.join(names)}: {label}" for label, names in groups.items())
+
+
 def ground_truth_text(origins) -> str | None:
     """One line of recorded :func:`ground_truth_origins`, the scenes of one origin together ("A, B: origin; C:
     other"); None when nothing was recorded (a study or test.json written before imtune recorded it)."""

@@ -41,6 +41,24 @@ class StudyInfo:
     test: dict | None
 
 
+def study_test(name: str, attrs: dict, studies_dir: Path | str | None = None, warn=None) -> dict | None:
+    """A study's test summary: its attribute ``test``, else ``<studies_dir>/<study>/test.json``'s; None if it has
+    none. ``warn(line)``: told of a test.json that cannot be read."""
+    from tuner.freeze import load_test_file, study_dir, test_summary
+    test = attrs.get("test")
+    if test is None and studies_dir is not None:
+        p = study_dir(studies_dir, name) / "test.json"
+        d, why = load_test_file(p, name)
+        try:
+            test = test_summary(d) if d is not None else None
+        except (ValueError, KeyError, AttributeError, TypeError):
+            why = "not a test result"
+        if why and warn is not None:  # the study's test results vanished from the tables, unsaid
+            warn(f"{p} cannot be read ({why}): study {name} is shown without test results; "
+                 f"rerun `tune test --study {name}` to rewrite it")
+    return test
+
+
 def collect_studies(storage, task: str | None = None, studies_dir: Path | str | None = None,
                     warn=None) -> list[StudyInfo]:
     """Every imtune study in the storage (others are skipped), with the trial it freezes (``best``: its selection
@@ -50,7 +68,6 @@ def collect_studies(storage, task: str | None = None, studies_dir: Path | str | 
     import optuna
     from optuna.trial import TrialState
 
-    from tuner.freeze import load_test_file, study_dir, test_summary
     out = []
     for summ in optuna.get_all_study_summaries(storage, include_best_trial=False):
         attrs = summ.user_attrs
@@ -59,17 +76,7 @@ def collect_studies(storage, task: str | None = None, studies_dir: Path | str | 
         if task and attrs.get("task", "stereo") != task:
             continue
         study = optuna.load_study(study_name=summ.study_name, storage=storage)
-        test = attrs.get("test")
-        if test is None and studies_dir is not None:
-            p = study_dir(studies_dir, summ.study_name) / "test.json"
-            d, why = load_test_file(p, summ.study_name)
-            try:
-                test = test_summary(d) if d is not None else None
-            except (ValueError, KeyError, AttributeError, TypeError):
-                why = "not a test result"
-            if why and warn is not None:  # the study's test results vanished from the tables, unsaid
-                warn(f"{p} cannot be read ({why}): study {summ.study_name} is shown without test results; "
-                     f"rerun `tune test --study {summ.study_name}` to rewrite it")
+        test = study_test(summ.study_name, attrs, studies_dir, warn)
         out.append(StudyInfo(name=summ.study_name, task=attrs.get("task", "stereo"), feature=attrs.get("feature", "?"),
                              num_features=int(attrs.get("num_features") or 0), ransac=attrs.get("ransac", "?"),
                              attrs=attrs, best=_frozen_trial(study),

@@ -678,6 +678,8 @@ def run_studies(args) -> int:
     import optuna
     from tuner.storage import open_storage
     from tuner.protocol import trial_value
+    from tuner.formatting import ground_truth_short
+    from tuner.reports import study_test
     from tuner.study import _quiet_optuna, best_feasible, trial_counts
     _quiet_optuna()
     storage = open_storage(args.storage, heartbeat=None, studies_dir=_studies_dir(args), must_exist=True)
@@ -693,14 +695,25 @@ def run_studies(args) -> int:
         fz = frozen_trial(st) if st.user_attrs.get("imtune") else None  # --select one-se / smooth freeze another
         from pipeline.tasks import is_timed
         timed = is_timed(st.user_attrs.get("task", "stereo"))  # a multiview study has no budget to be over
-        rows.append({"study": summ.study_name, "complete": c["complete"], "pruned": c["pruned"],
-                     "infeasible": c["infeasible"] if timed else None, "running": c["running"], "failed": c["fail"],
-                     "best mAA10": trial_value(b) if b else None, "best trial": b.number if b else None,
-                     "frozen trial": fz.number if fz else None, "frozen by": rule if fz else None})
+        row = {"study": summ.study_name, "complete": c["complete"], "pruned": c["pruned"],
+               "infeasible": c["infeasible"] if timed else None, "running": c["running"], "failed": c["fail"],
+               "best mAA10": trial_value(b) if b else None, "best trial": b.number if b else None,
+               "frozen trial": fz.number if fz else None, "frozen by": rule if fz else None}
+        if st.user_attrs.get("imtune"):  # where the poses its numbers are measured against come from
+            test = study_test(summ.study_name, st.user_attrs, _studies_dir(args), warn=_warn)
+            val_gt = (st.user_attrs.get("data") or {}).get("ground_truth")
+            test_gt = (test or {}).get("ground_truth") if test else None
+            row["ground truth"] = f"val {ground_truth_short(val_gt)}" + (
+                f"; test {ground_truth_short(test_gt)}" if test else "")
+            row["ground_truth"] = {"validation": val_gt, "test": test_gt}
+        rows.append(row)
     if args.json:
+        for r in rows:
+            r.pop("ground truth", None)
         print(json.dumps(_jsonable(rows), indent=2))
     elif rows:
-        cols = [k for k in rows[0] if k != "infeasible" or any(r["infeasible"] is not None for r in rows)]
+        cols = [k for k in dict.fromkeys(k for r in rows for k in r) if k != "ground_truth"
+                and (k != "infeasible" or any(r["infeasible"] is not None for r in rows))]
         print(render(rows, "markdown", cols))
     else:
         print("no studies", file=sys.stderr)
