@@ -760,9 +760,9 @@ def track_created_trials(storage) -> list[int]:
     return ids
 
 
-def fail_interrupted_trials(study, numbers, trial_ids=(), storage=None) -> list[int]:
+def fail_interrupted_trials(study, numbers, trial_ids=()) -> list[int]:
     """Mark FAIL the trials of this process still RUNNING after an interruption: those among ``numbers`` (the
-    objective's) and among ``trial_ids`` (ids on ``storage``, see :func:`track_created_trials`: a trial interrupted
+    objective's) and among ``trial_ids`` (storage ids, see :func:`track_created_trials`: a trial interrupted
     before the objective saw it). One interrupted while Optuna recorded it (see :func:`interrupt_in_chain`) is
     left RUNNING too, and would wait for the heartbeat's grace period before a resume could see it stale. Best
     effort (the storage may be the thing that failed); returns the numbers marked."""
@@ -770,8 +770,8 @@ def fail_interrupted_trials(study, numbers, trial_ids=(), storage=None) -> list[
     marked = []
     try:
         numbers = set(numbers)
-        for tid in list(trial_ids)[-2:] if storage is not None else ():  # one trial at a time: the last is running
-            numbers.add(storage.get_trial(tid).number)
+        for tid in list(trial_ids)[-2:]:  # one trial at a time: only the last can be running
+            numbers.add(study._storage.get_trial(tid).number)
         running = {t.number for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))}
         for n in sorted(numbers):
             if n in running:

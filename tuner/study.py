@@ -728,7 +728,7 @@ def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
     except BaseException as e:
         from tuner.storage import fail_interrupted_trials, interrupt_in_chain
         if isinstance(e, KeyboardInterrupt) or interrupt_in_chain(e) is not None:
-            fail_interrupted_trials(study, ctx.objective.trials_run[-1:], created, study._storage)  # this process's
+            fail_interrupted_trials(study, ctx.objective.trials_run[-1:], created)  # this process's
         raise
     finally:
         if bar is not None:

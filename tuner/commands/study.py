@@ -701,20 +701,20 @@ def run_studies(args) -> int:
                "frozen trial": fz.number if fz else None, "frozen by": rule if fz else None}
         if st.user_attrs.get("imtune"):  # where the poses its numbers are measured against come from
             test = study_test(summ.study_name, st.user_attrs, _studies_dir(args), warn=_warn)
-            val_gt = (st.user_attrs.get("data") or {}).get("ground_truth")
-            test_gt = (test or {}).get("ground_truth") if test else None
-            row["ground truth"] = f"val {ground_truth_short(val_gt)}" + (
-                f"; test {ground_truth_short(test_gt)}" if test else "")
-            row["ground_truth"] = {"validation": val_gt, "test": test_gt}
+            row["ground_truth"] = {"validation": (st.user_attrs.get("data") or {}).get("ground_truth"),
+                                   "test": test.get("ground_truth") if test else None}
+            # the table's short cell; "test" only for a tested study
+            row["_cell"] = f"val {ground_truth_short(row['ground_truth']['validation'])}" + (
+                f"; test {ground_truth_short(row['ground_truth']['test'])}" if test else "")
         rows.append(row)
     if args.json:
-        for r in rows:
-            r.pop("ground truth", None)
-        print(json.dumps(_jsonable(rows), indent=2))
+        print(json.dumps(_jsonable([{k: v for k, v in r.items() if k != "_cell"} for r in rows]), indent=2))
     elif rows:
-        cols = [k for k in dict.fromkeys(k for r in rows for k in r) if k != "ground_truth"
+        cols = [k for k in rows[0] if k not in ("ground_truth", "_cell")
                 and (k != "infeasible" or any(r["infeasible"] is not None for r in rows))]
-        print(render(rows, "markdown", cols))
+        if any("_cell" in r for r in rows):
+            cols.append("ground truth")
+        print(render([{**r, "ground truth": r.get("_cell")} for r in rows], "markdown", cols))
     else:
         print("no studies", file=sys.stderr)
     if foreign and not args.json:
