@@ -88,7 +88,7 @@ def main(argv=None) -> int:
     base = pipeline_from_dict({"feature": {"name": args.feature, "num_features": args.num_features},
                                "geometry": {"ransac": args.ransac}})
     t_all = time.perf_counter()
-    rows, results = [], []
+    rows = []
     for held in SCENES:
         val = [s for s in SCENES if s != held]
         for seed in range(args.first_seed, args.first_seed + args.seeds):
@@ -167,8 +167,8 @@ def table(rows: list[dict], what: str, key=lambda r: (r["held_out"], r["seed"], 
                         "folds_won": wins, "folds": len(folds)})
     winner = max(summary, key=lambda s: (round(s["mean_test"], 9), -s["mean_drop"]))
     print()
-    print(f"| rule | mean val mAA10 | mean test mAA10 | mean drop (val - test) | mean vs paper defaults | "
-          f"folds won (ties count for each) |")
+    print("| rule | mean val mAA10 | mean test mAA10 | mean drop (val - test) | mean vs paper defaults | "
+          "folds won (ties count for each) |")
     print("|---|---:|---:|---:|---:|---:|")
     for s in summary:
         print(f"| {s['rule']} | {s['mean_val']:.3f} | {s['mean_test']:.3f} | {s['mean_drop']:+.3f} | "

@@ -70,7 +70,6 @@ def one_run(a) -> dict:
     cal = (ctx.attrs.get("budget") or {}).get("calibration") or {}
     cal_s = float(cal.get("seconds", 0.0)) if ctx.created else 0.0
     run = optimize(ctx, s)
-    t2 = time.perf_counter()
     trials = ctx.study.get_trials(deepcopy=False)
     best = best_feasible(ctx.study)
     timing = [t.user_attrs.get("timing") or {} for t in trials]

@@ -74,7 +74,7 @@ def test_unencoded_at_connects_with_the_whole_password(url, user, password, host
     (f"invalid dsn: host=127.0.0.1 port=5 password={SECRET} dbname=optuna", None),
     (f"invalid dsn: host=127.0.0.1 password='{SECRET} x' dbname=optuna", None),
     (f"(psycopg2.OperationalError) could not connect to postgresql://u:{SECRET}@h/db\n(Background ...)", None),
-    (f"connection to server at \"h\" failed for postgresql://u:left-Part@right-Part@h/db", None),
+    ("connection to server at \"h\" failed for postgresql://u:left-Part@right-Part@h/db", None),
     (f"Could not parse SQLAlchemy URL from string 'postgresql://u@h/db?password={SECRET}&x=1'", None),
     (f"error near {SECRET} in statement", f"postgresql://u:{SECRET}@h/db"),
     (f"error near {SECRET} in statement", f"postgresql://u@h/db?sslpassword={SECRET}"),
@@ -208,7 +208,7 @@ def test_no_credential_anywhere(pg, subset, tmp_path):
                          stderr=subprocess.PIPE, text=True)
     try:
         line = p.stderr.readline()
-        assert f"http://127.0.0.1:{port}/" in line and f"?password=***" in line, line
+        assert f"http://127.0.0.1:{port}/" in line and "?password=***" in line, line
         outputs.append(line)
     finally:
         p.send_signal(signal.SIGINT)
