@@ -1290,3 +1290,26 @@ def test_findings_6_and_7_without_one_feature_say_why_there_is_no_difference(fid
     line = summary_lines([res])[1]
     assert why in line and f.title in line, line
     assert "(missing: sift: could not run: no feasible completed trial yet)" in _difference_text(res)
+
+
+def test_the_study_table_shows_each_frozen_trials_validation_mAA10_beside_its_test_figure():
+    """A full run's finding 9 read "8k 0.6135, 2k 0.7089: does not hold" with no sign that 8k had won on validation
+    (0.887 vs 0.811): the reversal is a frozen optimum that did not generalise, and the table could not say so. Each
+    study's row now carries its frozen trial's validation mAA(10) (the value the study froze), under its own header."""
+    from tuner.findings.report import STUDY_COLS, _study_rows
+    rng = np.random.default_rng(3)
+    good = {(sc, i): float(rng.uniform(0.1, 2.0)) for sc in ("s1", "s2") for i in range(12)}
+    bad = {p: e + 6.0 for p, e in good.items()}
+    d, t = _outcome("d", [bad]), _outcome("t", [good])
+    d.frozen = {"params": {}, "value": 0.9123}
+    t.frozen = {"params": {}, "value": 0.8456}
+    a = A.analyse(BY_ID[1], {"defaults": d, "tuned": t}, n_resamples=200)
+    rows = {r[0]: dict(zip(STUDY_COLS, r)) for r in _study_rows({"id": 1, "measured": a["measured"]})}
+    assert len(STUDY_COLS) == len(next(iter(rows.values()))), rows
+    assert rows["defaults"]["val. mAA(10)"] == "0.9123" and rows["tuned"]["val. mAA(10)"] == "0.8456", rows
+    # the test column still holds the test figure: the synthetic records' mAA(10), not the validation value
+    assert rows["tuned"]["test mAA(10)"] == f"{t.test['mean']['mAA10']:.4f}" != "0.8456", rows
+    nr = StudyOutcome(spec=BY_ID[1].studies["tuned"], name="n", reason="no feasible trial")
+    b = A.analyse(BY_ID[1], {"defaults": d, "tuned": nr}, n_resamples=200)
+    rows = {r[0]: dict(zip(STUDY_COLS, r)) for r in _study_rows({"id": 1, "measured": b["measured"]})}
+    assert rows["tuned"]["val. mAA(10)"] == "-" and rows["tuned"]["test mAA(10)"] == "not run", rows
