@@ -323,7 +323,10 @@ def test_findings_1_and_4_end_to_end(subset, tmp_path, monkeypatch, capsys):
                 assert c["trial_seconds"] > 0 and c["test_seconds"] > 0
                 test = json.loads((sdir / s["study"] / "test.json").read_text())
                 assert c["test_seconds"] == test["wall_seconds"]
+                # a fresh storage: this run ran each study's trials and its test runs, and records that it did
+                assert s["ran_now"]["test"] is True and s["ran_now"]["trials"] == len(st.trials) > 0, s["ran_now"]
     assert "compute recorded by the" in md
+    assert "already finished and tested" not in md.splitlines()[2] and "new in their " in md.splitlines()[2]
     # a relative difference says what it is relative to (A of "B vs A"; it said "the latter")
     if res["findings"][0]["difference"] is not None and res["findings"][0]["measured"].get("relative_difference"):
         measured = md.split("\n## 1. ", 1)[1].split("\n## ", 1)[0]  # finding 2's quoted paper says "the latter"
@@ -352,6 +355,14 @@ def test_findings_1_and_4_end_to_end(subset, tmp_path, monkeypatch, capsys):
     for x, y in zip(res["findings"], [_finding(res2, 1), _finding(res2, 4)]):
         assert (x["verdict"], x["difference"], x["ci"], x["studies"]) == (y["verdict"], y["difference"], y["ci"],
                                                                          y["studies"])
+    # ... and the report's first line says the rerun added nothing: it read "this run: findings 1, 4 (--only 1,4)"
+    # as if it had tuned them again
+    done = {s["study"]: s["ran_now"] for f in (_finding(res2, 1), _finding(res2, 4))
+            for s in f["measured"]["studies"].values() if s["ok"]}
+    assert done and all(w == {"trials": 0, "test": False} for w in done.values()), done
+    head = (sdir / "findings" / "report.md").read_text().splitlines()[2]
+    whose = "both of their studies were" if len(done) == 2 else f"all {len(done)} of their studies were"
+    assert f"; {whose} already finished and tested: re-analysed, no new trial or test run" in head, head
 
 
 def test_a_subset_run_keeps_every_finding_in_the_report(subset, tmp_path, monkeypatch, capsys):
@@ -384,7 +395,11 @@ def test_a_subset_run_keeps_every_finding_in_the_report(subset, tmp_path, monkey
     assert by[3]["this_run"] == "ran" and by[3]["verdict"] in ("holds", "does not hold", "inconclusive")
     # finding 1: from its studies, its numbers those of its own run, nothing run again for it
     assert by[1]["this_run"] == "reused"
-    assert {k: v for k, v in by[1].items() if k != "this_run"} == {k: v for k, v in f1.items() if k != "this_run"}
+    def figures(f):  # the finding without what an invocation did (this_run; each study's ran_now)
+        m = {**f["measured"], "studies": {r: {k: v for k, v in st.items() if k != "ran_now"}
+                                          for r, st in f["measured"]["studies"].items()}}
+        return {**{k: v for k, v in f.items() if k != "this_run"}, "measured": m}
+    assert figures(by[1]) == figures(f1)
     assert all(_trial_count(storage)[n] == trials[n] for n in f1["studies"])
     assert all((sdir / n / "test.json").stat().st_mtime_ns == mtimes[n] for n in f1["studies"])
     # the rest: not run yet, each with the command that runs it on the same studies
@@ -408,7 +423,13 @@ def test_a_subset_run_keeps_every_finding_in_the_report(subset, tmp_path, monkey
     md = (sdir / "findings" / "report.md").read_text()
     html = (sdir / "findings" / "report.html").read_text()
     head = md.splitlines()[2]
-    assert head.startswith("- this run: finding 3 (--only 3); re-analysed from their finished studies in the "
+    # finding 3's two studies: gamma1000 new (its trials and test runs), tuned CV-RANSAC finding 1's, finished
+    n3 = {s["study"]: s["ran_now"] for s in by[3]["measured"]["studies"].values()}
+    assert sorted(w["test"] for w in n3.values()) == [False, True] and sorted(bool(w["trials"]) for w in n3.values()) \
+        == [False, True], n3
+    trials3 = sum(w["trials"] for w in n3.values())
+    assert head.startswith(f"- this run: finding 3 (--only 3); new in their 2 studies: trials in 1 ({trials3} trial"
+                           f"{'s' * (trials3 != 1)}), test runs in 1; re-analysed from their finished studies in the "
                            "storage (no new trial or test run): 1; not run yet: 2, 4-12"), head
     for i in range(1, 13):
         assert f"<section id='finding-{i}'>" in html and f"\n## {i}. " in md

@@ -4,6 +4,7 @@
     out = run_findings(FindingsSettings(data_root=Path("data/strecha"), quick=True, only=[1, 4]))
     out["findings"][0]["verdict"]      # "holds" | "does not hold" | "inconclusive" | "not run" | "not run yet"
     out["findings"][0]["this_run"]     # "ran" (selected) | "reused" (from its finished studies) | "not run yet"
+    out["findings"][0]["measured"]["studies"]["tuned"]["ran_now"]  # {"trials": 0, "test": False}: nothing added
     out["report"]                      # <studies dir>/findings/report.html (report.md, findings.json beside it)
 
 Each finding (:data:`tuner.findings.definitions.FINDINGS`) names its studies; each study is an ordinary imtune

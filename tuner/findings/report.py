@@ -472,6 +472,29 @@ def _ids(ids: list) -> str:
     return ", ".join(str(p[0]) if len(p) == 1 else f"{p[0]}-{p[-1]}" for p in parts)
 
 
+def _work_done(out: dict) -> str:
+    """What running the findings this invocation ran added to their studies (``ran_now`` of each distinct study):
+    a rerun over finished studies ran no trial and no test, and "this run: every finding" must not read as if it
+    had tuned them all again. "" when no study records it (an older findings.json)."""
+    work: dict[str, dict] = {}
+    for f in out["findings"]:
+        if f.get("this_run", "ran") != "ran":
+            continue
+        for s in ((f.get("measured") or {}).get("studies") or {}).values():
+            if isinstance(s, dict) and isinstance(s.get("ran_now"), dict):
+                work[s["study"]] = s["ran_now"]
+    if not work:
+        return ""
+    n, trained = len(work), sum(1 for w in work.values() if w.get("trials"))
+    tested = sum(1 for w in work.values() if w.get("test"))
+    if not trained and not tested:
+        return ("; its study was" if n == 1 else "; both of their studies were" if n == 2 else
+                f"; all {n} of their studies were") + \
+            " already finished and tested: re-analysed, no new trial or test run"
+    trials = sum(int(w.get("trials") or 0) for w in work.values())
+    return f"; new in their {_n(n, 'study', 'studies')}: trials in {trained} ({_n(trials, 'trial')}), test runs in {tested}"
+
+
 def this_run_line(out: dict, fs) -> str:
     """The report's first header line: which findings this invocation ran (``--only``), which it re-analysed from
     their finished studies and which are not run yet, with the command that runs those."""
@@ -481,8 +504,8 @@ def this_run_line(out: dict, fs) -> str:
         by.setdefault(f.get("this_run", "ran"), []).append(f["id"])
     ran = by.get("ran", [])
     if not by.get("reused") and not by.get("not run yet"):
-        return f"this run: every finding ({_ids(ran)})"
-    line = f"this run: finding{'s' * (len(ran) != 1)} {_ids(ran)} (--only {','.join(map(str, ran))})"
+        return f"this run: every finding ({_ids(ran)})" + _work_done(out)
+    line = f"this run: finding{'s' * (len(ran) != 1)} {_ids(ran)} (--only {','.join(map(str, ran))})" + _work_done(out)
     if by.get("reused"):
         line += (f"; re-analysed from their finished studies in the storage (no new trial or test run): "
                  f"{_ids(by['reused'])}")

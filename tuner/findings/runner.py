@@ -82,6 +82,9 @@ class StudyOutcome:
     val_ci: list | None = None  # 95% interval of the best trial's validation mAA(10)
     pending: str = ""  # reuse only (reuse_study): why the study is not finished yet ("" when it is, or cannot run)
     compute: dict = field(default_factory=dict)  # the study's own seconds: calibration, trials, test (see below)
+    # what this invocation added to the study (run_study only; None when reused): {"trials": n trials this process
+    # ran, "test": whether it wrote the test runs now}. A rerun of finished studies adds nothing, and says so.
+    ran_now: dict | None = None
 
 
 def canonical_spec(spec: StudySpec, default_features: int) -> StudySpec:
@@ -422,6 +425,8 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
     if s is None:
         return out
     name = out.name
+    import datetime as _dt
+    started = _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0)
     try:
         ensure_multiview_ground_truth(spec, fs)
         res = tune(s)
@@ -436,6 +441,7 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
         out.compute = _spent(name, fs, Path(s.studies_dir))  # e.g. no feasible trial: it still cost its trials
         return out
     out.frozen, out.test = res["frozen"], res["test"]
+    out.ran_now = {"trials": len((res.get("worker") or {}).get("trials_run") or []), "test": False}
     sdir = Path(s.studies_dir)
     records_dir = sdir / "findings" / "records"
     study = optuna.load_study(study_name=name, storage=_storage(fs, sdir))
@@ -443,6 +449,7 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
         # tune() leaves the test to the last worker while other workers still run trials of this study; a
         # finding needs it now: test the current optimum (a later rerun re-tests if the optimum changes)
         out.test = _test_now(study, out.frozen, s)
+    out.ran_now["test"] = _written_since(out.test, started)
     out.attrs = dict(study.user_attrs)
     best = best_feasible(study)
     out.best = (dict(best.params), float(best.value)) if best is not None else None
@@ -462,6 +469,19 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
     out.compute = study_compute(study, out.test)
     out.ok = True
     return out
+
+
+def _written_since(test: dict | None, started) -> bool:
+    """Whether ``test`` (a test.json's content) was written at or after ``started`` (UTC, whole seconds): its
+    ``created`` stamp, set when the runs are evaluated; a test.json reused from an earlier invocation is older."""
+    import datetime as _dt
+    try:
+        created = _dt.datetime.fromisoformat(str((test or {})["created"]))
+    except (KeyError, ValueError):
+        return False
+    if created.tzinfo is None:
+        created = created.replace(tzinfo=_dt.timezone.utc)
+    return created >= started
 
 
 def _open_outcome(spec: StudySpec, fs: FindingsSettings):
