@@ -119,7 +119,7 @@ def study_figures(o, n_resamples: int) -> dict:
     """What a finding reports of one study: test mAA(10) (test.json's mean over runs) with its 95% interval
     (:func:`combine_runs_interval` of the runs' pair records), the frozen parameters, Gamma_max."""
     d = {"study": o.name, "label": o.spec.text(), "ok": o.ok}
-    if getattr(o, "ran_now", None) is not None:
+    if o.ran_now is not None:
         d["ran_now"] = dict(o.ran_now)
     if not o.ok:
         d["reason"] = o.reason

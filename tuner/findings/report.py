@@ -475,23 +475,23 @@ def _ids(ids: list) -> str:
 def _work_done(out: dict) -> str:
     """What running the findings this invocation ran added to their studies (``ran_now`` of each distinct study):
     a rerun over finished studies ran no trial and no test, and "this run: every finding" must not read as if it
-    had tuned them all again. "" when no study records it (an older findings.json)."""
+    had tuned them all again. "" when no study records it (none of them could run)."""
     work: dict[str, dict] = {}
     for f in out["findings"]:
         if f.get("this_run", "ran") != "ran":
             continue
         for s in ((f.get("measured") or {}).get("studies") or {}).values():
-            if isinstance(s, dict) and isinstance(s.get("ran_now"), dict):
+            if s.get("ran_now") is not None:
                 work[s["study"]] = s["ran_now"]
     if not work:
         return ""
-    n, trained = len(work), sum(1 for w in work.values() if w.get("trials"))
-    tested = sum(1 for w in work.values() if w.get("test"))
+    n, trained = len(work), sum(1 for w in work.values() if w["trials"])
+    tested = sum(1 for w in work.values() if w["test"])
     if not trained and not tested:
         return ("; its study was" if n == 1 else "; both of their studies were" if n == 2 else
                 f"; all {n} of their studies were") + \
             " already finished and tested: re-analysed, no new trial or test run"
-    trials = sum(int(w.get("trials") or 0) for w in work.values())
+    trials = sum(w["trials"] for w in work.values())
     return f"; new in their {_n(n, 'study', 'studies')}: trials in {trained} ({_n(trials, 'trial')}), test runs in {tested}"
 
 

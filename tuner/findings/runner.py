@@ -10,6 +10,7 @@ mAA(10) from the records is checked against ``test.json``'s; a mismatch is repor
 from __future__ import annotations
 
 import dataclasses
+import datetime as _dt
 import json
 import math
 from dataclasses import dataclass, field
@@ -425,7 +426,6 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
     if s is None:
         return out
     name = out.name
-    import datetime as _dt
     started = _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0)
     try:
         ensure_multiview_ground_truth(spec, fs)
@@ -441,7 +441,6 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
         out.compute = _spent(name, fs, Path(s.studies_dir))  # e.g. no feasible trial: it still cost its trials
         return out
     out.frozen, out.test = res["frozen"], res["test"]
-    out.ran_now = {"trials": len((res.get("worker") or {}).get("trials_run") or []), "test": False}
     sdir = Path(s.studies_dir)
     records_dir = sdir / "findings" / "records"
     study = optuna.load_study(study_name=name, storage=_storage(fs, sdir))
@@ -449,7 +448,7 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
         # tune() leaves the test to the last worker while other workers still run trials of this study; a
         # finding needs it now: test the current optimum (a later rerun re-tests if the optimum changes)
         out.test = _test_now(study, out.frozen, s)
-    out.ran_now["test"] = _written_since(out.test, started)
+    out.ran_now = {"trials": len(res["worker"]["trials_run"]), "test": _written_since(out.test, started)}
     out.attrs = dict(study.user_attrs)
     best = best_feasible(study)
     out.best = (dict(best.params), float(best.value)) if best is not None else None
@@ -474,14 +473,10 @@ def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool =
 def _written_since(test: dict | None, started) -> bool:
     """Whether ``test`` (a test.json's content) was written at or after ``started`` (UTC, whole seconds): its
     ``created`` stamp, set when the runs are evaluated; a test.json reused from an earlier invocation is older."""
-    import datetime as _dt
     try:
-        created = _dt.datetime.fromisoformat(str((test or {})["created"]))
-    except (KeyError, ValueError):
+        return _dt.datetime.fromisoformat(str((test or {})["created"])) >= started
+    except (KeyError, ValueError, TypeError):  # no stamp, not a date, or one without a time zone (not imtune's)
         return False
-    if created.tzinfo is None:
-        created = created.replace(tzinfo=_dt.timezone.utc)
-    return created >= started
 
 
 def _open_outcome(spec: StudySpec, fs: FindingsSettings):
