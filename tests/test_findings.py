@@ -1334,3 +1334,25 @@ def test_the_study_table_shows_each_frozen_trials_validation_mAA10_beside_its_te
     b = A.analyse(BY_ID[1], {"defaults": d, "tuned": nr}, n_resamples=200)
     rows = {r[0]: dict(zip(STUDY_COLS, r)) for r in _study_rows({"id": 1, "measured": b["measured"]})}
     assert rows["tuned"]["val. mAA(10)"] == "-" and rows["tuned"]["test mAA(10)"] == "not run", rows
+
+
+def test_a_rerun_with_a_study_that_could_not_be_frozen_never_reads_all_finished():
+    """The first line's "all N of their studies were already finished and tested" counted only the studies that
+    recorded ran_now; one that could not be frozen (no feasible trial: tune() raised, its trials may still have run)
+    records nothing and silently dropped out of N. It is now counted apart."""
+    from tuner.findings import report as R
+    nothing = {"trials": 0, "test": False}
+    studies = {"a": {"study": "sa", "ok": True, "ran_now": nothing}, "b": {"study": "sb", "ok": True,
+               "ran_now": nothing}, "c": {"study": "sc", "ok": False, "reason": "could not run: no feasible trial"}}
+    out = {"findings": [{"id": 2, "this_run": "ran", "measured": {"studies": studies}}]}
+    line = R._work_done(out)
+    assert "already finished" not in line, line
+    assert line == "; no new trial or test run in 2 of their 3 studies; 1 could not be run or frozen (their rows " \
+                   "say why)", line
+    studies["a"]["ran_now"] = {"trials": 4, "test": True}
+    assert R._work_done(out) == "; new in their 2 studies: trials in 1 (4 trials), test runs in 1; 1 could not be " \
+                                "run or frozen (their rows say why)"
+    del studies["c"]
+    studies["a"]["ran_now"] = nothing
+    assert R._work_done(out) == "; both of their studies were already finished and tested: re-analysed, no new " \
+                                "trial or test run"

@@ -475,24 +475,32 @@ def _ids(ids: list) -> str:
 def _work_done(out: dict) -> str:
     """What running the findings this invocation ran added to their studies (``ran_now`` of each distinct study):
     a rerun over finished studies ran no trial and no test, and "this run: every finding" must not read as if it
-    had tuned them all again. "" when no study records it (none of them could run)."""
+    had tuned them all again. A study that could not run or be frozen records nothing (its trials may still have
+    run): it is counted apart, never as "already finished". "" when no study records it (none of them could run)."""
     work: dict[str, dict] = {}
+    others: set[str] = set()
     for f in out["findings"]:
         if f.get("this_run", "ran") != "ran":
             continue
         for s in ((f.get("measured") or {}).get("studies") or {}).values():
             if s.get("ran_now") is not None:
                 work[s["study"]] = s["ran_now"]
+            else:
+                others.add(s["study"])
     if not work:
         return ""
     n, trained = len(work), sum(1 for w in work.values() if w["trials"])
     tested = sum(1 for w in work.values() if w["test"])
+    apart = f"; {len(others)} could not be run or frozen (their rows say why)" if others else ""
     if not trained and not tested:
+        if others:
+            return f"; no new trial or test run in {n} of their {n + len(others)} studies" + apart
         return ("; its study was" if n == 1 else "; both of their studies were" if n == 2 else
                 f"; all {n} of their studies were") + \
             " already finished and tested: re-analysed, no new trial or test run"
     trials = sum(w["trials"] for w in work.values())
-    return f"; new in their {_n(n, 'study', 'studies')}: trials in {trained} ({_n(trials, 'trial')}), test runs in {tested}"
+    return (f"; new in their {_n(n, 'study', 'studies')}: trials in {trained} ({_n(trials, 'trial')}), test runs in "
+            f"{tested}" + apart)
 
 
 def this_run_line(out: dict, fs) -> str:
