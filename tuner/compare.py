@@ -17,39 +17,21 @@ by the rule of `tune findings` (:func:`pipeline.metrics.uncertainty.paired_direc
 only when the CI excludes 0 and the sign-flip test agrees (p < 0.05), else "no significant difference". With
 more than two sources the k - 1 comparisons are adjusted together (:func:`compare_records`: Bonferroni-level CIs,
 Holm-adjusted p-values), so that "significant" keeps its 5% over the whole table. Multiview studies are compared
-on the same multiview bags, paired over bags (``compare(..., task="multiview")``; :func:`comparison_task`).
+on the same multiview bags, paired over bags (``compare(..., task="multiview")``; :func:`comparison_task`): each
+task declares its units, intervals and paired test (``pipeline.tasks.base.Task``).
 """
 from __future__ import annotations
 
 from pathlib import Path
 
 from pipeline.errors import ImtuneError
-from pipeline.metrics.uncertainty import (DEFAULT_LEVEL, DEFAULT_RESAMPLES, DIRECTION_RULE, bag_intervals, bonferroni,
-                                          format_p, holm, is_bag_records, maa_intervals, paired_bags,
-                                          paired_bootstrap, paired_direction)
+from pipeline.metrics.uncertainty import (DEFAULT_LEVEL, DEFAULT_RESAMPLES, DIRECTION_RULE, bonferroni, format_p, holm,
+                                          is_bag_records, paired_bags, paired_bootstrap, paired_direction)
+from tuner.evaluate import evaluate_config
+from tuner.sources import resolve_source
 
 COMPARISON_KEYS = ("mAA10_a", "mAA10_b", "difference", "ci", "p_value", "significant", "pairs", "dropped_a",
                    "dropped_b")  # + "p_value_unadjusted", "ci_level", "comparisons", "verdict" (compare_records)
-
-
-def _resolve_source():
-    try:  # the loaders' new home (pipeline/config_files.py + tuner/sources.py)
-        from tuner.sources import resolve_source
-    except ModuleNotFoundError as e:  # only its absence: an error inside it must surface
-        if e.name != "tuner.sources":
-            raise
-        from tuner.commands.viz import resolve_source
-    return resolve_source
-
-
-def _evaluate_config():
-    try:
-        from tuner.evaluate import evaluate_config
-    except ModuleNotFoundError as e:
-        if e.name != "tuner.evaluate":
-            raise
-        from tuner.options import evaluate_config
-    return evaluate_config
 
 
 def load_sources(specs: list[str], studies_dir: Path | str) -> list:
@@ -58,8 +40,7 @@ def load_sources(specs: list[str], studies_dir: Path | str) -> list:
     if len(specs) < 2:
         raise ImtuneError(f"tune compare needs at least two configurations (got {len(specs)}: "
                           f"{', '.join(specs) or 'none'}); give A B [C ...], each a study name or a config file")
-    resolve = _resolve_source()
-    return [resolve(s, Path(studies_dir)) for s in specs]
+    return [resolve_source(s, Path(studies_dir)) for s in specs]
 
 
 def _records(section: dict) -> list[dict]:
@@ -97,44 +78,44 @@ def comparison_task(specs: list[str], sources: list, task: str | None = None) ->
     return next(iter(tuned), "stereo")
 
 
-#: MultiviewConfig fields that choose the bags and how COLMAP runs them -> the `tune compare` options setting them
-BAG_OPTIONS = {"bags": "bags", "min_points": "bag_min_points", "bag_seed": "bag_seed", "intrinsics": "mv_intrinsics"}
+def _option_text(value) -> str:
+    """An option's value as typed: bags ((5, 100), (10, 50)) as 5:100,10:50."""
+    if isinstance(value, (list, tuple)) and value and all(isinstance(x, (list, tuple)) and len(x) == 2 for x in value):
+        return ",".join(f"{a}:{b}" for a, b in value)
+    return str(value)
 
 
-def _option_text(field: str, value) -> str:
-    return ",".join(f"{s}:{c}" for s, c in value) if field == "bags" else str(value)
+def study_options(specs: list[str], sources: list, task: str, given: dict, typed: bool) -> tuple[dict, str | None]:
+    """The task options (:meth:`pipeline.tasks.base.Task.options`) `tune compare` evaluates every source with, and a
+    warning or None. ``given``: the command line's (the task's defaults where no option is typed); ``typed``: whether
+    an option setting them was typed. The task's ``reapplied`` options are taken from what the studies of ``task``
+    among the sources recorded (their frozen task options, which their test runs use; multiview: the bags) when they
+    all agree and none is typed; else ``given``, with a warning naming a study tested with other settings (its
+    numbers here are not its test's). A task that reapplies nothing: ``given``."""
+    from pipeline.tasks import TASKS
+    cls = TASKS.get(task)
 
-
-def study_bags(specs: list[str], sources: list, given, typed) -> tuple:
-    """The multiview settings `tune compare` evaluates every source on, and a warning or None. ``given``: the
-    command line's MultiviewConfig (the protocol's defaults where no option is typed); ``typed``: the option dests
-    typed (:func:`tuner.options.explicit_options`). Without a typed bag option, the settings the multiview studies
-    among the sources recorded (their frozen task options, which their test runs use) when they all agree; else
-    ``given``, with a warning naming a study tested with other settings (its numbers here are not its test's)."""
-    import dataclasses
-
-    from pipeline.tasks.multiview import MultiviewConfig
-    fields = [f.name for f in dataclasses.fields(MultiviewConfig) if f.name != "seed"]  # COLMAP's seed: the command's
+    def normal(opts: dict) -> dict:  # a YAML's lists and a dataclass's tuples compare equal once rebuilt
+        return cls.from_options(opts).options()
+    given = normal(given)
     recorded = {}
     for spec, src in zip(specs, sources):
         fz = getattr(src, "frozen", None) or {}
-        if fz.get("task") == "multiview" and isinstance(fz.get("task_options"), dict):
-            recorded[spec] = dataclasses.replace(given, **{k: v for k, v in fz["task_options"].items() if k in fields})
-    typed_bag = bool(set(typed) & set(BAG_OPTIONS.values()))
+        if cls.reapplied and fz.get("task") == task and isinstance(fz.get("task_options"), dict):
+            recorded[spec] = normal({**given, **{k: v for k, v in fz["task_options"].items() if k in cls.reapplied}})
     first = next(iter(recorded.values()), None)
     if first is None:
         return given, None
-    if not typed_bag and all(mv == first for mv in recorded.values()):
+    if not typed and all(o == first for o in recorded.values()):
         return first, None
-    other = [spec for spec, mv in recorded.items() if mv != given]
+    other = [spec for spec, o in recorded.items() if o != given]
     if not other:
         return given, None
-    mv = recorded[other[0]]
-    diff = ", ".join(f"{k} {_option_text(k, getattr(mv, k))} (here {_option_text(k, getattr(given, k))})"
-                     for k in fields if getattr(mv, k) != getattr(given, k))
-    why = ("as given" if typed_bag else
-           "the studies' settings differ: the protocol's defaults; give --bags ... to choose")
-    return given, f"{other[0]} was tested with {diff}; all are compared on these bags ({why})"
+    o = recorded[other[0]]
+    diff = ", ".join(f"{k} {_option_text(o[k])} (here {_option_text(given.get(k))})"
+                     for k in cls.reapplied if o.get(k) != given.get(k))
+    why = "as given" if typed else "the studies' settings differ: the task's defaults; type its options to choose"
+    return given, f"{other[0]} was tested with {diff}; all are compared on these {cls.unit} ({why})"
 
 
 def task_label(src, task: str) -> str:
@@ -151,12 +132,13 @@ def task_label(src, task: str) -> str:
 def compare(sources: list, data_root: Path | str, scenes=None, *, cache_dir=None, min_covisibility: float | None = 0.1,
             progress: bool = False, n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0,
             level: float = DEFAULT_LEVEL, task: str = "stereo", multiview=None, workers: int | None = None,
-            gt_dir=None, keep_models=None) -> dict:
+            gt_dir=None, keep_models=None, task_options: dict | None = None) -> dict:
     """Evaluate every source on the same stereo pairs (``task`` "stereo") or the same multiview bags ("multiview":
     ``multiview`` a MultiviewConfig, None the protocol's; ``workers`` parallel bag processes; ``keep_models`` a folder
-    for COLMAP's models; ``gt_dir`` where built ground truth lives, as for `tune evaluate`) and compare each with
-    the first: on bags by :func:`pipeline.metrics.uncertainty.paired_bags` (bags matched by their images, "pairs"
-    then counts the common bags, ``units`` "bags").
+    for COLMAP's models; ``gt_dir`` where built ground truth lives, as for `tune evaluate`; any registered task:
+    ``task_options`` its :meth:`~pipeline.tasks.base.Task.options`, e.g. from :func:`study_options`, the other
+    options then override them where the task takes them) and compare each with the first by the task's paired test
+    (:meth:`~pipeline.tasks.base.Task.paired`; on bags "pairs" counts the common bags, ``units`` "bags")
 
     sources: objects with ``conf`` (PipelineConfig) and ``label`` (see :func:`load_sources`).
     Returns ``{"data", "scenes", "sources": [{"label", "config", "mAA10", "mAA5", "mAA10_ci", "mAA5_ci",
@@ -164,7 +146,6 @@ def compare(sources: list, data_root: Path | str, scenes=None, *, cache_dir=None
     "b": label, "overall": {COMPARISON_KEYS}, "scenes": {name: {COMPARISON_KEYS}}}, ...]}``."""
     if len(sources) < 2:
         raise ImtuneError("tune compare needs at least two configurations")
-    evaluate_config = _evaluate_config()
     done: list[tuple] = []  # (conf, result): identical configurations are evaluated once
     evaluated = []
     for src in sources:
@@ -172,36 +153,38 @@ def compare(sources: list, data_root: Path | str, scenes=None, *, cache_dir=None
         if hit is None:
             hit = evaluate_config(src.conf, Path(data_root), scenes, cache_dir=cache_dir,
                                   min_covisibility=min_covisibility, progress=progress, with_pairs=True, task=task,
-                                  gt_dir=gt_dir, **({"multiview": multiview, "workers": workers,
-                                                     "keep_models": keep_models} if task == "multiview" else {}))
+                                  gt_dir=gt_dir, multiview=multiview, workers=workers, keep_models=keep_models,
+                                  task_options=task_options)  # each task takes the options it knows
             done.append((src.conf, hit))
         evaluated.append(hit)
+    from pipeline.tasks import TASKS
     out_sources = []
+    t = TASKS.get(task)
+    unit = t.unit
     labels = [task_label(src, task) for src in sources]
     for src, res, label in zip(sources, evaluated, labels):
         st = res[task]
-        interval = bag_intervals if task == "multiview" else maa_intervals
-        ci = interval(_records(st), n_resamples=n_resamples, seed=seed, level=level, scenes=list(st["scenes"]))
-        unit = "bags" if task == "multiview" else "pairs"
+        ci = t.intervals(_records(st), n_resamples=n_resamples, seed=seed, level=level, scenes=list(st["scenes"]))
         out_sources.append({
             "label": label, "config": res["config"], "mAA10": st["mAA10"], "mAA5": st["mAA5"],
             "mAA10_ci": ci["mAA10_ci"], "mAA5_ci": ci["mAA5_ci"], unit: st[unit],
             "scenes": {n: {"mAA10": s["mAA10"], "mAA5": s["mAA5"], unit: s.get(unit), **ci["scenes"].get(n, {})}
                        for n, s in st["scenes"].items()}})
     comparisons = compare_records([(label, _records(res[task])) for label, res in zip(labels, evaluated)],
-                                  n_resamples=n_resamples, seed=seed, level=level)
+                                  n_resamples=n_resamples, seed=seed, level=level, task=task)
     out = {"data": str(data_root), "scenes": evaluated[0]["scenes"], "task": task, "level": level,
            "n_resamples": n_resamples, "seed": seed, "sources": out_sources, "comparisons": comparisons,
            "verdict_rule": verdict_rule(len(comparisons), level), "adjustment": adjustment_note(len(comparisons), level)}
-    if task == "multiview" and evaluated[0]["multiview"].get("notes"):
-        out["notes"] = evaluated[0]["multiview"]["notes"]
+    if evaluated[0][task].get("notes"):  # where the task could not follow its options (bags above a scene's images)
+        out["notes"] = evaluated[0][task]["notes"]
     return out
 
 
 def compare_records(named: list[tuple[str, list]], *, n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0,
-                    level: float = DEFAULT_LEVEL) -> list[dict]:
-    """Each of ``named[1:]`` (label, pair records) compared with ``named[0]`` by the paired bootstrap: the
-    ``comparisons`` of :func:`compare`.
+                    level: float = DEFAULT_LEVEL, task: str | None = None) -> list[dict]:
+    """Each of ``named[1:]`` (label, records) compared with ``named[0]`` by ``task``'s paired test
+    (:meth:`pipeline.tasks.base.Task.paired`; None: bag records by :func:`~pipeline.metrics.uncertainty.paired_bags`,
+    pair records by the paired bootstrap): the ``comparisons`` of :func:`compare`.
 
     Multiplicity: the m = k - 1 comparisons are one family, held at ``level`` together. Each CI is at the Bonferroni
     level 1 - (1 - level) / m (``ci_level``; with at least 20 / alpha_each resamples:
@@ -215,7 +198,11 @@ def compare_records(named: list[tuple[str, list]], *, n_resamples: int = DEFAULT
     if m <= 1:
         resamples_each = int(n_resamples)
     label_a, recs_a = named[0]
-    paired = paired_bags if is_bag_records(recs_a) else paired_bootstrap  # bag records: the multiview task's
+    if task is not None:
+        from pipeline.tasks import TASKS
+        paired = TASKS.get(task).paired
+    else:  # records without their task (a caller of old): bag records are the multiview task's
+        paired = paired_bags if is_bag_records(recs_a) else paired_bootstrap
     comparisons = []
     for label, recs in named[1:]:
         pb = paired(recs_a, recs, tau=10, n_resamples=resamples_each, seed=seed, level=level_each)

@@ -272,17 +272,23 @@ MULTIVIEW_ONLY = {"bags": None, "bag_min_points": 100, "bag_seed": 0, "mv_intrin
                   "keep_models": None, "bag_records": False}
 
 
+#: the options that set a task's recorded options (what a study's task_options keep): typed, they override a study's
+TASK_OPTION_DESTS = frozenset({"bags", "bag_min_points", "bag_seed", "mv_intrinsics"})
+
+
 def check_multiview_only(args: argparse.Namespace, tasks: list[str]) -> None:
     """One-line ImtuneError for a multiview option (``--bags``, ``--workers``, ...) given while ``tasks`` (the task
-    names that run) hold no multiview task."""
-    if "multiview" in tasks:
+    names that run) hold no task taking them (whose constructor takes ``mv``: the multiview settings)."""
+    from pipeline.tasks import TASKS, task_class
+    if any(task_class(t).takes("mv") for t in tasks):
         return
+    takers = " / ".join(n for n in TASKS.names() if TASKS.get(n).takes("mv"))
     typed = explicit_options(args)
     for dest, default in MULTIVIEW_ONLY.items():
         if hasattr(args, dest) and (dest in typed or getattr(args, dest) != default):
             flag = "--" + dest.replace("_", "-")
-            raise ImtuneError(f"{flag} is an option of the multiview task, and only the {' and '.join(tasks)} task "
-                              f"runs here (--task {getattr(args, 'task', None) or tasks[0]}): add --task multiview, or "
+            raise ImtuneError(f"{flag} is an option of the {takers} task, and only the {' and '.join(tasks)} task "
+                              f"runs here (--task {getattr(args, 'task', None) or tasks[0]}): add --task {takers}, or "
                               f"drop {flag}")
 
 

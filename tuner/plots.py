@@ -401,9 +401,10 @@ def report_sections(storage, study_name: str, studies_dir: Path | str | None = N
             from tuner.pareto import fig_front
             add(f"{METRIC} vs estimator time per pair: Pareto front", lambda: fig_front(study))
     if "threshold" not in TASKS.get(task).uses:  # no number of trials brings an eta to a task that has none
+        verifier = TASKS.get(task).verifier  # multiview: COLMAP
         sections.append(Section(f"{METRIC} vs eta across studies", None,
-                                f"{task} study: the task does not search eta (COLMAP runs its own RANSAC)"
-                                if task == "multiview" else f"{task} study: the task does not search eta"))
+                                f"{task} study: the task does not search eta"
+                                + (f" ({verifier} runs its own RANSAC)" if verifier else "")))
     else:
         add(f"{METRIC} vs eta across studies", lambda: fig_eta_curves(storage, study),
             f"needs studies with at least 2 trials within budget that search eta: {more}")

@@ -430,6 +430,7 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
     from (test.json's ``data.ground_truth`` of each row's best study, "not recorded" for an older one) ends the
     caption when every row says the same, else is a ``ground truth`` column (always one in ``json``). ``--format json``
     adds ``mAA10_ci <est>`` lists and ``studies``. ``warn(line)``: told of a test.json that cannot be read."""
+    from pipeline.tasks import task_class  # what each study's task declares (its unit, what verifies its matches)
     from pipeline.metrics.uncertainty import (bags_differ, combine_bag_runs_interval, combine_runs_interval,
                                               is_bag_records, rank_by_intervals, rank_with_ties)
     tested = [s for s in studies if s.test]
@@ -482,8 +483,8 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
     kinds = {is_bag_records(recs[i]) for i in scored if recs[i]}
     unpaired = None  # why the ranks cannot pair: then they share where the 95% intervals overlap
     if not scored or not all(recs[i] for i in scored):
-        unpaired = "no pair errors in test.json" if not (shown and all(st.task == "multiview" for st in shown)) \
-            else "no bag errors in test.json"
+        units = {task_class(st.task).unit_one for st in shown}
+        unpaired = f"no {units.pop() if len(units) == 1 else 'pair'} errors in test.json"
     elif len(kinds) > 1:
         unpaired = "stereo pairs beside multiview bags"
     elif kinds == {True}:  # multiview: paired only on the same bags (scene, size, images) for every row
@@ -536,9 +537,12 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
     if fmt == "json":
         cols.append("studies")
     from tuner.formatting import Columns
-    if shown and all(st.task == "multiview" for st in shown) and len(ests) == 1:
-        # COLMAP reconstructs the bags with its own RANSAC: the study's estimator name would head a column of it
-        ren = {f"mAA10 {ests[0]}": "mAA10 COLMAP", f"mAA10_ci {ests[0]}": "mAA10_ci COLMAP"}
+    verifiers = {task_class(st.task).verifier for st in shown}
+    if shown and len(verifiers) == 1 and None not in verifiers and len(ests) == 1:
+        # the task verifies the matches itself (multiview: COLMAP, its own RANSAC): the study's estimator name would
+        # head a column of it
+        v = verifiers.pop()
+        ren = {f"mAA10 {ests[0]}": f"mAA10 {v}", f"mAA10_ci {ests[0]}": f"mAA10_ci {v}"}
         # ... and a 'best' column would name that estimator in every row, as if it had won
         rows = [{ren.get(k, k): v for k, v in r.items() if k != "best"} for r in rows]
         cols = [ren.get(c, c) for c in cols if c != "best"]
@@ -548,17 +552,16 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
 def _results_caption(shown: list[StudyInfo], sets: dict, several: bool, truths: set | None = None) -> str:
     """What the results table shows: test numbers, on which scenes and pairs, over how many runs, with which
     interval (the settings table says its numbers are the validation scenes'; this one said nothing)."""
+    from pipeline.tasks import task_class
     where = f"the test scenes {next(iter(sets))}" if len(sets) == 1 and not several else \
         "each study's test scenes (column 'test set')"
     runs = sorted({int(s.test["runs"]) for s in shown if isinstance((s.test or {}).get("runs"), (int, float))})
     n = (f"mean of {runs[0]} run{'s' if runs[0] != 1 else ''}" if len(runs) == 1 else
          f"mean of each study's test runs ({runs[0]}-{runs[-1]})" if runs else "mean of the test runs")
-    if shown and all(s.task == "multiview" for s in shown):
-        what = ("multiview mAA(10°) of the COLMAP reconstructions of the test bags [95% interval over bags and "
-                "runs]")
-    else:
-        what = ("NF: features per image; per estimator NI: inliers per pair and mAA(10°) [95% interval over pairs "
-                "and runs]")
+    # what the figures are: as the tasks shown declare them (studies of several tasks: the stereo task's columns)
+    from pipeline.tasks.stereo import StereoTask
+    whats = {task_class(s.task).test_figures for s in shown}
+    what = whats.pop() if len(whats) == 1 else StereoTask.test_figures
     truths = set(truths or ())
     truth = (f" Test ground truth: {truths.pop()}." if len(truths) == 1 else
              " Test ground truth of each row's best study: column 'ground truth'." if truths else "")

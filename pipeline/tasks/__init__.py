@@ -15,12 +15,18 @@ from pipeline.features import load_plugins  # noqa: E402  (after the tasks: a pl
 
 load_plugins()  # $IMTUNE_PLUGINS modules may register tasks too (idempotent)
 
-__all__ = ["TASKS", "Task", "TaskResult", "get_task", "is_timed", "make_task", "task_list", "task_names"]
+__all__ = ["TASKS", "Task", "TaskResult", "get_task", "is_timed", "make_task", "task_class", "task_list", "task_names"]
 
 
 def get_task(name: str, **options) -> Task:
     """The task registered as ``name``, built with its options (one-line ImtuneError for an unknown name)."""
     return TASKS.get(name)(**options)
+
+
+def task_class(name: str | None) -> type[Task]:
+    """The class registered as ``name`` (what it declares: ``unit``, ``verifier``, ...), or :class:`Task` itself (the
+    defaults: units are pairs, our estimator) for a name not registered here (a study of a plug-in task not loaded)."""
+    return TASKS.get(name) if name in TASKS else Task
 
 
 def task_names() -> list[str]:

@@ -21,7 +21,22 @@ What a task declares (class attributes, read by the tuner, which has no task-spe
 - ``records_key``: the JSON key under which ``TaskResult.to_dict(with_records=True)`` lists the records;
 - ``note``: one line printed above its tables (units, what the figures mean);
 - ``timed``: whether it times an estimator of ours per pair, so that a time budget applies
-  (:meth:`Task.budget_seconds`).
+  (:meth:`Task.budget_seconds`);
+- ``unit`` / ``unit_one``: what one record is, plural and singular ("pairs" / "pair", "bags" / "bag"); the summary
+  counts them under ``unit``, intervals and paired tests resample them;
+- ``units_label``: how `tune compare` names what every source is evaluated on ("stereo pairs");
+- ``verifier``: what verifies the matches in place of the configuration's estimator (multiview: "COLMAP"), or None
+  (our estimator, whose eta and Gamma then play their part); tables head its column with it;
+- ``why_untimed``: why an untimed task ignores the stereo options (--max-pairs, --test-budget), for the warnings;
+- ``test_figures``: what the figures of its test table are, for the caption;
+- ``reapplied``: the :meth:`options` a comparison on this task takes from the studies compared (their recorded
+  options, which their test runs used), unless typed;
+- ``needs_points``: whether it needs a scene's built 3D points (`tune data build-gt`) to choose its units;
+- ``sweep``: whether `tune findings` sweeps its space's grid rather than sampling it (each trial is expensive).
+
+How its numbers are resampled is declared by :meth:`Task.intervals` (95% intervals) and :meth:`Task.paired` (a
+paired comparison of two configurations on the same units); which constructor options it takes by
+:meth:`Task.takes`.
 
 How the pieces are measured (the paper's protocol) lives in the concrete tasks beside this module
 (``stereo``, ``multiview``); how repeated runs aggregate is :meth:`Task.aggregate`. ``on_step`` is how a
@@ -90,6 +105,43 @@ class Task(abc.ABC):
     records_key: ClassVar[str] = "records"
     note: ClassVar[str] = ""  # one line printed above the task's tables (units, what the figures mean)
     timed: ClassVar[bool] = False  # True: it times an estimator of ours per pair (a time budget applies)
+    unit: ClassVar[str] = "pairs"
+    unit_one: ClassVar[str] = "pair"
+    units_label: ClassVar[str] = ""  # "" -> "<name> <unit>"
+    verifier: ClassVar[str | None] = None
+    why_untimed: ClassVar[str] = "it times no estimator of ours"
+    test_figures: ClassVar[str] = "mAA(10°) [95% interval over the evaluated units and runs]"
+    reapplied: ClassVar[tuple[str, ...]] = ()
+    needs_points: ClassVar[bool] = False
+    sweep: ClassVar[bool] = False
+
+    @classmethod
+    def takes(cls, option: str) -> bool:
+        """Whether the constructor takes keyword ``option`` (``workers``, ``max_pairs``, ...): a command-line option
+        that sets it applies to this task."""
+        import inspect
+        return option in inspect.signature(cls.__init__).parameters
+
+    @classmethod
+    def units_text(cls) -> str:
+        """What the task's numbers are over, for a table's first line: ``units_label`` or "<name> <unit>"."""
+        return cls.units_label or f"{cls.name} {cls.unit}"
+
+    @classmethod
+    def intervals(cls, records: list[dict], **kw) -> dict:
+        """95% intervals of mAA(5), mAA(10) from the records (``mAA5_ci``, ``mAA10_ci``, per scene under
+        ``scenes``): :func:`pipeline.metrics.uncertainty.maa_intervals`, units resampled within each scene.
+        ``kw``: n_resamples, seed, level, scenes."""
+        from pipeline.metrics.uncertainty import maa_intervals
+        return maa_intervals(records, **kw)
+
+    @classmethod
+    def paired(cls, records_a: list[dict], records_b: list[dict], **kw) -> dict:
+        """Configuration B against A on the same units: :func:`pipeline.metrics.uncertainty.paired_bootstrap`
+        (difference of mAA(tau), its CI, a sign-flip p, overall and per scene). ``kw``: tau, n_resamples, seed,
+        level."""
+        from pipeline.metrics.uncertainty import paired_bootstrap
+        return paired_bootstrap(records_a, records_b, **kw)
 
     @abc.abstractmethod
     def evaluate(self, scenes: list, conf: PipelineConfig, cache=None, on_step: OnStep | None = None) -> TaskResult:

@@ -453,6 +453,27 @@ class MultiviewTask(Task):
     space_file = "multiview.yaml"
     records_key = "bag_records"
     note = "COLMAP from our tentative matches; SR, RC in %; ATE in ground-truth units"
+    unit, unit_one = "bags", "bag"
+    units_label = "multiview bags (COLMAP; paired over the same bags)"
+    verifier = "COLMAP"  # its own RANSAC and mapper verify the matches: eta and Gamma play no part
+    why_untimed = "COLMAP reconstructs each bag whole, with its own RANSAC, untimed"
+    test_figures = "multiview mAA(10°) of the COLMAP reconstructions of the test bags [95% interval over bags and runs]"
+    # a comparison runs the bags the studies were tested on (all but COLMAP's seed, which the comparison sets)
+    reapplied = tuple(f.name for f in dataclasses.fields(MultiviewConfig) if f.name != "seed")
+    needs_points = True  # bags are sampled from the 3D points each image sees
+    sweep = True  # ~110 COLMAP reconstructions a trial: `tune findings` sweeps r's grid, as the paper did
+
+    @classmethod
+    def intervals(cls, records: list[dict], **kw) -> dict:
+        """Bags resampled within each scene (:func:`pipeline.metrics.uncertainty.bag_intervals`)."""
+        from pipeline.metrics.uncertainty import bag_intervals
+        return bag_intervals(records, **kw)
+
+    @classmethod
+    def paired(cls, records_a: list[dict], records_b: list[dict], **kw) -> dict:
+        """Paired over the bags both evaluated (:func:`pipeline.metrics.uncertainty.paired_bags`)."""
+        from pipeline.metrics.uncertainty import paired_bags
+        return paired_bags(records_a, records_b, **kw)
 
     def __init__(self, mv: MultiviewConfig | dict | None = None, workers: int | None = None, use_cache: bool = True,
                  keep_models: str | Path | None = None, progress: bool = False, ci_resamples: int = CI_RESAMPLES):

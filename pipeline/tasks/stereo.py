@@ -261,6 +261,9 @@ class StereoTask(Task):
     records_key = "pair_records"
     timed = True
     note = "pose from F; mAA over 1..5 / 1..10 deg; seconds per pair"
+    units_label = "stereo pairs"
+    test_figures = ("NF: features per image; per estimator NI: inliers per pair and mAA(10°) [95% interval over pairs "
+                    "and runs]")
 
     def __init__(self, min_covisibility: float | None = 0.1, max_pairs: int | None = None,
                  step_pairs: int | None = None, keep_pairs: bool = False, progress: bool = False,

@@ -33,9 +33,10 @@ def register(sub) -> None:
     d.add_argument("--covisibility", type=unit_float, default=0.1, help="minimum pair co-visibility where known")
     d.add_argument("--cache", default=None, help="cache folder (else $IMTUNE_CACHE or ~/.cache/imtune)")
     d.add_argument("--studies-dir", default=None, help="where studies live (default $IMTUNE_STUDIES, else studies/)")
-    d.add_argument("--task", choices=["stereo", "multiview"], default=None,
-                   help="compare on stereo pairs or on multiview bags (default: the task the studies were tuned for; "
-                        "configuration files alone: stereo)")
+    from pipeline.tasks import task_names
+    d.add_argument("--task", choices=task_names(), default=None,
+                   help="compare on stereo pairs, on multiview bags or on another task's units (default: the task the "
+                        "studies were tuned for; configuration files alone: stereo)")
     from tuner.options import add_multiview_options
     add_multiview_options(ap, bags_default="the multiview studies' recorded bags when they agree, else the "
                                            "protocol's 100/50/25")
@@ -62,9 +63,9 @@ def run(args) -> int:
                           "give A B [C ...], each a study name or a config file")
     sdir = Path(args.studies_dir).expanduser().resolve() if args.studies_dir else default_studies_dir()
     sources = load_sources(args.sources, sdir)
-    from pipeline.tasks import is_timed
+    from pipeline.tasks import TASKS, is_timed
     from tuner.compare import comparison_task, source_task
-    from tuner.options import check_multiview_only, multiview_config
+    from tuner.options import check_multiview_only, task_options
     task = comparison_task(args.sources, sources, args.task)  # a multiview study is compared on bags
     check_multiview_only(args, [task])
     for spec, src in zip(args.sources, sources):
@@ -78,7 +79,7 @@ def run(args) -> int:
                   "as they are, untuned", file=sys.stderr)
         else:
             print(f"warning: {spec} is a {tuned_for} study: its {tuned} were tuned on {tuned_for} pairs, not for "
-                  f"these {task} bags", file=sys.stderr)
+                  f"these {task} {TASKS.get(task).unit}", file=sys.stderr)
     seen: dict = {}
     for spec, src in zip(args.sources, sources):  # the same configuration twice: a difference of 0 by construction
         key = json.dumps(src.conf.to_dict(), sort_keys=True, default=str)
@@ -87,17 +88,17 @@ def run(args) -> int:
                   "construction (same pairs, same seeds), not a finding", file=sys.stderr)
         seen.setdefault(key, spec)
     data = resolve_data(args.data)
-    mv = {}
-    if task == "multiview":  # on the bags the multiview studies were tested on, unless bag options are typed
-        from tuner.compare import study_bags
-        from tuner.options import explicit_options
-        conf, warn = study_bags(args.sources, sources, multiview_config(args, seed=0), explicit_options(args))
-        if warn:
-            print(f"warning: {warn}", file=sys.stderr)
-        mv = {"multiview": conf, "workers": args.workers, "keep_models": args.keep_models}
+    # the task's options: those the studies of this task recorded (multiview: the bags they were tested on), unless
+    # an option setting them is typed (tuner.compare.study_options; a task that reapplies none: the command line's)
+    from tuner.compare import study_options
+    from tuner.options import TASK_OPTION_DESTS, explicit_options
+    given = TASKS.get(task).from_options(None, **task_options(args, seed=0)).options()
+    opts, warn = study_options(args.sources, sources, task, given, bool(explicit_options(args) & TASK_OPTION_DESTS))
+    if warn:
+        print(f"warning: {warn}", file=sys.stderr)
     res = compare(sources, data, args.scenes, cache_dir=args.cache, min_covisibility=args.covisibility,
                   progress=not (args.quiet or args.json), n_resamples=args.ci_resamples, seed=args.seed, task=task,
-                  gt_dir=args.gt_dir, **mv)
+                  gt_dir=args.gt_dir, task_options=opts, workers=args.workers, keep_models=args.keep_models)
     for note in res.get("notes") or []:  # where the bags could not follow --bags (a small scene)
         print(f"warning: {note}", file=sys.stderr)
     for spec, src in zip(args.sources, sources):  # a tuned study measured on its own validation pairs is favoured
@@ -113,8 +114,7 @@ def run(args) -> int:
                 for c in res["comparisons"]]
         print(json.dumps(_jsonable(objs[0] if len(objs) == 1 else objs), indent=2))
         return 0
-    unit = "bags" if task == "multiview" else "pairs"
-    on = "multiview bags (COLMAP; paired over the same bags)" if task == "multiview" else "stereo pairs"
+    unit, on = TASKS.get(task).unit, TASKS.get(task).units_text()
     print(f"data {res['data']} | scenes {', '.join(res['scenes'])} | {on} | {args.ci_resamples} resamples, "
           f"seed {args.seed}")
     for i, s in enumerate(res["sources"]):

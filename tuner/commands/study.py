@@ -492,14 +492,19 @@ def run_calibrate(args) -> int:
 def _check_test_workers(args, task) -> None:
     """``tune test --workers N`` (multiview bag processes) of a study of another task, or ``--max-pairs`` /
     ``--test-budget`` of a multiview study: each was ignored, unsaid."""
+    from pipeline.tasks import TASKS, task_class
     task = task if isinstance(task, str) else "stereo"
-    if args.workers is not None and task != "multiview":
-        raise ImtuneError(f"--workers is an option of the multiview task (bag processes), and study {args.study} is a "
-                          f"{task} study: drop --workers (--jobs sets its pair processes)")
-    given = [f for f, v in (("--max-pairs", args.max_pairs), ("--test-budget", args.test_budget)) if v is not None]
-    if given and task == "multiview":  # as tune run --task multiview says (TuneSettings.unused_options)
-        _warn(f"{', '.join(given)}: the multiview task does not use {'it' if len(given) == 1 else 'them'} (COLMAP "
-              "reconstructs each bag whole, with its own RANSAC, untimed); ignored")
+    cls = task_class(task)  # what the study's task takes (a task not loaded here: the defaults)
+    if args.workers is not None and not cls.takes("workers"):
+        takers = " / ".join(n for n in TASKS.names() if TASKS.get(n).takes("workers"))
+        raise ImtuneError(f"--workers is an option of the {takers} task (its parallel processes), and study "
+                          f"{args.study} is a {task} study: drop --workers (--jobs sets its pair processes)")
+    # as tune run says of an untimed task (TuneSettings.unused_options)
+    given = [f for f, v, used in (("--max-pairs", args.max_pairs, cls.takes("max_pairs")),
+                                  ("--test-budget", args.test_budget, cls.timed)) if v is not None and not used]
+    if given:
+        _warn(f"{', '.join(given)}: the {task} task does not use {'it' if len(given) == 1 else 'them'} "
+              f"({cls.why_untimed}); ignored")
 
 
 def run_test_cmd(args) -> int:

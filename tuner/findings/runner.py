@@ -175,7 +175,8 @@ def ensure_multiview_ground_truth(spec: StudySpec, fs: FindingsSettings) -> None
     """The multiview task samples its bags from 3D points: build the validation scenes' ground truth (pycolmap:
     triangulation with the known poses held fixed, or SfM without poses; what `tune data build-gt` does) into
     :func:`findings_gt_dir` when it is missing. Reused on a rerun."""
-    if spec.task != "multiview":
+    from pipeline.tasks import TASKS
+    if not TASKS.get(spec.task).needs_points:  # only a task choosing its units from 3D points (multiview bags)
         return
     from pipeline.data.ground_truth import GTConfig, build_ground_truth, gt_path
     from tuner.evaluate import load_scenes
@@ -211,6 +212,8 @@ def tune_settings(spec: StudySpec, fs: FindingsSettings):
     names = {f.name for f in dataclasses.fields(TuneSettings)}
     if fs.jobs is not None and "jobs" in names:  # the pair pool (issue 10), where this tree has it
         kw["jobs"] = int(fs.jobs)
+    from pipeline.tasks import TASKS
+    task = TASKS.get(spec.task)
     mv = None
     if m["multiview_bags"]:  # the multiview task's bags (a task that has no bags ignores this option)
         from pipeline.tasks.multiview import MultiviewConfig
@@ -225,9 +228,9 @@ def tune_settings(spec: StudySpec, fs: FindingsSettings):
         reference="none",  # the findings compare their own studies: no paper-defaults rerun of every test
         # the multiview study searches r alone: its space's grid (8 values, as the paper swept r), not 50 TPE trials
         # of ~110 COLMAP reconstructions each (hours on 2 cores for one 1-D curve)
-        sampler="grid" if spec.task == "multiview" else "tpe",
+        sampler="grid" if task.sweep else "tpe",
         name_warnings=True,  # twenty studies in one run: a warning says whose optimum it is about
-        gt_dir=str(findings_gt_dir(fs)) if spec.task == "multiview" else None, **kw)
+        gt_dir=str(findings_gt_dir(fs)) if task.needs_points else None, **kw)
 
 
 # ------------------------------------------------------------------------------------------ records
