@@ -1,0 +1,54 @@
+"""The layers import downwards only: ``pipeline/`` never imports ``tuner`` (it knows nothing of Optuna), and the tuner's
+library modules never import the command layer (``tuner/commands``, ``tuner/cli.py``; ``python -m tuner``'s
+``__main__`` is its entry), so that a Python caller of
+``tuner.compare`` gets no argparse code and a command can be rewritten without touching the library. Every import
+statement is read from the source (those inside functions too), not only the module's top."""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def imported_modules(path: Path) -> list[tuple[int, str]]:
+    """(line, module) of every import in ``path``: ``import a.b`` -> a.b; ``from a.b import c`` -> a.b and a.b.c
+    (``from tuner import commands`` imports the package tuner.commands)."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            out += [(node.lineno, a.name) for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            out.append((node.lineno, node.module))
+            out += [(node.lineno, f"{node.module}.{a.name}") for a in node.names]
+    return out
+
+
+def offenders(files, banned: str) -> list[str]:
+    return [f"{p}:{line} imports {mod}" for p in files for line, mod in imported_modules(p)
+            if mod == banned or mod.startswith(banned + ".")]
+
+
+def test_imported_modules_sees_imports_inside_functions(tmp_path):
+    """The reader itself: the old tuner/compare.py imported the command layer inside a function."""
+    p = tmp_path / "m.py"
+    p.write_text("import os\n\ndef f():\n    from tuner.commands.viz import resolve_source\n    from tuner import commands\n")
+    mods = [m for _, m in imported_modules(p)]
+    assert "tuner.commands.viz" in mods and "tuner.commands" in mods and "os" in mods
+    assert offenders([p], "tuner.commands") != []
+
+
+def test_the_tuner_library_never_imports_the_command_layer():
+    tuner = ROOT / "tuner"
+    files = [p for p in sorted(tuner.rglob("*.py"))
+             if (tuner / "commands") not in p.parents and p not in (tuner / "cli.py", tuner / "__main__.py")]
+    assert len(files) > 20, files  # the library's modules were found
+    assert offenders(files, "tuner.commands") == []
+    assert offenders(files, "tuner.cli") == []
+
+
+def test_pipeline_never_imports_the_tuner():
+    files = sorted((ROOT / "pipeline").rglob("*.py"))
+    assert len(files) > 20, files
+    assert offenders(files, "tuner") == []
+    assert offenders(files, "optuna") == []
