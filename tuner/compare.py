@@ -43,14 +43,12 @@ def load_sources(specs: list[str], studies_dir: Path | str) -> list:
     return [resolve_source(s, Path(studies_dir)) for s in specs]
 
 
-def _records(section: dict) -> list[dict]:
-    recs = section.get("pair_records")
+def _records(section: dict, task) -> list[dict]:
+    """The records of a task's evaluation section: under the key the task declares (``records_key``)."""
+    recs = section.get(task.records_key)
     if recs is None:
-        recs = section.get("bag_records")
-    if recs is None:
-        recs = section.get("records")
-    if recs is None:
-        raise ImtuneError("the evaluation returned no pair or bag records (internal: with_pairs ignored)")
+        raise ImtuneError(f"the evaluation returned no {task.unit_one} records under {task.records_key!r} "
+                          "(internal: with_pairs ignored)")
     return recs
 
 
@@ -164,13 +162,13 @@ def compare(sources: list, data_root: Path | str, scenes=None, *, cache_dir=None
     labels = [task_label(src, task) for src in sources]
     for src, res, label in zip(sources, evaluated, labels):
         st = res[task]
-        ci = t.intervals(_records(st), n_resamples=n_resamples, seed=seed, level=level, scenes=list(st["scenes"]))
+        ci = t.intervals(_records(st, t), n_resamples=n_resamples, seed=seed, level=level, scenes=list(st["scenes"]))
         out_sources.append({
             "label": label, "config": res["config"], "mAA10": st["mAA10"], "mAA5": st["mAA5"],
             "mAA10_ci": ci["mAA10_ci"], "mAA5_ci": ci["mAA5_ci"], unit: st[unit],
             "scenes": {n: {"mAA10": s["mAA10"], "mAA5": s["mAA5"], unit: s.get(unit), **ci["scenes"].get(n, {})}
                        for n, s in st["scenes"].items()}})
-    comparisons = compare_records([(label, _records(res[task])) for label, res in zip(labels, evaluated)],
+    comparisons = compare_records([(label, _records(res[task], t)) for label, res in zip(labels, evaluated)],
                                   n_resamples=n_resamples, seed=seed, level=level, task=task)
     out = {"data": str(data_root), "scenes": evaluated[0]["scenes"], "task": task, "level": level,
            "n_resamples": n_resamples, "seed": seed, "sources": out_sources, "comparisons": comparisons,

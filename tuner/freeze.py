@@ -176,7 +176,7 @@ def frozen_from_study(study, select: str | None = None) -> dict:
     ua = best.user_attrs
     validation = {k: ua.get(k) for k in task.summary_keys + ("scenes",)}
     validation.update({k: v for k, v in ua.items() if k.endswith("_ci")})  # 95% intervals (tuner.select)
-    if validation.get("pairs") is None and "bags" not in task.summary_keys:  # a multiview trial's "pairs" are bags
+    if validation.get("pairs") is None and task.unit == "pairs":  # a task of other units (bags) counts those
         validation["pairs"] = (ua.get("timing") or {}).get("pairs")
     budget = dict(attrs["budget"])
     budget.pop("calibration", None)
