@@ -55,10 +55,10 @@ def test_tuned_degensac_is_significantly_better_than_opencv_defaults(setup, caps
     assert list(res["scenes"]) == ["entry-P10"]
     assert res["scenes"]["entry-P10"]["difference"] == pytest.approx(o["difference"])  # one scene
     # the mAA it compares is the one `tune evaluate` reports for the same configuration
-    from tuner.compare import _evaluate_config
+    from tuner.evaluate import evaluate_config
     from tuner.freeze import pipeline_from_dict
-    ev = _evaluate_config()(pipeline_from_dict(DEGENSAC), setup["data"], ["entry-P10"],
-                            cache_dir=str(setup["root"] / "cache"))
+    ev = evaluate_config(pipeline_from_dict(DEGENSAC), setup["data"], ["entry-P10"],
+                         cache_dir=str(setup["root"] / "cache"))
     assert o["mAA10_b"] == pytest.approx(ev["stereo"]["mAA10"], abs=1e-12)
 
 
