@@ -26,7 +26,7 @@ def get_task(name: str, **options) -> Task:
 def task_class(name: str | None) -> type[Task]:
     """The class registered as ``name`` (what it declares: ``unit``, ``verifier``, ...), or :class:`Task` itself (the
     defaults: units are pairs, our estimator) for a name not registered here (a study of a plug-in task not loaded)."""
-    return TASKS.get(name) if name in TASKS else Task
+    return TASKS.get(name) if name is not None and name in TASKS else Task
 
 
 def task_names() -> list[str]:
