@@ -30,3 +30,18 @@ def test_auc10_study_maximises_and_records_auc(tmp_path, tuner_cache):  # noqa: 
     # the same study resumed without --objective (mAA10): refused in one line, exit 2
     r = tune(*quick(tmp_path, "--n-trials", "3", "--study", name, ransac="cv-ransac", pairs=4), cache=tuner_cache)
     assert r.returncode == 2 and "maximises auc10" in r.stderr and r.stderr.strip().count("\n") == 0, r.stderr
+    # an mAA10 study beside it: tables refuse to rank the two as one, --objective picks one, `studies` says which
+    tune(*quick(tmp_path, "--n-trials", "1", "--study", "plain", "--no-test", ransac="cv-ransac", pairs=4),
+         cache=tuner_cache, check=True)
+    storage = ["--storage", f"sqlite:///{tmp_path}/optuna.db", "--studies-dir", str(tmp_path)]
+    for cmd in ("results", "table"):
+        r = tune(cmd, *storage, cache=tuner_cache)
+        assert r.returncode == 2 and "different objectives (auc10: 1, mAA10: 1)" in r.stderr, r.stderr
+        assert r.stderr.strip().count("\n") == 0
+    r = tune("results", *storage, "--objective", "auc10", "--format", "json", cache=tuner_cache, check=True)
+    assert name in r.stdout and "plain" not in r.stdout
+    rows = {x["study"]: x for x in json.loads(tune("studies", *storage, "--json", cache=tuner_cache, check=True).stdout)}
+    assert rows[name]["objective"] == "auc10" and rows["plain"]["objective"] == "mAA10"
+    best = st.trials[rows[name]["best trial"]]
+    assert rows[name]["best value"] == pytest.approx(best.user_attrs["auc10"])
+    assert rows[name]["best mAA10"] == pytest.approx(best.user_attrs["mAA10"])
