@@ -247,6 +247,12 @@ def register(sub) -> None:
     d.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
     d.set_defaults(func=run_dashboard)
 
+    ex = sub.add_parser("export", help="print a study's frozen settings for COLMAP, pycolmap, OpenCV, PoseLib, hloc or "
+                                       "as JSON")
+    ex.add_argument("--study", required=True, help="the study (its frozen.yaml in the studies dir)")
+    ex.add_argument("--format", default="json", help="colmap | pycolmap | opencv | poselib | hloc | json")
+    _storage_opts(ex, storage=False)
+    ex.set_defaults(func=run_export)
     ls = sub.add_parser("studies", help="list the studies in a storage")
     _storage_opts(ls)
     ls.add_argument("--json", action="store_true")
@@ -697,6 +703,12 @@ def run_plot(args) -> int:
 def run_dashboard(args) -> int:
     from tuner.dashboard import serve
     serve(args.storage, host=args.host, port=args.port, studies_dir=_studies_dir(args))
+    return 0
+
+
+def run_export(args) -> int:
+    from tuner.export import export_study
+    print(export_study(_studies_dir(args), args.study, args.format), end="")
     return 0
 
 
