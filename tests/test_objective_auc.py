@@ -45,3 +45,6 @@ def test_auc10_study_maximises_and_records_auc(tmp_path, tuner_cache):  # noqa: 
     best = st.trials[rows[name]["best trial"]]
     assert rows[name]["best value"] == pytest.approx(best.user_attrs["auc10"])
     assert rows[name]["best mAA10"] == pytest.approx(best.user_attrs["mAA10"])
+    # tune compare refuses to compare an auc10 study with an mAA10 one (before any evaluation)
+    r = tune("compare", name, "plain", "--studies-dir", str(tmp_path), "--data", str(STRECHA), cache=tuner_cache)
+    assert r.returncode == 2 and "different objectives" in r.stderr and r.stderr.strip().count("\n") == 0, r.stderr
