@@ -48,3 +48,10 @@ def test_auc10_study_maximises_and_records_auc(tmp_path, tuner_cache):  # noqa: 
     # tune compare refuses to compare an auc10 study with an mAA10 one (before any evaluation)
     r = tune("compare", name, "plain", "--studies-dir", str(tmp_path), "--data", str(STRECHA), cache=tuner_cache)
     assert r.returncode == 2 and "different objectives" in r.stderr and r.stderr.strip().count("\n") == 0, r.stderr
+    # the results table shows the test's auc10 beside mAA10
+    js = json.loads(tune("results", *storage, "--objective", "auc10", "--format", "json", cache=tuner_cache,
+                         check=True).stdout)
+    test = json.loads((tmp_path / name / "test.json").read_text())
+    assert js[0]["auc10 cv-ransac"] == pytest.approx(test["mean"]["auc10"], abs=1e-4)
+    md = tune("results", *storage, "--objective", "auc10", cache=tuner_cache, check=True).stdout
+    assert "auc10 cv-ransac" in md.splitlines()[0]
