@@ -262,7 +262,7 @@ class StereoTask(Task):
     columns = ("pairs", "NF", "NM", "NI", "mAA5", "mAA10", "auc10", "failed", "match_seconds", "ransac_seconds")
     records_key = "pair_records"
     timed = True
-    note = "pose from F; mAA over 1..5 / 1..10 deg; seconds per pair"
+    note = "pose from F; mAA over 1..5 / 1..10 deg; auc10: pose AUC@10 deg (SuperGlue's trapezoid); seconds per pair"
 
     def __init__(self, min_covisibility: float | None = 0.1, max_pairs: int | None = None,
                  step_pairs: int | None = None, keep_pairs: bool = False, progress: bool = False,
