@@ -84,7 +84,7 @@ def test_readable_table_shows_value_and_interval(capsys, data):
                          "--cache", data["cache"], "--quiet")
     assert code == 0, err
     row = [ln for ln in out.splitlines() if ln.startswith("| entry-P10")][0]
-    assert row.count("[") == 2 and "95% interval" in out  # mAA5 and mAA10 as value [lo, hi]
+    assert row.count("[") == 3 and "95% interval" in out  # mAA5, mAA10 and auc10 as value [lo, hi]
 
 
 def test_tiny_study_end_to_end(capsys, data):

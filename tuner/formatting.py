@@ -51,7 +51,7 @@ def column_kind(name: str) -> str:
     first = name.split()[0] if name.split() else name
     if name == "best trial" or first in _INT:
         return "int"
-    if first.startswith("mAA"):
+    if first.startswith("mAA") or first in ("auc5", "auc10", "auc20"):  # pose AUC: on mAA's scale
         return "maa"
     if first in ("r", "ratio", "r_multiview"):
         return "ratio"

@@ -146,7 +146,11 @@ def _plain(o):
 def task_of(d: dict, **extra):
     """The task a study, frozen file or test result was made with (its name and recorded options)."""
     from pipeline.tasks import TASKS
-    return TASKS.get(d.get("task", "stereo")).from_options(d.get("task_options"), **extra)
+    from tuner.study import AUC_OBJECTIVES, study_objective
+    task = TASKS.get(d.get("task", "stereo")).from_options(d.get("task_options"), **extra)
+    if study_objective(d) in AUC_OBJECTIVES:  # a study that maximised a pose AUC: its figure is the objective
+        task.objective = study_objective(d)
+    return task
 
 
 def frozen_from_study(study, select: str | None = None) -> dict:
@@ -183,7 +187,8 @@ def frozen_from_study(study, select: str | None = None) -> dict:
     out = _plain({
         "study": study.study_name,
         "trial": best.number,
-        "value": trial_value(best),  # mAA(10 deg); a pareto study's best trial within B on its front
+        "value": trial_value(best),  # the objective (mAA(10 deg), or auc10/auc20); pareto: best within B on its front
+        "objective": attrs.get("objective") or {"name": "mAA10"},
         "task": task.name,
         "task_options": task.options(),
         "feature": attrs.get("feature"), "num_features": attrs.get("num_features"), "ransac": attrs.get("ransac"),
@@ -529,7 +534,7 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
     sec = task.budget_seconds(mean)  # the one feasibility rule, on the mean over runs
     out = _plain({
         "study": frozen["study"], "trial": frozen.get("trial"), "task": task.name, "task_options": task.options(),
-        "feature": frozen.get("feature"), "num_features": frozen.get("num_features"), "ransac": frozen.get("ransac"),
+        "objective": frozen.get("objective") or {"name": "mAA10"}, "feature": frozen.get("feature"), "num_features": frozen.get("num_features"), "ransac": frozen.get("ransac"),
         "params": frozen.get("params"), "fixed": frozen.get("fixed"),
         "data": {"root": str(data_root), "scenes": names, "fingerprint": vs.fingerprint, "pairs": vs.n_pairs,
                  **task.options(),

@@ -462,6 +462,8 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
                 combine = combine_bag_runs_interval if is_bag_records(runs[0]) else combine_runs_interval
                 ci = combine(runs, taus=(10,), n_resamples=n_resamples, seed=seed)["mAA10_ci"]
             row[f"NI {e}"] = round(float(ni), 1) if ni is not None else None
+            auc = s.test.get("auc10") if s else None  # pose AUC@10 beside mAA10 (tests before it have none)
+            row[f"auc10 {e}"] = round(float(auc), 4) if isinstance(auc, (int, float)) else None
             if fmt == "json":
                 row[f"mAA10 {e}"] = round(float(m), 4) if m is not None else None
                 row[f"mAA10_ci {e}"] = [round(float(v), 4) for v in ci] if ci else None
@@ -528,12 +530,12 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
         r.pop("_best")
     cols = ["rank", "feature", "features", "NF"]
     for e in ests:
-        cols += [f"NI {e}", f"mAA10 {e}"] + ([f"mAA10_ci {e}"] if fmt == "json" else [])
+        cols += [f"NI {e}", f"mAA10 {e}"] + ([f"mAA10_ci {e}"] if fmt == "json" else []) + [f"auc10 {e}"]
     truths = {r["ground truth"] for r in rows if r["ground truth"] is not None}
     cols += ["best"] + (["test set"] if several else []) + (["ground truth"] if len(truths) > 1 or fmt == "json"
                                                             else []) + ["ties"]
     # NF / NI that no row has (a multiview test records neither): left out, not a column of '-'
-    cols = [c for c in cols if not (c == "NF" or c.startswith("NI ")) or any(r.get(c) is not None for r in rows)]
+    cols = [c for c in cols if not (c == "NF" or c.startswith(("NI ", "auc10 "))) or any(r.get(c) is not None for r in rows)]
     if fmt == "json":
         cols.append("studies")
     from tuner.formatting import Columns

@@ -40,7 +40,10 @@ PRUNERS = ("median", "sha", "hyperband", "none")
 DEFAULT_PRUNER = "hyperband"  # the fastest to the same frozen optimum in benchmarks/study_wall_time.py (README)
 # mAA10: maximise mAA(10 deg) within the budget B; pareto: a two-objective study (maximise mAA(10 deg), minimise
 # the median estimator seconds per pair) whose Pareto front tuner.pareto draws and reads the best within B off
-OBJECTIVES = ("mAA10", "pareto")
+OBJECTIVES = ("mAA10", "auc10", "auc20", "pareto")
+# auc10 / auc20: maximise the pose AUC (pipeline.metrics.auc) instead; the study records it (user attribute
+# "objective"), its default name ends in -auc10 / -auc20, and a study without the attribute maximised mAA10
+AUC_OBJECTIVES = ("auc10", "auc20")
 PARETO_SUFFIX = "-pareto"
 PARETO_SPAN = 4.0
 SCHEMA = 1
@@ -548,6 +551,11 @@ def setup_study(s: TuneSettings) -> StudyContext:
     if s.n_trials is not None and s.n_trials < 1:
         raise ImtuneError(f"--n-trials must be >= 1, got {s.n_trials}")
     task = s.make_task()  # unknown task -> one line listing the tasks
+    if s.objective in AUC_OBJECTIVES:
+        if s.objective not in task.summary_keys:
+            raise ImtuneError(f"task {task.name} reports no pose AUC: --objective {s.objective} needs --task stereo; "
+                              "use --objective mAA10")
+        task.objective = s.objective  # the figure every trial returns and reports (tuner.objective.Objective)
     if pareto and not task.timed:
         raise ImtuneError(f"task {task.name} times no estimator of imtune's: it cannot run a pareto study "
                           "(accuracy against estimator time); use --objective mAA10")
@@ -555,7 +563,8 @@ def setup_study(s: TuneSettings) -> StudyContext:
     s.studies_dir = Path(s.studies_dir) if s.studies_dir else default_studies_dir()
     check_studies_dir(s.studies_dir)  # budgets.json, frozen.yaml, reports: read-only or a file in the way -> now
     space = load_study_space(s, task)
-    name = s.study_name or default_study_name(s.base, task.name) + (PARETO_SUFFIX if pareto else "")
+    name = s.study_name or default_study_name(s.base, task.name) + (
+        PARETO_SUFFIX if pareto else f"-{s.objective}" if s.objective in AUC_OBJECTIVES else "")
     from tuner.freeze import check_study_outputs
     check_study_outputs(s.studies_dir, name)  # frozen.yaml, test.json: a file or folder in the way -> now
     storage = open_storage(s.storage, heartbeat=s.heartbeat, studies_dir=s.studies_dir)
@@ -580,6 +589,9 @@ def setup_study(s: TuneSettings) -> StudyContext:
     if study is not None and stored.get("imtune") is None and len(study.trials) > 0:
         raise ImtuneError(f"study {name!r} exists in the storage but was not created by imtune; name another with --study")
     created = not stored.get("imtune")
+    if not created and not pareto and study_objective(stored) != s.objective:
+        raise ImtuneError(f"study {name!r} maximises {study_objective(stored)}: rerun with --objective "
+                          f"{study_objective(stored)} or name a new study with --study")
     if not created:
         check_compatible(name, stored, mine)
         if stored.get("sampler") and stored["sampler"] != s.sampler:  # allowed (a sampler changes no measurement),
@@ -620,6 +632,8 @@ def setup_study(s: TuneSettings) -> StudyContext:
             mine["objective"] = {"name": "pareto", "values": ["mAA10", "median estimator seconds per pair"],
                                  "directions": ["maximize", "minimize"], "pareto_span": float(s.pareto_span)}
             mine["budget"]["gamma_max_front"] = cal.gamma_max(s.budget * s.pareto_span) if cal else None
+        if s.objective in AUC_OBJECTIVES:
+            mine["objective"] = {"name": s.objective, "values": [s.objective], "directions": ["maximize"]}
         mine["search_space_resolved"] = resolved.spec()
         mine["created"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
         mine["sampler"] = s.sampler
@@ -650,6 +664,13 @@ def setup_study(s: TuneSettings) -> StudyContext:
                           objectives=PARETO if pareto else SINGLE)
     return StudyContext(study=study, storage=storage, name=name, space=resolved, vs=vs, objective=objective,
                         attrs=stored, cache=cache, created=created)
+
+
+def study_objective(attrs: dict) -> str:
+    """The figure a study maximised, from its user attributes: "mAA10" (the default, and every study created
+    before --objective auc10/auc20), "auc10", "auc20" or "pareto"."""
+    o = attrs.get("objective")
+    return str(o.get("name", "mAA10")) if isinstance(o, dict) else "mAA10"
 
 
 def trial_counts(study) -> dict:

@@ -18,6 +18,7 @@ from pipeline.config import PipelineConfig
 from pipeline.errors import ImtuneError
 from pipeline.data.resize import scaled_K
 from pipeline.data.scene import Pair, Scene
+from pipeline.metrics.auc import auc_intervals, auc_summary
 from pipeline.metrics.pose import accuracy_curve, mean_average_accuracy, pose_error_deg
 from pipeline.metrics.uncertainty import maa_intervals
 from pipeline.tasks.base import TASKS, Task, TaskResult
@@ -26,7 +27,8 @@ from pipeline.tasks.prepare import ImageFeatures, image_features, pair_knn, tent
 MIN_MATCHES = 8
 CI_RESAMPLES = 2000  # default bootstrap resamples of the mAA intervals (pipeline.metrics.uncertainty)
 CI_SEED = 0  # the intervals are seeded: the same records always give the same interval
-CI_KEYS = ("mAA5_ci", "mAA10_ci")
+CI_KEYS = ("mAA5_ci", "mAA10_ci", "auc5_ci", "auc10_ci", "auc20_ci")
+AUC_KEYS = ("auc5", "auc10", "auc20")  # pose AUC (pipeline.metrics.auc), beside mAA
 
 
 def add_intervals(summary: dict, per_scene: dict, ci: dict, n_resamples: int) -> None:
@@ -163,7 +165,7 @@ def summarize(records: list[dict], nf: float) -> dict:
     def stat(f, a):
         return float(f(a)) if len(a) else 0.0
     out = {"mAA5": mean_average_accuracy(errs, 5), "mAA10": mean_average_accuracy(errs, 10),
-           "accuracy": [float(x) for x in accuracy_curve(errs, 10)],
+           **auc_summary(errs), "accuracy": [float(x) for x in accuracy_curve(errs, 10)],
            "NF": float(nf), "NM": stat(np.mean, [r["NM"] for r in records]),
            "NI": stat(np.mean, [r["NI"] for r in records]), "pairs": len(records),
            "failed": int(sum(1 for r in records if not math.isfinite(r["err"]))),
@@ -180,7 +182,7 @@ def combine(scene_summaries: dict[str, dict], records: list[dict]) -> dict:
     """Overall = mean over scenes of each per-scene figure (the benchmark averages scenes); pairs summed."""
     if not scene_summaries:
         return summarize([], 0.0)
-    keys = ["mAA5", "mAA10", "NF", "NM", "NI", "match_seconds", "ransac_seconds"]
+    keys = ["mAA5", "mAA10", *AUC_KEYS, "NF", "NM", "NI", "match_seconds", "ransac_seconds"]
     out = {k: float(np.mean([s[k] for s in scene_summaries.values()])) for k in keys}
     out["accuracy"] = [float(x) for x in np.mean([s["accuracy"] for s in scene_summaries.values()], axis=0)]
     out["pairs"] = int(sum(s["pairs"] for s in scene_summaries.values()))
@@ -254,13 +256,13 @@ class StereoTask(Task):
 
     name = "stereo"
     uses = ("ratio", "strategy", "threshold", "max_iters")
-    summary_keys = ("mAA5", "mAA10", "NF", "NM", "NI", "match_seconds", "ransac_seconds", "ransac_seconds_median",
+    summary_keys = ("mAA5", "mAA10", *AUC_KEYS, "NF", "NM", "NI", "match_seconds", "ransac_seconds", "ransac_seconds_median",
                     "ransac_seconds_p90", "failed", "pairs")
     std_keys = ("mAA5", "mAA10", "NI")
-    columns = ("pairs", "NF", "NM", "NI", "mAA5", "mAA10", "failed", "match_seconds", "ransac_seconds")
+    columns = ("pairs", "NF", "NM", "NI", "mAA5", "mAA10", "auc10", "failed", "match_seconds", "ransac_seconds")
     records_key = "pair_records"
     timed = True
-    note = "pose from F; mAA over 1..5 / 1..10 deg; seconds per pair"
+    note = "pose from F; mAA over 1..5 / 1..10 deg; auc10: pose AUC@10 deg (SuperGlue's trapezoid); seconds per pair"
     units_label = "stereo pairs"
     test_figures = ("NF: features per image; per estimator NI: inliers per pair and mAA(10°) [95% interval over pairs "
                     "and runs]")
@@ -349,10 +351,10 @@ class StereoTask(Task):
 
     def figures(self, result: TaskResult) -> dict:
         s = result.summary
-        keys = ("mAA5", "mAA10", "NF", "NM", "NI", "ransac_seconds_median", "ransac_seconds_p90", "match_seconds",
+        keys = ("mAA5", "mAA10", *AUC_KEYS, "NF", "NM", "NI", "ransac_seconds_median", "ransac_seconds_p90", "match_seconds",
                 "ransac_seconds", "failed", "pairs", "accuracy", "covisibility")
         out = {k: s.get(k) for k in keys}
-        out["scenes"] = {k: {kk: v.get(kk) for kk in ("mAA5", "mAA10", "NF", "NM", "NI", "pairs", "failed",
+        out["scenes"] = {k: {kk: v.get(kk) for kk in ("mAA5", "mAA10", *AUC_KEYS, "NF", "NM", "NI", "pairs", "failed",
                                                      "match_seconds", "ransac_seconds", "ransac_seconds_median",
                                                      "accuracy", "covisibility")}
                          for k, v in result.scenes.items()}
@@ -454,8 +456,13 @@ class StereoTask(Task):
                        for sp, r in done.items()}
         summary, per_scene, records = self._summaries(scenes, done, nf)
         if self.ci_resamples:  # the final summary only: never on a pruner's step
-            add_intervals(summary, per_scene, maa_intervals(records, n_resamples=self.ci_resamples, seed=CI_SEED,
-                                                            scenes=[sc.name for sc in scenes]), self.ci_resamples)
+            names = [sc.name for sc in scenes]
+            ci = maa_intervals(records, n_resamples=self.ci_resamples, seed=CI_SEED, scenes=names)
+            auc = auc_intervals(records, n_resamples=self.ci_resamples, seed=CI_SEED, scenes=names)
+            ci.update({k: v for k, v in auc.items() if k != "scenes"})
+            for n, part in auc["scenes"].items():
+                ci["scenes"].setdefault(n, {}).update(part)
+            add_intervals(summary, per_scene, ci, self.ci_resamples)
         return TaskResult(summary=summary, scenes=per_scene, records=records, pairs=kept,
                           seconds={"prepare": t1 - t0, "pairs": time.perf_counter() - t1},
                           records_key=self.records_key)

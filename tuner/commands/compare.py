@@ -63,6 +63,11 @@ def run(args) -> int:
                           "give A B [C ...], each a study name or a config file")
     sdir = Path(args.studies_dir).expanduser().resolve() if args.studies_dir else default_studies_dir()
     sources = load_sources(args.sources, sdir)
+    objs = {spec: ((src.frozen.get("objective") or {}).get("name", "mAA10") if src.frozen else None)
+            for spec, src in zip(args.sources, sources)}
+    if len({o for o in objs.values() if o not in (None, "pareto")}) > 1:  # pareto: mAA10 is its first value
+        raise ImtuneError("studies tuned for different objectives are never compared as one ("
+                          + ", ".join(f"{k}: {o}" for k, o in objs.items() if o) + "); compare studies of one objective")
     from pipeline.tasks import TASKS, is_timed
     from tuner.compare import comparison_task, source_task
     from tuner.options import check_multiview_only, task_options

@@ -159,8 +159,10 @@ def register(sub) -> None:
     t.add_argument("--retest", action="store_true", help="rerun the test even if test.json matches the frozen settings")
     t.add_argument("--verbose", action="store_true", help="Optuna's per-trial log lines")
     _select_opts(t)
-    t.add_argument("--objective", default="mAA10", choices=["mAA10", "pareto"],
-                   help="mAA10: maximize mAA(10°) within the budget B; pareto: a two-objective study (maximize "
+    t.add_argument("--objective", default="mAA10", choices=["mAA10", "auc10", "auc20", "pareto"],
+                   help="mAA10 (default, the paper's protocol): maximize mAA(10°) within the budget B; auc10 / auc20: "
+                        "maximize the pose AUC@10° / @20° (SuperGlue/LightGlue's) instead, study named "
+                        "<default>-auc10 / -auc20; pareto: a two-objective study (maximize "
                         "mAA(10°), minimize median estimator seconds per pair; no pruning), named <default>-pareto; "
                         "`tune plot` draws its front, freeze takes its best trial within B")
     t.add_argument("--pareto-span", type=positive_float, default=None,
@@ -224,6 +226,9 @@ def register(sub) -> None:
         p.add_argument("--format", default="markdown", help="markdown | csv | latex | json")
         p.add_argument("--task", default="all" if name == "table" else "stereo",
                        help="a task (see `tune list`), or all" if name == "table" else "a task (see `tune list`)")
+        p.add_argument("--objective", default=None, choices=["mAA10", "auc10", "auc20"],
+                       help="only the studies that maximised this (needed when the storage holds studies of several "
+                            "objectives: they are never ranked as one)")
         p.set_defaults(func=fn)
 
     pl = sub.add_parser("plot", help="one HTML report of a study, or the Pareto fronts of several (plotly)")
@@ -242,6 +247,12 @@ def register(sub) -> None:
     d.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
     d.set_defaults(func=run_dashboard)
 
+    ex = sub.add_parser("export", help="print a study's frozen settings for COLMAP, pycolmap, OpenCV, PoseLib, hloc or "
+                                       "as JSON")
+    ex.add_argument("--study", required=True, help="the study (its frozen.yaml in the studies dir)")
+    ex.add_argument("--format", default="json", help="colmap | pycolmap | opencv | poselib | hloc | json")
+    _storage_opts(ex, storage=False)
+    ex.set_defaults(func=run_export)
     ls = sub.add_parser("studies", help="list the studies in a storage")
     _storage_opts(ls)
     ls.add_argument("--json", action="store_true")
@@ -582,7 +593,28 @@ def _collect(args):
         raise ImtuneError(f"unknown format {args.format!r} (choose {', '.join(FORMATS)})")
     sdir = _studies_dir(args)
     storage = open_storage(args.storage, heartbeat=None, studies_dir=sdir, must_exist=True)
-    return collect_studies(storage, task=args.task, studies_dir=sdir, warn=_warn)
+    return _one_objective(collect_studies(storage, task=args.task, studies_dir=sdir, warn=_warn),
+                          getattr(args, "objective", None))
+
+
+def _one_objective(studies: list, objective: str | None) -> list:
+    """The studies of one objective (``--objective``; a pareto study counts as mAA10, its first value); studies
+    that maximised different figures are never put in one table: ImtuneError naming them and the option."""
+    from tuner.study import study_objective
+
+    def obj(s) -> str:
+        o = study_objective(s.attrs)
+        return "mAA10" if o == "pareto" else o
+    if objective:
+        return [s for s in studies if obj(s) == objective]
+    counts: dict[str, int] = {}
+    for s in studies:
+        counts[obj(s)] = counts.get(obj(s), 0) + 1
+    if len(counts) > 1:
+        raise ImtuneError("the storage holds studies of different objectives ("
+                          + ", ".join(f"{k}: {v}" for k, v in sorted(counts.items()))
+                          + "), never ranked as one: add --objective " + " or ".join(sorted(counts)))
+    return studies
 
 
 def run_table(args) -> int:
@@ -679,6 +711,12 @@ def run_dashboard(args) -> int:
     return 0
 
 
+def run_export(args) -> int:
+    from tuner.export import export_study
+    print(export_study(_studies_dir(args), args.study, args.format), end="")
+    return 0
+
+
 def run_studies(args) -> int:
     import optuna
     from tuner.storage import open_storage
@@ -700,9 +738,15 @@ def run_studies(args) -> int:
         fz = frozen_trial(st) if st.user_attrs.get("imtune") else None  # --select one-se / smooth freeze another
         from pipeline.tasks import is_timed
         timed = is_timed(st.user_attrs.get("task", "stereo"))  # a multiview study has no budget to be over
-        row = {"study": summ.study_name, "complete": c["complete"], "pruned": c["pruned"],
+        from tuner.study import study_objective
+        row = {"study": summ.study_name,
+               "objective": study_objective(st.user_attrs) if st.user_attrs.get("imtune") else None,
+               "complete": c["complete"], "pruned": c["pruned"],
                "infeasible": c["infeasible"] if timed else None, "running": c["running"], "failed": c["fail"],
-               "best mAA10": trial_value(b) if b else None, "best trial": b.number if b else None,
+               # the best trial by the study's objective; its mAA10 (an auc10/auc20 study's value is in "best value")
+               "best mAA10": (trial_value(b) if study_objective(st.user_attrs) in ("mAA10", "pareto")
+                              else b.user_attrs.get("mAA10")) if b else None,
+               "best value": trial_value(b) if b else None, "best trial": b.number if b else None,
                "frozen trial": fz.number if fz else None, "frozen by": rule if fz else None}
         if st.user_attrs.get("imtune"):  # where the poses its numbers are measured against come from
             test = study_test(summ.study_name, st.user_attrs, _studies_dir(args), warn=_warn)

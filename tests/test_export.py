@@ -1,0 +1,74 @@
+"""`tune export` on real tiny tuned studies (fountain-P11, 4 pairs, 1 trial) of three estimator families; the printed
+OpenCV / PoseLib / pycolmap snippets run with the real libraries on synthetic correspondences of a known F."""
+import json
+
+import numpy as np
+import pytest
+
+from tests.test_tuner_study import STRECHA, quick, tune, tuner_cache  # noqa: F401 (fixture)
+
+pytestmark = pytest.mark.skipif(not STRECHA.is_dir(), reason=f"real data not found at {STRECHA}")
+FAMILIES = {"cv-ransac": "opencv", "poselib": "poselib", "colmap": "pycolmap"}
+
+
+@pytest.fixture(scope="module")
+def studies(tmp_path_factory, tuner_cache):  # noqa: F811
+    d = tmp_path_factory.mktemp("export")
+    for est in FAMILIES:
+        extra = ("--test-runs", "1") if est == "cv-ransac" else ("--no-test",)
+        tune(*quick(d, "--n-trials", "1", "--study", est, *extra, ransac=est, pairs=4), cache=tuner_cache, check=True)
+    return d
+
+
+def export(d, study, fmt, cache):
+    return tune("export", "--study", study, "--format", fmt, "--studies-dir", str(d), cache=cache)
+
+
+def synthetic():
+    """Two cameras 2 units apart looking at 80 random points: pixel correspondences without outliers."""
+    rng = np.random.default_rng(0)
+    X = np.c_[rng.uniform(-2, 2, 80), rng.uniform(-2, 2, 80), rng.uniform(6, 10, 80)]
+    K = np.array([[800.0, 0, 512], [0, 800, 384], [0, 0, 1]])
+    a = 0.1
+    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    t = np.array([2.0, 0.0, 0.3])
+    x1 = (K @ X.T).T
+    x2 = (K @ (R @ X.T + t[:, None])).T
+    return x1[:, :2] / x1[:, 2:], x2[:, :2] / x2[:, 2:]
+
+
+@pytest.mark.parametrize("est,fmt", list(FAMILIES.items()))
+def test_snippet_runs_on_synthetic_correspondences(studies, tuner_cache, est, fmt):  # noqa: F811
+    r = export(studies, est, fmt, tuner_cache)
+    assert r.returncode == 0, r.stderr
+    frozen = json.loads(export(studies, est, "json", tuner_cache).stdout)["settings"]
+    assert repr(frozen["threshold"]) in r.stdout and str(frozen["max_iters"]) in r.stdout
+    assert r.stdout.startswith(f"# study {est} (maximised mAA10), trial #0: validation mAA5 ")
+    p1, p2 = synthetic()
+    ns = {"pts1": p1, "pts2": p2}
+    exec(r.stdout, ns)  # noqa: S102 (the printed call, run as a user pastes it)
+    F = ns["F"] if "F" in ns else np.asarray(ns["res"]["F"])
+    h1, h2 = np.c_[p1, np.ones(len(p1))], np.c_[p2, np.ones(len(p2))]
+    l = (F @ h1.T).T  # epipolar lines in image 2: every true match lies on its line (within a pixel)
+    d = np.abs(np.sum(l * h2, axis=1)) / np.linalg.norm(l[:, :2], axis=1)
+    assert np.median(d) < 1.0
+
+
+def test_json_hloc_colmap_and_refusals(studies, tuner_cache):  # noqa: F811
+    js = json.loads(export(studies, "cv-ransac", "json", tuner_cache).stdout)
+    assert js["objective"] == "mAA10" and js["settings"]["estimator"] == "cv-ransac"
+    assert js["test"]["mAA10"] is not None and "auc10" in js["validation"]
+    h = export(studies, "cv-ransac", "hloc", tuner_cache).stdout
+    assert "; test mAA5 " in h.splitlines()[0]  # tested study: test figures in the comment
+    ns: dict = {}
+    exec(h, ns)  # noqa: S102 (the printed conf)
+    assert ns["conf"]["model"]["ratio_threshold"] == pytest.approx(js["settings"]["ratio"])
+    assert ns["conf"]["model"]["do_mutual_check"] == (js["settings"]["strategy"] == "both")
+    c = export(studies, "colmap", "colmap", tuner_cache).stdout
+    assert "[TwoViewGeometry]" in c and "max_error=" in c and "; not tested" in c.splitlines()[0]
+    for est, fmt in (("cv-ransac", "poselib"), ("poselib", "opencv"), ("colmap", "opencv"), ("cv-ransac", "colmap"),
+                     ("cv-ransac", "xml")):
+        r = export(studies, est, fmt, tuner_cache)
+        assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and r.stdout == "", (est, fmt, r.stderr)
+    r = tune("export", "--study", "missing", "--studies-dir", str(studies), cache=tuner_cache)
+    assert r.returncode == 2 and "no frozen settings" in r.stderr
