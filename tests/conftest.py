@@ -130,8 +130,9 @@ def copy_studies(src: Path, dst: Path) -> Path:
     return Path(dst)
 
 
-def look_at(C, target=np.zeros(3)):
+def look_at(C, target=(0.0, 0.0, 0.0)):
     """World-to-camera (R, t) of a camera at centre C looking at ``target`` (y up)."""
+    target = np.asarray(target, dtype=float)
     z = (target - C) / np.linalg.norm(target - C)
     x = np.cross([0.0, 1.0, 0.0], z)
     x /= np.linalg.norm(x)

@@ -116,7 +116,7 @@ def _serve(storage, studies_dir):
         except OSError:
             if p.poll() is not None or time.time() > deadline:
                 p.kill()
-                raise AssertionError(f"dashboard did not start: {p.communicate()[1][-2000:]}")
+                raise AssertionError(f"dashboard did not start: {p.communicate()[1][-2000:]}") from None
             time.sleep(0.3)
 
 

@@ -178,7 +178,7 @@ def test_concurrent_evaluations_on_one_cache(clean, tmp_path):
     procs = [subprocess.Popen(tune_cmd(clean["data"], cache), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                               text=True, cwd=ROOT, env=env_for(tmp_path)) for _ in range(2)]
     outs = [p.communicate(timeout=600) for p in procs]
-    for p, (so, se) in zip(procs, outs):
+    for p, (_so, se) in zip(procs, outs):
         assert p.returncode == 0, se
         assert "recomputing" not in se and "Traceback" not in se, se
     recs = [records(json.loads(so)) for so, _ in outs]

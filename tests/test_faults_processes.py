@@ -232,7 +232,7 @@ def test_two_sqlite_workers_and_a_dashboard_reader(tmp_path, data3, cache):
         except subprocess.TimeoutExpired:
             os.killpg(dash.pid, signal.SIGKILL)
             _, dash_err = dash.communicate()
-    for w, (so, se) in zip(workers, outs):
+    for w, (_so, se) in zip(workers, outs):
         assert w.returncode == 0, se[-2000:]
         assert "locked" not in se
     assert "locked" not in dash_err and not errors, (errors[:5], dash_err[-2000:])

@@ -213,7 +213,8 @@ def test_storage_fault_mapping_walks_optunas_wrappers():
         try:
             raise sqlalchemy.exc.OperationalError("SELECT", {}, Exception("server closed the connection unexpectedly"))
         except Exception:  # noqa: BLE001
-            raise UnboundLocalError("cannot access local variable 'updated_state' where it is not associated")
+            # implicit chaining on purpose: optuna's own bug surfaces like this, with the fault as __context__
+            raise UnboundLocalError("cannot access local variable 'updated_state' where it is not associated")  # noqa: B904
     except UnboundLocalError as err:
         msg = storage_fault(err, "postgresql://u:pw@h/db")
         from tuner.storage import interrupt_in_chain

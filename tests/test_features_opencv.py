@@ -374,7 +374,10 @@ def test_orb_keypoints_follow_the_pixel_centre_convention_on_every_level(image, 
     h, w = img.shape
     conf = FeatureConfig(name=name, num_features=3000)
     fa, fb = extract(conf, img), extract(conf, cv2.rotate(img, cv2.ROTATE_180))
-    level = lambda f: np.round(np.log(f.scales / 31.0) / np.log(1.2)).astype(int)  # ORB size = 31 * 1.2^l
+
+    def level(f):  # ORB size = 31 * 1.2^l
+        return np.round(np.log(f.scales / 31.0) / np.log(1.2)).astype(int)
+
     la, lb = level(fa), level(fb)
     pred = np.column_stack([w - 1 - fa.keypoints[:, 0], h - 1 - fa.keypoints[:, 1]]).astype(np.float64)
     for lv in range(8):

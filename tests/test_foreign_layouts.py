@@ -89,7 +89,7 @@ def test_colmap_model_ground_truth_matches_the_camera_files(tmp_path):
     names = ["0000.jpg", "0001.jpg", "0002.jpg"]
     scene = load_scene(write_colmap_scene(tmp_path / "data", names))
     cams = {n: read_camera(FOUNTAIN / "gt_dense_cameras" / f"{n}.camera") for n in names}
-    for n, (K, R, t, size) in cams.items():
+    for n, (K, _R, _t, size) in cams.items():
         np.testing.assert_allclose(scene.images[n].K, K, atol=1e-9)
         assert scene.images[n].size == size
     assert [(p.i, p.j) for p in scene.pairs] == [("0000.jpg", "0001.jpg"), ("0000.jpg", "0002.jpg"),

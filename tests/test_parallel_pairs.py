@@ -66,7 +66,7 @@ def test_same_records_and_steps_for_jobs_1_and_2(cache):
     for jobs in (1, 2):
         steps = []
         task = StereoTask(max_pairs=10, step_pairs=4, jobs=jobs)
-        res = task.evaluate(scenes, conf, h5, on_step=lambda k, n, s: steps.append(
+        res = task.evaluate(scenes, conf, h5, on_step=lambda k, n, s, steps=steps: steps.append(
             (k, n, s["pairs"], s["mAA10"], s["units_total"], len(s["budget_seconds_units"]))))
         again = task.evaluate(scenes, conf, h5)  # the second trial reuses the pool and the data in memory
         out[jobs] = (res, steps, again)

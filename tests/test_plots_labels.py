@@ -25,7 +25,7 @@ def _study(storage, name, covisibility=True, root="/data/strecha", n=8, seed=0):
             "max_iters": IntDistribution(100, 20000, log=True)}
     cov = ({"0+": {"mAA10": 0.5, "pairs": 10}, "0.1+": {"mAA10": 0.55, "pairs": 8}} if covisibility
            else {"0+": {"mAA10": 0.0, "pairs": 0}, "unknown": {"mAA10": 0.5, "pairs": 10}})
-    for i in range(n):
+    for _ in range(n):
         med = float(rng.uniform(0.1, 0.9))
         st.add_trial(create_trial(
             value=float(rng.uniform(0.2, 0.7)), distributions=dist,

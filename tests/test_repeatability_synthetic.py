@@ -11,8 +11,9 @@ W, H = 640, 480
 K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
 
 
-def plane_depth(R, t, n=np.array([0, 0, 1.0]), d=5.0):
+def plane_depth(R, t, n=(0.0, 0.0, 1.0), d=5.0):
     """Depth map of camera (R, t) viewing the world plane n . X = d."""
+    n = np.asarray(n, dtype=float)
     u, v = np.meshgrid(np.arange(W), np.arange(H))
     rays_c = np.linalg.inv(K) @ np.stack([u.ravel(), v.ravel(), np.ones(u.size)])
     C = -R.T @ t

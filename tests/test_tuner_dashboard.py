@@ -59,7 +59,7 @@ def served(tmp_path_factory, tuner_cache):
                 break
             except OSError:
                 if p.poll() is not None or time.time() > deadline:
-                    raise AssertionError(f"dashboard did not start: {p.stderr.read()[-2000:]}")
+                    raise AssertionError(f"dashboard did not start: {p.stderr.read()[-2000:]}") from None
                 time.sleep(0.3)
         yield {"url": url, "port": port, "studies": studies, "proc": p, "trials": json.loads(r.stdout)}
     finally:

@@ -428,7 +428,7 @@ def test_two_sqlite_workers(tmp_path, tuner_cache):
     procs = [subprocess.Popen([sys.executable, "-m", "tuner", *args], cwd=ROOT, env=env, stdout=subprocess.PIPE,
                               stderr=subprocess.PIPE, text=True) for _ in range(2)]
     outs = [p.communicate(timeout=600) for p in procs]
-    for p, (so, se) in zip(procs, outs):
+    for p, (_so, se) in zip(procs, outs):
         assert p.returncode == 0, se[-2000:]
         assert "database is locked" not in se
     runs = [set(json.loads(so)["worker"]["trials_run"]) for so, _ in outs]

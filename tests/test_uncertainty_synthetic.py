@@ -244,7 +244,7 @@ def test_combine_runs_accounts_for_a_shared_run_effect():
     for i in range(sims):
         runs = []
         difficulty = {s: rng.lognormal(1.0, 0.8, n_) for s, (n_, _, _) in SCENES.items()}
-        for r in range(3):
+        for _ in range(3):
             g = math.exp(rng.normal(0, 0.15))
             runs.append(records_from({s: d * rng.lognormal(0.0, 0.4, d.size) * g for s, d in difficulty.items()}))
         out = combine_runs_interval(runs, taus=(10,), seed=i)

@@ -160,7 +160,7 @@ def compare(sources: list, data_root: Path | str, scenes=None, *, cache_dir=None
     t = TASKS.get(task)
     unit = t.unit
     labels = [task_label(src, task) for src in sources]
-    for src, res, label in zip(sources, evaluated, labels):
+    for res, label in zip(evaluated, labels):
         st = res[task]
         ci = t.intervals(_records(st, t), n_resamples=n_resamples, seed=seed, level=level, scenes=list(st["scenes"]))
         out_sources.append({

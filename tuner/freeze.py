@@ -228,7 +228,8 @@ def freeze(study, studies_dir: Path | str, select: str | None = None, warn=None)
               f"(selection rule {rule})\n"
               "# params: searched values; fixed: values not searched; config: the complete pipeline\n")
     atomic_write(path, header + yaml.safe_dump(frozen, sort_keys=False, default_flow_style=False))
-    from tuner.annotate import annotate_study; annotate_study(study, frozen)  # noqa: E702 - dashboard notes
+    from tuner.annotate import annotate_study
+    annotate_study(study, frozen)  # the dashboard's notes
     return frozen, path
 
 

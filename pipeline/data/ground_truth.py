@@ -173,7 +173,7 @@ def _image_root(scene) -> tuple[Path, dict[str, str]]:
     is checked whole first (ImtuneError naming the scene and the file)."""
     from pipeline.data.imagefile import check_image_bytes, check_jpeg_decode
     paths = {n: Path(info.path).resolve() for n, info in scene.images.items()}
-    for n, p in paths.items():
+    for p in paths.values():
         if not p.is_file():
             raise ImtuneError(f"scene {scene.name}: image not found: {p}")
         # COLMAP decodes a damaged JPEG without a word (a middle overwritten, a cut with an end marker appended):

@@ -24,10 +24,14 @@ from pipeline.config import FeatureConfig
 from pipeline.errors import ImtuneError
 from pipeline.features.base import Extractor, Features
 from pipeline.features.registry import EXTRACTORS
-# Importing the family modules registers their extractors.
-from pipeline.features import sift, orb, akaze, brisk, boost, surf  # noqa: F401,E402  (order = `tune list` order)
+
+# Importing the family modules registers their extractors: the import order is the `tune list` order, so isort
+# leaves it.
+# isort: off
+from pipeline.features import sift, orb, akaze, brisk, boost, surf  # noqa: F401,E402
 # kornia families (torch/kornia are imported only when one of them runs)
 from pipeline.features import kornia_compose, kornia_e2e, custom_h5  # noqa: F401,E402
+# isort: on
 
 __all__ = ["EXTRACTORS", "Extractor", "Features", "get_extractor", "extract", "resolve_feature", "load_plugins"]
 

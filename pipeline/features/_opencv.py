@@ -326,7 +326,9 @@ class OpenCVExtractor(Extractor):
                 batch = cand[start:end]
                 idx, desc, ori = self._describe(desc_img, *(a[batch] for a in arrs))
                 if len(idx):
-                    rows.append(batch[idx]); descs.append(desc); oris.append(ori)
+                    rows.append(batch[idx])
+                    descs.append(desc)
+                    oris.append(ori)
                     got += len(idx)
                 # Refill keypoints the descriptor dropped from the next-strongest candidates.
                 start, end = end, min(len(cand), end + 2 * (k - got) + 16) if got < k else end

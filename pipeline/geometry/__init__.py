@@ -21,10 +21,14 @@ import numpy as np
 from pipeline.geometry.base import EstimateResult, Estimator, Sizes, sampson_distance
 from pipeline.geometry.imc import imc_geom_to_config
 from pipeline.geometry.registry import ESTIMATORS
-from pipeline.geometry import (  # noqa: F401  (imported so that every backend registers)
+
+# Importing registers the backends: the import order is the listing order, so isort leaves it.
+# isort: off
+from pipeline.geometry import (  # noqa: F401
     pydegensac_backend, magsac_backend, gcransac_backend, opencv_backend, poselib_backend,
     colmap_backend,
 )
+# isort: on
 
 __all__ = ["ESTIMATORS", "Estimator", "EstimateResult", "Sizes", "get_estimator", "estimate", "imc_geom_to_config",
            "sampson_distance"]

@@ -9,9 +9,12 @@ reconstructions of bags of images). ``TASKS.names()`` lists them; docs/extending
 """
 from __future__ import annotations
 
+# Importing registers the tasks: the import order is the listing order, so isort leaves it.
+# isort: off
 from pipeline.tasks.base import TASKS, Task, TaskResult
-from pipeline.tasks import stereo, multiview  # noqa: F401,E402  (importing registers the tasks; order = listing order)
+from pipeline.tasks import stereo, multiview  # noqa: F401,E402
 from pipeline.features import load_plugins  # noqa: E402  (after the tasks: a plug-in may register one)
+# isort: on
 
 load_plugins()  # $IMTUNE_PLUGINS modules may register tasks too (idempotent)
 

@@ -510,7 +510,7 @@ class PairPool:
                             raise ImtuneError(
                                 f"the stereo pair workers keep dying before they evaluate a pair (exit codes "
                                 f"{', '.join(codes) or 'unknown'}); run with --jobs 1 to see the error (a script "
-                                "using jobs > 1 needs the `if __name__ == \"__main__\":` guard: workers are spawned)")
+                                "using jobs > 1 needs the `if __name__ == \"__main__\":` guard: workers are spawned)") from None
                     inflight.clear()
                     self._drop(kill=True)
                     self.restarts += 1
