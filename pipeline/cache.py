@@ -143,7 +143,8 @@ class H5Cache:
             if blocker is not None:
                 return ImtuneError(f"cache folder {self.root}: {blocker} is a file where a folder of the cache should "
                                    f"be: move it away (the entries it held are recomputed), or {CACHE_FIX}")
-        reason = getattr(err, "reason", None) or err.strerror or str(err)
+        # FileWriteError.reason, or urllib's URLError.reason (an OSError), else the OS's words
+        reason = getattr(err, "reason", None) or (err.strerror if isinstance(err, OSError) else None) or str(err)
         if code not in FOLDER_ERRNOS:
             reason = f"{entry}: {reason}"
         return folder_error(self.root, OSError(code, reason), "cache folder", CACHE_FIX)

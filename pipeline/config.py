@@ -105,7 +105,7 @@ def check_covisibility(v) -> float | None:
 
 def config_hash(obj, n: int = 16) -> str:
     """Stable hex digest of a dataclass / dict / scalar (sorted-key JSON)."""
-    if dataclasses.is_dataclass(obj):
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):  # an instance, not the class itself
         obj = dataclasses.asdict(obj)
     blob = json.dumps(obj, sort_keys=True, default=str).encode()
     return hashlib.sha1(blob).hexdigest()[:n]

@@ -17,7 +17,7 @@ from pipeline.errors import ImtuneError, UnavailableError
 def close_matches(name: str, names: Iterable[str], n: int = 3) -> list[str]:
     """Up to ``n`` of ``names`` that look like ``name`` (difflib ratio >= 0.6; case-insensitive), best first."""
     names = [str(x) for x in names]
-    by_lower = {}
+    by_lower: dict[str, str] = {}
     for x in names:
         by_lower.setdefault(x.lower(), x)
     hits = difflib.get_close_matches(str(name).lower(), list(by_lower), n=n, cutoff=0.6)

@@ -149,8 +149,8 @@ def download_home() -> tuple[Path, str]:
     try:
         import platformdirs
     except ImportError:  # optional: the XDG rule below is what platformdirs does on Linux
-        platformdirs = None
-    if platformdirs is not None:
+        pass
+    else:
         return Path(platformdirs.user_data_dir("imtune", appauthor=False)) / "data", "platformdirs user data folder"
     xdg = os.environ.get("XDG_DATA_HOME")
     if xdg and Path(xdg).is_absolute():  # the XDG spec: a relative value is invalid and ignored

@@ -315,7 +315,7 @@ def build_from_poses(scene, conf: GTConfig = GTConfig(), work: Path | None = Non
     check_poses_scene(scene)
     quiet(3)  # our own one-line errors say why a build failed
     own = work is None
-    work = Path(tempfile.mkdtemp(prefix="imtune-gt-")) if own else Path(work)
+    work = Path(tempfile.mkdtemp(prefix="imtune-gt-")) if work is None else Path(work)
     try:
         db, ids, img_root, secs = _extract_and_match(scene, conf, work, known_K=True, progress=progress)
         rec = pycolmap.Reconstruction()
@@ -373,7 +373,7 @@ def build_from_images(scene, conf: GTConfig = GTConfig(), work: Path | None = No
         raise ImtuneError(f"scene {scene.name}: needs at least 2 usable images for SfM, has {len(scene.images)}")
     quiet(3)  # our own one-line errors say why a build failed
     own = work is None
-    work = Path(tempfile.mkdtemp(prefix="imtune-gt-")) if own else Path(work)
+    work = Path(tempfile.mkdtemp(prefix="imtune-gt-")) if work is None else Path(work)
     try:
         db, ids, img_root, secs = _extract_and_match(scene, conf, work, known_K=False, progress=progress)
         progress("incremental mapping")
@@ -503,7 +503,7 @@ def load_ground_truth(path: Path | str) -> GroundTruth:
         raise ImtuneError(f"ground truth not found: {path}")
     try:
         with h5py.File(path, "r") as f:
-            arrays = {}
+            arrays: dict[str, np.ndarray] = {}
             f.visititems(lambda k, v: arrays.__setitem__(k, v[()]) if isinstance(v, h5py.Dataset) else None)
             names = json.loads(f.attrs["names"])
             scene = str(f.attrs["scene"])

@@ -92,7 +92,7 @@ def _explicit(cli_value: str | os.PathLike | None) -> Located | None:
     if os.environ.get(ENV_DATA):
         return Located(Path(os.environ[ENV_DATA]).expanduser().resolve(), ENV_DATA)
     conf, where = project_config()
-    if conf.get("data"):
+    if conf.get("data") and where is not None:  # where: the config file the value came from
         p = Path(str(conf["data"])).expanduser()
         if not p.is_absolute():
             p = where.parent / p

@@ -127,14 +127,14 @@ def load_pairs_with_gt(root: Path, scene: str | None = None, pairs_file: Path | 
     root = Path(root)
     if pairs_file is not None:
         sdir, name = root, scene or root.name
-        pfile = Path(pairs_file)
+        pfile: Path | None = Path(pairs_file)
     else:
         dirs = scene_dirs(root, _is_scene)
         name = pick_scene(root, scene, list(dirs), NAME)
         sdir = dirs[name]
         pfile = find_pairs_file(sdir)
-    if not pfile.is_file():
-        raise ImtuneError(f"pairs file not found: {pfile}")
+    if pfile is None or not pfile.is_file():
+        raise ImtuneError(f"pairs file not found: {pfile or sdir}")
     rows = read_pairs_file(pfile)
     if not rows:
         raise ImtuneError(f"no pairs in {pfile}")
@@ -150,7 +150,9 @@ def load_pairs_with_gt(root: Path, scene: str | None = None, pairs_file: Path | 
                     size = image_size(path)
                 images[n] = ImageInfo(name=n, path=path, K=K, size=size)
             if verify:
-                check_principal_point(K, images[n].size, images[n].path)
+                size = images[n].size
+                assert size is not None  # read above whenever verify is set
+                check_principal_point(K, size, images[n].path)
         pairs.append(Pair(n0, n1, R=T[:3, :3].copy(), t=T[:3, 3].copy(), K_i=K0, K_j=K1))
     return Scene(name=name, root=sdir, images=images, pairs=pairs, source=NAME)
 

@@ -76,7 +76,7 @@ def load_image(path: str | Path, max_side: int | None = 1024, gray: bool = True)
                               "channel(s)), which OpenCV does not convert to 8-bit: save it as 8- or 16-bit PNG / JPEG")
         raise ImtuneError(f"unreadable or corrupt image: {path}")
     if img.dtype != np.uint8:  # 16-bit PNG / TIFF
-        img = (img / (np.iinfo(img.dtype).max / 255.0)).round().astype(np.uint8) if img.dtype.kind == "u" else \
+        img = (img / (np.iinfo(img.dtype.name).max / 255.0)).round().astype(np.uint8) if img.dtype.kind == "u" else \
             np.clip(img, 0, 255).astype(np.uint8)
     if not gray:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)

@@ -125,7 +125,7 @@ class Scene:
         if pair.R is not None and pair.t is not None:
             return np.asarray(pair.R, float), np.asarray(pair.t, float).reshape(3)
         a, b = self.images[pair.i], self.images[pair.j]
-        if a.R is None or b.R is None:
+        if a.R is None or b.R is None or a.t is None or b.t is None:
             raise ValueError(f"scene {self.name}: no ground-truth pose for pair {pair.key}")
         R = b.R @ a.R.T
         t = b.t.reshape(3) - R @ a.t.reshape(3)

@@ -111,6 +111,8 @@ def load_plugins(spec: str | None = None) -> list[str]:
                 if not path.is_file():
                     raise ImtuneError(f"{PLUGINS_ENV}: plug-in file {path} not found")
                 mod_spec = importlib.util.spec_from_file_location(f"imtune_plugin_{path.stem}", path)
+                if mod_spec is None or mod_spec.loader is None:  # not for a .py file that exists
+                    raise ImtuneError(f"{PLUGINS_ENV}: plug-in file {path} cannot be imported")
                 module = importlib.util.module_from_spec(mod_spec)
                 mod_spec.loader.exec_module(module)
             else:

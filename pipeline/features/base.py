@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
@@ -34,8 +35,8 @@ class Extractor(ABC):
 
     ``version`` is part of every cache key: bump it when the output of ``extract`` changes.
     """
-    version: str = "1"
-    binary: bool = False
+    version: ClassVar[str] = "1"
+    binary: ClassVar[bool] = False
 
     def __init__(self, conf: FeatureConfig):
         self.check_available()

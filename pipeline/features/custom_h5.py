@@ -31,7 +31,7 @@ from __future__ import annotations
 import hashlib
 import os
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal, overload
 
 import numpy as np
 
@@ -153,6 +153,10 @@ def h5_file_present(path: Path) -> bool:
     return True
 
 
+@overload
+def _read(path: Path, name: str, required: Literal[True] = ...) -> np.ndarray: ...
+@overload
+def _read(path: Path, name: str, required: bool) -> np.ndarray | None: ...
 def _read(path: Path, name: str, required: bool = True) -> np.ndarray | None:
     """The dataset of image ``name`` in ``path`` (None when the file is absent and not required)."""
     import h5py

@@ -37,7 +37,7 @@ def orb_pixel_centre(xy: np.ndarray, level: np.ndarray, shape: tuple[int, int], 
     xy = np.asarray(xy, np.float64)
     h, w = shape
     s = np.power(np.float32(scale_factor), np.asarray(level, np.float32)).astype(np.float64)
-    s = np.float32(s).astype(np.float64)
+    s = np.asarray(s, np.float32).astype(np.float64)
     u = np.round(xy / s[:, None])  # the level pixel
     wl = np.maximum(np.round(w / s), 1.0)
     hl = np.maximum(np.round(h / s), 1.0)

@@ -5,7 +5,7 @@ pip wheel sets: ``cv2.xfeatures2d.SURF_create`` exists in opencv-contrib-python-
 from __future__ import annotations
 
 import functools
-from typing import Any
+from typing import Any, ClassVar
 
 import cv2
 
@@ -31,7 +31,7 @@ def _surf_works() -> bool:
 class SURF(OpenCVExtractor):
     """SURF, OpenCV non-free; 64-D float32 (128-D with option extended=True)."""
     factories = ("SURF_create",)
-    option_defaults: dict[str, Any] = {
+    option_defaults: ClassVar[dict[str, Any]] = {
         "hessian_threshold": None,   # None: 1.0 with low_threshold, else 100
         "n_octaves": 4, "n_octave_layers": 3, "extended": False}
     option_bounds = {"hessian_threshold": ">=0", "n_octaves": ">=1", "n_octave_layers": ">=1"}

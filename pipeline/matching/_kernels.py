@@ -16,6 +16,8 @@ Conventions shared by every kernel here:
 """
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from llvmlite import ir
 from numba import njit, prange, types
@@ -24,7 +26,7 @@ from numba.extending import intrinsic
 # no 'contract' (FMA) and no 'reassoc': the distance expression must evaluate identically in every loop.
 # 'nnan' lets the integer-key loops vectorise; inputs are checked finite before any kernel runs.
 _FM = {"nnan", "nsz"}
-_OPTS = dict(fastmath=_FM, boundscheck=False, nogil=True, cache=True)
+_OPTS: dict[str, Any] = dict(fastmath=_FM, boundscheck=False, nogil=True, cache=True)  # njit keyword options
 
 I32 = np.int32
 KEY_NONE = I32(2**31 - 1)

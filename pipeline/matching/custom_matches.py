@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -31,7 +32,7 @@ from pipeline.matching.knn import KnnTables
 STEREO_FILES = ("matches_stereo_0.h5", "matches_stereo.h5", "matches.h5")
 MULTIVIEW_FILES = ("matches_multiview.h5", "matches.h5")
 
-_MEMO: dict[tuple, object] = {}  # file identity + pair / image -> parsed content
+_MEMO: dict[tuple, Any] = {}  # file identity + pair / image -> parsed content (a count, or (matches, key))
 
 
 @dataclass

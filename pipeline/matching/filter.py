@@ -97,6 +97,8 @@ def filter_matches(tables, conf: MatchConfig, kpts1=None, kpts2=None) -> tuple[n
     empty = (np.zeros((0, 2), np.int32), np.zeros(0, np.float32))
     if n1 == 0 or n2 == 0 or idx12.ndim != 2 or idx12.shape[1] == 0:
         return empty
+    kp1: tuple[np.ndarray, np.ndarray] | None = None  # keypoints (FGINN only)
+    kp2: tuple[np.ndarray, np.ndarray] | None = None
     if conf.fginn:
         k = idx12.shape[1]
         if k < 3 or idx21.shape[1] < 3:
@@ -104,8 +106,6 @@ def filter_matches(tables, conf: MatchConfig, kpts1=None, kpts2=None) -> tuple[n
                               f"knn_tables(..., k=10)")
         kp1 = _keypoints(kpts1, n1, "image 1")
         kp2 = _keypoints(kpts2, n2, "image 2")
-    else:
-        kp1 = kp2 = None
 
     keep12 = _direction(idx12, dist12, conf, kp2)
     nn12 = idx12[:, 0]

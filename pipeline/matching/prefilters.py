@@ -263,7 +263,7 @@ def parse_prefilter_spec(spec: str | None) -> tuple[str, tuple]:
     spec = (spec or "none").strip()
     name, _, rest = spec.partition(":")
     name = name.strip().lower()
-    opts = []
+    opts: list[tuple[str, str]] = []
     for item in filter(None, (x.strip() for x in rest.split(","))):
         k, eq, val = item.partition("=")
         if not eq or not k.strip():

@@ -28,7 +28,7 @@ def translation_error_deg(t_gt: np.ndarray, t: np.ndarray) -> float:
     na, nb = np.linalg.norm(a), np.linalg.norm(b)
     if na < 1e-12 or nb < 1e-12 or not np.isfinite(na * nb):
         return float("inf")
-    cos = abs(float(a @ b)) / (na * nb)
+    cos = abs(float(a @ b)) / float(na * nb)
     return float(np.degrees(np.arccos(min(1.0, cos))))
 
 

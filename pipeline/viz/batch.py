@@ -116,7 +116,7 @@ def render_pairs(scenes: list[Scene], conf: PipelineConfig, out_dir: str | Path,
     label = label or config_label(conf)
     h = config_hash(conf, 8)
     if pairs:
-        todo = [(*find_pair(scenes, spec), "chosen") for spec in pairs]
+        todo: list[tuple] = [(*find_pair(scenes, spec), "chosen") for spec in pairs]
     else:
         from pipeline.tasks.stereo import evaluate_stereo
         _require_ground_truth(scenes)
@@ -131,7 +131,8 @@ def render_pairs(scenes: list[Scene], conf: PipelineConfig, out_dir: str | Path,
             sc = by[rec["scene"]]
             pair = next(p for p in sc.pairs if p.key == rec["pair"])
             todo.append((sc, pair, reason, res.pairs.get((sc.name, pair.key))))
-    results, used = [], {}
+    results: list[dict] = []
+    used: dict[Path, tuple[str, str]] = {}  # png -> (scene, pair) that took the name
     for sc, pair, reason, *pm in _progress(todo, "figures", progress):
         png = _png_path(out_dir, "", sc, pair, h, used)
         r = render_pair(sc, pair, conf, cache, png, width=opts.width, max_lines=opts.max_lines, layout=opts.layout,
@@ -174,7 +175,8 @@ def render_compare(scenes: list[Scene], confs: list[tuple[PipelineConfig, str]],
             raise ImtuneError(f"no evaluation pairs in {', '.join(s.name for s in scenes)} to compare")
     hashes = [config_hash(c, 8) for c, _ in confs]
     panel_w = max(320, (opts.width - 16 * (len(confs) - 1)) // len(confs))
-    results, used = [], {}
+    results: list[dict] = []
+    used: dict[Path, tuple[str, str]] = {}  # png -> (scene, pair) that took the name
     for sc, pair in _progress(todo, "comparisons", progress):
         panels, figs = [], []
         for k, ((c, lab), hsh) in enumerate(zip(confs, hashes)):

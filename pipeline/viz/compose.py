@@ -56,8 +56,8 @@ def grid(images: list, columns: int, gap: int = 8) -> np.ndarray:
             row.append(c)
         rows.append(np.hstack(row))
     out = []
-    for k, r in enumerate(rows):
+    for k, band in enumerate(rows):
         if k:
-            out.append(np.full((gap, r.shape[1], 3), BACKGROUND, np.uint8))
-        out.append(r)
+            out.append(np.full((gap, band.shape[1], 3), BACKGROUND, np.uint8))
+        out.append(band)
     return np.vstack(out)

@@ -89,8 +89,8 @@ def write_gallery(html_path: str | Path, entries: list[GalleryEntry], title: str
         try:
             os.replace(root / MANIFEST, aside)
             kept_as = f"kept as {aside}"
-        except OSError as e:
-            kept_as = f"left in place ({e.strerror or e})"
+        except OSError as err:
+            kept_as = f"left in place ({err.strerror or err})"
         logging.getLogger(__name__).warning(
             "warning: gallery manifest %s cannot be read (%s): %s; the gallery restarts from this run's figures "
             "(earlier PNGs stay in their folder)", root / MANIFEST, why, kept_as)

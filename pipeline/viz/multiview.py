@@ -52,7 +52,7 @@ def model_keypoint_masks(model, keypoints: dict) -> dict:
     for iid in model.reg_image_ids():
         im = model.image(iid)
         by_name[im.name] = im
-    out = {}
+    out: dict[str, np.ndarray | None] = {}
     for name, k in keypoints.items():
         n = len(np.asarray(k).reshape(-1, 2))
         im = by_name.get(name)

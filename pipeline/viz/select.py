@@ -66,10 +66,9 @@ def find_pair(scenes: list[Scene], spec: str) -> tuple[Scene, Pair]:
 
 
 def _err(r: dict) -> float:
-    e = r.get("err")
     try:
-        e = float(e)
-    except (TypeError, ValueError):
+        e = float(r["err"])
+    except (KeyError, TypeError, ValueError):  # absent, None (a failure) or not a number
         return math.inf
     return math.inf if math.isnan(e) else e
 
