@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 MIN_CAMERAS = 3
 
@@ -51,7 +52,7 @@ class ATEResult:
     n: int
 
 
-def absolute_trajectory_error(est_centers: np.ndarray, gt_centers: np.ndarray) -> ATEResult | None:
+def absolute_trajectory_error(est_centers: ArrayLike, gt_centers: ArrayLike) -> ATEResult | None:
     """ATE of estimated camera centres (n, 3) against ground-truth centres (n, 3), rows corresponding.
 
     None when fewer than ``MIN_CAMERAS`` cameras or any centre is non-finite."""

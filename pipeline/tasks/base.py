@@ -52,7 +52,7 @@ from __future__ import annotations
 
 import abc
 from dataclasses import dataclass, field
-from typing import Callable, ClassVar
+from typing import Callable, ClassVar, TypeVar
 
 import numpy as np
 
@@ -61,6 +61,9 @@ from pipeline.metrics.uncertainty import STD_DDOF
 from pipeline.registry import Registry
 
 TASKS = Registry("task")
+
+#: a Task subclass: :meth:`Task.from_options` builds the class it is called on
+T = TypeVar("T", bound="Task")
 
 #: on_step(step, n_steps, summary_so_far): called after each evaluation step; may raise to stop early.
 OnStep = Callable[[int, int, dict], None]
@@ -153,7 +156,7 @@ class Task(abc.ABC):
         return {}
 
     @classmethod
-    def from_options(cls, options: dict | None, **extra) -> "Task":
+    def from_options(cls: type[T], options: dict | None, **extra) -> T:
         """The task from :meth:`options`' dict (a study's, a frozen file's) and run-time ``extra`` keyword options
         (progress, workers, ...; those the constructor does not take and None values are ignored)."""
         import inspect

@@ -32,6 +32,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -327,7 +328,7 @@ def _mean_of(summaries: list[dict]) -> dict:
     """Mean of summaries (over bag sizes or scenes); ATE over those that have one; counts summed."""
     if not summaries:
         return summarize_bags([])
-    out = {}
+    out: dict[str, Any] = {}
     for k in ("SR", "RC", "NL", "TL", "mAA5", "mAA10", "NM", "seconds"):
         out[k] = float(np.mean([s[k] for s in summaries]))
     out["accuracy"] = [float(x) for x in np.mean([s["accuracy"] for s in summaries], axis=0)]
@@ -384,7 +385,7 @@ def scene_jobs(scene: Scene, conf: PipelineConfig, mv: MultiviewConfig, cache: H
         raise ImtuneError(f"scene {scene.name}: {why}")
     feats = {n: image_features(cache, scene.images[n], conf.feature)
              for n in tqdm(names, desc=f"{scene.name}: features", disable=not progress, leave=False)}
-    use_points = mv.pair_min_points > 0 and scene.observations is not None
+    obs = scene.observations if mv.pair_min_points > 0 else None  # pairs need common 3D points when set
     pairs = set()
     for b in bags.values():
         for bag in b:
@@ -394,8 +395,7 @@ def scene_jobs(scene: Scene, conf: PipelineConfig, mv: MultiviewConfig, cache: H
     matches = {}
     for a, c in tqdm(sorted(pairs, key=lambda p: (order[p[0]], order[p[1]])), desc=f"{scene.name}: matching",
                      disable=not progress, leave=False):
-        if use_points and common_points(scene.observations.get(a, ([], None)),
-                                        scene.observations.get(c, ([], None))) < mv.pair_min_points:
+        if obs is not None and common_points(obs.get(a, ([], None)), obs.get(c, ([], None))) < mv.pair_min_points:
             continue
         tab, _ = pair_knn(cache, feats[a], feats[c], conf.matching)
         # the one tentative-matches function of every task: matcher (or the imported multiview matches), pre-filter
@@ -410,7 +410,7 @@ def scene_jobs(scene: Scene, conf: PipelineConfig, mv: MultiviewConfig, cache: H
                 scene=scene.name, size=size, index=idx, names=bag,
                 keypoints={n: np.asarray(feats[n].keypoints, np.float32) for n in bag},
                 image_sizes={n: (feats[n].width, feats[n].height) for n in bag},
-                K={n: (scaled_K(info[n].K, feats[n].sx, feats[n].sy) if info[n].K is not None else None) for n in bag},
+                K={n: (None if (Kn := info[n].K) is None else scaled_K(Kn, feats[n].sx, feats[n].sy)) for n in bag},
                 paths={n: str(info[n].path) for n in bag},
                 poses={n: (np.asarray(info[n].R, float), np.asarray(info[n].t, float).reshape(3)) for n in bag},
                 matches={p: matches[p] for p in ((a, c) for k, a in enumerate(bag) for c in bag[k + 1:]) if p in matches},
@@ -479,7 +479,8 @@ class MultiviewTask(Task):
                  keep_models: str | Path | None = None, progress: bool = False, ci_resamples: int = CI_RESAMPLES):
         self.ci_resamples = int(ci_resamples or 0)  # bootstrap over bags of the final summary (0 = none)
         if isinstance(mv, dict):
-            mv = MultiviewConfig(**{k: (tuple(tuple(x) for x in v) if k == "bags" else v) for k, v in mv.items()})
+            values: dict[str, Any] = {k: (tuple(tuple(x) for x in v) if k == "bags" else v) for k, v in mv.items()}
+            mv = MultiviewConfig(**values)
         self.mv = mv or MultiviewConfig()
         self.workers = workers
         self.use_cache = use_cache
@@ -577,7 +578,7 @@ class MultiviewTask(Task):
                 jobs = scene_jobs(scene, conf, mv, cache, tmp, progress=progress, keep=keep_models is not None)
                 secs["prepare"] += time.perf_counter() - t0
                 t0 = time.perf_counter()
-                keys = [_bag_key(j) for j in jobs] if use_cache else [None] * len(jobs)
+                keys = [_bag_key(j) for j in jobs] if use_cache else []  # read only when use_cache
                 recs: list[dict | None] = [None] * len(jobs)
                 if use_cache and keep_models is None:  # a cached bag has no model to keep: it is reconstructed
                     for k, key in enumerate(keys):

@@ -34,9 +34,13 @@ import os
 import signal
 import threading
 from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING
 
 from pipeline.cpus import available_cpus
 from pipeline.errors import ImtuneError
+
+if TYPE_CHECKING:
+    from pipeline.config import PipelineConfig
 
 #: the failure recorded for the item a dead worker was evaluating
 WORKER_DIED = "worker process died"
@@ -231,7 +235,7 @@ class PairSpec:
     function: it is sent by name, so this module imports no task)."""
     scenes: list
     pairs: list
-    conf: object  # PipelineConfig
+    conf: PipelineConfig
     cache_root: str
     evaluate: object = None  # e.g. pipeline.tasks.stereo.evaluate_pair
     key: str = field(default="")
@@ -354,7 +358,7 @@ def remove_stale_slot_dirs(tmp: str) -> list[str]:
     a folder whose parent pid is no longer alive. Returns the folders removed. (No library tracks a folder's
     owner across a SIGKILL; a folder of a live process, or a reused pid, is kept.)"""
     import shutil
-    out = []
+    out: list[str] = []
     try:
         names = os.listdir(tmp)
     except OSError:
@@ -449,7 +453,7 @@ class PairPool:
         poll of it reads no exit code, so a killed worker read as 'no exit code' and its pair was silently run
         again instead of recorded as failed."""
         import time
-        out = set()
+        out: set[int] = set()  # submission ids
         st = self._status
         if st is None:
             return out
@@ -607,6 +611,7 @@ class ConcurrentRunner:
 
     def __call__(self, fn, *args) -> list:
         with single_thread_env(), sigint_held():
+            assert self._ex is not None, "a ConcurrentRunner is called inside its `with` block"
             futs = [self._ex.submit(_concurrent_item, fn, args) for _ in range(self.jobs)]
         out = [f.result() for f in futs]
         pids = {pid for pid, _ in out}

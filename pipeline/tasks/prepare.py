@@ -123,6 +123,8 @@ def custom_tables(fi: ImageFeatures, fj: ImageFeatures, conf: MatchConfig, task:
     from pipeline.matching.custom_matches import CustomTables, load_pair_matches
     if not (fi.name and fj.name):
         raise ImtuneError("custom matches need the image names of the pair (ImageFeatures.name)")
+    if not conf.custom_matches:
+        raise ImtuneError("custom matches need their folder (MatchConfig.custom_matches)")
     m = load_pair_matches(conf.custom_matches, fi.name, fj.name, fi.path, len(fi.keypoints), len(fj.keypoints),
                           task=task)
     return CustomTables.from_matches(m, len(fi.keypoints), len(fj.keypoints), neighbours_needed(conf))
@@ -150,13 +152,14 @@ def tentative_matches(tables, conf: MatchConfig, fi: ImageFeatures, fj: ImageFea
                 and np.asarray(tables.dist12).shape[1] >= 2:
             # each match's own ratio: of its row of image 1 when it is that row's nearest neighbour, else (a match
             # found from image 2 only, strategy "either") of its row of image 2
-            d = np.asarray(tables.dist12, np.float64)[m[:, 0], :2]
+            # (its own name: `d`, the match distances returned below, was overwritten here by these (M, 2) rows)
+            d2 = np.asarray(tables.dist12, np.float64)[m[:, 0], :2]
             from_2 = np.asarray(tables.idx12)[m[:, 0], 0] != m[:, 1]
             d21 = np.asarray(tables.dist21, np.float64)
             if from_2.any() and d21.ndim == 2 and d21.shape[1] >= 2:
-                d[from_2] = d21[m[from_2, 1], :2]
+                d2[from_2] = d21[m[from_2, 1], :2]
             with np.errstate(divide="ignore", invalid="ignore"):
-                ratio = np.where(np.isfinite(d[:, 1]) & (d[:, 1] > 0), d[:, 0] / d[:, 1], 0.0)
+                ratio = np.where(np.isfinite(d2[:, 1]) & (d2[:, 1] > 0), d2[:, 0] / d2[:, 1], 0.0)
         ctx = PairContext(fi.keypoints, fj.keypoints, (fi.width, fi.height), (fj.width, fj.height),
                           fi.scales, fj.scales, fi.orientations, fj.orientations, ratio,
                           None if isinstance(tables, CustomTables) else tables)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -136,7 +137,7 @@ def evaluate_pair(scene: Scene, pair: Pair, fi: ImageFeatures, fj: ImageFeatures
     inl = np.asarray(res.inliers, bool).reshape(-1)
     out.F, out.inliers = res.F, inl
     rec["NI"] = int(inl.sum())
-    if not gt:
+    if not gt or out.K1 is None or out.K2 is None:  # K1, K2: set above with the ground truth
         return out
     R, t = pose_from_F(res.F, out.K1, out.K2, pts1[inl], pts2[inl])
     if R is None:
@@ -183,7 +184,7 @@ def combine(scene_summaries: dict[str, dict], records: list[dict]) -> dict:
     if not scene_summaries:
         return summarize([], 0.0)
     keys = ["mAA5", "mAA10", *AUC_KEYS, "NF", "NM", "NI", "match_seconds", "ransac_seconds"]
-    out = {k: float(np.mean([s[k] for s in scene_summaries.values()])) for k in keys}
+    out: dict[str, Any] = {k: float(np.mean([s[k] for s in scene_summaries.values()])) for k in keys}
     out["accuracy"] = [float(x) for x in np.mean([s["accuracy"] for s in scene_summaries.values()], axis=0)]
     out["pairs"] = int(sum(s["pairs"] for s in scene_summaries.values()))
     out["failed"] = int(sum(s["failed"] for s in scene_summaries.values()))
@@ -275,7 +276,9 @@ class StereoTask(Task):
         # records are the same for any number of jobs (each pair is evaluated alone, with the estimator's seed)
         self.jobs = resolve_jobs(jobs)
         self._data = None  # (data key, PairData): the scenes' features and k-NN tables, read once
-        self._costs_key, self._costs = None, {}  # seconds per pair of the last evaluation (the pool's order)
+        # seconds per pair (scene index, pair index) of the last evaluation (the pool's order)
+        self._costs_key: str | None = None
+        self._costs: dict[tuple[int, int], float] = {}
         self.min_covisibility = min_covisibility
         self.max_pairs = max_pairs
         self.step_pairs = step_pairs
@@ -353,7 +356,7 @@ class StereoTask(Task):
         s = result.summary
         keys = ("mAA5", "mAA10", *AUC_KEYS, "NF", "NM", "NI", "ransac_seconds_median", "ransac_seconds_p90", "match_seconds",
                 "ransac_seconds", "failed", "pairs", "accuracy", "covisibility")
-        out = {k: s.get(k) for k in keys}
+        out: dict[str, Any] = {k: s.get(k) for k in keys}
         out["scenes"] = {k: {kk: v.get(kk) for kk in ("mAA5", "mAA10", *AUC_KEYS, "NF", "NM", "NI", "pairs", "failed",
                                                      "match_seconds", "ransac_seconds", "ransac_seconds_median",
                                                      "accuracy", "covisibility")}
