@@ -118,12 +118,16 @@ def test_tentative_matches_applies_the_prefilter():
     def feats(k):
         return ImageFeatures("k", k, np.zeros((len(k), 8), np.float32), False, 1.0, 1.0, W, H, 0.0)
     fi, fj = feats(ctx.kpts1), feats(ctx.kpts2)
-    plain, _ = tentative_matches(tab, MatchConfig(ratio=1.0), fi, fj)
+    plain, d_plain = tentative_matches(tab, MatchConfig(ratio=1.0), fi, fj)
     assert len(plain) == len(matches)
-    gms, _ = tentative_matches(tab, MatchConfig(ratio=1.0, prefilter="gms"), fi, fj)
+    np.testing.assert_array_equal(d_plain, d12[plain[:, 0], 0])  # each match's distance: its row's nearest
+    gms, d_gms = tentative_matches(tab, MatchConfig(ratio=1.0, prefilter="gms"), fi, fj)
     truth = {tuple(m) for m in matches[is_true]}
     kept_true = sum(tuple(m) in truth for m in gms)
     assert kept_true > 0.75 * is_true.sum() and len(gms) - kept_true < 0.15 * (~is_true).sum()
+    # the distances of the matches kept, one each: were the (M, 2) two-nearest rows the pre-filter's ratios use
+    assert d_gms.shape == (len(gms),)
+    np.testing.assert_array_equal(d_gms, d12[gms[:, 0], 0])
 
 
 def test_either_hands_each_match_its_own_ratio():
