@@ -7,7 +7,7 @@
 #   bash .ci/install.sh --test   also what the tests need: Debian's chromium + chromium-driver (the dashboard's
 #                                browser test) and postgresql (the multi-worker tests start their own server on
 #                                loopback), through apt-get (with sudo when not root), and the test extras
-#                                (pytest, selenium, psycopg2).
+#                                (pytest, selenium, psycopg2) and the checkers CI runs first (ruff, mypy).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 TEST=0
@@ -47,7 +47,7 @@ fi
 # on a machine with a GPU.)
 .venv/bin/python -m pip install -q "${TORCH_SPEC:-torch==2.13.0}"
 if [ "$TEST" -eq 1 ]; then
-  .venv/bin/python -m pip install -q -e '.[test]'
+  .venv/bin/python -m pip install -q -e '.[test,lint]'
   echo "imtune and its test tools installed in $(pwd)/.venv"
 else
   .venv/bin/python -m pip install -q -e .

@@ -66,10 +66,18 @@ from scipy import stats
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.metrics.uncertainty import (bag_intervals, combine_runs_interval, maa_from_errors,  # noqa: E402
-                                          maa_intervals, pair_scores, paired_bags, paired_bootstrap, paired_relative,
-                                          rank_with_ties,
-                                          stratified_interval)
+from pipeline.metrics.uncertainty import (  # noqa: E402
+    bag_intervals,
+    combine_runs_interval,
+    maa_from_errors,
+    maa_intervals,
+    pair_scores,
+    paired_bags,
+    paired_bootstrap,
+    paired_relative,
+    rank_with_ties,
+    stratified_interval,
+)
 
 # scene kinds: LogNormal(mu, sigma) error in degrees, failure probability
 KINDS = {"easy": (-1.0, 0.5, 0.02), "good": (0.0, 0.7, 0.05), "mid": (0.5, 0.8, 0.10), "hard": (1.2, 0.9, 0.20)}

@@ -70,6 +70,7 @@ def main(argv=None) -> int:
     import warnings
     warnings.filterwarnings("ignore")
     import optuna
+
     from pipeline.cache import H5Cache
     from pipeline.config_files import pipeline_from_dict
     from tuner.freeze import frozen_from_study, run_test
@@ -150,6 +151,7 @@ def table(rows: list[dict], what: str, key=lambda r: (r["held_out"], r["seed"], 
     """Per rule: mean validation and held-out test mAA(10) over the folds, the drop, the difference to the paper
     defaults, folds won; then the winner, and each rule's paired fold-by-fold difference to the winner."""
     import numpy as np
+
     from tuner.select import RULES
     folds = sorted({key(r) for r in rows}, key=str)
     summary = []

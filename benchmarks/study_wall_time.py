@@ -59,6 +59,7 @@ def _settings(a, cache: Path, studies: Path, name: str, jobs: int, pruner: str, 
 def one_run(a) -> dict:
     """One study in this process (called as a child: ``--one-run``); JSON of its phases on stdout."""
     from optuna.trial import TrialState
+
     from tuner.freeze import freeze, run_test_for_study
     from tuner.protocol import best_feasible, trial_value
     from tuner.study import optimize, setup_study

@@ -51,6 +51,7 @@ def main(argv=None) -> int:
     jobs = resolve_jobs(args.jobs)
 
     from optuna.trial import TrialState
+
     from pipeline.config import FeatureConfig, GeometryConfig, MatchConfig, PipelineConfig
     from tuner.options import resolve_data
     from tuner.study import TuneSettings, optimize, setup_study

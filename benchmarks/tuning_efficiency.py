@@ -41,10 +41,11 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     import optuna
+
     from pipeline.cache import H5Cache
     from pipeline.config import FeatureConfig, GeometryConfig, MatchConfig, PipelineConfig
-    from tuner.objective import Objective, ValidationSet
     from tuner.evaluate import load_scenes
+    from tuner.objective import Objective, ValidationSet
     from tuner.options import resolve_data
     from tuner.space import load_space
     optuna.logging.set_verbosity(optuna.logging.WARNING)

@@ -31,6 +31,7 @@ sys.path.insert(0, str(ROOT))
 def run_study(n_workers: int, n_trials: int, common: list[str], tmp: Path, env: dict) -> dict:
     import optuna
     from optuna.trial import TrialState
+
     from tuner.storage import open_storage
     d = tmp / f"w{n_workers}"
     storage = f"sqlite:///{d}/optuna.db"

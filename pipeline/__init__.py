@@ -4,8 +4,8 @@ Nothing in here imports Optuna or ``tuner``. A stage takes a plain, hashable con
 
     from pipeline import load_scene, PipelineConfig, evaluate_stereo
 """
+from pipeline.config import FeatureConfig, GeometryConfig, MatchConfig, PipelineConfig
 from pipeline.errors import ImtuneError
-from pipeline.config import FeatureConfig, MatchConfig, GeometryConfig, PipelineConfig
 
 __all__ = ["ImtuneError", "FeatureConfig", "MatchConfig", "GeometryConfig", "PipelineConfig",
            "load_scene", "evaluate_stereo"]

@@ -28,15 +28,21 @@ import logging
 import os
 import threading
 from collections import OrderedDict
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
 from pipeline.config import config_hash
 from pipeline.errors import ImtuneError
-from pipeline.fileio import (FOLDER_ERRNOS, FileWriteError, arrays_checksum, atomic_write_h5, check_writable_folder,
-                             folder_error)
+from pipeline.fileio import (
+    FOLDER_ERRNOS,
+    FileWriteError,
+    arrays_checksum,
+    atomic_write_h5,
+    check_writable_folder,
+    folder_error,
+)
 
 #: what to do about an unusable cache folder
 CACHE_FIX = "give a usable folder with --cache DIR or the IMTUNE_CACHE environment variable"
@@ -176,9 +182,9 @@ class H5Cache:
         """Arrays of the entry at ``p`` (its (st_dev, st_ino) appended to ``ident``); FileNotFoundError when
         absent; _Invalid when it must not be trusted; other OSErrors (folder unreadable) propagate."""
         import io
+        import stat
 
         import h5py
-        import stat
         # O_NONBLOCK: a FIFO at the entry's name would block this open until a writer came (a hang, unsaid)
         fd = os.open(p, os.O_RDONLY | os.O_NONBLOCK)
         with os.fdopen(fd, "rb") as fh:  # whole file in memory: one snapshot, no HDF5 file locking on shared folders

@@ -9,7 +9,7 @@
 from __future__ import annotations
 
 import difflib
-from typing import Callable, Iterable
+from collections.abc import Callable, Iterable
 
 from pipeline.errors import ImtuneError, UnavailableError
 

@@ -2,10 +2,9 @@
 from __future__ import annotations
 
 import os
-from pathlib import Path
-
 import shutil
 import signal
+from pathlib import Path
 
 import numpy as np
 import pytest

@@ -493,6 +493,7 @@ def test_build_gt_unknown_camera_model_lists_pycolmaps(tmp_path, data3):
 
 def test_build_gt_camera_model_names_are_pycolmaps():
     import pycolmap
+
     from pipeline.data.ground_truth import GTConfig, camera_models
     from pipeline.errors import ImtuneError
     assert camera_models() == [n for n in pycolmap.CameraModelId.__members__ if n != "INVALID"]
@@ -1013,6 +1014,7 @@ def test_studies_lists_another_programs_study_without_a_best_maa10(tmp_path, cap
     """`tune studies` on a storage shared with other Optuna work showed a foreign study's best value as its "best
     mAA10". Now none is shown for it, and one warning line names it."""
     import optuna
+
     from tuner.cli import main
     url = f"sqlite:///{tmp_path / 'optuna.db'}"
     optuna.logging.set_verbosity(optuna.logging.ERROR)
@@ -1028,6 +1030,7 @@ def test_studies_lists_another_programs_study_without_a_best_maa10(tmp_path, cap
 def test_plot_of_another_programs_study_is_one_line(tmp_path, capsys):
     """`tune plot --study THEIRS` drew a report titled "imtune study THEIRS" with its values as mAA(10). Now one line."""
     import optuna
+
     from tuner.cli import main
     url = f"sqlite:///{tmp_path / 'optuna.db'}"
     optuna.logging.set_verbosity(optuna.logging.ERROR)

@@ -14,8 +14,6 @@ from pipeline.metrics.covisibility import bbox_area, covisibility, covisibility_
 from tests.conftest import look_at
 
 
-
-
 def synthetic_scene(n_images=8, n_points=3000, seed=0, arc_deg=60.0, size=(1024, 768), keep=0.8):
     rng = np.random.default_rng(seed)
     K = np.array([[800.0, 0, 511.5], [0, 800.0, 383.5], [0, 0, 1]])

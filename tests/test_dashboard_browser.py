@@ -172,6 +172,7 @@ def test_dashboard_shows_metric_budget_and_frozen(tmp_path):
     from selenium.webdriver.chrome.service import Service
     from selenium.webdriver.common.by import By
     from selenium.webdriver.support.ui import WebDriverWait
+
     from tuner.annotate import annotate_study
     storage = f"sqlite:///{tmp_path / 'optuna.db'}"
     st = _study(storage)

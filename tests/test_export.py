@@ -49,8 +49,8 @@ def test_snippet_runs_on_synthetic_correspondences(studies, tuner_cache, est, fm
     exec(r.stdout, ns)  # noqa: S102 (the printed call, run as a user pastes it)
     F = ns["F"] if "F" in ns else np.asarray(ns["res"]["F"])
     h1, h2 = np.c_[p1, np.ones(len(p1))], np.c_[p2, np.ones(len(p2))]
-    l = (F @ h1.T).T  # epipolar lines in image 2: every true match lies on its line (within a pixel)
-    d = np.abs(np.sum(l * h2, axis=1)) / np.linalg.norm(l[:, :2], axis=1)
+    lines = (F @ h1.T).T  # epipolar lines in image 2: every true match lies on its line (within a pixel)
+    d = np.abs(np.sum(lines * h2, axis=1)) / np.linalg.norm(lines[:, :2], axis=1)
     assert np.median(d) < 1.0
 
 

@@ -207,6 +207,7 @@ def crafted_study(folder, trials, *, gamma_max=50_000, space=None):
     """A study with the user attributes imtune writes and the given (params, value) trials; and its frozen dict."""
     import optuna
     from optuna.distributions import FloatDistribution, IntDistribution
+
     from tuner.budget import GAMMA_CEILING
     folder.mkdir(parents=True, exist_ok=True)
     st = optuna.create_study(study_name="crafted", storage=f"sqlite:///{folder / 'c.db'}", direction="maximize")

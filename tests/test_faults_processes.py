@@ -54,6 +54,7 @@ def _alive(pid):
 
 def _study(storage, name):
     import optuna
+
     from tuner.storage import open_storage
     st = open_storage(storage, heartbeat=None, must_exist=True)
     return optuna.load_study(study_name=name, storage=st), st

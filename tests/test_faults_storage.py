@@ -78,6 +78,7 @@ def one_line_error(r) -> str:
 def trials(storage: str, study: str) -> dict[int, str]:
     """number -> state name, read through a storage that is closed again (an unmountable tmpfs otherwise)."""
     import optuna
+
     from tuner.storage import open_storage
     st = open_storage(storage, heartbeat=None, must_exist=True)
     try:
@@ -90,6 +91,7 @@ def running_with_params(storage: str, study: str) -> set[int]:
     """Numbers of the RUNNING trials whose parameters are stored: the sampler is done and the pairs are being
     evaluated (a fault before that leaves a trial without parameters, whose retry samples its own)."""
     import optuna
+
     from tuner.storage import open_storage
     st = open_storage(storage, heartbeat=None, must_exist=True)
     try:
@@ -193,6 +195,7 @@ def test_storage_fault_mapping_walks_optunas_wrappers():
 
     import optuna
     import sqlalchemy.exc
+
     from tuner.storage import storage_fault
 
     def chained(outer, inner):
@@ -281,6 +284,7 @@ def test_postgres_stopped_and_restarted_mid_study(pg, tmp_path, data4, cache):
     assert lost == 0
     # the trial the stop interrupted was failed by the heartbeat check and its parameters retried once
     import optuna
+
     from tuner.storage import open_storage
     st = optuna.load_study(study_name="pg-stop", storage=open_storage(pg.url, heartbeat=None))
     interrupted = [n for n, s in after.items() if s == "RUNNING"]

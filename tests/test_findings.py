@@ -151,8 +151,8 @@ def test_missing_study_is_listed_with_reason():
 
 def test_unavailable_feature_gives_reason():
     """A feature whose weights are not here (HardNet: not in ../shared/weights) -> the study is not run and says why."""
-    from pipeline.features import resolve_feature
     from pipeline.errors import UnavailableError
+    from pipeline.features import resolve_feature
     try:
         resolve_feature("dog-hardnet").check_available()
         pytest.skip("HardNet weights are available here")
@@ -244,8 +244,8 @@ def _trial_count(storage):
 def test_findings_1_and_4_end_to_end(subset, tmp_path, monkeypatch, capsys):
     import optuna
 
-    from tuner.findings.runner import records_from_test
     from pipeline.metrics.uncertainty import paired_bootstrap
+    from tuner.findings.runner import records_from_test
     monkeypatch.setenv("IMTUNE_CACHE", str(tmp_path / "cache"))
     sdir = tmp_path / "studies"
     args = ["findings", "--data", str(subset), "--studies-dir", str(sdir), "--quick", "--only", "1,4",
@@ -332,8 +332,8 @@ def test_findings_1_and_4_end_to_end(subset, tmp_path, monkeypatch, capsys):
         measured = md.split("\n## 1. ", 1)[1].split("\n## ", 1)[0]  # finding 2's quoted paper says "the latter"
         assert "relative to defaults)" in measured and "% [95% CI " in measured and "the latter" not in measured
     # each optimum warning (on a bound, Gamma_max at the ceiling, ...) names its study: twenty studies share stderr
-    from tuner.freeze import frozen_from_study
     from tuner.diagnostics import optimum_warnings
+    from tuner.freeze import frozen_from_study
     expected = []
     for n in sorted({n for f in res["findings"] for n in f["studies"]}):
         st = optuna.load_study(study_name=n, storage=storage)

@@ -18,7 +18,11 @@ cv2 = pytest.importorskip("cv2")
 from pipeline.errors import ImtuneError, UnavailableError  # noqa: E402
 from pipeline.geometry import ESTIMATORS, estimate, get_estimator, sampson_distance  # noqa: E402
 from pipeline.geometry.base import (  # noqa: E402
-    EstimateResult, Estimator, RawSolution, sizes_from_points, timed,
+    EstimateResult,
+    Estimator,
+    RawSolution,
+    sizes_from_points,
+    timed,
 )
 
 W, H, FOCAL = 1024, 768, 800.0

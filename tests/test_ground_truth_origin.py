@@ -110,6 +110,7 @@ def test_an_older_study_beside_a_new_one_reads_not_recorded_in_a_column(tested, 
     (results) or 'val ground truth' column (table), the older one 'not recorded'. The older study here is a copy of
     the tested one, as another feature, with those records removed, in a copy of the real storage."""
     import optuna
+
     from tests.conftest import copy_studies
     studies = copy_studies(tested["studies"], tmp_path / "studies")
     url = f"sqlite:///{studies / 'optuna.db'}"
@@ -151,8 +152,10 @@ def test_ground_truth_short_names_each_origin_truth_origin_gives():
     """The table cell of `tune studies` for every phrase :meth:`Scene.truth_origin` writes (its own poses, SfM in
     their place, SfM co-visibility of listed pairs, co-visibility from 3D points, none), scenes named when they
     differ; a phrase it does not know is shown whole."""
-    import numpy as np
     from pathlib import Path
+
+    import numpy as np
+
     from pipeline.data.scene import Pair, Scene
     from tuner.formatting import ground_truth_short
     sfm_built = {"method": "sfm", "registered": 4, "images": 5}

@@ -7,8 +7,15 @@ import numpy as np
 import pytest
 
 from pipeline.data import load_scene
-from pipeline.data.ground_truth import (GTConfig, attach_ground_truth, build_ground_truth, find_ground_truth,
-                                        gt_path, load_ground_truth, reprojection_errors)
+from pipeline.data.ground_truth import (
+    GTConfig,
+    attach_ground_truth,
+    build_ground_truth,
+    find_ground_truth,
+    gt_path,
+    load_ground_truth,
+    reprojection_errors,
+)
 from pipeline.errors import ImtuneError
 
 SMALL = dict(num_features=1024, max_image_size=1024, bags=((3, 5),), min_points=50)
@@ -115,6 +122,7 @@ def test_a_failed_sfm_is_one_line_and_leaves_no_colmap_logs(tmp_path):
     import subprocess
     import sys
     import tempfile
+
     from tests.conftest import DATA, ROOT
     if not (DATA / "strecha").exists():
         pytest.skip(f"real data not found at {DATA / 'strecha'} (expected ../shared beside the project)")
@@ -213,6 +221,7 @@ def test_checking_a_camera_model_keeps_sigterm_for_tune():
     `import pycolmap` did that to every multiview study, whose ground truth makes a GTConfig)."""
     import subprocess
     import sys
+
     from tests.conftest import ROOT
     code = ("import os, signal, sys, time\n"
             "signal.signal(signal.SIGTERM, lambda *a: (print('tune handler', flush=True), os._exit(143)))\n"
@@ -294,6 +303,7 @@ def test_a_scene_whose_sfm_fails_does_not_stop_the_others(tmp_path, capsys):
     scenes after it were left unbuilt (their pairs then evaluated without co-visibility). Now every scene that can
     be built is built, each failed one is one line naming it and what to do, and the exit code is 2."""
     import shutil
+
     from tests.conftest import DATA, copy_strecha_subset
     from tuner.cli import main
     data = copy_strecha_subset(tmp_path / "data", ["0003.jpg", "0004.jpg", "0005.jpg"])
@@ -330,6 +340,7 @@ def _strecha_pairs_list(dst, names, stranger=("entry-P10", "0009.jpg")):
     relative poses, plus one image of another scene paired with each of them (a plausible pose: SfM cannot register
     it). Returns the scene folder."""
     import shutil
+
     from pipeline.data.scene import Pair
     from tests.conftest import DATA
     root = DATA / "strecha"
@@ -433,6 +444,7 @@ def test_an_exception_from_colmap_is_the_scenes_one_line_not_a_traceback(tmp_pat
     import signal
     import subprocess
     import sys
+
     from tests.conftest import ROOT, copy_strecha_subset
     data = copy_strecha_subset(tmp_path / "data", ["0003.jpg", "0004.jpg", "0005.jpg"])
     copy_strecha_subset(data, ["0000.jpg", "0001.jpg", "0002.jpg"], scene="Herz-Jesus-P8")

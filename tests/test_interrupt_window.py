@@ -20,6 +20,7 @@ pytestmark = pytest.mark.skipif(not STRECHA.is_dir(), reason=f"real data not fou
 def test_ctrl_c_before_the_objective_sees_its_trial_leaves_no_running_trial(tmp_path, data4, cache, monkeypatch):
     import optuna
     from optuna.trial import TrialState
+
     import tuner.study as study_mod
 
     class SigintInThirdTrialsCreation(optuna.samplers.RandomSampler):

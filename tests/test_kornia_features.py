@@ -14,8 +14,7 @@ import pytest
 
 from pipeline.config import FeatureConfig, GeometryConfig, MatchConfig, PipelineConfig
 from pipeline.errors import ImtuneError, UnavailableError
-from pipeline.features import EXTRACTORS, extract, get_extractor, resolve_feature
-from pipeline.features import kornia_base
+from pipeline.features import EXTRACTORS, extract, get_extractor, kornia_base, resolve_feature
 from pipeline.features.kornia_compose import ROWS, ComposedExtractor
 from tests.conftest import DATA
 

@@ -5,8 +5,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.metrics.pose import (accuracy_curve, mean_average_accuracy, pose_error_deg,
-                                   rotation_error_deg, translation_error_deg)
+from pipeline.metrics.pose import (
+    accuracy_curve,
+    mean_average_accuracy,
+    pose_error_deg,
+    rotation_error_deg,
+    translation_error_deg,
+)
 
 
 def test_rotation_error_is_the_geodesic_angle():

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from pipeline import colmap_db
 from pipeline.errors import ImtuneError
 from pipeline.metrics.ate import absolute_trajectory_error, camera_center, umeyama
-from pipeline import colmap_db
-from tests.conftest import look_at
 from pipeline.tasks.multiview import BagJob, MultiviewConfig, run_bag, run_bags, summarize_bags, summarize_scene
+from tests.conftest import look_at
 
 W, H = 1024, 768
 K = np.array([[800.0, 0, 511.5], [0, 800.0, 383.5], [0, 0, 1]])

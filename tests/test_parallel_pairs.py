@@ -234,6 +234,7 @@ def quick(data, studies, storage, name, *extra):
 
 def test_study_same_trial_values_with_jobs_1_and_2(tmp_path, data4, cache):
     import optuna
+
     from tuner.storage import open_storage
     got = []
     for jobs in (1, 2):
@@ -334,6 +335,7 @@ def test_a_ctrl_c_while_workers_start_is_not_lost():
     inherit the terminal's Ctrl-C) still interrupts the parent. It used to be ignored there, and lost: a study sent
     Ctrl-C right after a trial, as its next pairs were submitted, ran on."""
     import threading
+
     from pipeline.tasks.pool import sigint_held
     assert threading.current_thread() is threading.main_thread()
     with pytest.raises(KeyboardInterrupt):

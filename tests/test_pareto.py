@@ -151,6 +151,7 @@ def test_front_is_optunas_pareto_front(runs):
 
 def test_best_within_budget_is_frozen(runs):
     import yaml
+
     from tuner.pareto import best_within_budget, pareto_front
     from tuner.protocol import best_feasible
     for name, out in ((DEG, runs["deg"]), (MAG, runs["mag"])):

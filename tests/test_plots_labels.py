@@ -305,6 +305,7 @@ def test_eta_curves_sit_at_the_geometric_centres_of_their_log_bins(tmp_path):
     import optuna
     from optuna.distributions import FloatDistribution
     from optuna.trial import create_trial
+
     from tuner.plots import fig_eta_curves
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     storage = f"sqlite:///{tmp_path / 'o.db'}"

@@ -99,6 +99,7 @@ def test_a_worker_killed_whose_exit_code_comes_late_is_still_the_culprit():
     import signal
     import threading
     from types import SimpleNamespace
+
     from pipeline.tasks.pool import PairPool
     ctx = mp.get_context("spawn")
     procs = [ctx.Process(target=time.sleep, args=(60,)) for _ in range(2)]

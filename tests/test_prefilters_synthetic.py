@@ -6,8 +6,7 @@ import pytest
 
 from pipeline.config import MatchConfig
 from pipeline.errors import ImtuneError, UnavailableError
-from pipeline.matching.prefilters import (PREFILTERS, PairContext, apply_prefilter, get_prefilter,
-                                          parse_prefilter_spec)
+from pipeline.matching.prefilters import PREFILTERS, PairContext, apply_prefilter, get_prefilter, parse_prefilter_spec
 
 W, H = 800, 600
 

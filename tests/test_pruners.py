@@ -27,6 +27,7 @@ def data4(tmp_path_factory):
 
 def test_make_pruner_names():
     import optuna
+
     from pipeline.errors import ImtuneError
     from tuner.study import DEFAULT_PRUNER, PRUNERS, make_pruner
     assert PRUNERS == ("median", "sha", "hyperband", "none") and DEFAULT_PRUNER in PRUNERS
@@ -54,6 +55,7 @@ def test_a_trial_proven_over_budget_stops_early(tmp_path, data4, cache, monkeypa
     """B = 1e-5 s: every pair is over B. With the 2 x B rule switched off, the proof rule alone stops the trial
     at the second chunk (4 of its 6 pairs over B > half of 6), not the first (2 of 6 proves nothing)."""
     from optuna.trial import TrialState
+
     from tuner.study import optimize, setup_study
     monkeypatch.setenv("IMTUNE_CACHE", str(cache))
     s = _settings(data4, tmp_path, budget=1e-5, study_name="proof")
@@ -87,6 +89,7 @@ def test_a_trial_proven_over_budget_stops_early(tmp_path, data4, cache, monkeypa
 def test_cli_study_with_each_pruner(tmp_path, data4, cache, pruner):
     import optuna
     from optuna.trial import TrialState
+
     from tuner.storage import open_storage
     storage = f"sqlite:///{tmp_path}/p.db"
     args = ["--data", data4, "--feature", "sift", "--num-features", "2048", "--scenes", "fountain-P11",

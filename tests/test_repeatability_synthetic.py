@@ -4,8 +4,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.metrics.repeatability import (depth_at, epipolar_matching_score, load_depth, match_reprojection_errors,
-                                            matching_score, pair_intermediate, repeatability, transfer)
+from pipeline.metrics.repeatability import (
+    depth_at,
+    epipolar_matching_score,
+    load_depth,
+    match_reprojection_errors,
+    matching_score,
+    pair_intermediate,
+    repeatability,
+    transfer,
+)
 
 W, H = 640, 480
 K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])

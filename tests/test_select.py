@@ -255,6 +255,7 @@ def test_every_reader_of_an_earlier_test_json_gets_the_current_intervals(tmp_pat
     imtune showed its old interval ([1, 1] for 12 pairs all within 1 deg) until `tune test` ran again, beside
     numbers (ranks, findings) recomputed the current way. The reader now recomputes it from the pair errors."""
     import json
+
     from tuner.freeze import load_test_file
     runs = [[["A", f"p{i}", 0.2] for i in range(12)] for _ in range(3)]
     old = {"study": "s", "runs": [{"pair_errors": r, "mAA10": 1.0} for r in runs],
@@ -294,6 +295,7 @@ def test_a_reused_multiview_test_result_gets_the_current_intervals_and_one_witho
     size: 12 bags of 10 pairs all within 1 deg in each run, a stale [1, 1] -> an interval below 1), and such a
     file is not reused: the test runs again and records its bags' images."""
     import json
+
     from tuner.freeze import _previous_result
     bags = [["A", 5, k, [0.2] * 10, [f"{k}-{j}" for j in range(5)]] for k in range(12)]
     result = {"study": "s", "runs": [{"bag_errors": bags, "mAA10": 1.0} for _ in range(3)],

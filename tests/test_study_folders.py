@@ -3,8 +3,8 @@ share a folder, no study writes outside the studies folder, a frozen file copied
 refused, and a test never switches silently to other data than its study's."""
 from __future__ import annotations
 
-import yaml
 import pytest
+import yaml
 
 from pipeline.errors import ImtuneError
 from tuner.freeze import MAX_DIR_NAME, load_frozen, study_data_root, study_dir

@@ -171,6 +171,7 @@ def test_interrupting_a_multiview_study_stops_its_colmap_workers_at_once(mv_stud
     import subprocess
     import sys
     import time
+
     from tests.conftest import ROOT
     from tests.test_parallel_pairs import _alive, wait_for_workers
     root, _ = mv_study
@@ -220,6 +221,7 @@ def test_using_colmap_keeps_the_sigterm_handler(how, mv_study, tmp_path):
     import subprocess
     import sys
     import time
+
     from tests.conftest import ROOT
     root, _ = mv_study
     call = {"import_pycolmap": "from pipeline.colmap_db import import_pycolmap; import_pycolmap()",
@@ -355,6 +357,7 @@ def test_a_multiview_selection_note_names_no_budget_eta_or_gamma(mv_study):
     closest to their centre in normalised (log eta, r, log Gamma)' of a study that searched r alone. The notes now
     name what the study has: no budget, normalised (r)."""
     import optuna
+
     from tuner.select import select_trial
     root, studies = mv_study
     st = optuna.load_study(study_name=STUDY, storage=f"sqlite:///{studies / 'optuna.db'}")

@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import DATA, ROOT
-from tests.pgserver import free_port as _free_port, pg_bin as _pg_bin  # one copy of each
+from tests.pgserver import free_port as _free_port  # one copy of each
+from tests.pgserver import pg_bin as _pg_bin
 
 STRECHA = DATA / "strecha"
 PASSWORD = "pw-Secr3t-imtune"
@@ -75,6 +76,7 @@ def tuner_cache(tmp_path_factory):
 def test_three_workers_on_postgres(postgres, tmp_path, tuner_cache):
     import optuna
     from optuna.trial import TrialState
+
     from tuner.storage import open_storage
     args = ["--data", str(STRECHA), "--feature", "sift", "--num-features", "2048", "--ransac", "degensac",
             "--scenes", "fountain-P11", "--max-pairs", "8", "--chunk-pairs", "4", "--budget", "0.1",

@@ -44,6 +44,7 @@ def quick(studies_dir, *extra, ransac="degensac", pairs=8):
 
 def load(storage, name):
     import optuna
+
     from tuner.storage import open_storage
     return optuna.load_study(study_name=name, storage=open_storage(storage, heartbeat=None))
 

@@ -12,9 +12,17 @@ import numpy as np
 import pytest
 
 from pipeline.metrics.pose import mean_average_accuracy
-from pipeline.metrics.uncertainty import (bag_intervals, combine_runs_interval, maa_from_errors, maa_intervals,
-                                          paired_bootstrap, pair_scores, rank_by_intervals, rank_with_ties,
-                                          stratified_interval)
+from pipeline.metrics.uncertainty import (
+    bag_intervals,
+    combine_runs_interval,
+    maa_from_errors,
+    maa_intervals,
+    pair_scores,
+    paired_bootstrap,
+    rank_by_intervals,
+    rank_with_ties,
+    stratified_interval,
+)
 
 N_SIM = 400
 # (pairs, exponential error scale in degrees, failure probability) of each scene

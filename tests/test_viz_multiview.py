@@ -7,8 +7,8 @@ import pytest
 from pipeline.errors import ImtuneError
 from pipeline.tasks.multiview import BagJob, MultiviewConfig
 from pipeline.viz.colors import BLUE, RED
-from tests.conftest import look_at
 from pipeline.viz.multiview import BagReconstruction, draw_bag, draw_keypoints, reconstruct_bag
+from tests.conftest import look_at
 
 W, H = 1024, 768
 K = np.array([[800.0, 0, 511.5], [0, 800.0, 383.5], [0, 0, 1]])

@@ -10,8 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.data.scene import ImageInfo, Pair, Scene
 from pipeline.viz.colors import BLUE, GREEN, RED, YELLOW, error_colors
-from pipeline.viz.gt import (depth_reprojection_errors, gt_fundamental, match_errors,
-                             symmetric_epipolar_distance)
+from pipeline.viz.gt import depth_reprojection_errors, gt_fundamental, match_errors, symmetric_epipolar_distance
 from pipeline.viz.stereo import draw_matches, line_width
 
 K1 = np.array([[800.0, 0, 319.5], [0, 800.0, 239.5], [0, 0, 1]])

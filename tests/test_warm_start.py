@@ -49,6 +49,7 @@ def tune(cache, *args):
 @needs_data
 def test_warm_started_study_on_real_studies(tmp_path, data4):
     import optuna
+
     from tuner.protocol import best_feasible
     from tuner.storage import open_storage
     cache, storage = tmp_path / "cache", f"sqlite:///{tmp_path}/w.db"
@@ -101,6 +102,7 @@ def test_warm_start_carries_the_sources_fixed_values(tmp_path, data4):
     searching all three started from eta* with r and Gamma drawn at random (r 0.70, Gamma 878,818 here: over the
     budget), which is no warm start from that optimum."""
     import optuna
+
     from tuner.storage import open_storage
     cache, storage = tmp_path / "cache", f"sqlite:///{tmp_path}/w.db"
     common = ["--data", data4, "--feature", "sift", "--num-features", "512", "--scenes", "fountain-P11",

@@ -219,6 +219,7 @@ def _stop_children() -> None:
     kills any they could not know of (a Ctrl-C between CPython's spawn of a pool worker and its recording), which
     the interpreter's exit would otherwise join, waiting for its work to end."""
     import multiprocessing as mp
+
     from pipeline.tasks.pool import kill_processes, quiet_exit_wakeups
     kill_processes(mp.active_children())
     quiet_exit_wakeups()

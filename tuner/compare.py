@@ -25,8 +25,18 @@ from __future__ import annotations
 from pathlib import Path
 
 from pipeline.errors import ImtuneError
-from pipeline.metrics.uncertainty import (DEFAULT_LEVEL, DEFAULT_RESAMPLES, DIRECTION_RULE, bonferroni, format_p, holm,
-                                          is_bag_records, paired_bags, paired_bootstrap, paired_direction)
+from pipeline.metrics.uncertainty import (
+    DEFAULT_LEVEL,
+    DEFAULT_RESAMPLES,
+    DIRECTION_RULE,
+    bonferroni,
+    format_p,
+    holm,
+    is_bag_records,
+    paired_bags,
+    paired_bootstrap,
+    paired_direction,
+)
 from tuner.evaluate import evaluate_config
 from tuner.sources import resolve_source
 

@@ -28,10 +28,8 @@ import yaml
 
 from pipeline.config_files import pipeline_from_dict  # noqa: F401  (re-exported)
 from pipeline.errors import ImtuneError
-from pipeline.metrics.uncertainty import STD_DDOF
-
 from pipeline.fileio import atomic_write  # noqa: E402  (re-exported: budget.py and the reports use it)
-
+from pipeline.metrics.uncertainty import STD_DDOF
 
 #: longest study name used as a folder name as it is (file systems allow 255 bytes per name)
 MAX_DIR_NAME = 120
@@ -158,8 +156,8 @@ def frozen_from_study(study, select: str | None = None) -> dict:
     smooth; None: the rule recorded in the study, else ``tuner.select.DEFAULT_RULE``) among the feasible ones;
     ImtuneError if there is none. Also records the selection, how flat the optimum is and warnings (optimum on
     a bound of the search space, ...)."""
-    from tuner.protocol import best_feasible, config_for, fixed_values, trial_value
     from tuner import select as sel
+    from tuner.protocol import best_feasible, config_for, fixed_values, trial_value
     attrs = study.user_attrs
     if not attrs.get("imtune"):
         raise ImtuneError(f"study {study.study_name!r} was not created by imtune")

@@ -79,7 +79,7 @@ class ValidationSet:
     nf: dict = field(default_factory=dict)  # scene name -> features per image (set by prepare)
 
     @classmethod
-    def from_scenes(cls, scene_objs, task) -> "ValidationSet":
+    def from_scenes(cls, scene_objs, task) -> ValidationSet:
         sp = []
         for s in scene_objs:
             units = task.evaluation_units(s)

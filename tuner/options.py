@@ -12,13 +12,22 @@ import math
 
 from pipeline.config import SEED_MAX, FeatureConfig, GeometryConfig, MatchConfig, PipelineConfig
 from pipeline.config_files import SKIPPED_MATCHER
-from pipeline.errors import ImtuneError
-from tuner.argtypes import (count_int, nonnegative_float, positive_float, positive_int, probability_float, ratio_float,
-                            iters_int, scene_list, seed_int, unit_float)
 
 # The data folder rule lives in the pipeline (one rule for every command; the main job may download):
 from pipeline.data.locate import resolve_data  # noqa: E402,F401
-
+from pipeline.errors import ImtuneError
+from tuner.argtypes import (
+    count_int,
+    iters_int,
+    nonnegative_float,
+    positive_float,
+    positive_int,
+    probability_float,
+    ratio_float,
+    scene_list,
+    seed_int,
+    unit_float,
+)
 
 #: --data's help, the same on every command that reads data (the rules of pipeline.data.locate)
 DATA_HELP = ("data folder (else $IMTUNE_DATA, imtune.yaml, the download location $IMTUNE_DATA_HOME, then "
@@ -181,7 +190,7 @@ def check_feature_options(conf: PipelineConfig, where: str) -> None:
 EXPLICIT = "_explicit_options"
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _tracked(cls):
     class Tracked(cls):
         """Records its dest on the namespace: argparse calls an action only for an option on the command line."""

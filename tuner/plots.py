@@ -480,6 +480,7 @@ def write_report(storage, study_name: str, out: Path | str, studies_dir: Path | 
     """Write the HTML report of one study; returns its path. ``studies_dir``: where test.json is read
     for the test-scene breakdowns."""
     import plotly.io as pio
+
     from tuner.formatting import gamma_max_text
     from tuner.freeze import study_dir
     from tuner.study import best_feasible, load_study, trial_counts

@@ -430,9 +430,15 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
     from (test.json's ``data.ground_truth`` of each row's best study, "not recorded" for an older one) ends the
     caption when every row says the same, else is a ``ground truth`` column (always one in ``json``). ``--format json``
     adds ``mAA10_ci <est>`` lists and ``studies``. ``warn(line)``: told of a test.json that cannot be read."""
+    from pipeline.metrics.uncertainty import (
+        bags_differ,
+        combine_bag_runs_interval,
+        combine_runs_interval,
+        is_bag_records,
+        rank_by_intervals,
+        rank_with_ties,
+    )
     from pipeline.tasks import task_class  # what each study's task declares (its unit, what verifies its matches)
-    from pipeline.metrics.uncertainty import (bags_differ, combine_bag_runs_interval, combine_runs_interval,
-                                              is_bag_records, rank_by_intervals, rank_with_ties)
     tested = [s for s in studies if s.test]
     ests = _estimators(tested)
     shown = [st for group in _groups(tested).values() for st in _by_estimator(group).values()]

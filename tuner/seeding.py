@@ -18,7 +18,8 @@ Only Optuna's public sampler interface is used: the wrapped sampler is built at 
 from __future__ import annotations
 
 import hashlib
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from optuna.samplers import BaseSampler
 

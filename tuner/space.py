@@ -127,7 +127,7 @@ class SearchSpace:
             return True
         return p is not None and (p.high == CALIBRATED or p.low == CALIBRATED)
 
-    def resolve(self, gamma_max: int | None) -> "SearchSpace":
+    def resolve(self, gamma_max: int | None) -> SearchSpace:
         """A copy with ``calibrated`` replaced by ``gamma_max`` (the low bound clipped to it; with a ``step``, the
         largest value low + k step <= gamma_max)."""
         out = copy.deepcopy(self)
@@ -173,7 +173,7 @@ class SearchSpace:
         self.fixed[name] = _check_value(name, value, f"--fix {name}")
 
     @classmethod
-    def from_spec(cls, spec: dict, source: str = "study") -> "SearchSpace":
+    def from_spec(cls, spec: dict, source: str = "study") -> SearchSpace:
         """Inverse of :meth:`spec` (values already validated)."""
         params = {k: Param(name=k, **v) for k, v in spec.get("params", {}).items()}
         return cls(params=params, fixed=dict(spec.get("fixed", {})), source=source)

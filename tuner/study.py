@@ -527,6 +527,7 @@ def setup_study(s: TuneSettings) -> StudyContext:
     """Open the storage, load the validation data, create or resume the study (checking that it was
     created with the same settings), calibrate the budget if the study is new, build the objective."""
     import optuna
+
     from pipeline.cache import H5Cache
     from pipeline.geometry import get_estimator
     from pipeline.tasks.pool import resolve_jobs
@@ -776,6 +777,7 @@ def tune(s: TuneSettings) -> dict:
     """The whole protocol: study (create or resume) -> trials -> freeze -> test. Returns a JSON-able
     dict: study, storage (masked), counts, frozen settings, test results (None if skipped)."""
     from optuna.trial import TrialState
+
     from tuner.freeze import freeze, run_test_for_study
     from tuner.storage import storage_label
     ctx = setup_study(s)

@@ -1,8 +1,8 @@
 """Small helpers shared by the loaders (not public API)."""
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Callable, Iterable
 
 import numpy as np
 

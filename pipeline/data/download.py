@@ -26,16 +26,16 @@ import base64
 import hashlib
 import os
 import shutil
-import socket
 import tarfile
 import tempfile
 import urllib.error
 import urllib.parse
 import urllib.request
 import zipfile
+from collections.abc import Callable
 from http.client import HTTPException
 from pathlib import Path
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 from pipeline.data.imagefile import check_image_file, is_image_file
 from pipeline.errors import ImtuneError
@@ -233,7 +233,7 @@ def _request(url: str) -> urllib.request.Request:
     user, pw = urllib.parse.unquote(u.username or ""), urllib.parse.unquote(u.password or "")
     req = urllib.request.Request(bare)
     req.add_unredirected_header("Authorization",
-                                "Basic " + base64.b64encode(f"{user}:{pw}".encode("utf-8")).decode("ascii"))
+                                "Basic " + base64.b64encode(f"{user}:{pw}".encode()).decode("ascii"))
     return req
 
 
@@ -268,7 +268,7 @@ def _fetch_shown(url: str, out: Path, sha256: str | None, quiet: bool) -> None:
         raise ImtuneError(f"download failed: {url}: HTTP {e.code} {e.reason}") from None
     except urllib.error.URLError as e:
         raise NetworkError(f"download failed: {url}: {e.reason}") from None
-    except (socket.timeout, TimeoutError) as e:
+    except TimeoutError as e:
         raise NetworkError(f"download failed: {url}: timed out ({e})") from None
     except (HTTPException, ConnectionError) as e:
         raise NetworkError(f"download failed: {url}: {type(e).__name__}: {e}") from None

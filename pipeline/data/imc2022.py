@@ -12,8 +12,15 @@ import csv
 import os
 from pathlib import Path
 
-from pipeline.data._common import (check_K, check_principal_point, check_rotation, parse_floats, pick_scene,
-                                   scene_dirs, split_pair_key)
+from pipeline.data._common import (
+    check_K,
+    check_principal_point,
+    check_rotation,
+    parse_floats,
+    pick_scene,
+    scene_dirs,
+    split_pair_key,
+)
 from pipeline.data.imagefile import check_image_file, image_size
 from pipeline.data.scene import ImageInfo, Pair, Scene, all_pairs
 from pipeline.errors import ImtuneError

@@ -157,7 +157,8 @@ def resolve_data(cli_value: str | os.PathLike | None = None, *, download: bool =
     except DataNotFound:
         if not download:
             raise
-    from pipeline.data.download import describe_source, download as fetch
+    from pipeline.data.download import describe_source
+    from pipeline.data.download import download as fetch
     home, _ = download_home()
 
     def announce() -> None:

@@ -15,8 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.data._common import (check_K, check_principal_point, check_rotation, parse_floats, pick_scene,
-                                   scene_dirs)
+from pipeline.data._common import check_K, check_principal_point, check_rotation, parse_floats, pick_scene, scene_dirs
 from pipeline.data.imagefile import check_image_file, image_size
 from pipeline.data.scene import ImageInfo, Pair, Scene
 from pipeline.errors import ImtuneError

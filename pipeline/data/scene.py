@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 
-
 #: loader name -> where a scene of that format has its own ground-truth poses from (what reports name)
 OWN_POSES = {
     "strecha": "Strecha's laser-scan cameras",

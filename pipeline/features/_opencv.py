@@ -46,7 +46,7 @@ def _cv_modules():
             yield ("cv2." + ns) if ns else "cv2", mod
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def cv_factory(name: str):
     """The OpenCV factory ``name`` (e.g. ``"AKAZE_create"``) from whichever cv2 namespace has it
     (cv2, then cv2.xfeatures2d, ...). Raises :class:`UnavailableError` if this cv2 build has none."""

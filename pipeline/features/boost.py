@@ -9,7 +9,6 @@ contrast_threshold, ...), with the same ``low_threshold`` behaviour.
 """
 from __future__ import annotations
 
-
 from pipeline.errors import ImtuneError
 from pipeline.features._opencv import OPENCV_VERSION, OpenCVExtractor, cv_const, cv_factory
 from pipeline.features.orb import ORB_BOUNDS, ORB_OPTIONS, make_orb_detector, orb_pixel_centre

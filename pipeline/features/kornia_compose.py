@@ -114,8 +114,13 @@ class ComposedExtractor(Extractor):
             raise
 
     def _extract(self, det_img: np.ndarray, desc_img: np.ndarray, torch) -> Features:
-        from pipeline.features.kornia_base import (check_finite, describe_patches, kornia_to_cv_angle,
-                                                   make_lafs, to_tensor)
+        from pipeline.features.kornia_base import (
+            check_finite,
+            describe_patches,
+            kornia_to_cv_angle,
+            make_lafs,
+            to_tensor,
+        )
         conf = self.conf
         reestimated = self.orienter is not None or self.affine is not None
         det = self.detector.detect(det_img, conf.num_features, dedupe=self.upright or reestimated,
@@ -144,7 +149,7 @@ class ComposedExtractor(Extractor):
                         scores=det.response.astype(np.float32))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def composed_class(detector: str, affine: str | None, orientation: str | None, descriptor: str
                    ) -> type[ComposedExtractor]:
     """The extractor class of one combination (one class per combination; canonical component names;

@@ -18,7 +18,8 @@ DoG-HardNet frames, the IMC baselines' patches with magnification 12 on OpenCV k
 """
 from __future__ import annotations
 
-from typing import Any, Callable, ClassVar
+from collections.abc import Callable
+from typing import Any, ClassVar
 
 from pipeline.errors import ImtuneError
 

@@ -46,7 +46,7 @@ class Detections:
         return int(len(self.xy))
 
     @classmethod
-    def empty(cls) -> "Detections":
+    def empty(cls) -> Detections:
         z = np.zeros(0, np.float32)
         return cls(np.zeros((0, 2), np.float32), z, None, z.copy())
 

@@ -21,8 +21,7 @@ import numpy as np
 
 from pipeline.errors import ImtuneError
 from pipeline.features.base import Extractor, Features
-from pipeline.features.kornia_base import (COMMON_BOUNDS, COMMON_OPTIONS, check_finite, package_version,
-                                           require_weights)
+from pipeline.features.kornia_base import COMMON_BOUNDS, COMMON_OPTIONS, check_finite, package_version, require_weights
 from pipeline.features.registry import EXTRACTORS
 
 VERSION = f"1+kornia-{package_version('kornia')}+torch-{package_version('torch')}"

@@ -18,7 +18,7 @@ SURF_UNAVAILABLE = ("surf is non-free and not in any pip OpenCV build (opencv-co
 SURF_LOW_HESSIAN, SURF_DEFAULT_HESSIAN = 1.0, 100.0
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _surf_works() -> bool:
     try:
         cv_factory("SURF_create")()

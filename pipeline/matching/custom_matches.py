@@ -45,7 +45,7 @@ class CustomTables(KnnTables):
     matches: np.ndarray | None = None
 
     @classmethod
-    def from_matches(cls, m: np.ndarray, n1: int, n2: int, k: int = 2) -> "CustomTables":
+    def from_matches(cls, m: np.ndarray, n1: int, n2: int, k: int = 2) -> CustomTables:
         m = np.asarray(m, np.int64).reshape(-1, 2)
         idx12 = np.full((n1, k), -1, np.int32)
         idx21 = np.full((n2, k), -1, np.int32)

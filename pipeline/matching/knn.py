@@ -260,6 +260,7 @@ def _exact_binary(A, B, k):
 def _flann_tables(A, B, binary, k):
     """cv2.FlannBasedMatcher both ways (approximate); distances recomputed exactly for the kept neighbours."""
     import cv2
+
     from pipeline.matching import _kernels as K
     params = FLANN_LSH if binary else FLANN_KDTREE
 

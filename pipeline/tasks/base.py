@@ -51,8 +51,9 @@ A new task is one module with a ``Task`` subclass and one registry line::
 from __future__ import annotations
 
 import abc
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable, ClassVar, TypeVar
+from typing import ClassVar, TypeVar
 
 import numpy as np
 
@@ -197,7 +198,7 @@ class Task(abc.ABC):
         (NF) per scene. Default: nothing to warm."""
         return {}
 
-    def for_run(self, conf: PipelineConfig, k: int) -> tuple["Task", PipelineConfig]:
+    def for_run(self, conf: PipelineConfig, k: int) -> tuple[Task, PipelineConfig]:
         """The task and configuration of the ``k``-th repeated run (k = 0, 1, ...): the paper repeats test
         runs with different random seeds. Default: the estimator seed ``seed + k`` (``pipeline.config.run_seed``)."""
         import dataclasses

@@ -4,8 +4,13 @@ every task uses (``pipeline.tasks.prepare.tentative_matches``: matcher or import
 pre-filter), before RANSAC."""
 from __future__ import annotations
 
-from pipeline.metrics.repeatability import (PX_THRESHOLDS, load_depth, mean_intermediate, mean_of_scenes,
-                                            pair_intermediate)
+from pipeline.metrics.repeatability import (
+    PX_THRESHOLDS,
+    load_depth,
+    mean_intermediate,
+    mean_of_scenes,
+    pair_intermediate,
+)
 
 
 def evaluate_intermediate(scenes, conf, cache=None, min_covisibility: float | None = 0.1, progress: bool = False,

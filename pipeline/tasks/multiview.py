@@ -38,14 +38,21 @@ import numpy as np
 
 from pipeline.cache import H5Cache, make_key
 from pipeline.config import PipelineConfig
+from pipeline.cpus import available_cpus
 from pipeline.data.bags import DEFAULT_BAGS, MIN_BAG, MIN_POINTS, scene_bags
 from pipeline.data.scene import Pair, Scene
 from pipeline.errors import ImtuneError
 from pipeline.metrics.pose import accuracy_curve, mean_average_accuracy, pose_error_deg
 from pipeline.tasks.base import TASKS, Task, TaskResult
-from pipeline.cpus import available_cpus
-from pipeline.tasks.pool import (exit_with_parent, ignore_sigint_here, kill_executor, kill_processes,
-                                 quiet_resource_tracker, sigint_held, single_thread_env)
+from pipeline.tasks.pool import (
+    exit_with_parent,
+    ignore_sigint_here,
+    kill_executor,
+    kill_processes,
+    quiet_resource_tracker,
+    sigint_held,
+    single_thread_env,
+)
 from pipeline.tasks.stereo import CI_KEYS, CI_RESAMPLES, CI_SEED, add_intervals
 
 BAG_STAGE_VERSION = "1"
@@ -177,8 +184,8 @@ def _empty_record(job: BagJob) -> dict:
 
 
 def _score(rec: dict, model, job: BagJob) -> None:
-    from pipeline.metrics.ate import absolute_trajectory_error, camera_center
     from pipeline import colmap_db as cdb
+    from pipeline.metrics.ate import absolute_trajectory_error, camera_center
     names = list(job.names)
     poses = cdb.model_poses(model)
     st = cdb.model_stats(model)
@@ -494,7 +501,7 @@ class MultiviewTask(Task):
         return dataclasses.asdict(self.mv)
 
     @classmethod
-    def from_options(cls, options: dict | None, **extra) -> "MultiviewTask":
+    def from_options(cls, options: dict | None, **extra) -> MultiviewTask:
         """The options are the MultiviewConfig's fields."""
         return super().from_options({"mv": dict(options)} if options else None, **extra)
 

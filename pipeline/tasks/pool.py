@@ -393,8 +393,8 @@ class PairPool:
     # the executor ------------------------------------------------------------------------------
     def _start(self):
         import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor
         import tempfile
+        from concurrent.futures import ProcessPoolExecutor
         ctx = mp.get_context("spawn")
         # the status array: (pid, item being evaluated or -1) per worker; written by one worker each, read by the
         # parent after a break, so no lock (a lock is a semaphore the resource tracker reports when a pool is killed)

@@ -16,9 +16,9 @@ import numpy as np
 
 from pipeline.cache import H5Cache
 from pipeline.config import PipelineConfig
-from pipeline.errors import ImtuneError
 from pipeline.data.resize import scaled_K
 from pipeline.data.scene import Pair, Scene
+from pipeline.errors import ImtuneError
 from pipeline.metrics.auc import auc_intervals, auc_summary
 from pipeline.metrics.pose import accuracy_curve, mean_average_accuracy, pose_error_deg
 from pipeline.metrics.uncertainty import maa_intervals

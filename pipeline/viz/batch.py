@@ -108,8 +108,8 @@ def render_pairs(scenes: list[Scene], conf: PipelineConfig, out_dir: str | Path,
     Returns one dict per figure: section, scene, pair, png, NM, NI, err, err_R, err_t (deg), failure,
     error_kind, stats, label, config (hash)."""
     from pipeline.cache import H5Cache
-    from pipeline.viz.select import find_pair, select_records
     from pipeline.config_files import config_label
+    from pipeline.viz.select import find_pair, select_records
     from pipeline.viz.stereo import render_pair
     cache = cache if cache is not None else H5Cache()
     out_dir = Path(out_dir)
@@ -222,10 +222,10 @@ def render_bags(scenes: list[Scene], conf: PipelineConfig, mv, out_dir: str | Pa
     import tempfile
 
     from pipeline.cache import H5Cache
+    from pipeline.config_files import config_label
     from pipeline.metrics.pose import mean_average_accuracy
     from pipeline.tasks.multiview import scene_jobs
     from pipeline.viz.multiview import bag_stats, draw_bag, reconstruct_bag
-    from pipeline.config_files import config_label
     from pipeline.viz.stereo import save_png
     cache = cache if cache is not None else H5Cache()
     out_dir = Path(out_dir)

@@ -97,7 +97,8 @@ def reconstruct_bag(job, max_side: int = 1024) -> BagReconstruction:
 
 
 def _to_bgr(img):
-    from pipeline.viz.stereo import _muted, _to_bgr as conv
+    from pipeline.viz.stereo import _muted
+    from pipeline.viz.stereo import _to_bgr as conv
     return _muted(conv(img), amount=0.6, brightness=0.9)
 
 

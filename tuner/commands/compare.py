@@ -53,11 +53,12 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
+    from pathlib import Path
+
     from tuner.compare import compare, comparison_rows, load_sources
     from tuner.formatting import render
     from tuner.options import resolve_data
     from tuner.storage import default_studies_dir
-    from pathlib import Path
     if len(args.sources) < 2:
         raise ImtuneError(f"tune compare needs at least two configurations (got one: {args.sources[0]}); "
                           "give A B [C ...], each a study name or a config file")

@@ -6,11 +6,21 @@ import math
 import sys
 
 from pipeline.errors import ImtuneError
-from tuner.formatting import render
 from tuner.evaluate import evaluate_config
-from tuner.options import (add_jobs_option, add_multiview_options, add_pipeline_options, build_config, multiview_config,
-                           resolve_data, task_choices)
-from tuner.options import OPTION_FIELDS, config_over, explicit_options, track_explicit  # --config (issue 13 item 8)
+from tuner.formatting import render
+from tuner.options import (  # --config (issue 13 item 8)
+    OPTION_FIELDS,
+    add_jobs_option,
+    add_multiview_options,
+    add_pipeline_options,
+    build_config,
+    config_over,
+    explicit_options,
+    multiview_config,
+    resolve_data,
+    task_choices,
+    track_explicit,
+)
 
 IM_COLUMNS = ["scene", "pairs", "repeatability_3px", "matching_score_3px", "epipolar_matching_score"]
 

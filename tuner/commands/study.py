@@ -18,15 +18,14 @@ Every command takes ``--storage URL`` (default ``sqlite:///<studies dir>/optuna.
 from __future__ import annotations
 
 import argparse
-
 import json
 import sys
 from pathlib import Path
 
 from pipeline.errors import ImtuneError
 from tuner.argtypes import nonnegative_int, positive_float, positive_int, ratio_float, scene_list
-from tuner.formatting import render
 from tuner.commands.evaluate import add_ci_options, ci_resamples, with_ci
+from tuner.formatting import render
 from tuner.options import add_pipeline_options, build_config, resolve_data
 
 FORMATS = ("markdown", "csv", "latex", "json")
@@ -454,10 +453,10 @@ def test_table(t: dict) -> str:
 
 def run_calibrate(args) -> int:
     from pipeline.cache import H5Cache
-    from tuner.budget import calibrate
-    from tuner.objective import ValidationSet
     from pipeline.tasks import make_task
+    from tuner.budget import calibrate
     from tuner.evaluate import load_scenes
+    from tuner.objective import ValidationSet
     from tuner.space import load_space
     from tuner.study import _quiet_optuna
     _quiet_optuna()
@@ -520,6 +519,7 @@ def _check_test_workers(args, task) -> None:
 
 def run_test_cmd(args) -> int:
     import optuna
+
     from pipeline.cache import H5Cache
     from tuner.freeze import freeze, load_frozen, run_test, run_test_for_study, study_data_root
     from tuner.storage import open_storage
@@ -719,10 +719,11 @@ def run_export(args) -> int:
 
 def run_studies(args) -> int:
     import optuna
-    from tuner.storage import open_storage
-    from tuner.protocol import trial_value
+
     from tuner.formatting import ground_truth_short
+    from tuner.protocol import trial_value
     from tuner.reports import study_test
+    from tuner.storage import open_storage
     from tuner.study import _quiet_optuna, best_feasible, trial_counts
     _quiet_optuna()
     storage = open_storage(args.storage, heartbeat=None, studies_dir=_studies_dir(args), must_exist=True)

@@ -29,11 +29,15 @@ from pathlib import Path
 
 from pipeline.errors import ImtuneError
 from tuner.argtypes import count_int, seed_int
-from tuner.options import add_multiview_options, add_pipeline_options, build_config, multiview_config, resolve_data, task_choices
-
-
+from tuner.options import (
+    add_multiview_options,
+    add_pipeline_options,
+    build_config,
+    multiview_config,
+    resolve_data,
+    task_choices,
+)
 from tuner.sources import Source, load_config_source, load_study_source, resolve_source, studies_dir  # noqa: E402,F401
-
 
 # ---------------------------------------------------------------------------------------------- command
 
@@ -183,8 +187,8 @@ def viz(args: argparse.Namespace) -> dict:
     from pipeline.cache import H5Cache
     from pipeline.viz.batch import VizOptions, gallery_entries, render_compare, render_task
     from pipeline.viz.gallery import link_gallery, write_gallery
-    from tuner.freeze import study_dir
     from tuner.evaluate import load_scenes
+    from tuner.freeze import study_dir
     chosen = [x for x in ("study", "config", "compare") if getattr(args, x)]
     if len(chosen) > 1:
         got = ", ".join("--" + c for c in chosen)

@@ -20,8 +20,7 @@ from pathlib import Path
 from pipeline.errors import ImtuneError
 from tuner.findings.analysis import NOT_RUN, NOT_RUN_YET, analyse
 from tuner.findings.definitions import BY_ID, FINDINGS, Finding, StudySpec  # noqa: F401
-from tuner.findings.runner import (FindingsSettings, StudyOutcome, findings_command, reuse_study,  # noqa: F401
-                                   run_study, study_name)
+from tuner.findings.runner import FindingsSettings, StudyOutcome, findings_command, reuse_study, run_study, study_name  # noqa: F401
 
 #: ``this_run`` of a finding in findings.json: its studies run (or resumed, or reused by `tune`) by this invocation;
 #: not selected (--only) and re-analysed from its finished studies; not selected and not all of them finished
@@ -135,6 +134,7 @@ def preflight(fs: FindingsSettings) -> None:
     ``--val-scenes`` / ``--test-scenes`` name is unknown, or a scene is both a validation and a test scene (tuning
     on the scenes a finding is measured on would overstate every tuned number)."""
     import os
+
     from tuner.evaluate import load_scenes
     from tuner.storage import open_storage
     d = Path(fs.studies_dir)

@@ -27,8 +27,14 @@ from __future__ import annotations
 
 import math
 
-from pipeline.metrics.uncertainty import (DEFAULT_LEVEL, bonferroni, combine_runs_interval, paired_bootstrap,
-                                          paired_direction, paired_relative)
+from pipeline.metrics.uncertainty import (
+    DEFAULT_LEVEL,
+    bonferroni,
+    combine_runs_interval,
+    paired_bootstrap,
+    paired_direction,
+    paired_relative,
+)
 from tuner.findings.definitions import SMALL_GAIN, Finding
 
 HOLDS, FAILS, UNSURE, NOT_RUN = "holds", "does not hold", "inconclusive", "not run"

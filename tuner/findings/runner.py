@@ -510,8 +510,14 @@ def reuse_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool
     from tuner.freeze import frozen_from_study, run_test, study_data_root, study_dir
     from tuner.protocol import best_feasible, trial_within_budget
     from tuner.space import SearchSpace
-    from tuner.study import (IncompatibleStudy, check_compatible, load_study_space, open_validation, study_identity,
-                             trial_target)
+    from tuner.study import (
+        IncompatibleStudy,
+        check_compatible,
+        load_study_space,
+        open_validation,
+        study_identity,
+        trial_target,
+    )
     out, s = _open_outcome(spec, fs)
     if s is None:
         return out
@@ -590,8 +596,8 @@ def findings_command(fs: FindingsSettings, ids) -> str:
     storage URL's password masked)."""
     import shlex
 
-    from tuner.storage import storage_label
     from tuner.findings.definitions import FINDINGS
+    from tuner.storage import storage_label
     words = ["tune", "findings"] + (["--quick"] if fs.quick else [])
     words += ["--only", ",".join(str(i) for i in ids)] if len(ids) < len(FINDINGS) else []
     words += ["--data", str(fs.data_root)]

@@ -33,8 +33,13 @@ trials). Every name is importable from ``tuner.storage`` as before.
 from __future__ import annotations
 
 from tuner.storage.faults import THREAD_FAULTS, interrupt_in_chain, quiet_thread_storage_faults, storage_fault
-from tuner.storage.locations import (STUDIES_DIR_FIX, check_studies_dir, default_storage_url, default_studies_dir,
-                                     project_root)
+from tuner.storage.locations import (
+                                     STUDIES_DIR_FIX,
+                                     check_studies_dir,
+                                     default_storage_url,
+                                     default_studies_dir,
+                                     project_root,
+)
 from tuner.storage.masking import MASK, SECRET_KEY_RE, mask_url, scrub
 from tuner.storage.opening import DEFAULT_HEARTBEAT_S, open_storage
 from tuner.storage.sqlite import SQLITE_DAMAGED, SQLITE_TIMEOUT_S

@@ -12,7 +12,6 @@ from tuner.storage.retry import _UNREACHABLE
 from tuner.storage.sqlite import SQLITE_DAMAGED, SQLITE_TIMEOUT_S
 from tuner.storage.urls import classify, storage_label
 
-
 _LOST = _UNREACHABLE + ("server closed the connection", "terminating connection", "connection already closed",
                         "connection to server", "ssl syscall", "the database system is", "connection reset",
                         "broken pipe", "lost connection", "has gone away", "could not receive data",

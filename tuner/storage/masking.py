@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import re
 
-
 # -- credentials ----------------------------------------------------------------------------------
 #
 # A URL is masked by SQLAlchemy's own rendering (``make_url(url).render_as_string(hide_password=True)``)

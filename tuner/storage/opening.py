@@ -13,7 +13,6 @@ from tuner.storage.retry import _retrying
 from tuner.storage.sqlite import SQLITE_TIMEOUT_S, _prepare_sqlite, _sqlite_pragmas
 from tuner.storage.urls import _sqlite_path, classify
 
-
 DEFAULT_HEARTBEAT_S = 10
 
 

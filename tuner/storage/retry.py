@@ -10,7 +10,7 @@ from tuner.storage.sqlite import _sqlite_hint
 
 
 def _retrying(fn, what: str, url: str, attempts: int = 8):
-    from sqlalchemy.exc import DBAPIError, OperationalError, IntegrityError, ProgrammingError
+    from sqlalchemy.exc import DBAPIError, IntegrityError, OperationalError, ProgrammingError
     last = None
     for attempt in range(attempts):
         try:

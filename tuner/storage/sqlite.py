@@ -8,7 +8,6 @@ from pathlib import Path
 
 from pipeline.errors import ImtuneError
 
-
 SQLITE_TIMEOUT_S = 60.0
 
 

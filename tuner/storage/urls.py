@@ -10,7 +10,6 @@ from pipeline.errors import ImtuneError
 from tuner.storage.locations import default_storage_url
 from tuner.storage.masking import _repair_at, mask_url, scrub
 
-
 JOURNAL_SUFFIXES = (".log", ".journal", ".jsonl")
 
 

@@ -49,12 +49,24 @@ from __future__ import annotations
 from pipeline.metrics.uncertainty.bags import bags_differ, is_bag_records
 from pipeline.metrics.uncertainty.intervals import bag_intervals, maa_intervals, stratified_interval
 from pipeline.metrics.uncertainty.multiplicity import bonferroni, holm
-from pipeline.metrics.uncertainty.paired import (DIRECTION_RULE, format_p, paired_bags, paired_bootstrap,
-                                                 paired_direction, paired_relative)
+from pipeline.metrics.uncertainty.paired import (
+                                                 DIRECTION_RULE,
+                                                 format_p,
+                                                 paired_bags,
+                                                 paired_bootstrap,
+                                                 paired_direction,
+                                                 paired_relative,
+)
 from pipeline.metrics.uncertainty.ranking import rank_by_intervals, rank_with_ties
 from pipeline.metrics.uncertainty.runs import combine_bag_runs_interval, combine_runs_interval
-from pipeline.metrics.uncertainty.scores import (DEFAULT_LEVEL, DEFAULT_RESAMPLES, SCORE_RANGE, STD_DDOF,
-                                                 maa_from_errors, pair_scores)
+from pipeline.metrics.uncertainty.scores import (
+                                                 DEFAULT_LEVEL,
+                                                 DEFAULT_RESAMPLES,
+                                                 SCORE_RANGE,
+                                                 STD_DDOF,
+                                                 maa_from_errors,
+                                                 pair_scores,
+)
 
 __all__ = ["pair_scores", "maa_from_errors", "maa_intervals", "bag_intervals", "paired_bootstrap", "paired_direction",
            "DIRECTION_RULE", "rank_with_ties", "rank_by_intervals", "combine_runs_interval",

@@ -3,9 +3,6 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
 
-
-
-
 # ------------------------------------------------------------------------------------------ multiview runs
 
 def _bag_unit(r: Mapping) -> tuple:

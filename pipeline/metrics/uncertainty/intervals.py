@@ -6,9 +6,14 @@ from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
 
-from pipeline.metrics.uncertainty.scores import (DEFAULT_LEVEL, DEFAULT_RESAMPLES, _stats, maa_from_errors,
-                                                 pair_scores, score_range)
-
+from pipeline.metrics.uncertainty.scores import (
+    DEFAULT_LEVEL,
+    DEFAULT_RESAMPLES,
+    _stats,
+    maa_from_errors,
+    pair_scores,
+    score_range,
+)
 
 # ------------------------------------------------------------------------------------------ the core
 

@@ -4,9 +4,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-
 from pipeline.metrics.uncertainty.scores import DEFAULT_RESAMPLES
-
 
 # ------------------------------------------------------------------------------------------ ranking
 

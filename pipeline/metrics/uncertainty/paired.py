@@ -11,7 +11,6 @@ from pipeline.metrics.uncertainty.bags import _bag_unit, _bag_weights, bags_diff
 from pipeline.metrics.uncertainty.intervals import _expanded_level, _stratified
 from pipeline.metrics.uncertainty.scores import DEFAULT_LEVEL, DEFAULT_RESAMPLES, _stats, maa_from_errors, pair_scores
 
-
 # ------------------------------------------------------------------------------------------ paired test
 
 def _mean_scores(records: Sequence[Mapping], tau: int) -> dict[tuple, float]:

@@ -9,8 +9,15 @@ import numpy as np
 from pipeline.metrics.uncertainty.bags import _bag_unit, _bag_weights
 from pipeline.metrics.uncertainty.intervals import _scene_order, _stratified
 from pipeline.metrics.uncertainty.paired import _pair_key
-from pipeline.metrics.uncertainty.scores import (DEFAULT_LEVEL, DEFAULT_RESAMPLES, STD_DDOF, _stats, maa_from_errors,
-                                                 pair_scores, score_range)
+from pipeline.metrics.uncertainty.scores import (
+    DEFAULT_LEVEL,
+    DEFAULT_RESAMPLES,
+    STD_DDOF,
+    _stats,
+    maa_from_errors,
+    pair_scores,
+    score_range,
+)
 
 
 def combine_bag_runs_interval(runs: Sequence[Sequence[Mapping]], taus: Sequence[int] = (5, 10),

@@ -7,7 +7,6 @@ import numpy as np
 
 from pipeline.metrics.pose import mean_average_accuracy
 
-
 DEFAULT_RESAMPLES = 2000
 
 
