@@ -52,3 +52,43 @@ def test_pipeline_never_imports_the_tuner():
     assert len(files) > 20, files
     assert offenders(files, "tuner") == []
     assert offenders(files, "optuna") == []
+
+
+
+def module_graph(root: Path = ROOT) -> dict[str, set[str]]:
+    """{module: modules of pipeline/ and tuner/ it imports}, package ``__init__`` modules left out (they re-export
+    their submodules by design, so a submodule importing its package's name is no cycle)."""
+    mods = {".".join(p.relative_to(root).with_suffix("").parts): p
+            for pkg in ("pipeline", "tuner") for p in (root / pkg).rglob("*.py") if p.name != "__init__.py"}
+
+    def resolve(name: str) -> str | None:  # a.b.c -> the longest prefix that is a module of ours
+        while name and name not in mods:
+            name = name.rpartition(".")[0]
+        return name or None
+    return {m: {r for _, t in imported_modules(p) if (r := resolve(t)) and r != m} for m, p in mods.items()}
+
+
+def import_cycle(graph: dict[str, set[str]]) -> list[str]:
+    """One cycle of ``graph`` ([] if none), found by the standard library's topological sort."""
+    import graphlib
+    try:
+        tuple(graphlib.TopologicalSorter(graph).static_order())
+    except graphlib.CycleError as e:
+        return list(e.args[1])
+    return []
+
+
+def test_no_import_cycles_between_modules():
+    """Imports inside functions count: a lazy import that closes a cycle (tuner.freeze <-> tuner.study, once)
+    still ties two modules together so that neither can be read or changed without the other."""
+    graph = module_graph()
+    assert len(graph) > 100 and "tuner.protocol" in graph["tuner.freeze"]  # the graph was built
+    assert import_cycle(graph) == []
+
+
+def test_the_cycle_check_sees_a_lazy_import_cycle(tmp_path):
+    (tmp_path / "tuner").mkdir()
+    (tmp_path / "pipeline").mkdir()
+    (tmp_path / "tuner" / "a.py").write_text("from tuner.b import f\n")
+    (tmp_path / "tuner" / "b.py").write_text("def f():\n    from tuner.a import g\n")
+    assert sorted(set(import_cycle(module_graph(tmp_path)))) == ["tuner.a", "tuner.b"]

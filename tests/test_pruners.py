@@ -29,7 +29,7 @@ def test_make_pruner_names():
     import optuna
 
     from pipeline.errors import ImtuneError
-    from tuner.study import DEFAULT_PRUNER, PRUNERS, make_pruner
+    from tuner.samplers import DEFAULT_PRUNER, PRUNERS, make_pruner
     assert PRUNERS == ("median", "sha", "hyperband", "none") and DEFAULT_PRUNER in PRUNERS
     kinds = {"median": optuna.pruners.MedianPruner, "sha": optuna.pruners.SuccessiveHalvingPruner,
              "hyperband": optuna.pruners.HyperbandPruner, "none": optuna.pruners.NopPruner}

@@ -122,7 +122,7 @@ class _VersionAction(argparse.Action):
         super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
 
     def __call__(self, parser, namespace, values, option_string=None):
-        from tuner.study import code_version
+        from tuner.version import code_version
         print(f"imtune {code_version()}")
         parser.exit(0)
 

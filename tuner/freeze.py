@@ -144,7 +144,7 @@ def _plain(o):
 def task_of(d: dict, **extra):
     """The task a study, frozen file or test result was made with (its name and recorded options)."""
     from pipeline.tasks import TASKS
-    from tuner.study import AUC_OBJECTIVES, study_objective
+    from tuner.study_identity import AUC_OBJECTIVES, study_objective
     task = TASKS.get(d.get("task", "stereo")).from_options(d.get("task_options"), **extra)
     if study_objective(d) in AUC_OBJECTIVES:  # a study that maximised a pose AUC: its figure is the objective
         task.objective = study_objective(d)

@@ -142,7 +142,7 @@ def _hover(p: Point) -> str:
 
 
 def _check_study(storage, name: str):
-    from tuner.study import load_study
+    from tuner.study_identity import load_study
     study = load_study(storage, name)
     if not study.user_attrs.get("imtune"):
         raise ImtuneError(f"study {name!r} was not created by imtune: no Pareto front to draw")
@@ -223,7 +223,7 @@ def write_overlay(storage, names: list[str], out: Path | str) -> Path:
     import plotly.io as pio
 
     from pipeline.fileio import atomic_write
-    from tuner.study import load_study
+    from tuner.study_identity import load_study
     fig = fig_overlay(storage, names)
     rows = []
     for n in dict.fromkeys(names):

@@ -352,8 +352,8 @@ def _covisibility_hint(study, sources) -> str:
 def frozen_trial(study):
     """The trial the study freezes: its recorded selection rule's pick (``tuner.select``; ``--select one-se`` or
     ``smooth`` can freeze another trial than the best), the best feasible trial where the rule is unknown."""
+    from tuner.protocol import best_feasible
     from tuner.select import select_trial
-    from tuner.study import best_feasible
     try:
         return select_trial(study, study.user_attrs.get("select"))[0]
     except ImtuneError:  # an unknown recorded rule (a newer imtune)
@@ -362,7 +362,7 @@ def frozen_trial(study):
 
 def report_sections(storage, study_name: str, studies_dir: Path | str | None = None) -> list[Section]:
     """The report's sections, each a titled figure or a note saying why it is missing and how to fill it."""
-    from tuner.study import load_study
+    from tuner.study_identity import load_study
     study = load_study(storage, study_name)
     trials = _complete(study)
     if not trials:

@@ -26,65 +26,41 @@ import datetime as _dt
 import math
 import sys
 import time
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from pipeline.config import PipelineConfig
 from pipeline.errors import ImtuneError
+
+# re-exported: `tuner.study` is where scripts and tests have always found the study's parts
+from tuner.preflight import (  # noqa: F401
+    check_task_scene,
+    load_study_space,
+    open_validation,
+    pinned_gamma_warning,
+    preflight,
+    test_scene_names,
+)
 from tuner.protocol import best_feasible  # noqa: F401  (re-exported: the study's pick)
+from tuner.samplers import DEFAULT_PRUNER, PRUNERS, SAMPLERS, make_pruner, make_sampler, quiet_optuna  # noqa: F401
+from tuner.study_identity import (  # noqa: F401
+    AUC_OBJECTIVES,
+    OBJECTIVES,
+    PARETO_SPAN,
+    PARETO_SUFFIX,
+    SCHEMA,
+    IncompatibleStudy,
+    check_compatible,
+    default_study_name,
+    feature_label,
+    load_study,
+    study_identity,
+    study_objective,
+)
 from tuner.version import code_version  # noqa: F401  (re-exported)
+from tuner.warm_start import WARM_START_BEST, check_warm_start_sources, project_params, warm_start  # noqa: F401
 
-SAMPLERS = ("tpe", "random", "cmaes", "grid")
-PRUNERS = ("median", "sha", "hyperband", "none")
-DEFAULT_PRUNER = "hyperband"  # the fastest to the same frozen optimum in benchmarks/study_wall_time.py (README)
-# mAA10: maximise mAA(10 deg) within the budget B; pareto: a two-objective study (maximise mAA(10 deg), minimise
-# the median estimator seconds per pair) whose Pareto front tuner.pareto draws and reads the best within B off
-OBJECTIVES = ("mAA10", "auc10", "auc20", "pareto")
-# auc10 / auc20: maximise the pose AUC (pipeline.metrics.auc) instead; the study records it (user attribute
-# "objective"), its default name ends in -auc10 / -auc20, and a study without the attribute maximised mAA10
-AUC_OBJECTIVES = ("auc10", "auc20")
-PARETO_SUFFIX = "-pareto"
-PARETO_SPAN = 4.0
-SCHEMA = 1
 DEFAULT_TRIALS = 50
-
-
-def feature_label(conf: PipelineConfig) -> str:
-    """The ``<feature>`` part of a study name: the name plus any non-default variant."""
-    f = conf.feature
-    name = f.name
-    if name.startswith("custom:"):  # imported features: the folder's name, not its path
-        name = "custom_" + (Path(name[len("custom:"):]).name or "features")
-    tags = [name]
-    if f.upright_plus:
-        tags.append("upright++")
-    elif f.upright:
-        tags.append("upright")
-    if f.clahe != "none":
-        tags.append(f"clahe_{f.clahe}")
-    if not f.low_threshold:
-        tags.append("defthr")
-    if f.mr_size is not None:
-        tags.append(f"mr{f.mr_size:g}")
-    if f.max_side != 1024:
-        tags.append(f"side{f.max_side}")
-    for k, v in f.options or ():  # extractor options (--feature-option): sift+edge_threshold5
-        tags.append(f"{k}{v:g}" if isinstance(v, float) else f"{k}{v}")
-    m = conf.matching
-    if m.method != "exact":
-        tags.append(m.method)
-    if m.fginn:
-        tags.append("fginn")
-    if getattr(m, "prefilter", "none") not in ("none", None):
-        tags.append(str(m.prefilter))
-    if getattr(m, "custom_matches", None):
-        tags.append("custom_matches")
-    return "_".join(tags[:1]) + ("+" + "+".join(tags[1:]) if len(tags) > 1 else "")
-
-
-def default_study_name(conf: PipelineConfig, task: str = "stereo") -> str:
-    return f"{feature_label(conf)}-{conf.feature.num_features}-{conf.geometry.ransac}-{task}"
 
 
 @dataclass
@@ -169,360 +145,6 @@ class StudyContext:
     created: bool
 
 
-def _quiet_optuna(verbose: bool = False):
-    import optuna
-    if verbose:
-        optuna.logging.set_verbosity(optuna.logging.INFO)
-        return
-    # ERROR: a trial failing (Ctrl-C, a bug) is reported once, as the CLI's one-line error, not as
-    # Optuna's warning with a traceback; `tune --verbose` restores Optuna's per-trial INFO lines
-    optuna.logging.set_verbosity(optuna.logging.ERROR)
-    warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
-    warnings.filterwarnings("ignore", category=FutureWarning, module="optuna")
-
-
-def make_sampler(name: str, seed: int | None, space, startup_trials: int | None = None):
-    """TPE (multivariate, constant liar for parallel workers), random, CMA-ES or grid."""
-    import optuna
-    if name not in SAMPLERS:
-        raise ImtuneError(f"unknown sampler {name!r} (choose from {', '.join(SAMPLERS)})")
-    if name == "tpe":
-        return optuna.samplers.TPESampler(seed=seed, n_startup_trials=int(startup_trials or 10), multivariate=True,
-                                          constant_liar=True)
-    if name == "random":
-        return optuna.samplers.RandomSampler(seed=seed)
-    if name == "cmaes":
-        try:
-            import cmaes  # noqa: F401
-        except ImportError:
-            raise ImtuneError("sampler cmaes needs the `cmaes` package: pip install cmaes") from None
-        # its UserWarning "Constraints have been set, but CmaEsSampler will not use them" came after every trial (two
-        # lines of file and line each): no sampler here is given the budget constraint (TPE neither); freeze reads it
-        warnings.filterwarnings("ignore", message="Constraints have been set, but CmaEsSampler", category=UserWarning)
-        return optuna.samplers.CmaEsSampler(seed=seed, n_startup_trials=int(startup_trials or 1),
-                                            warn_independent_sampling=False)
-    return optuna.samplers.GridSampler(space.grid(), seed=seed)
-
-
-def make_pruner(name: str):
-    """Optuna's pruner ``name``. A trial's steps are its chunks of pairs (``--chunk-pairs``, stratified over the
-    scenes so that an early chunk is representative; the intermediate value is the running mAA(10)):
-
-    - ``median``: MedianPruner, after 5 complete trials, from the second chunk on: stop a trial whose running value
-      is below the median of the other trials' at the same chunk;
-    - ``sha``: SuccessiveHalvingPruner (asynchronous successive halving), rungs at chunks 1, 2, 4, ... (reduction
-      factor 2): a trial continues past a rung only in the top half of the trials that reached it;
-    - ``hyperband``: HyperbandPruner (several successive-halving brackets; the maximum resource is the number of
-      chunks of the first complete trial), reduction factor 2;
-    - ``none``: every trial runs all its pairs.
-
-    Whatever the pruner, a trial proven over the time budget is stopped (``tuner.objective``)."""
-    import optuna
-    if name not in PRUNERS:
-        raise ImtuneError(f"unknown pruner {name!r} (choose from {', '.join(PRUNERS)})")
-    if name == "none":
-        return optuna.pruners.NopPruner()
-    if name == "sha":
-        return optuna.pruners.SuccessiveHalvingPruner(min_resource=1, reduction_factor=2, min_early_stopping_rate=0)
-    if name == "hyperband":
-        return optuna.pruners.HyperbandPruner(min_resource=1, max_resource="auto", reduction_factor=2)
-    return optuna.pruners.MedianPruner(n_startup_trials=5, n_warmup_steps=1)
-
-
-WARM_START_BEST = 3  # feasible trials taken from each warm-start study, besides its frozen optimum
-
-
-def _source_picks(src, best: int) -> list:
-    """The frozen optimum of a study (its selection rule; the best feasible trial by default) and its ``best``
-    best feasible complete trials, best first, without repeats."""
-    from optuna.trial import TrialState
-
-    from tuner.protocol import trial_value, trial_within_budget
-    picks = []
-    try:
-        from tuner.select import select_trial
-        frozen = select_trial(src, src.user_attrs.get("select"))[0]
-    except (ImportError, ImtuneError):
-        frozen = best_feasible(src)
-    if frozen is not None:
-        picks.append(frozen)
-    ok = [t for t in src.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
-          if trial_value(t) is not None and trial_within_budget(t)]
-    ok.sort(key=lambda t: (-trial_value(t), t.number))
-    for t in ok:
-        if len(picks) >= best + (1 if frozen is not None else 0):
-            break
-        if all(t.number != q.number for q in picks):
-            picks.append(t)
-    return picks
-
-
-def project_params(params: dict, space) -> dict:
-    """Trial parameters of another study projected into ``space`` (a resolved SearchSpace): parameters ``space``
-    does not search are dropped; numbers are clipped to its range (so Gamma is capped by this study's Gamma_max),
-    rounded for integers and snapped to a step; a categorical value is kept only if ``space`` allows it."""
-    import math as _m
-    out = {}
-    for name, p in space.params.items():
-        if name not in params or params[name] is None:
-            continue
-        v = params[name]
-        if p.type == "categorical":
-            if v in list(p.choices):
-                out[name] = v
-            continue
-        try:
-            x = float(v)
-        except (TypeError, ValueError):
-            continue
-        if not _m.isfinite(x):
-            continue
-        lo, hi = float(p.low), float(p.high)
-        x = min(max(x, lo), hi)
-        if p.step:
-            x = lo + round((x - lo) / float(p.step)) * float(p.step)
-            x = min(max(x, lo), hi)
-        out[name] = int(round(x)) if p.type == "int" else float(x)
-    return out
-
-
-def warm_start(study, storage, space, sources: list, best: int = WARM_START_BEST, say=None) -> list[dict]:
-    """``--warm-start STUDY`` (repeatable): enqueue the frozen optimum and the ``best`` best feasible trials of each
-    source study (in the same storage) as this study's first trials, with the values the source fixed, projected into
-    its space (:func:`project_params`), without repeats. Only a study without trials is warm-started (a resumed study keeps
-    its history); an unknown source is a one-line error naming the studies in the storage. Returns what was
-    enqueued ([{"study", "trial", "params"}]), also recorded in the study's user attribute ``warm_start``."""
-    if not sources:
-        return []
-    srcs = check_warm_start_sources(storage, study.study_name, sources)
-    if study.get_trials(deepcopy=False):
-        if say is not None:
-            say(f"warm start skipped: study {study.study_name} already has trials")
-        return []
-    done, seen = [], set()
-    for src in srcs:
-        # the source's pinned values (--fix, a scalar in its space) are part of its optimum: a parameter it fixed
-        # and this study searches takes that value, not a random draw beside the source's other values
-        fixed = (src.user_attrs.get("search_space_resolved") or {}).get("fixed") or {}
-        for t in _source_picks(src, best):
-            params = project_params({**fixed, **t.params}, space)
-            key = tuple(sorted(params.items()))
-            if not params or key in seen:
-                continue
-            seen.add(key)
-            study.enqueue_trial(params, user_attrs={"warm_start": f"{src.study_name}#{t.number}"},
-                                skip_if_exists=True)
-            done.append({"study": src.study_name, "trial": t.number, "params": params})
-    study.set_user_attr("warm_start", done)
-    if say is not None:
-        say(f"warm start: {len(done)} trial(s) enqueued from {', '.join(s.study_name for s in srcs)}")
-    return done
-
-
-def check_warm_start_sources(storage, study_name: str, sources) -> list:
-    """The ``--warm-start`` source studies, loaded; a one-line ImtuneError for the study itself or a study not in the
-    storage (naming the studies there). ``tuner.study.setup_study`` calls it before it creates the study."""
-    srcs = []
-    for name in dict.fromkeys(sources or ()):
-        if name == study_name:
-            raise ImtuneError(f"--warm-start {name}: a study cannot warm-start itself")
-        try:
-            srcs.append(load_study(storage, name))
-        except ImtuneError as e:
-            raise ImtuneError(f"--warm-start {name}: {e}") from None
-    return srcs
-
-
-def load_study(storage, name: str):
-    """An existing study, or ImtuneError listing the studies in the storage."""
-    import optuna
-    try:
-        return optuna.load_study(study_name=name, storage=storage)
-    except KeyError:
-        names = [s.study_name for s in optuna.get_all_study_summaries(storage, include_best_trial=False)]
-        raise ImtuneError(f"no study {name!r} in the storage (studies: {', '.join(names) or 'none'})") from None
-
-
-def _first_difference(a, b, path="") -> str:
-    if isinstance(a, dict) and isinstance(b, dict):
-        for k in sorted(set(a) | set(b), key=str):
-            if k not in a or k not in b or a[k] != b[k]:
-                return _first_difference(a.get(k), b.get(k), f"{path}.{k}" if path else str(k))
-        return path
-    return f"{path}: {a!r} -> {b!r}" if path else f"{a!r} -> {b!r}"
-
-
-class IncompatibleStudy(ImtuneError):
-    """A study of this name exists with other settings or data (:func:`check_compatible`)."""
-
-
-def check_compatible(name: str, stored: dict, mine: dict) -> None:
-    """Resume only with the same search space, pipeline, budget and validation data (IncompatibleStudy)."""
-    import json
-
-    def norm(x):
-        return json.loads(json.dumps(x, default=str))
-    checks = [("search_space", "a different search space"),
-              ("pipeline", "a different pipeline configuration"),
-              ("data_fingerprint", "different validation data"),
-              ("task_options", "different task settings")]
-    for key, what in checks:
-        if norm(stored.get(key)) != norm(mine.get(key)):
-            diff = _first_difference(norm(stored.get(key)), norm(mine.get(key)))
-            raise IncompatibleStudy(f"study {name!r} exists with {what} ({diff}); rerun with its original settings "
-                                    "or name a new study with --study")
-    b_old = (stored.get("budget") or {}).get("seconds_per_pair")
-    b_new = mine["budget"]["seconds_per_pair"]
-    if b_old is not None and not math.isclose(float(b_old), float(b_new)):
-        raise IncompatibleStudy(f"study {name!r} exists with budget {b_old} s per pair, not {b_new}; "
-                                f"rerun with --budget {b_old} or name a new study with --study")
-
-
-def check_task_scene(task, scene, role: str, others: str) -> None:
-    """A one-line ImtuneError when ``task`` cannot evaluate ``scene`` (``Task.check_scene``: no pairs, no ground
-    truth, no bags), naming the ``role`` ("validation", "test") and ending with ``others`` (the flag that fixes it)."""
-    why = task.check_scene(scene)
-    if why and why.startswith("no ground truth"):
-        raise ImtuneError(f"{role} scene {scene.name!r} has {why}; build it with `tune data build-gt --data "
-                          f"{scene.root}`, {others}")
-    if why:
-        raise ImtuneError(f"{role} scene {scene.name!r}: {why}; {others}")
-
-
-def open_validation(s: TuneSettings, task):
-    """The ValidationSet of the settings' data and validation scenes for ``task``."""
-    from tuner.evaluate import load_scenes
-    from tuner.objective import ValidationSet
-    scenes = load_scenes(s.data_root, s.val_scenes, split="val", gt_dir=s.gt_dir)
-    if not scenes:
-        raise ImtuneError(f"no validation scenes in {s.data_root}")
-    for scene in scenes:  # before the study exists: a study whose every trial must fail is never created
-        check_task_scene(task, scene, "validation", "choose others with --scenes")
-    return ValidationSet.from_scenes(scenes, task)
-
-
-def test_scene_names(s: TuneSettings) -> list[str]:
-    if s.test_scenes:
-        return list(s.test_scenes)
-    from pipeline.data import default_splits
-    return list(default_splits(s.data_root).get("test", []))
-
-
-def preflight(s: TuneSettings, task, stored: dict | None = None) -> list[str]:
-    """Fail fast: check, before any calibration or trial, everything that would stop the study after tuning —
-    the test run's scenes (``--test-scenes``, else those the study was created with, else the data set's test
-    split) exist, load, have ground truth and something for ``task`` to evaluate. Reads the scenes' metadata
-    only (no features). Returns the test scene names ([] with ``--no-test``); a one-line ImtuneError naming
-    the flag that fixes it (``--test-scenes``, ``--no-test``) otherwise."""
-    if not s.test:
-        return []
-    from tuner.evaluate import load_scenes
-    skip = "or tune without the test run: --no-test"
-    names = list(s.test_scenes or ((stored or {}).get("data") or {}).get("test_scenes") or test_scene_names(s))
-    from tuner.evaluate import check_unique_scenes
-    check_unique_scenes(names, "test scenes: ")
-    if not names:
-        raise ImtuneError(f"no test scenes: {s.data_root} has no test split; name them with --test-scenes A,B "
-                          f"(or add a splits.yaml with 'test' to the data folder), {skip}")
-    for n in names:
-        try:
-            (scene,) = load_scenes(s.data_root, [n], split="test", gt_dir=s.gt_dir)
-        except ImtuneError as e:
-            raise ImtuneError(f"test scene {n!r}: {e}; choose others with --test-scenes, {skip}") from None
-        for note in task.scene_notes(scene):  # e.g. bag sizes above the scene's image count
-            s.warn(f"test {note}")
-        check_task_scene(task, scene, "test", f"choose others with --test-scenes, {skip}")
-    return names
-
-
-def pinned_gamma_warning(s: TuneSettings, space, fingerprint: str | None = None) -> str | None:
-    """The warning for ``--fix max_iters=G`` above Gamma_max(B), else None. Gamma_max is the search space's ceiling,
-    not a hard cap (a trial is feasible when its measured median estimator seconds per pair are within B, whatever
-    its Gamma), so a pinned Gamma above it is allowed; but it will exceed the budget on most pairs, and every trial
-    is then infeasible. A pinned Gamma calibrates nothing: Gamma_max(B) is the one stored for this configuration in
-    budgets.json when there is one, else the largest any calibration gives (``tuner.budget.GAMMA_CEILING``)."""
-    g = space.fixed.get("max_iters")
-    if isinstance(g, bool) or not isinstance(g, int):
-        return None
-    from pipeline.geometry import ESTIMATORS
-    ransac = s.base.geometry.ransac
-    if not getattr(ESTIMATORS.get(ransac), "uses_iterations", True):
-        return None
-    from tuner.budget import GAMMA_CEILING, calibration_key, stored_calibration
-    cal = None
-    if fingerprint is not None and s.studies_dir is not None:
-        from pipeline.tasks.pool import resolve_jobs
-        cal_conf = space.calibration or {}
-        key = calibration_key(ransac, s.base.feature, float(cal_conf.get("ratio", 0.9)),
-                              float(cal_conf.get("threshold", 0.5)), fingerprint, jobs=resolve_jobs(s.jobs))
-        cal = stored_calibration(Path(s.studies_dir), key)
-    if cal is not None and cal.covers(s.budget):
-        gmax = cal.gamma_max(s.budget)
-        basis = f"Gamma_max({s.budget:g} s) = {gmax:,} calibrated for {ransac} on this machine"
-    else:
-        gmax = GAMMA_CEILING
-        basis = f"the largest Gamma_max any calibration gives ({GAMMA_CEILING:,})"
-    if g <= gmax:
-        return None
-    return (f"--fix max_iters={g} is above {basis}: a pinned Gamma above Gamma_max(B) will exceed the "
-            f"{s.budget:g} s per pair budget on most pairs (their trials are infeasible and cannot be frozen); pin a "
-            "smaller Gamma, or let it be searched")
-
-
-def load_study_space(s: TuneSettings, task):
-    """The study's search space: ``--space``, else the task's own file (``Task.space_file``), else the estimator
-    family's; then ``--fix`` pins; then every parameter the task does not use dropped (never searched, never
-    recorded)."""
-    from tuner.protocol import searchable, unused_by
-    from tuner.space import SPACES_DIR, load_space
-    path = s.space_path or (SPACES_DIR / task.space_file if task.space_file else None)
-    space = load_space(path, feature=s.base.feature.name, estimator=s.base.geometry.ransac, fixes=s.fixes)
-    from tuner.space import parse_fixes
-    unused = [k for k in parse_fixes(s.fixes) if k in unused_by(task)]
-    if unused:  # dropped below like the rest: a typed pin that does nothing was silently forgotten
-        s.warn(f"--fix {', '.join(unused)}: the {task.name} task does not use "
-               f"{'it' if len(unused) == 1 else 'them'} (it uses {', '.join(searchable(task))}); ignored")
-    if s.unused_options:  # stereo options of a multiview run, found by the command line (tuner.commands.study)
-        s.warn(f"{', '.join(s.unused_options)}: the {task.name} task does not use "
-               f"{'it' if len(s.unused_options) == 1 else 'them'} (COLMAP reconstructs each bag whole, with its own "
-               "RANSAC, untimed; --bags sets the work); ignored")
-    for k in unused_by(task):
-        space.params.pop(k, None)
-        space.fixed.pop(k, None)
-    if not space.params:
-        pinned = f"every parameter is fixed ({', '.join(sorted(space.fixed))}: in the file or by --fix)" \
-            if space.fixed else "no parameter is searched"  # the file was not named: the culprit unsaid
-        raise ImtuneError(f"search space {space.source}: {pinned}; nothing to tune: give one a range there, or drop "
-                          "its --fix")
-    return space
-
-
-def study_identity(s: TuneSettings, task, space, vs, base: PipelineConfig) -> dict:
-    """The user attributes a new study of these settings records before its calibration: among them what
-    :func:`check_compatible` compares when a study of that name is resumed (search space, pipeline, validation data,
-    task options, budget). ``vs``: the settings' :func:`open_validation`; ``base``: ``s.base`` with the estimator
-    seed set."""
-    from tuner.formatting import ground_truth_origins
-    from tuner.protocol import blank_searched
-    return {
-        "imtune": SCHEMA, "task": task.name, "task_options": task.options(),
-        "feature": feature_label(base), "feature_name": base.feature.name,
-        "num_features": base.feature.num_features, "ransac": base.geometry.ransac,
-        "pipeline": blank_searched(base, list(space.params) + list(space.fixed)),
-        "search_space": space.spec(), "search_space_source": space.source,
-        "data_fingerprint": vs.fingerprint,
-        "data": {"root": str(s.data_root), "val_scenes": vs.scene_names, "test_scenes": test_scene_names(s),
-                 "min_covisibility": s.min_covisibility, "max_pairs": s.max_pairs, "pairs": vs.n_pairs,
-                 # where the validation scenes' poses come from (their own, or imtune's SfM), and the task's notes
-                 # on them (pairs an SfM ground truth dropped): what the reports say beside validation figures
-                 "ground_truth": ground_truth_origins(vs.scene_objs), "notes": vs.notes},
-        "budget": {"seconds_per_pair": float(s.budget), "test_seconds_per_pair": float(s.test_budget),
-                   "statistic": "median estimator seconds per pair"},
-        "code_version": code_version(),
-        "seed": int(s.seed or 0),
-    }
-
-
 def setup_study(s: TuneSettings) -> StudyContext:
     """Open the storage, load the validation data, create or resume the study (checking that it was
     created with the same settings), calibrate the budget if the study is new, build the objective."""
@@ -535,7 +157,7 @@ def setup_study(s: TuneSettings) -> StudyContext:
     from tuner.objective import Objective
     from tuner.space import SearchSpace
     from tuner.storage import check_studies_dir, default_studies_dir, open_storage
-    _quiet_optuna(s.verbose)
+    quiet_optuna(s.verbose)
     if s.sampler not in SAMPLERS:
         raise ImtuneError(f"unknown sampler {s.sampler!r} (choose from {', '.join(SAMPLERS)})")
     make_pruner(s.pruner)
@@ -665,13 +287,6 @@ def setup_study(s: TuneSettings) -> StudyContext:
                           objectives=PARETO if pareto else SINGLE)
     return StudyContext(study=study, storage=storage, name=name, space=resolved, vs=vs, objective=objective,
                         attrs=stored, cache=cache, created=created)
-
-
-def study_objective(attrs: dict) -> str:
-    """The figure a study maximised, from its user attributes: "mAA10" (the default, and every study created
-    before --objective auc10/auc20), "auc10", "auc20" or "pareto"."""
-    o = attrs.get("objective")
-    return str(o.get("name", "mAA10")) if isinstance(o, dict) else "mAA10"
 
 
 def trial_counts(study) -> dict:

@@ -108,7 +108,7 @@ def _select_opts(g) -> None:
 
 def register(sub) -> None:
     from tuner.options import add_jobs_option, add_multiview_options, task_choices
-    from tuner.study import DEFAULT_PRUNER, PRUNERS, SAMPLERS
+    from tuner.samplers import DEFAULT_PRUNER, PRUNERS, SAMPLERS
     ap = sub.add_parser("run", help="tune on the validation scenes, freeze the optimum, run the test scenes "
                                     "(the default command)")
     from tuner.argtypes import SEED_MAX
@@ -278,7 +278,8 @@ def _jsonable(o):
 
 def settings_from_args(args):
     """TuneSettings from the `tune run` options."""
-    from tuner.study import PARETO_SPAN, TuneSettings
+    from tuner.study import TuneSettings
+    from tuner.study_identity import PARETO_SPAN
     if args.startup_trials is not None and args.sampler in ("random", "grid"):  # it was ignored, unsaid
         raise ImtuneError(f"--startup-trials {args.startup_trials} applies to the tpe and cmaes samplers (random trials "
                           f"before they model): --sampler {args.sampler} has none; drop --startup-trials")
@@ -457,9 +458,9 @@ def run_calibrate(args) -> int:
     from tuner.budget import calibrate
     from tuner.evaluate import load_scenes
     from tuner.objective import ValidationSet
+    from tuner.samplers import quiet_optuna
     from tuner.space import load_space
-    from tuner.study import _quiet_optuna
-    _quiet_optuna()
+    quiet_optuna()
     from tuner.storage import check_studies_dir
     check_studies_dir(_studies_dir(args))  # budgets.json goes there: read-only or a file in the way -> now
     conf = build_config(args, ratio=1.0, threshold=0.5, max_iters=1000)
@@ -522,9 +523,9 @@ def run_test_cmd(args) -> int:
 
     from pipeline.cache import H5Cache
     from tuner.freeze import freeze, load_frozen, run_test, run_test_for_study, study_data_root
+    from tuner.samplers import quiet_optuna
     from tuner.storage import open_storage
-    from tuner.study import _quiet_optuna
-    _quiet_optuna()
+    quiet_optuna()
     sdir = _studies_dir(args)
     from tuner.freeze import check_study_outputs
     check_study_outputs(sdir, args.study)  # test.json (and frozen.yaml) go there: a file or folder in the way -> now
@@ -586,9 +587,9 @@ def _warn(line: str) -> None:
 
 def _collect(args):
     from tuner.reports import collect_studies
+    from tuner.samplers import quiet_optuna
     from tuner.storage import open_storage
-    from tuner.study import _quiet_optuna
-    _quiet_optuna()
+    quiet_optuna()
     if args.format not in FORMATS:
         raise ImtuneError(f"unknown format {args.format!r} (choose {', '.join(FORMATS)})")
     sdir = _studies_dir(args)
@@ -600,7 +601,7 @@ def _collect(args):
 def _one_objective(studies: list, objective: str | None) -> list:
     """The studies of one objective (``--objective``; a pareto study counts as mAA10, its first value); studies
     that maximised different figures are never put in one table: ImtuneError naming them and the option."""
-    from tuner.study import study_objective
+    from tuner.study_identity import study_objective
 
     def obj(s) -> str:
         o = study_objective(s.attrs)
@@ -668,9 +669,9 @@ def run_results(args) -> int:
 def run_plot(args) -> int:
     from tuner.freeze import study_dir
     from tuner.plots import write_report
+    from tuner.samplers import quiet_optuna
     from tuner.storage import open_storage
-    from tuner.study import _quiet_optuna
-    _quiet_optuna()
+    quiet_optuna()
     sdir = _studies_dir(args)
     if not args.study and not args.pareto:
         raise ImtuneError("tune plot: name a study (--study NAME) or the studies whose fronts to overlay "
@@ -696,7 +697,7 @@ def run_plot(args) -> int:
         from tuner.pareto import write_overlay
         print(str(write_overlay(storage, args.pareto, out)))
         return 0
-    from tuner.study import load_study
+    from tuner.study_identity import load_study
     if not load_study(storage, args.study).user_attrs.get("imtune"):  # its values were drawn and labelled as mAA(10)
         raise ImtuneError(f"study {args.study!r} was not created by imtune: no report of it to draw (optuna-dashboard "
                           "shows any study: tune dashboard)")
@@ -721,11 +722,12 @@ def run_studies(args) -> int:
     import optuna
 
     from tuner.formatting import ground_truth_short
-    from tuner.protocol import trial_value
+    from tuner.protocol import best_feasible, trial_value
     from tuner.reports import study_test
+    from tuner.samplers import quiet_optuna
     from tuner.storage import open_storage
-    from tuner.study import _quiet_optuna, best_feasible, trial_counts
-    _quiet_optuna()
+    from tuner.study import trial_counts
+    quiet_optuna()
     storage = open_storage(args.storage, heartbeat=None, studies_dir=_studies_dir(args), must_exist=True)
     rows, foreign = [], []
     for summ in optuna.get_all_study_summaries(storage, include_best_trial=False):
@@ -739,7 +741,7 @@ def run_studies(args) -> int:
         fz = frozen_trial(st) if st.user_attrs.get("imtune") else None  # --select one-se / smooth freeze another
         from pipeline.tasks import is_timed
         timed = is_timed(st.user_attrs.get("task", "stereo"))  # a multiview study has no budget to be over
-        from tuner.study import study_objective
+        from tuner.study_identity import study_objective
         row = {"study": summ.study_name,
                "objective": study_objective(st.user_attrs) if st.user_attrs.get("imtune") else None,
                "complete": c["complete"], "pruned": c["pruned"],

@@ -166,7 +166,7 @@ def preflight(fs: FindingsSettings) -> None:
     # every finding tunes stereo studies on the validation scenes and tests them on the test scenes: a scene the
     # stereo task cannot evaluate (no ground truth: a folder of images before `tune data build-gt`) stops them all
     from pipeline.tasks import make_task
-    from tuner.study import check_task_scene
+    from tuner.preflight import check_task_scene
     stereo = make_task("stereo")
     for role, flag, split, names in (("validation", "--val-scenes", "val", val), ("test", "--test-scenes", "test", test)):
         for sc in load_scenes(Path(fs.data_root), list(names), split=split):
