@@ -60,11 +60,11 @@ def study_test(name: str, attrs: dict, studies_dir: Path | str | None = None, wa
 
 
 def collect_studies(storage, task: str | None = None, studies_dir: Path | str | None = None,
-                    warn=None) -> list[StudyInfo]:
+                    warn=None, objective: str | None = None) -> list[StudyInfo]:
     """Every imtune study in the storage (others are skipped), with the trial it freezes (``best``: its selection
     rule's pick, by default the best feasible trial) and test
     summary (study attribute ``test``, else ``<studies_dir>/<study>/test.json``). ``warn(line)``: told of a
-    test.json that cannot be read."""
+    test.json that cannot be read. Studies of one objective only (:func:`one_objective`)."""
     import optuna
     from optuna.trial import TrialState
 
@@ -82,7 +82,28 @@ def collect_studies(storage, task: str | None = None, studies_dir: Path | str | 
                              attrs=attrs, best=_frozen_trial(study),
                              n_complete=len(study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))),
                              test=test))
-    return out
+    return one_objective(out, objective)
+
+
+def one_objective(studies: list[StudyInfo], objective: str | None) -> list[StudyInfo]:
+    """The studies that maximised ``objective`` (a pareto study counts as mAA10, its first value); with None, all of
+    them when they share one objective. Studies that maximised different figures are never put in one table:
+    ImtuneError naming the objectives and the option that chooses one."""
+    from tuner.study_identity import study_objective
+
+    def obj(s: StudyInfo) -> str:
+        o = study_objective(s.attrs)
+        return "mAA10" if o == "pareto" else o
+    if objective:
+        return [s for s in studies if obj(s) == objective]
+    counts: dict[str, int] = {}
+    for s in studies:
+        counts[obj(s)] = counts.get(obj(s), 0) + 1
+    if len(counts) > 1:
+        raise ImtuneError("the storage holds studies of different objectives ("
+                          + ", ".join(f"{k}: {v}" for k, v in sorted(counts.items()))
+                          + "), never ranked as one: add --objective " + " or ".join(sorted(counts)))
+    return studies
 
 
 def _frozen_trial(study):

@@ -594,28 +594,8 @@ def _collect(args):
         raise ImtuneError(f"unknown format {args.format!r} (choose {', '.join(FORMATS)})")
     sdir = _studies_dir(args)
     storage = open_storage(args.storage, heartbeat=None, studies_dir=sdir, must_exist=True)
-    return _one_objective(collect_studies(storage, task=args.task, studies_dir=sdir, warn=_warn),
-                          getattr(args, "objective", None))
-
-
-def _one_objective(studies: list, objective: str | None) -> list:
-    """The studies of one objective (``--objective``; a pareto study counts as mAA10, its first value); studies
-    that maximised different figures are never put in one table: ImtuneError naming them and the option."""
-    from tuner.study_identity import study_objective
-
-    def obj(s) -> str:
-        o = study_objective(s.attrs)
-        return "mAA10" if o == "pareto" else o
-    if objective:
-        return [s for s in studies if obj(s) == objective]
-    counts: dict[str, int] = {}
-    for s in studies:
-        counts[obj(s)] = counts.get(obj(s), 0) + 1
-    if len(counts) > 1:
-        raise ImtuneError("the storage holds studies of different objectives ("
-                          + ", ".join(f"{k}: {v}" for k, v in sorted(counts.items()))
-                          + "), never ranked as one: add --objective " + " or ".join(sorted(counts)))
-    return studies
+    return collect_studies(storage, task=args.task, studies_dir=sdir, warn=_warn,
+                           objective=getattr(args, "objective", None))
 
 
 def run_table(args) -> int:
