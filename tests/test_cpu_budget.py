@@ -57,7 +57,7 @@ def _fake_estimators():
 @pytest.fixture
 def fakes(monkeypatch):
     """The two fake estimators registered for the test only (the registry and the instance cache restored)."""
-    from pipeline.geometry import ESTIMATORS, _INSTANCES
+    from pipeline.geometry import _INSTANCES, ESTIMATORS
     sleeper, spinner = _fake_estimators()
     monkeypatch.setitem(ESTIMATORS._items, sleeper.name, sleeper)
     monkeypatch.setitem(ESTIMATORS._items, spinner.name, spinner)
@@ -81,7 +81,7 @@ def test_a_waiting_estimator_costs_no_cpu_seconds_and_a_computing_one_does(fakes
 def test_only_the_computing_estimator_counts_against_the_budget(fakes):
     """Known truth: the spinner's cost is Gamma x 2e-7 CPU s, so Gamma_max(0.1 s) = 500,000; the sleeper costs no CPU
     at any cap, so its Gamma_max is the ceiling (with wall time, as before, both gave ~500,000)."""
-    from tuner.budget import GAMMA_CEILING, Calibration, cap_timer, _measure
+    from tuner.budget import GAMMA_CEILING, Calibration, _measure, cap_timer
     sleeper, spinner = fakes
     p1, p2 = _points()
     matches = [(p1, p2, ((600.0, 600.0), (600.0, 600.0)))] * 3
@@ -149,7 +149,7 @@ def test_real_calibration_beside_two_cpu_hogs_measures_what_it_measures_alone():
         pytest.skip(str(e))
     from tuner.budget import cap_timer
     matches = _sift_matches(scene, [("0000.jpg", "0001.jpg"), ("0001.jpg", "0002.jpg")])
-    caps = (10_000, 40_000)
+    caps = (4_000, 16_000)
     with cap_timer("degensac", matches, 0.5, 0.999999, seed=0) as time_cap:
         time_cap(1000)  # warm up (imports, first-call allocations)
         quiet = _medians(time_cap, caps)
@@ -168,6 +168,7 @@ def test_real_calibration_beside_two_cpu_hogs_measures_what_it_measures_alone():
     for g in caps:
         q, h = quiet[g][0], loaded[g][0]
         assert q > 0 and h <= 1.6 * q and h >= q / 1.6, (g, quiet, loaded)
+    print("CPU, wall median s per pair (quiet, beside two hogs):", quiet, loaded)
 
 
 # -- wall-clock calibrations and studies stored before -----------------------------------------------------------------
