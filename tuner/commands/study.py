@@ -140,7 +140,7 @@ def register(sub) -> None:
     t.add_argument("--startup-trials", type=positive_int, default=None,
                    help="random trials before TPE models (default: n_trials / 5, between 3 and 10)")
     t.add_argument("--budget", type=positive_float, default=0.5,
-                   help="B: median estimator seconds per pair allowed on validation (default 0.5)")
+                   help="B: median estimator CPU seconds per pair allowed on validation (default 0.5)")
     t.add_argument("--test-budget", type=positive_float, default=1.0,
                    help="estimator seconds per pair allowed on test (default 1.0)")
     t.add_argument("--test-scenes", type=scene_list, default=None, help="comma-separated test scenes (default: the data set's test split)")
@@ -177,7 +177,7 @@ def register(sub) -> None:
     _storage_opts(c, storage=False)  # a calibration lives in <studies dir>/budgets.json, never in the storage
     c.add_argument("--storage", dest="refused_storage", type=_no_storage_for_calibrate, help=argparse.SUPPRESS)
     c.add_argument("--budget", type=positive_float, action="append", default=None,
-                   help="B: median estimator seconds per pair (repeatable) (default: 0.5 and 1.0)")
+                   help="B: median estimator CPU seconds per pair (repeatable) (default: 0.5 and 1.0)")
     c.add_argument("--pairs", type=positive_int, default=16, help="validation pairs timed per cap (default 16)")
     c.add_argument("--max-pairs", type=positive_int, default=None,
                    help="pairs per scene considered (default: every pair)")
@@ -203,7 +203,7 @@ def register(sub) -> None:
     te.add_argument("--max-pairs", type=positive_int, default=None,
                     help="at most N pairs per scene (evenly spread; default: the study's --max-pairs, else every pair)")
     te.add_argument("--test-budget", type=positive_float, default=None,
-                    help="median estimator seconds per pair allowed on test (default: the study's --test-budget, "
+                    help="median estimator CPU seconds per pair allowed on test (default: the study's --test-budget, "
                          "1.0 unless set)")
     te.add_argument("--cache", default=None, help="cache folder (else $IMTUNE_CACHE or ~/.cache/imtune)")
     te.add_argument("--reuse", action="store_true", help="return test.json as is when it matches the frozen settings")
