@@ -234,3 +234,20 @@ def test_a_study_timed_in_wall_clock_seconds_is_refused_with_one_line(tiny, tmp_
     rc, out, err = _cli([*run, "--n-trials", "2"], capsys)
     lines = err.strip().splitlines()
     assert rc == 2 and len(lines) == 1 and "wall-clock seconds" in lines[0] and "--study" in lines[0], err
+
+
+# -- what the records say ----------------------------------------------------------------------------------------------
+
+def test_summaries_report_cpu_and_wall_seconds_apart():
+    """Known truth: the budget statistic (ransac_seconds_median) is the median of the records' CPU seconds, the wall
+    median is reported beside it; a multiview summary gives the mean CPU seconds per bag beside the wall seconds."""
+    from pipeline.tasks.multiview import summarize_bags
+    from pipeline.tasks.stereo import StereoTask, summarize
+    recs = [{"err": 1.0, "NM": 10, "NI": 8, "match_seconds": 0.0, "ransac_seconds": c, "ransac_wall_seconds": w}
+            for c, w in [(0.1, 0.5), (0.2, 0.3), (0.3, 0.9)]]
+    s = summarize(recs, 100.0)
+    assert s["ransac_seconds_median"] == pytest.approx(0.2) and s["ransac_wall_seconds_median"] == pytest.approx(0.5)
+    assert StereoTask().budget_seconds(s) == pytest.approx(0.2)  # the budget bounds CPU time, not wall time
+    bag = {"success": True, "RC": 100.0, "NL": 10, "TL": 3.0, "errors": [1.0], "ATE": None, "NM": 5.0}
+    mv = summarize_bags([{**bag, "seconds": 4.0, "cpu_seconds": 6.0}, {**bag, "seconds": 2.0, "cpu_seconds": 2.0}])
+    assert mv["seconds"] == pytest.approx(3.0) and mv["cpu_seconds"] == pytest.approx(4.0)
