@@ -15,6 +15,12 @@ is printed beside each phase: on a shared machine "quiet" means "without our hog
     python benchmarks/cpu_budget.py                                  # DEGENSAC + cv-usac, fountain-P11, 2048 SIFT
     python benchmarks/cpu_budget.py --estimators degensac --pairs 4 --budget 0.25
     python benchmarks/cpu_budget.py --jobs 1 2 --hogs 2 1            # --jobs 1 with 2 hogs, --jobs 2 with 1 hog
+    python benchmarks/cpu_budget.py --thread-check --estimators degensac  # --jobs 1: what our other threads add
+
+``--thread-check``: in-process (``--jobs 1``) the budget's ``process_time`` also counts this process's other threads
+(tqdm's monitor, Optuna's heartbeat). It times the estimator on the calibration matches with a tqdm bar and a
+thread that wakes 20 times a second doing a little work, and prints process CPU vs the calling thread's CPU
+(``time.thread_time``; DEGENSAC is single-threaded, so the difference is what the other threads added).
 """
 from __future__ import annotations
 
@@ -146,6 +152,33 @@ def report(r: dict, budget: float) -> bool:
     return ok
 
 
+def thread_check(name: str, matches, eta: float, confidence: float, cap: int = 20_000, rounds: int = 5) -> None:
+    import threading
+
+    from tqdm.auto import tqdm
+
+    from pipeline.geometry import get_estimator
+    est = get_estimator(name)
+    stop = threading.Event()
+
+    def waker():  # far busier than Optuna's heartbeat thread (one write every heartbeat_interval seconds)
+        while not stop.wait(0.05):
+            sum(range(1000))
+    threading.Thread(target=waker, daemon=True).start()
+    proc = thread = 0.0
+    with tqdm(total=rounds * len(matches), mininterval=0.01, desc="thread check") as bar:
+        for k in range(rounds):
+            for p1, p2, sz in matches:
+                c0, t0 = time.process_time(), time.thread_time()
+                est.estimate(p1, p2, eta, confidence, cap, seed=k, sizes=sz)
+                proc += time.process_time() - c0
+                thread += time.thread_time() - t0
+                bar.update(1)
+    stop.set()
+    print(f"{name}, cap {cap:,}, {rounds * len(matches)} calls in this process: process CPU {proc:.3f} s, calling "
+          f"thread CPU {thread:.3f} s, excess {100 * (proc - thread) / max(thread, 1e-9):.2f}%; {_load()}")
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", default=None, help="data root (default: the project's default, ../shared/data/strecha)")
@@ -158,12 +191,17 @@ def main() -> int:
     p.add_argument("--jobs", type=int, nargs="+", default=[1, 2], help="estimator processes timed at once")
     p.add_argument("--hogs", type=int, nargs="+", default=[2, 1], help="hog processes beside each --jobs setting")
     p.add_argument("--cache", default=None, help="feature cache folder (default: imtune's)")
+    p.add_argument("--thread-check", action="store_true", help="only the in-process thread check (see the docstring)")
     a = p.parse_args()
     if len(a.hogs) != len(a.jobs):
         p.error("--hogs takes one number per --jobs setting")
     matches, eta, confidence = _matches(a)
     print(f"{len(matches)} pairs of {', '.join(a.scenes)}, SIFT {a.num_features}, eta {eta:g} px; "
           f"{os.cpu_count()} CPUs; {_load()}")
+    if a.thread_check:
+        for name in a.estimators:
+            thread_check(name, matches, eta, confidence)
+        return 0
     ok = True
     for name in a.estimators:
         for jobs, hogs in zip(a.jobs, a.hogs):
