@@ -156,7 +156,7 @@ def test_test_help_says_what_its_defaults_are(user):
     assert r.returncode == 0, r.stderr
     flat = " ".join(r.stdout.split())
     assert "(default: none)" not in flat, flat
-    for s in ("--test-budget TEST_BUDGET median estimator seconds per pair allowed on test (default: the study's",
+    for s in ("--test-budget TEST_BUDGET median estimator CPU seconds per pair allowed on test (default: the study's",
               "--max-pairs MAX_PAIRS at most N pairs per scene (evenly spread; default: the study's",
               "--cache CACHE cache folder (else $IMTUNE_CACHE or ~/.cache/imtune)",
               "--runs RUNS test runs, each with its own estimator seed, averaged (default: 3)",
@@ -194,7 +194,7 @@ def test_calibrate_help_states_one_true_default_each(user):
     flat = " ".join(r.stdout.split())
     options = flat.split("options:", 1)[1].split("pipeline:", 1)[0]  # calibrate's own options
     assert "(default: none)" not in options, options
-    for s in ("--budget BUDGET B: median estimator seconds per pair (repeatable) (default: 0.5 and 1.0)",
+    for s in ("--budget BUDGET B: median estimator CPU seconds per pair (repeatable) (default: 0.5 and 1.0)",
               "--calibration-ratio CALIBRATION_RATIO ratio test r of the timed matches (default: the search "
               "space's 'calibration' section)",
               "--calibration-threshold CALIBRATION_THRESHOLD eta (px) used while timing (default: the search "

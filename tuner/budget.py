@@ -10,6 +10,11 @@ Calibrations are stored per machine, estimator, feature configuration, calibrati
 in ``<studies dir>/budgets.json`` (written atomically under a file lock, so workers starting together
 measure once), and copied into each study's user attributes when the study is created.
 
+The seconds are CPU time (``clock: "cpu"``; :func:`pipeline.geometry.base.timed`): what neighbours on the machine do
+not change. The wall time of the same calls is kept beside it (``wall_curve``). A stored calibration without
+``clock`` was measured in wall-clock seconds (imtune before the CPU-time budget): it is never used, but measured
+again (and replaced) when next needed.
+
 ``jobs``: a study evaluates its pairs with ``jobs`` worker processes, so the estimator is timed with ``jobs``
 copies of it running at once (each in its own spawned process, started together at a barrier:
 :class:`pipeline.tasks.pool.ConcurrentRunner`); the curve's median is over every process's pairs. Gamma_max(B) then
@@ -18,7 +23,6 @@ of jobs is part of the stored calibration's key.
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import datetime as _dt
 import fcntl
@@ -37,6 +41,7 @@ from pipeline.errors import ImtuneError
 GAMMA_START = 100
 GAMMA_CEILING = 1_000_000
 BUDGETS_FILE = "budgets.json"
+CLOCK = "cpu"  # what the budget's seconds are: CPU time of the estimator call (a stored calibration without it: wall)
 
 
 @dataclass
@@ -44,8 +49,9 @@ class Calibration:
     """One measured cost curve.
 
     curve: [(max_iters, median seconds per pair, 90th-percentile seconds per pair), ...] sorted by
-    max_iters; pairs: how many pairs were timed per point; ratio / threshold: the matches and eta used;
-    ceiling: the largest cap ever allowed."""
+    max_iters, in CPU seconds when ``clock`` is "cpu" (wall seconds in a calibration stored without ``clock``);
+    wall_curve: the same in wall-clock seconds (reported, never budgeted); pairs: how many pairs were timed per
+    point; ratio / threshold: the matches and eta used; ceiling: the largest cap ever allowed."""
     estimator: str
     feature: dict
     ratio: float
@@ -58,6 +64,8 @@ class Calibration:
     ceiling: int = GAMMA_CEILING
     seconds: float = 0.0  # wall time the measurement took
     jobs: int = 1  # estimator processes timed at once (a study with --jobs N is calibrated with N)
+    clock: str = "wall"  # "cpu" (CLOCK) since the CPU-time budget; a stored entry without it is wall-clock seconds
+    wall_curve: list = dataclasses.field(default_factory=list)
 
     def gamma_max(self, budget: float) -> int:
         """Largest max_iters whose median estimator time per pair is <= ``budget`` seconds (on the curve's
@@ -236,7 +244,8 @@ def calibration_problem(d) -> str | None:
               ("threshold", lambda v: _is_real(v, 0.0, strict=True), "a number > 0"),
               ("pairs", lambda v: _is_int(v, 0), "an integer >= 0"),
               ("jobs", lambda v: _is_int(v, 1), "a positive integer"),
-              ("seconds", _is_real, "a finite number >= 0"))
+              ("seconds", _is_real, "a finite number >= 0"),
+              ("clock", lambda v: v in ("cpu", "wall"), '"cpu" or "wall"'))
     for key, ok, what in checks:
         if key in d and not ok(d[key]):
             return f"{key!r} must be {what}, got {d[key]!r}"
@@ -303,35 +312,50 @@ def calibration_matches(scenes, conf, cache, max_pairs: int = 8, progress: bool 
     return out
 
 
-def _time_cap(payload, g: int) -> list[float]:
-    """Estimator seconds of every calibration pair at cap ``g`` (``payload``: name, matches, eta, confidence, seed)."""
+def _time_cap(payload, g: int) -> list[tuple[float, float]]:
+    """(CPU seconds, wall seconds) of the estimator on every calibration pair at cap ``g`` (``payload``: name, matches,
+    eta, confidence, seed)."""
     from pipeline.geometry import get_estimator
     name, matches, threshold, confidence, seed = payload
     est = get_estimator(name)
-    return [float(est.estimate(p1, p2, threshold, confidence, int(g), seed=seed, sizes=sz).seconds)
-            for p1, p2, sz in matches]
+    out = []
+    for p1, p2, sz in matches:
+        r = est.estimate(p1, p2, threshold, confidence, int(g), seed=seed, sizes=sz)
+        out.append((float(r.seconds), float(r.wall_seconds)))
+    return out
+
+
+@contextmanager
+def cap_timer(estimator_name: str, matches, threshold: float, confidence: float, seed: int = 0, jobs: int = 1):
+    """``with cap_timer(...) as time_cap: time_cap(g)`` -> [(CPU s, wall s) per pair] of the estimator at cap ``g``;
+    ``jobs`` > 1: timed in ``jobs`` processes at once, each on all the pairs (their lists concatenated)."""
+    payload = (estimator_name, matches, threshold, confidence, seed)
+    if int(jobs) > 1:
+        from pipeline.tasks.pool import ConcurrentRunner
+        with ConcurrentRunner(int(jobs), payload) as run:
+            yield lambda g: [s for part in run(_time_cap, int(g)) for s in part]
+    else:
+        yield lambda g: _time_cap(payload, int(g))
 
 
 def measure_curve(estimator_name: str, matches, threshold: float, confidence: float, budget: float,
-                  seed: int = 0, ceiling: int = GAMMA_CEILING, progress: bool = False, jobs: int = 1) -> list:
-    """Time the estimator at increasing caps until the median time per pair exceeds ``budget``
+                  seed: int = 0, ceiling: int = GAMMA_CEILING, progress: bool = False, jobs: int = 1,
+                  wall_curve: list | None = None) -> list:
+    """Time the estimator at increasing caps until the median CPU time per pair exceeds ``budget``
     (the next cap is aimed just past the budget, so measuring costs a few times B per pair). ``jobs`` > 1: every
-    cap is timed in ``jobs`` processes at once, each on all the pairs; the statistics are over all of them."""
-    with contextlib.ExitStack() as stack:
-        payload = (estimator_name, matches, threshold, confidence, seed)
-        if int(jobs) > 1:
-            from pipeline.tasks.pool import ConcurrentRunner
-            run = stack.enter_context(ConcurrentRunner(int(jobs), payload))
-
-            def time_cap(g):
-                return [s for part in run(_time_cap, int(g)) for s in part]
-        else:
-            def time_cap(g):
-                return _time_cap(payload, int(g))
-        return _measure(estimator_name, time_cap, budget, ceiling, progress)
+    cap is timed in ``jobs`` processes at once, each on all the pairs; the statistics are over all of them.
+    ``wall_curve``: a list that receives the same points in wall-clock seconds."""
+    with cap_timer(estimator_name, matches, threshold, confidence, seed=seed, jobs=jobs) as time_cap:
+        return _measure(estimator_name, time_cap, budget, ceiling, progress, wall_curve=wall_curve)
 
 
-def _measure(estimator_name: str, time_cap, budget: float, ceiling: int, progress: bool) -> list:
+def _stats(secs) -> tuple[float, float]:
+    return float(np.median(secs)), float(np.percentile(secs, 90))
+
+
+def _measure(estimator_name: str, time_cap, budget: float, ceiling: int, progress: bool,
+             wall_curve: list | None = None) -> list:
+    """``time_cap(g)``: per pair, CPU seconds or (CPU seconds, wall seconds) at cap ``g``."""
     curve = []
     g = GAMMA_START
     bar = None
@@ -340,12 +364,15 @@ def _measure(estimator_name: str, time_cap, budget: float, ceiling: int, progres
         bar = tqdm(desc=f"calibrating {estimator_name}", unit="cap", leave=False)
     try:
         while True:
-            secs = time_cap(g)
-            med, p90 = float(np.median(secs)), float(np.percentile(secs, 90))
+            got = time_cap(g)
+            secs = [x[0] if isinstance(x, tuple) else x for x in got]
+            med, p90 = _stats(secs)
             curve.append((int(g), med, p90))
+            if wall_curve is not None:
+                wall_curve.append((int(g), *_stats([x[1] if isinstance(x, tuple) else x for x in got])))
             if bar is not None:
                 bar.update(1)
-                bar.set_postfix_str(f"Gamma={g} median={med * 1000:.1f} ms/pair")
+                bar.set_postfix_str(f"Gamma={g} median={med * 1000:.1f} CPU ms/pair")
             if med > budget or g >= ceiling:
                 break
             if g >= 100_000 and _flat(_envelope(curve)):
@@ -378,8 +405,8 @@ def calibrate(estimator_name: str, base_conf, scenes, cache, data_fingerprint: s
     store = Path(studies_dir) / BUDGETS_FILE if studies_dir is not None else None
     bmax = max(budgets)
 
-    def usable(c: Calibration | None) -> bool:
-        return c is not None and c.covers(bmax)
+    def usable(c: Calibration | None) -> bool:  # a wall-clock calibration (stored before CPU time) is measured again
+        return c is not None and c.clock == CLOCK and c.covers(bmax)
 
     if store is not None:
         _read_store(store)  # a damaged store is one line before the measuring, not after it
@@ -394,17 +421,19 @@ def calibrate(estimator_name: str, base_conf, scenes, cache, data_fingerprint: s
             if usable(c):
                 return c
         t0 = time.perf_counter()
+        wall: list = []
         if not getattr(cls, "uses_iterations", True):
             curve = [(1, 0.0, 0.0)]
         else:
             matches = calibration_matches(scenes, conf, cache, max_pairs=max_pairs, progress=progress)
             curve = measure_curve(estimator_name, matches, threshold, conf.geometry.confidence, bmax,
-                                  seed=seed, progress=progress, jobs=jobs)
+                                  seed=seed, progress=progress, jobs=jobs, wall_curve=wall)
         cal = Calibration(estimator=estimator_name, feature=dataclasses.asdict(conf.feature), ratio=float(ratio),
                           threshold=float(threshold), pairs=int(min(max_pairs, sum(len(p) for _, p in scenes))),
                           curve=[list(c) for c in curve], host=socket.gethostname(),
                           created=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-                          data_fingerprint=data_fingerprint, seconds=time.perf_counter() - t0, jobs=int(jobs))
+                          data_fingerprint=data_fingerprint, seconds=time.perf_counter() - t0, jobs=int(jobs),
+                          clock=CLOCK, wall_curve=[list(c) for c in wall])
         if store is not None:
             data = _read_store(store)
             data[key] = cal.to_dict()

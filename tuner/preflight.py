@@ -77,7 +77,7 @@ def pinned_gamma_warning(s, space, fingerprint: str | None = None) -> str | None
     ransac = s.base.geometry.ransac
     if not getattr(ESTIMATORS.get(ransac), "uses_iterations", True):
         return None
-    from tuner.budget import GAMMA_CEILING, calibration_key, stored_calibration
+    from tuner.budget import CLOCK, GAMMA_CEILING, calibration_key, stored_calibration
     cal = None
     if fingerprint is not None and s.studies_dir is not None:
         from pipeline.tasks.pool import resolve_jobs
@@ -85,7 +85,7 @@ def pinned_gamma_warning(s, space, fingerprint: str | None = None) -> str | None
         key = calibration_key(ransac, s.base.feature, float(cal_conf.get("ratio", 0.9)),
                               float(cal_conf.get("threshold", 0.5)), fingerprint, jobs=resolve_jobs(s.jobs))
         cal = stored_calibration(Path(s.studies_dir), key)
-    if cal is not None and cal.covers(s.budget):
+    if cal is not None and cal.clock == CLOCK and cal.covers(s.budget):  # a wall-clock one is measured again
         gmax = cal.gamma_max(s.budget)
         basis = f"Gamma_max({s.budget:g} s) = {gmax:,} calibrated for {ransac} on this machine"
     else:

@@ -252,7 +252,7 @@ def setup_study(s: TuneSettings) -> StudyContext:
         mine["budget"].update(gamma_max=gmax, gamma_max_test=cal.gamma_max(s.test_budget) if cal and cal.covers(s.test_budget) else None,
                               calibration=cal.to_dict() if cal else None)
         if pareto:
-            mine["objective"] = {"name": "pareto", "values": ["mAA10", "median estimator seconds per pair"],
+            mine["objective"] = {"name": "pareto", "values": ["mAA10", "median estimator CPU seconds per pair"],
                                  "directions": ["maximize", "minimize"], "pareto_span": float(s.pareto_span)}
             mine["budget"]["gamma_max_front"] = cal.gamma_max(s.budget * s.pareto_span) if cal else None
         if s.objective in AUC_OBJECTIVES:

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from pipeline.config import PipelineConfig
 from pipeline.errors import ImtuneError
+from tuner.budget import CLOCK
 from tuner.version import code_version
 
 # mAA10: maximise mAA(10 deg) within the budget B; pareto: a two-objective study (maximise mAA(10 deg), minimise
@@ -102,6 +103,10 @@ def check_compatible(name: str, stored: dict, mine: dict) -> None:
             diff = _first_difference(norm(stored.get(key)), norm(mine.get(key)))
             raise IncompatibleStudy(f"study {name!r} exists with {what} ({diff}); rerun with its original settings "
                                     "or name a new study with --study")
+    if mine.get("budget_clock") and stored.get("budget_clock") != mine["budget_clock"]:
+        raise IncompatibleStudy(f"study {name!r} was timed in wall-clock seconds (made before imtune's budget became "
+                                "estimator CPU time), so its trials cannot be mixed with CPU-time ones; name a new "
+                                "study with --study")
     b_old = (stored.get("budget") or {}).get("seconds_per_pair")
     b_new = mine["budget"]["seconds_per_pair"]
     if b_old is not None and not math.isclose(float(b_old), float(b_new)):
@@ -130,7 +135,10 @@ def study_identity(s, task, space, vs, base: PipelineConfig) -> dict:
                  # on them (pairs an SfM ground truth dropped): what the reports say beside validation figures
                  "ground_truth": ground_truth_origins(vs.scene_objs), "notes": vs.notes},
         "budget": {"seconds_per_pair": float(s.budget), "test_seconds_per_pair": float(s.test_budget),
-                   "statistic": "median estimator seconds per pair"},
+                   "statistic": "median estimator CPU seconds per pair"},
+        # the clock of every estimator time the study records (a study without it: wall-clock seconds, refused when
+        # resumed by check_compatible); None for a task that times no estimator of ours
+        "budget_clock": CLOCK if getattr(task, "timed", False) else None,
         "code_version": code_version(),
         "seed": int(s.seed or 0),
     }

@@ -5,7 +5,7 @@
                    seed=0, sizes=((w1, h1), (w2, h2)))
     res.F        # (3, 3) float64, x2^T F x1 = 0, ||F||_F = 1; None if the estimator failed
     res.inliers  # (M,) bool
-    res.seconds  # wall time of the library call alone (what the time budget B is measured on)
+    res.seconds  # CPU time of the library call alone (what the time budget B is measured on); res.wall_seconds: wall time
 
 Names (``ESTIMATORS.names()``; availability with ``ESTIMATORS.availability()``):
 ``pyransac``, ``degensac`` (pydegensac); ``magsac``, ``magsac++`` (pymagsac); ``gcransac``

@@ -13,11 +13,17 @@ compared on equal terms:
   homogeneous pixel coordinates) and Frobenius norm 1; a stacked (3k, 3) output (several 7-point
   solutions) is reduced to the solution with most inliers; a non-finite or zero F, a library
   exception, or a model with fewer than 8 inliers is a failure (``F=None``, all-False mask);
-- timing: ``seconds`` is ``time.perf_counter`` around the library call only (no validation, no
-  array packing, no post-processing).
+- timing: ``seconds`` is CPU time (``time.process_time``: every thread of the process, so the threads a
+  library starts count too) around the library call only (no validation, no array packing, no
+  post-processing); it is what the time budget B bounds, and it does not grow when other processes
+  share the cores. ``wall_seconds`` is ``time.perf_counter`` around the same call, recorded beside it.
+  In the main process (``--jobs 1``) other threads of ours (tqdm's monitor, Optuna's heartbeat) also
+  count, but they sleep almost all the time; the calling thread's CPU alone (``time.thread_time``) would
+  miss the library's own threads (OpenCV, COLMAP), which is worse.
 """
 from __future__ import annotations
 
+import threading
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
@@ -36,10 +42,12 @@ Sizes = tuple[tuple[float, float], tuple[float, float]]
 class EstimateResult:
     """F: (3, 3) float64 fundamental matrix with x2^T F x1 = 0 and ||F||_F = 1, or None when the
     estimator failed; inliers: (M,) bool mask over the input matches (all False on failure);
-    seconds: wall time (s) of the library call alone."""
+    seconds: CPU time (s, all threads of the process) of the library call alone, the budgeted figure;
+    wall_seconds: wall time (s) of the same call."""
     F: np.ndarray | None
     inliers: np.ndarray
     seconds: float
+    wall_seconds: float = 0.0
 
     @property
     def ok(self) -> bool:
@@ -54,25 +62,32 @@ class EstimateResult:
 class RawSolution:
     """What a backend's ``_solve`` hands back: the library's F (any (3k, 3) stack, any convention
     already converted to x2^T F x1 = 0, or None), its inlier mask (None: recompute from F by
-    Sampson distance <= threshold), and the seconds of the library call."""
+    Sampson distance <= threshold), and the CPU seconds of the library call (``timed``)."""
     F: np.ndarray | None
     mask: np.ndarray | None
     seconds: float
 
 
 class _Timer:
-    seconds: float = 0.0
+    seconds: float = 0.0  # CPU time (process_time)
+    wall_seconds: float = 0.0  # wall time (perf_counter)
+
+
+_LAST = threading.local()  # the last timer a thread stopped: ``estimate`` reads its wall time from there
 
 
 @contextmanager
 def timed() -> Iterator[_Timer]:
-    """``with timed() as t: lib_call()`` -> ``t.seconds``; the timer stops even if the call raises."""
+    """``with timed() as t: lib_call()`` -> ``t.seconds`` (CPU time of the process, every thread: the budgeted
+    figure) and ``t.wall_seconds``; the timer stops even if the call raises."""
     t = _Timer()
-    t0 = time.perf_counter()
+    _LAST.timer = t
+    w0, c0 = time.perf_counter(), time.process_time()
     try:
         yield t
     finally:
-        t.seconds = time.perf_counter() - t0
+        t.seconds = time.process_time() - c0
+        t.wall_seconds = time.perf_counter() - w0
 
 
 def sampson_distance(F: np.ndarray, pts1: np.ndarray, pts2: np.ndarray) -> np.ndarray:
@@ -168,10 +183,14 @@ class Estimator(ABC):
             sizes = sizes_from_points(p1, p2)
         try:
             max_iters = min(max(int(max_iters), 1), MAX_ITERS)
+            _LAST.timer = None
             raw = self._solve(p1, p2, float(threshold), float(confidence), max_iters, int(seed), sizes)
         except Exception:  # noqa: BLE001 - a library error is a recorded failure, never a crash
             return self._failure(m)
-        return self._finish(raw, p1, p2, float(threshold))
+        res = self._finish(raw, p1, p2, float(threshold))
+        t = getattr(_LAST, "timer", None)  # the backend's ``timed()`` (None: it timed nothing)
+        res.wall_seconds = float(t.wall_seconds) if t is not None else 0.0
+        return res
 
     @abstractmethod
     def _solve(self, pts1: np.ndarray, pts2: np.ndarray, threshold: float, confidence: float,

@@ -140,7 +140,7 @@ def register(sub) -> None:
     t.add_argument("--startup-trials", type=positive_int, default=None,
                    help="random trials before TPE models (default: n_trials / 5, between 3 and 10)")
     t.add_argument("--budget", type=positive_float, default=0.5,
-                   help="B: median estimator seconds per pair allowed on validation (default 0.5)")
+                   help="B: median estimator CPU seconds per pair allowed on validation (default 0.5)")
     t.add_argument("--test-budget", type=positive_float, default=1.0,
                    help="estimator seconds per pair allowed on test (default 1.0)")
     t.add_argument("--test-scenes", type=scene_list, default=None, help="comma-separated test scenes (default: the data set's test split)")
@@ -172,12 +172,12 @@ def register(sub) -> None:
     from tuner.cli import RESUME_NOTE
     ap.set_defaults(func=run, on_interrupt=RESUME_NOTE)
 
-    c = sub.add_parser("calibrate", help="measure estimator seconds per pair vs max-iters; store Gamma_max(B)")
+    c = sub.add_parser("calibrate", help="measure estimator CPU seconds per pair vs max-iters; store Gamma_max(B)")
     add_pipeline_options(c, tuning=True)
     _storage_opts(c, storage=False)  # a calibration lives in <studies dir>/budgets.json, never in the storage
     c.add_argument("--storage", dest="refused_storage", type=_no_storage_for_calibrate, help=argparse.SUPPRESS)
     c.add_argument("--budget", type=positive_float, action="append", default=None,
-                   help="B: median estimator seconds per pair (repeatable) (default: 0.5 and 1.0)")
+                   help="B: median estimator CPU seconds per pair (repeatable) (default: 0.5 and 1.0)")
     c.add_argument("--pairs", type=positive_int, default=16, help="validation pairs timed per cap (default 16)")
     c.add_argument("--max-pairs", type=positive_int, default=None,
                    help="pairs per scene considered (default: every pair)")
@@ -203,7 +203,7 @@ def register(sub) -> None:
     te.add_argument("--max-pairs", type=positive_int, default=None,
                     help="at most N pairs per scene (evenly spread; default: the study's --max-pairs, else every pair)")
     te.add_argument("--test-budget", type=positive_float, default=None,
-                    help="median estimator seconds per pair allowed on test (default: the study's --test-budget, "
+                    help="median estimator CPU seconds per pair allowed on test (default: the study's --test-budget, "
                          "1.0 unless set)")
     te.add_argument("--cache", default=None, help="cache folder (else $IMTUNE_CACHE or ~/.cache/imtune)")
     te.add_argument("--reuse", action="store_true", help="return test.json as is when it matches the frozen settings")
@@ -490,11 +490,14 @@ def run_calibrate(args) -> int:
         return 0
     print(f"{cal.estimator} on {cal.pairs} validation pairs of {', '.join(vs.scene_names)} "
           f"({conf.feature.name} {conf.feature.num_features}, r={cal.ratio:g}, eta={cal.threshold:g} px; "
-          f"host {cal.host}; measured {cal.created})")
-    rows = [{"max_iters": g, "median s/pair": m, "p90 s/pair": p} for g, m, p in cal.curve]
-    print(render(rows, "markdown", ["max_iters", "median s/pair", "p90 s/pair"]))
+          f"host {cal.host}; measured {cal.created}); estimator CPU time per pair (what the budget bounds), "
+          "wall time beside it")
+    wall = {int(w[0]): w[1] for w in cal.wall_curve}
+    rows = [{"max_iters": g, "median CPU s/pair": m, "p90 CPU s/pair": p, "median wall s/pair": wall.get(int(g))}
+            for g, m, p, *_ in cal.curve]
+    print(render(rows, "markdown", ["max_iters", "median CPU s/pair", "p90 CPU s/pair", "median wall s/pair"]))
     for b, g in caps.items():
-        print(f"Gamma_max({b} s) = {g}")
+        print(f"Gamma_max({b} s) = {g} (median CPU s per pair)")
     return 0
 
 
