@@ -10,7 +10,9 @@
 Names (``ESTIMATORS.names()``; availability with ``ESTIMATORS.availability()``):
 ``pyransac``, ``degensac`` (pydegensac); ``magsac``, ``magsac++`` (pymagsac); ``gcransac``
 (pygcransac); ``cv-ransac``, ``cv-usac``, ``cv-magsac``, ``cv-accurate``, ``cv-lmeds``, ``cv-8pt``
-(OpenCV); ``poselib`` (PoseLib); ``colmap`` (pycolmap). Each backend module documents the
+(OpenCV); ``poselib`` (PoseLib); ``colmap`` (pycolmap); ``superansac`` (pysuperansac).
+Calibrated (``model = "E"``, need K1, K2; ``pipeline.geometry.essential``): ``poselib-e``, ``cv-e-ransac``,
+``cv-e-magsac``, ``colmap-e``, ``superansac-e``. Each backend module documents the
 conventions of its library (threshold meaning, image-size order, seeds, quirks).
 Backend libraries are imported lazily, at the first estimate, so importing this package is cheap.
 """
@@ -26,7 +28,7 @@ from pipeline.geometry.registry import ESTIMATORS
 # isort: off
 from pipeline.geometry import (  # noqa: F401
     pydegensac_backend, magsac_backend, gcransac_backend, opencv_backend, poselib_backend,
-    colmap_backend,
+    colmap_backend, superansac_backend,
 )
 # isort: on
 
