@@ -97,3 +97,14 @@ def test_stereo_task_takes_the_pose_from_E():
                           sizes=pr.sizes, K1=pr.K1, K2=pr.K2)
     assert pr.record["failure"] is None and pr.record["err"] < 1.0
     assert np.allclose(pr.R, direct.R) and np.allclose(pr.t, direct.t)
+
+
+@pytest.mark.parametrize("name,space", [("poselib-e", "degensac.yaml"), ("cv-e-ransac", "degensac.yaml"),
+                                        ("colmap-e", "degensac.yaml"), ("cv-e-magsac", "magsac.yaml"),
+                                        ("superansac-e", "magsac.yaml"), ("superansac", "magsac.yaml")])
+def test_default_search_space(name, space):
+    """E estimators take eta in px: the DEGENSAC-like (0.1-2 px) or, MAGSAC-scored, the MAGSAC-like (0.5-10 px) space."""
+    from tuner.space import default_space_file, load_space
+    assert default_space_file(name).name == space
+    th = load_space(estimator=name).params["threshold"]
+    assert (th.low, th.high) == ((0.1, 2.0) if space == "degensac.yaml" else (0.5, 10.0))
