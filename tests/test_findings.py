@@ -652,8 +652,8 @@ def test_scene_names_as_one_string_from_python_are_split_at_commas(subset, tmp_p
     assert (fs.val_scenes, fs.test_scenes, fs.only, fs.data_root) == (["fountain-P11"], ["entry-P10"], [1, 4], subset)
 
 def test_bad_only_is_one_line(capsys):
-    rc, out, err = _cli(["findings", "--only", "1,13"], capsys)
-    assert rc == 2 and err.count("\n") == 1 and "no finding 13" in err
+    rc, out, err = _cli(["findings", "--only", "1,14"], capsys)
+    assert rc == 2 and err.count("\n") == 1 and "no finding 14" in err
 
 
 def test_findings_on_other_data_share_the_storage_and_a_copy_reuses_the_studies(subset, tmp_path, monkeypatch,
