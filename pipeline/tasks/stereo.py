@@ -263,7 +263,8 @@ def stratified_steps(counts: list[int], step_pairs: int | None) -> list[list[tup
     return [sorted(st) for st in steps if st]
 
 
-@TASKS.register("stereo", "two-view pose from F (E = K2^T F K1, recoverPose); mAA over pose errors")
+@TASKS.register("stereo", "two-view pose from F (E = K2^T F K1, recoverPose) or from an E estimator given K1, K2; "
+                "mAA over pose errors")
 class StereoTask(Task):
     """The paper's stereo task over each scene's pairs with co-visibility >= ``min_covisibility`` (all listed
     pairs where it is unknown), at most ``max_pairs`` per scene (evenly spread; None = all).
@@ -287,7 +288,7 @@ class StereoTask(Task):
     columns = ("pairs", "NF", "NM", "NI", "mAA5", "mAA10", "auc10", "failed", "match_seconds", "ransac_seconds")
     records_key = "pair_records"
     timed = True
-    note = "pose from F; mAA over 1..5 / 1..10 deg; auc10: pose AUC@10 deg (SuperGlue's trapezoid); seconds per pair"
+    note = "pose from F (or E, calibrated estimators); mAA over 1..5 / 1..10 deg; auc10: pose AUC@10 deg (SuperGlue's trapezoid); seconds per pair"
     units_label = "stereo pairs"
     test_figures = ("NF: features per image; per estimator NI: inliers per pair and mAA(10°) [95% interval over pairs "
                     "and runs]")
