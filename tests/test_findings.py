@@ -900,7 +900,8 @@ def _finding_2_with_magsac_equal_to_gcransac() -> dict:
     worst; gcransac's errors are magsac's (their difference exactly 0)."""
     rng = np.random.default_rng(1)
     base = {(sc, i): float(rng.uniform(0.1, 1.0)) for sc in ("s1", "s2") for i in range(30)}
-    level = {"degensac": 0.0, "magsac": 2.0, "gcransac": 2.0, "pyransac": 4.0, "cv-ransac": 12.0}
+    level = {"degensac": 0.0, "magsac": 2.0, "gcransac": 2.0, "pyransac": 4.0, "cv-ransac": 12.0,
+             "superansac": 1.0}  # SupeRANSAC: ranked, in no claimed relation
     outcomes = {r: _outcome(r, [{p: e + level[r] for p, e in base.items()}]) for r in BY_ID[2].studies}
     return A.analyse(BY_ID[2], outcomes, n_resamples=500)
 
