@@ -90,8 +90,13 @@ def test_list_shows_availability():
     assert rows[("feature", "sift")]["available"] == "yes"
     assert rows[("feature", "surf")]["available"] == "no" and rows[("feature", "surf")]["note"]
     for name in ("pyransac", "degensac", "magsac", "magsac++", "gcransac", "cv-ransac", "cv-usac", "cv-magsac",
-                 "cv-accurate", "cv-lmeds", "cv-8pt", "poselib", "colmap"):
+                 "cv-accurate", "cv-lmeds", "cv-8pt", "poselib", "colmap", "superansac"):
         assert rows[("estimator", name)]["available"] == "yes", name
+        assert rows[("estimator", name)]["model"] == "F", name
+    for name in ("poselib-e", "cv-e-ransac", "cv-e-magsac", "colmap-e", "superansac-e"):  # calibrated (issue 33)
+        assert rows[("estimator", name)]["available"] == "yes" and rows[("estimator", name)]["model"] == "E", name
+    assert all("model" in x for x in rows.values() if x["family"] == "estimator")
+    assert all("model" not in x for x in rows.values() if x["family"] != "estimator")
 
 
 def test_scene_without_ground_truth_says_so(sacre_coeur, module_cache, tmp_path):

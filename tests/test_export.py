@@ -72,3 +72,94 @@ def test_json_hloc_colmap_and_refusals(studies, tuner_cache):  # noqa: F811
         assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and r.stdout == "", (est, fmt, r.stderr)
     r = tune("export", "--study", "missing", "--studies-dir", str(studies), cache=tuner_cache)
     assert r.returncode == 2 and "no frozen settings" in r.stderr
+
+
+# -- the E estimators (model "E") and SupeRANSAC ---------------------------------------------------------------------
+E_FAMILIES = {"cv-e-ransac": "opencv", "cv-e-magsac": "opencv", "poselib-e": "poselib", "colmap-e": "pycolmap",
+              "superansac-e": None, "superansac": None}  # SupeRANSAC: no native format (json, hloc only)
+NATIVE = ("opencv", "poselib", "colmap", "pycolmap")
+
+
+@pytest.fixture(scope="module")
+def e_studies(tmp_path_factory, tuner_cache):  # noqa: F811
+    d = tmp_path_factory.mktemp("export-e")
+    for est in E_FAMILIES:
+        tune(*quick(d, "--n-trials", "1", "--study", est, "--no-test", ransac=est, pairs=4), cache=tuner_cache,
+             check=True)
+    return d
+
+
+def synthetic_pose():
+    """synthetic()'s correspondences with their camera K (both images) and the true pose (R, unit t)."""
+    a = 0.1
+    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    t = np.array([2.0, 0.0, 0.3])
+    K = np.array([[800.0, 0, 512], [0, 800, 384], [0, 0, 1]])
+    p1, p2 = synthetic()
+    return p1, p2, K, R, t / np.linalg.norm(t)
+
+
+@pytest.mark.parametrize("est", [e for e, f in E_FAMILIES.items() if f])
+def test_e_snippet_recovers_the_pose(e_studies, tuner_cache, est):  # noqa: F811
+    """Each E study exports in its own format; the printed call, run with the real library on calibrated synthetic
+    correspondences, recovers the true relative pose (rotation and translation direction within 0.5 deg)."""
+    from pipeline.colmap_db import import_pycolmap
+    from pipeline.metrics.pose import pose_error_deg
+    fmt = E_FAMILIES[est]
+    r = export(e_studies, est, fmt, tuner_cache)
+    assert r.returncode == 0, r.stderr
+    p1, p2, K, R, t = synthetic_pose()
+    ns: dict = {"pts1": p1, "pts2": p2, "K1": K, "K2": K}
+    params = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
+    if est == "poselib-e":
+        ns["camera1"] = ns["camera2"] = {"model": "PINHOLE", "width": 1024, "height": 768, "params": params}
+    if est == "colmap-e":
+        cam = import_pycolmap().Camera(model="PINHOLE", width=1024, height=768, params=params)
+        ns["camera1"] = ns["camera2"] = cam
+    exec(r.stdout, ns)  # noqa: S102 (the printed call, run as a user pastes it)
+    if "pose" in ns:
+        R_est, t_est = ns["pose"].R, ns["pose"].t
+    elif "res" in ns:
+        R_est, t_est = ns["res"]["cam2_from_cam1"].rotation.matrix(), ns["res"]["cam2_from_cam1"].translation
+    else:
+        R_est, t_est = ns["R"], ns["t"]
+    assert pose_error_deg(R, t, np.asarray(R_est), np.asarray(t_est).reshape(3))[0] < 0.5
+
+
+def test_colmap_e_ini_names_exist_in_pycolmap(e_studies, tuner_cache):  # noqa: F811
+    """Every option the COLMAP .ini export prints is one COLMAP's option manager registers (src/colmap/controllers/
+    option_manager.cc, AddTwoViewGeometryOptions / AddFeatureMatchingOptions: it has no TwoViewGeometry.min_num_trials,
+    which the export printed before) and a field of pycolmap 4.2.1's option objects: [TwoViewGeometry] keys of
+    RANSACOptions (TwoViewGeometryOptions.ransac) or TwoViewGeometryOptions, [SiftMatching] of SiftMatchingOptions."""
+    from pipeline.colmap_db import import_pycolmap
+    pc = import_pycolmap()
+    registered = {"TwoViewGeometry": {"min_num_inliers", "multiple_models", "compute_relative_pose", "max_error",
+                                      "confidence", "max_num_trials", "min_inlier_ratio", "random_seed"},
+                  "SiftMatching": {"max_ratio", "max_distance", "cross_check", "cpu_brute_force_matcher"}}
+    tvg = pc.TwoViewGeometryOptions()
+    fields = {"TwoViewGeometry": set(dir(tvg)) | set(dir(tvg.ransac)), "SiftMatching": set(dir(pc.SiftMatchingOptions()))}
+    text = export(e_studies, "colmap-e", "colmap", tuner_cache).stdout
+    section, seen = None, 0
+    for line in text.splitlines():
+        if line.startswith("["):
+            section = line.strip("[]")
+        elif line and not line.startswith("#"):
+            key = line.split("=", 1)[0]
+            assert key in registered[section] and key in fields[section], (section, key)
+            seen += 1
+    assert seen >= 3
+    py = export(e_studies, "colmap-e", "pycolmap", tuner_cache).stdout
+    for attr in [ln.split(".", 1)[1].split(" =")[0] for ln in py.splitlines() if ln.startswith("opts.")]:
+        assert hasattr(pc.RANSACOptions(), attr), attr
+
+
+@pytest.mark.parametrize("est", list(E_FAMILIES))
+def test_e_studies_refuse_other_formats(e_studies, tuner_cache, est):  # noqa: F811
+    for fmt in NATIVE:
+        if fmt == E_FAMILIES[est] or (est == "colmap-e" and fmt == "colmap"):
+            continue
+        r = export(e_studies, est, fmt, tuner_cache)
+        assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and r.stdout == "", (est, fmt, r.stderr)
+        assert est in r.stderr
+    js = json.loads(export(e_studies, est, "json", tuner_cache).stdout)
+    assert js["settings"]["estimator"] == est

@@ -168,8 +168,8 @@ def test_unavailable_feature_gives_reason():
 
 def test_table_names_are_consistent():
     """One study name = one configuration: specs shared between findings have identical settings, and every id
-    1-12 is defined once."""
-    assert [f.id for f in FINDINGS] == list(range(1, 13))
+    1-13 is defined once."""
+    assert [f.id for f in FINDINGS] == list(range(1, 14))
     for quick in (True, False):
         fs = FindingsSettings(data_root=DATA, quick=quick)
         seen = {}
@@ -185,7 +185,7 @@ def test_one_configuration_is_one_study():
     """The converse: no configuration is tuned twice under two names. With the full run's 8k default, finding 9's
     8k side is finding 2's SIFT + DEGENSAC (it was a second, identical 50-trial study); with --quick (2k) its 2k
     side is."""
-    for quick, expected in ((False, 20), (True, 20)):
+    for quick, expected in ((False, 22), (True, 22)):  # 20, + SupeRANSAC (2), PoseLib E (13)
         fs = FindingsSettings(data_root=DATA, quick=quick)
         m = fs.mode()["num_features"]
         names = {}
@@ -254,7 +254,7 @@ def test_findings_1_and_4_end_to_end(subset, tmp_path, monkeypatch, capsys):
     assert rc == 0, err
     res = json.loads(out)
     assert set(res) == {"findings", "report"}
-    assert [f["id"] for f in res["findings"]] == list(range(1, 13))  # every finding, those not run said so
+    assert [f["id"] for f in res["findings"]] == list(range(1, 14))  # every finding, those not run said so
     assert [f["id"] for f in res["findings"] if f["this_run"] == "ran"] == [1, 4]
     on_disk = json.loads((sdir / "findings" / "findings.json").read_text())
     assert on_disk == res
@@ -389,7 +389,7 @@ def test_a_subset_run_keeps_every_finding_in_the_report(subset, tmp_path, monkey
     assert rc == 0, err
     res = json.loads(out)
     assert res == json.loads((sdir / "findings" / "findings.json").read_text())  # --json prints findings.json
-    assert [f["id"] for f in res["findings"]] == list(range(1, 13))
+    assert [f["id"] for f in res["findings"]] == list(range(1, 14))
     by = {f["id"]: f for f in res["findings"]}
     assert f1["this_run"] == "ran" and [f["id"] for f in first["findings"] if f["this_run"] == "ran"] == [1]
     assert by[3]["this_run"] == "ran" and by[3]["verdict"] in ("holds", "does not hold", "inconclusive")
@@ -406,7 +406,7 @@ def test_a_subset_run_keeps_every_finding_in_the_report(subset, tmp_path, monkey
     from tuner.cli import build_parser
     from tuner.commands.findings import settings
     cli = build_parser()
-    for i in range(1, 13):
+    for i in range(1, 14):
         if i in (1, 3):
             continue
         f = by[i]
@@ -419,7 +419,7 @@ def test_a_subset_run_keeps_every_finding_in_the_report(subset, tmp_path, monkey
         assert [study_name(sp, fs) for sp in BY_ID[i].studies.values()] == \
             [study_name(sp, mine) for sp in BY_ID[i].studies.values()]
     # finding 2 waits for the studies it lacks, not for the one finding 1 ran (its cv-ransac is finding 1's tuned)
-    assert set(by[2]["measured"]["pending"]) == {"magsac", "degensac", "gcransac", "pyransac"}
+    assert set(by[2]["measured"]["pending"]) == {"magsac", "degensac", "gcransac", "pyransac", "superansac"}
     md = (sdir / "findings" / "report.md").read_text()
     html = (sdir / "findings" / "report.html").read_text()
     head = md.splitlines()[2]
@@ -430,8 +430,8 @@ def test_a_subset_run_keeps_every_finding_in_the_report(subset, tmp_path, monkey
     trials3 = sum(w["trials"] for w in n3.values())
     assert head.startswith(f"- this run: finding 3 (--only 3); new in their 2 studies: trials in 1 ({trials3} trial"
                            f"{'s' * (trials3 != 1)}), test runs in 1; re-analysed from their finished studies in the "
-                           "storage (no new trial or test run): 1; not run yet: 2, 4-12"), head
-    for i in range(1, 13):
+                           "storage (no new trial or test run): 1; not run yet: 2, 4-13"), head
+    for i in range(1, 14):
         assert f"<section id='finding-{i}'>" in html and f"\n## {i}. " in md
     assert f"| 1 | {BY_ID[1].title} | {f1['verdict']} |" in md and "not run yet" in html
     assert len(optuna.get_all_study_names(storage)) == 3  # defaults, tuned, gamma1000: nothing else created
@@ -505,7 +505,7 @@ def test_too_few_scenes_lists_every_finding_with_reason(subset, tmp_path, monkey
                          "--json"], capsys)
     assert rc == 0, err
     res = json.loads(out)
-    assert [f["id"] for f in res["findings"]] == list(range(1, 13))
+    assert [f["id"] for f in res["findings"]] == list(range(1, 14))
     for f in res["findings"]:
         assert set(f) == KEYS and f["verdict"] == "not run" and f["studies"] == []
         # one scene in all: a split cannot help, the reason says what can
@@ -616,7 +616,7 @@ def test_a_negative_seed_from_python_fails_before_any_study(subset, tmp_path):
 
 @pytest.mark.parametrize("field,value,said", [
     ("only", [], "only must be None (every finding) or a non-empty list"),  # ran all twelve findings
-    ("only", [99], "finding ids 1-12, got [99]"),  # KeyError
+    ("only", [99], "finding ids 1-13, got [99]"),  # KeyError
     ("only", ["1"], "got ['1']"),  # KeyError
     ("only", 1, "got 1"),  # TypeError
     ("trials", 0, "trials must be None (the mode's value) or an integer >= 1, got 0"),  # every study "not run"
@@ -652,8 +652,8 @@ def test_scene_names_as_one_string_from_python_are_split_at_commas(subset, tmp_p
     assert (fs.val_scenes, fs.test_scenes, fs.only, fs.data_root) == (["fountain-P11"], ["entry-P10"], [1, 4], subset)
 
 def test_bad_only_is_one_line(capsys):
-    rc, out, err = _cli(["findings", "--only", "1,13"], capsys)
-    assert rc == 2 and err.count("\n") == 1 and "no finding 13" in err
+    rc, out, err = _cli(["findings", "--only", "1,14"], capsys)
+    assert rc == 2 and err.count("\n") == 1 and "no finding 14" in err
 
 
 def test_findings_on_other_data_share_the_storage_and_a_copy_reuses_the_studies(subset, tmp_path, monkeypatch,
@@ -900,7 +900,8 @@ def _finding_2_with_magsac_equal_to_gcransac() -> dict:
     worst; gcransac's errors are magsac's (their difference exactly 0)."""
     rng = np.random.default_rng(1)
     base = {(sc, i): float(rng.uniform(0.1, 1.0)) for sc in ("s1", "s2") for i in range(30)}
-    level = {"degensac": 0.0, "magsac": 2.0, "gcransac": 2.0, "pyransac": 4.0, "cv-ransac": 12.0}
+    level = {"degensac": 0.0, "magsac": 2.0, "gcransac": 2.0, "pyransac": 4.0, "cv-ransac": 12.0,
+             "superansac": 1.0}  # SupeRANSAC: ranked, in no claimed relation
     outcomes = {r: _outcome(r, [{p: e + level[r] for p, e in base.items()}]) for r in BY_ID[2].studies}
     return A.analyse(BY_ID[2], outcomes, n_resamples=500)
 

@@ -284,7 +284,8 @@ def list_calibrations(studies_dir: Path) -> dict[str, Calibration]:
 
 def calibration_matches(scenes, conf, cache, max_pairs: int = 8, progress: bool = False):
     """Tentative matches of up to ``max_pairs`` validation pairs (evenly spread over all pairs), at
-    the working resolution: list of (pts1, pts2, sizes)."""
+    the working resolution: list of (pts1, pts2, sizes, K1, K2) (K: intrinsics at the working resolution, or
+    None when the scene has none)."""
     from pipeline.tasks.prepare import tentative_matches
     from pipeline.tasks.stereo import prepare_scene
     allp = [(s, p) for s, pairs in scenes for p in pairs]
@@ -304,8 +305,10 @@ def calibration_matches(scenes, conf, cache, max_pairs: int = 8, progress: bool 
             m, _ = tentative_matches(tab, conf.matching, fi, fj, task="stereo")  # same matches a trial sees
             if len(m) < 8:
                 continue
+            from pipeline.tasks.stereo import working_intrinsics
+            K1, K2 = working_intrinsics(s, p, fi, fj)  # an E estimator is timed with the pair's intrinsics
             out.append((fi.keypoints[m[:, 0]].astype(np.float64), fj.keypoints[m[:, 1]].astype(np.float64),
-                        ((fi.width, fi.height), (fj.width, fj.height))))
+                        ((fi.width, fi.height), (fj.width, fj.height)), K1, K2))
     if not out:
         raise ImtuneError("calibration: no validation pair has 8 or more tentative matches at "
                           f"r={conf.matching.ratio}; cannot time the estimator")
@@ -318,9 +321,14 @@ def _time_cap(payload, g: int) -> list[tuple[float, float]]:
     from pipeline.geometry import get_estimator
     name, matches, threshold, confidence, seed = payload
     est = get_estimator(name)
+    calibrated = getattr(est, "model", "F") == "E"  # calibrated: takes the pair's intrinsics
     out = []
-    for p1, p2, sz in matches:
-        r = est.estimate(p1, p2, threshold, confidence, int(g), seed=seed, sizes=sz)
+    for p1, p2, sz, *K in matches:
+        if calibrated:
+            r = est.estimate(p1, p2, threshold, confidence, int(g), seed=seed, sizes=sz,  # type: ignore[call-arg]
+                             K1=K[0], K2=K[1])
+        else:
+            r = est.estimate(p1, p2, threshold, confidence, int(g), seed=seed, sizes=sz)
         out.append((float(r.seconds), float(r.wall_seconds)))
     return out
 

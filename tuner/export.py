@@ -71,9 +71,14 @@ def export(frozen: dict, fmt: str, test: dict | None = None) -> str:
             raise ImtuneError(f"--format opencv: the study's estimator {est} is not OpenCV's (cv-*); "
                               f"choose {_formats_for(est)}")
         fn, flag = OPENCV[est]
-        if fn == "findEssentialMat":
-            call = (f"E, mask = cv2.findEssentialMat(pts1, pts2, K, method=cv2.{flag}, prob={s['confidence']!r}, "
-                    f"threshold={s['threshold']!r}, maxIters={int(s['max_iters'])})")
+        if fn == "findEssentialMat":  # as pipeline/geometry/opencv_backend.py calls it: two cameras K1, K2
+            call = ("import numpy as np\n"
+                    "n1 = cv2.undistortPoints(pts1.reshape(-1, 1, 2).astype(np.float64), K1, None).reshape(-1, 2)\n"
+                    "n2 = cv2.undistortPoints(pts2.reshape(-1, 1, 2).astype(np.float64), K2, None).reshape(-1, 2)\n"
+                    "f = (K1[0, 0] + K1[1, 1] + K2[0, 0] + K2[1, 1]) / 4  # the px threshold / mean focal length\n"
+                    f"E, mask = cv2.findEssentialMat(n1, n2, np.eye(3), method=cv2.{flag}, prob={s['confidence']!r}, "
+                    f"threshold={s['threshold']!r} / f, maxIters={int(s['max_iters'])})\n"
+                    "_, R, t, _ = cv2.recoverPose(E[:3], n1, n2, np.eye(3), mask=mask)")
         else:
             call = (f"F, mask = cv2.findFundamentalMat(pts1, pts2, cv2.{flag}, {s['threshold']!r}, "
                     f"{s['confidence']!r}, {int(s['max_iters'])})")
@@ -85,6 +90,7 @@ def export(frozen: dict, fmt: str, test: dict | None = None) -> str:
         opt = {"max_epipolar_error": s["threshold"], "success_prob": s["confidence"],
                "max_iterations": int(s["max_iters"]), "min_iterations": min(1000, int(s["max_iters"]))}
         call = ("F, info = poselib.estimate_fundamental(pts1, pts2, ransac_opt, {})" if est == "poselib" else
+                "# camera1, camera2: {'model': 'PINHOLE', 'width': w, 'height': h, 'params': [fx, fy, cx, cy]}\n"
                 "pose, info = poselib.estimate_relative_pose(pts1, pts2, camera1, camera2, ransac_opt, {})")
         return f"# {note}\n# {est}: {px}\nimport poselib\nransac_opt = {opt!r}\n{call}\n"
     if est not in COLMAP:
@@ -94,7 +100,11 @@ def export(frozen: dict, fmt: str, test: dict | None = None) -> str:
     if fmt == "colmap":
         lines = [f"# {note}", f"# {est}: {px}; COLMAP >= 3.10 option names (older: [SiftMatching] max_error, ...)",
                  "[TwoViewGeometry]", f"max_error={s['threshold']!r}", f"confidence={s['confidence']!r}",
-                 f"max_num_trials={iters}", f"min_num_trials={min(1000, iters)}"]
+                 f"max_num_trials={iters}"]
+        # COLMAP's option manager has no TwoViewGeometry.min_num_trials (checked against its source): the .ini keeps
+        # the library's 1000, which imtune also used unless Gamma was below it
+        if iters < 1000:
+            lines.insert(2, f"# min_num_trials (1000 in COLMAP, not an .ini option) was {iters} in the study")
         if s["ratio"] is not None:
             lines += ["[SiftMatching]", f"max_ratio={s['ratio']!r}", f"cross_check={int(s['strategy'] == 'both')}"]
         return "\n".join(lines) + "\n"
@@ -102,6 +112,7 @@ def export(frozen: dict, fmt: str, test: dict | None = None) -> str:
             f"opts.max_error = {s['threshold']!r}\nopts.confidence = {s['confidence']!r}\n"
             f"opts.max_num_trials = {iters}\nopts.min_num_trials = {min(1000, iters)}\n"
             + ("res = pycolmap.estimate_fundamental_matrix(pts1, pts2, opts)\n" if est == "colmap" else
+               "# camera1, camera2: pycolmap.Camera(model='PINHOLE', width=w, height=h, params=[fx, fy, cx, cy])\n"
                "res = pycolmap.estimate_essential_matrix(pts1, pts2, camera1, camera2, opts)\n"))
 
 

@@ -10,7 +10,9 @@
 Names (``ESTIMATORS.names()``; availability with ``ESTIMATORS.availability()``):
 ``pyransac``, ``degensac`` (pydegensac); ``magsac``, ``magsac++`` (pymagsac); ``gcransac``
 (pygcransac); ``cv-ransac``, ``cv-usac``, ``cv-magsac``, ``cv-accurate``, ``cv-lmeds``, ``cv-8pt``
-(OpenCV); ``poselib`` (PoseLib); ``colmap`` (pycolmap). Each backend module documents the
+(OpenCV); ``poselib`` (PoseLib); ``colmap`` (pycolmap); ``superansac`` (pysuperansac).
+Calibrated (``model = "E"``, need K1, K2; ``pipeline.geometry.essential``): ``poselib-e``, ``cv-e-ransac``,
+``cv-e-magsac``, ``colmap-e``, ``superansac-e``. Each backend module documents the
 conventions of its library (threshold meaning, image-size order, seeds, quirks).
 Backend libraries are imported lazily, at the first estimate, so importing this package is cheap.
 """
@@ -26,7 +28,7 @@ from pipeline.geometry.registry import ESTIMATORS
 # isort: off
 from pipeline.geometry import (  # noqa: F401
     pydegensac_backend, magsac_backend, gcransac_backend, opencv_backend, poselib_backend,
-    colmap_backend,
+    colmap_backend, superansac_backend,
 )
 # isort: on
 
@@ -49,11 +51,18 @@ def get_estimator(name: str) -> Estimator:
 
 
 def estimate(name: str, pts1: np.ndarray, pts2: np.ndarray, threshold: float, confidence: float,
-             max_iters: int, seed: int = 0, *, sizes: Sizes | None = None) -> EstimateResult:
+             max_iters: int, seed: int = 0, *, sizes: Sizes | None = None, K1: np.ndarray | None = None,
+             K2: np.ndarray | None = None) -> EstimateResult:
     """Estimate F from matches with the estimator ``name``; see :meth:`Estimator.estimate`.
 
     pts1, pts2: (M, 2) px; threshold: eta in px; confidence in (0, 1); max_iters: Gamma;
     seed: for reproducible runs where the backend supports it; sizes: ((w1, h1), (w2, h2)) px,
     default derived from the point extents. Never raises on degenerate input (F=None instead);
-    raises ``ImtuneError`` / ``UnavailableError`` for an unknown / uninstalled estimator."""
-    return get_estimator(name).estimate(pts1, pts2, threshold, confidence, max_iters, seed, sizes=sizes)
+    raises ``ImtuneError`` / ``UnavailableError`` for an unknown / uninstalled estimator.
+    K1, K2: (3, 3) intrinsics in px, required by the E estimators (``model == "E"``: an ``EssentialResult`` with E,
+    R, t; ImtuneError without them) and ignored by the F estimators."""
+    est = get_estimator(name)
+    if est.model == "E":
+        return est.estimate(pts1, pts2, threshold, confidence, max_iters, seed, sizes=sizes,  # type: ignore[call-arg]
+                            K1=K1, K2=K2)
+    return est.estimate(pts1, pts2, threshold, confidence, max_iters, seed, sizes=sizes)

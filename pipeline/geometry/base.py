@@ -140,9 +140,12 @@ class Estimator(ABC):
       protocol's repeated test runs are identical; and for the non-seedable backends);
     - ``threshold_kind``: what eta bounds ("sampson": Sampson distance; "epipolar-line": distance to
       the epipolar line in both images; "none");
+    - ``model``: "F" (fundamental matrix, this interface) or "E" (calibrated essential matrix and pose,
+      :class:`pipeline.geometry.essential.EssentialEstimator`, which also takes K1, K2);
     - ``package``: the pip package behind the backend (for ``check_available`` messages).
     """
     min_matches: int = 8
+    model: str = "F"  # what it estimates: "F" (this interface) or "E" (pipeline.geometry.essential)
     uses_threshold: bool = True
     uses_iterations: bool = True
     seedable: bool = True

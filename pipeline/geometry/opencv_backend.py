@@ -1,6 +1,7 @@
 """OpenCV ``cv2.findFundamentalMat``: ``cv-ransac`` (FM_RANSAC), ``cv-usac`` (USAC_DEFAULT),
 ``cv-magsac`` (USAC_MAGSAC), ``cv-accurate`` (USAC_ACCURATE), ``cv-lmeds`` (FM_LMEDS) and ``cv-8pt``
-(FM_8POINT on all matches).
+(FM_8POINT on all matches); calibrated: ``cv-e-ransac`` (findEssentialMat, RANSAC) and ``cv-e-magsac``
+(findEssentialMat, USAC_MAGSAC), each followed by recoverPose.
 
 Conventions (opencv-contrib-python-headless 5.0.0, checked on synthetic scenes):
 ``findFundamentalMat(points1, points2, method, ransacReprojThreshold, confidence, maxIters)`` returns
@@ -23,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.geometry.base import Estimator, RawSolution, Sizes, require, timed
+from pipeline.geometry.essential import EssentialEstimator, RawEssential, mean_focal, normalise
 from pipeline.geometry.registry import ESTIMATORS
 
 
@@ -103,3 +105,50 @@ class Cv8Point(_OpenCV):
         if F is None or np.size(F) == 0:
             return RawSolution(None, None, t.seconds)
         return RawSolution(F[:3], np.ones(len(pts1), dtype=bool), t.seconds)
+
+
+class _OpenCVEssential(EssentialEstimator):
+    """cv2.findEssentialMat (5-point, Nister) on points normalised by K1, K2 with an identity camera matrix,
+    threshold eta (px) divided by the mean focal length; the pose by cv2.recoverPose on the inliers."""
+    package = "opencv-contrib-python-headless"
+    seed_used = False
+    method_name: str = ""
+
+    @classmethod
+    def check_available(cls) -> None:
+        require("cv2", cls.package)
+
+    def _solve_e(self, pts1: np.ndarray, pts2: np.ndarray, K1: np.ndarray, K2: np.ndarray, threshold: float,
+                 confidence: float, max_iters: int, seed: int, sizes: Sizes) -> RawEssential:
+        import cv2
+        method = getattr(cv2, self.method_name)
+        # two different cameras: normalise each by its own K (the single-K overload assumes one camera)
+        p1n, p2n = normalise(pts1, K1), normalise(pts2, K2)
+        cv2.setRNGSeed(int(seed) & 0x7FFFFFFF)
+        with timed() as t:
+            E, mask = cv2.findEssentialMat(p1n, p2n, np.eye(3), method, float(confidence),
+                                           float(threshold) / mean_focal(K1, K2), int(max_iters))
+        if E is None or np.size(E) == 0:
+            return RawEssential(None, None, None, None, t.seconds)
+        E = np.asarray(E)[:3]  # up to 10 stacked 5-point solutions on a minimal sample: the first
+        return RawEssential(E, None, None, None if mask is None else mask.reshape(-1).astype(bool), t.seconds)
+
+
+@ESTIMATORS.register("cv-e-ransac")
+class CvEssentialRansac(_OpenCVEssential):
+    """OpenCV findEssentialMat, RANSAC (5-point) + recoverPose; eta px (/ mean focal), epipolar-line distance.
+
+    Eta (px) divided by the mean focal length bounds the point-to-epipolar-line distance in normalised
+    coordinates."""
+    name = "cv-e-ransac"
+    method_name = "RANSAC"
+    threshold_kind = "epipolar-line"
+
+
+@ESTIMATORS.register("cv-e-magsac")
+class CvEssentialMagsac(_OpenCVEssential):
+    """OpenCV findEssentialMat, USAC_MAGSAC (MAGSAC++, 5-point) + recoverPose; eta px (/ mean focal).
+
+    Eta (px) divided by the mean focal length is MAGSAC++'s noise-scale bound in normalised coordinates."""
+    name = "cv-e-magsac"
+    method_name = "USAC_MAGSAC"

@@ -1,4 +1,5 @@
-"""PoseLib: ``poselib`` (LO-RANSAC on the 7-point solver with non-linear refinement).
+"""PoseLib: ``poselib`` (LO-RANSAC on the 7-point solver with non-linear refinement) and ``poselib-e``
+(calibrated: 5-point relative pose, ``estimate_relative_pose``).
 
 Conventions (poselib 2.0.5, checked on synthetic scenes):
 ``estimate_fundamental(points2D_1, points2D_2, ransac_opt: dict, bundle_opt: dict, initial_F=None)``
@@ -14,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.geometry.base import Estimator, RawSolution, Sizes, require, timed
+from pipeline.geometry.essential import EssentialEstimator, RawEssential
 from pipeline.geometry.registry import ESTIMATORS
 
 
@@ -40,3 +42,40 @@ class PoseLibFundamental(Estimator):
         if F is None or int(info.get("num_inliers", 0)) == 0:
             return RawSolution(None, None, t.seconds)
         return RawSolution(np.asarray(F), np.asarray(info["inliers"], dtype=bool), t.seconds)
+
+
+def _poselib_camera(K: np.ndarray, size: tuple[float, float]) -> dict:
+    """A PoseLib PINHOLE camera dict (fx, fy, cx, cy in px) for intrinsics K and image size (w, h)."""
+    return {"model": "PINHOLE", "width": int(size[0]), "height": int(size[1]),
+            "params": [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]}
+
+
+@ESTIMATORS.register("poselib-e")
+class PoseLibEssential(EssentialEstimator):
+    """PoseLib LO-RANSAC on the 5-point solver with non-linear refinement (estimate_relative_pose); eta in px.
+
+    PoseLib takes the cameras and a px threshold (``max_epipolar_error``), which it divides by the mean focal
+    length itself before scoring Sampson errors in normalised coordinates; it returns the refined pose
+    (R, t: x2 = R x1 + t) and E is formed from it ([t]_x R). Options as for ``poselib``."""
+    name = "poselib-e"
+    package = "poselib"
+    min_iters: int = 1000
+
+    @classmethod
+    def check_available(cls) -> None:
+        require("poselib", cls.package)
+
+    def _solve_e(self, pts1: np.ndarray, pts2: np.ndarray, K1: np.ndarray, K2: np.ndarray, threshold: float,
+                 confidence: float, max_iters: int, seed: int, sizes: Sizes) -> RawEssential:
+        import poselib
+        opt = {"max_epipolar_error": float(threshold), "success_prob": float(confidence),
+               "max_iterations": max_iters, "min_iterations": min(self.min_iters, max_iters),
+               "seed": int(seed) & 0xFFFFFFFF}
+        cam1, cam2 = _poselib_camera(K1, sizes[0]), _poselib_camera(K2, sizes[1])
+        with timed() as t:
+            pose, info = poselib.estimate_relative_pose(pts1, pts2, cam1, cam2, opt, {})
+        if pose is None or int(info.get("num_inliers", 0)) == 0:
+            return RawEssential(None, None, None, None, t.seconds)
+        R, tv = np.asarray(pose.R), np.asarray(pose.t).reshape(3)
+        tx = np.array([[0, -tv[2], tv[1]], [tv[2], 0, -tv[0]], [-tv[1], tv[0], 0]])
+        return RawEssential(tx @ R, R, tv, np.asarray(info["inliers"], dtype=bool), t.seconds)

@@ -27,7 +27,7 @@ def register(sub) -> None:
     ap.add_argument("--quick", action="store_true",
                     help="reduced but real: 2048 features, 10 trials per study, 12 pairs per scene, 1 test run")
     ap.add_argument("--only", default=None, metavar="ID,...",
-                    help="run only these findings (ids 1-12); the report still lists every finding: the others "
+                    help="run only these findings (ids 1-13); the report still lists every finding: the others "
                          "re-analysed from their studies when all are finished, else 'not run yet' with the command")
     ap.add_argument("--jobs", type=positive_int, default=None,
                     help="pair processes per trial (where the tree has the pair pool; default: the study's)")

@@ -8,7 +8,8 @@ from tuner.formatting import render
 
 def register(sub) -> None:
     ap = sub.add_parser("list", help="list features, matchers, estimators and tasks, with availability")
-    ap.add_argument("--json", action="store_true", help="print a JSON list of {family, name, available, note}")
+    ap.add_argument("--json", action="store_true", help="print a JSON list of {family, name, available, note} "
+                    "(estimators also have model: F or E)")
     ap.set_defaults(func=run)
 
 
@@ -25,8 +26,11 @@ def inventory() -> list[dict]:
         pass
     for family, reg in families:
         for name, (ok, why) in reg.availability().items():
-            rows.append({"family": family, "name": name, "available": "yes" if ok else "no",
-                         "note": why or reg.description(name)})
+            row = {"family": family, "name": name, "available": "yes" if ok else "no",
+                   "note": why or reg.description(name)}
+            if family == "estimator":  # "F": fundamental matrix; "E": essential matrix given K1, K2
+                row["model"] = getattr(reg.get(name), "model", "F")
+            rows.append(row)
     from pipeline.tasks import TASKS  # the tasks `--task` takes, a plug-in's included (IMTUNE_PLUGINS)
     for name, (ok, why) in TASKS.availability().items():
         rows.append({"family": "task", "name": name, "available": "yes" if ok else "no",
@@ -46,5 +50,7 @@ def run(args) -> int:
     if args.json:
         print(json.dumps(rows, indent=2))
     else:
-        print(render(rows, "markdown", ["family", "name", "available", "note"]))
+        for r in rows:  # the table shows the estimators' model beside their name
+            r.setdefault("model", "")
+        print(render(rows, "markdown", ["family", "name", "model", "available", "note"]))
     return 0
