@@ -33,7 +33,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-SCENES = ("fountain-P11", "Herz-Jesus-P8", "entry-P10")
+SCENES = ("fountain-P11", "Herz-Jesus-P8", "entry-P10")  # --folds scenes: the three scenes of before
+#: --folds families (the default): the six Strecha scenes in four families; a family stays on one side of a split
+#: (castle-P19 / P30 share 11 byte-identical images, Herz-Jesus-P8 / P25 show the same facade)
+FAMILIES = {"fountain": ("fountain-P11",), "entry": ("entry-P10",), "Herz-Jesus": ("Herz-Jesus-P8", "Herz-Jesus-P25"),
+            "castle": ("castle-P19", "castle-P30")}
 
 
 def _f(v, ci=None) -> str:
@@ -48,6 +52,10 @@ def main(argv=None) -> int:
     ap.add_argument("--feature", default="sift")
     ap.add_argument("--num-features", type=int, default=2000)
     ap.add_argument("--ransac", default="degensac")
+    ap.add_argument("--folds", choices=("families", "halves", "scenes"), default="families",
+                    help="leave one family out (six scenes, four families), test on two families after tuning on "
+                         "the other two (halves: 6 folds), or leave one scene out (the three scenes of before)")
+    ap.add_argument("--only", nargs="+", default=None, metavar="FOLD", help="run only these held-out folds")
     ap.add_argument("--trials", type=int, default=24, help="trials per study (one study per fold and seed)")
     ap.add_argument("--max-pairs", type=int, default=15, help="validation pairs per scene (0 = all)")
     ap.add_argument("--test-max-pairs", type=int, default=0, help="test pairs of the held-out scene (0 = all)")
@@ -64,7 +72,8 @@ def main(argv=None) -> int:
         rows = []
         for f in args.combine:  # folds of different files are different folds (calibration, trials differ)
             rows += [{**r, "file": r.get("file") or f} for r in json.loads(Path(f).read_text())["rows"]]
-        print(f"{len(args.combine)} result files, {len(rows) // 3} folds")
+        from tuner.select import RULES
+        print(f"{len(args.combine)} result files, {len(rows) // len(RULES)} folds")
         return table(rows, "combined: " + ", ".join(args.combine), key=lambda r: (r["held_out"], r["seed"], r.get("file")))
 
     import warnings
@@ -78,10 +87,20 @@ def main(argv=None) -> int:
     from tuner.study import TuneSettings, _quiet_optuna, tune
     _quiet_optuna()
     root = Path(args.data) if args.data else Path(__file__).resolve().parents[2] / "shared" / "data" / "strecha"
-    if not all((root / s).is_dir() for s in SCENES):
-        print(f"selection_rules: the Strecha scenes {', '.join(SCENES)} are not all in {root} (give --data)",
+    folds = FAMILIES if args.folds == "families" else {s: (s,) for s in SCENES}
+    if args.folds == "halves":  # validate on two families, test on the other two (each split of the four, both ways)
+        from itertools import combinations
+        folds = {"+".join(k for k in FAMILIES if k not in v): tuple(s for k in FAMILIES if k not in v
+                                                                   for s in FAMILIES[k])
+                 for v in combinations(FAMILIES, 2)}
+    if args.only:
+        folds = {k: v for k, v in folds.items() if k in args.only}
+    needed = [s for g in (FAMILIES if args.folds in ("families", "halves") else {s: (s,) for s in SCENES}).values() for s in g]
+    if not all((root / s).is_dir() for s in needed):
+        print(f"selection_rules: the Strecha scenes {', '.join(needed)} are not all in {root} (give --data)",
               file=sys.stderr)
         return 2
+    all_scenes = needed
     work = Path(args.workdir or tempfile.mkdtemp(prefix="imtune-select-"))
     work.mkdir(parents=True, exist_ok=True)
     storage = f"sqlite:///{work / 'selection.db'}"
@@ -90,13 +109,13 @@ def main(argv=None) -> int:
                                "geometry": {"ransac": args.ransac}})
     t_all = time.perf_counter()
     rows = []
-    for held in SCENES:
-        val = [s for s in SCENES if s != held]
+    for held, held_scenes in folds.items():
+        val = [s for s in all_scenes if s not in held_scenes]
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             name = f"loso-{held}-s{seed}-{args.feature}{args.num_features}-{args.ransac}"
             t0 = time.perf_counter()
             s = TuneSettings(base=base, data_root=root, study_name=name, storage=storage, studies_dir=work,
-                             n_trials=args.trials, seed=seed, budget=args.budget, val_scenes=val, test_scenes=[held],
+                             n_trials=args.trials, seed=seed, budget=args.budget, val_scenes=val, test_scenes=list(held_scenes),
                              max_pairs=args.max_pairs or None, cache_dir=args.cache, calibration_pairs=6,
                              progress=False, test=False, log=lambda m: None)
             tune(s)
@@ -108,12 +127,13 @@ def main(argv=None) -> int:
                 trial, info = select_trial(study, rule)
                 frozen = frozen_from_study(study, rule)
                 if trial.number not in tested:
-                    tested[trial.number] = run_test(frozen, root, None, scenes=[held], cache=cache, runs=1,
+                    tested[trial.number] = run_test(frozen, root, None, scenes=list(held_scenes), cache=cache, runs=1,
                                                     max_pairs=args.test_max_pairs or None,
                                                     reference="paper" if ref is None else "none")
                     if ref is None:
                         r0 = tested[trial.number]["reference"]
-                        ref = {"mAA10": r0["mAA10"], "mAA10_ci": r0["mean"].get("mAA10_ci"), "runs": r0["runs"]}
+                        ref = {"mAA10": r0["mAA10"], "mAA10_ci": r0["mean"].get("mAA10_ci"), "runs": r0["runs"],
+                               "scenes": r0["mean"].get("scenes")}
                 t = tested[trial.number]
                 # the paired comparison with the paper defaults on the same held-out pairs
                 from tuner.select import compare_reference
@@ -126,8 +146,13 @@ def main(argv=None) -> int:
                        "drop": v.get("mAA10") - t["mean"]["mAA10"],
                        "vs_defaults": cmp["difference"] if cmp else None, "vs_defaults_ci": cmp["ci"] if cmp else None,
                        "defaults": ref["mAA10"], "defaults_ci": ref["mAA10_ci"], "tune_seconds": tune_s,
-                       "select_note": info.get("note")}
+                       "select_note": info.get("note"), "held_scenes": list(held_scenes),
+                       "test_pairs": len(t["runs"][0].get("pair_errors") or []),
+                       "test_scenes": {k: v.get("mAA10") for k, v in (t["mean"].get("scenes") or {}).items()},
+                       "defaults_scenes": {k: v.get("mAA10") for k, v in (ref.get("scenes") or {}).items()}}
                 rows.append(row)
+            if args.json:  # every finished fold is kept (a long run interrupted keeps what it measured)
+                Path(args.json).write_text(json.dumps({"rows": rows, "args": vars(args)}, indent=2, default=str))
             print(f"fold held-out {held} (seed {seed}): tuned on {', '.join(val)} in {tune_s:.0f} s; "
                   f"paper defaults on {held}: {_f(ref['mAA10'], ref['mAA10_ci'])}", flush=True)
             for r in rows[-len(RULES):]:
@@ -167,6 +192,15 @@ def table(rows: list[dict], what: str, key=lambda r: (r["held_out"], r["seed"], 
                         "mean_drop": float(np.mean([r["drop"] for r in rr])),
                         "mean_vs_defaults": float(np.mean([r["vs_defaults"] for r in rr])),
                         "folds_won": wins, "folds": len(folds)})
+    print()  # held-out mAA(10) per fold and rule, the paper defaults on the same pairs beside them
+    print("| held out (seed) | pairs | " + " | ".join(RULES) + " | paper defaults |")
+    print("|---|---:|" + "---:|" * (len(RULES) + 1))
+    for fk in folds:
+        here = {r["rule"]: r for r in rows if key(r) == fk}
+        r0 = next(iter(here.values()))
+        print(f"| {r0['held_out']} ({r0['seed']}) | {r0.get('test_pairs', '?')} | "
+              + " | ".join(f"{here[rule]['test']:.3f}" if rule in here else "-" for rule in RULES)
+              + f" | {r0['defaults']:.3f} |")
     winner = max(summary, key=lambda s: (round(s["mean_test"], 9), -s["mean_drop"]))
     print()
     print("| rule | mean val mAA10 | mean test mAA10 | mean drop (val - test) | mean vs paper defaults | "

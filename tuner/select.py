@@ -22,6 +22,10 @@ Selection rules (``--select``), all over the study's COMPLETE trials within the 
   ``SMOOTH_K`` nearest neighbours (Euclidean, normalised (log eta, r, log Gamma) space); the trial with the
   highest average is frozen (ties: the higher own value). A lucky trial surrounded by poor ones loses to one in a
   good neighbourhood.
+- ``lower-bound``: the highest lower end of the trial's validation 95% interval (the scene-stratified pair
+  bootstrap every trial stores as ``mAA10_ci``; ties: the higher value, then the earlier trial). A trial whose
+  value is high because a few pairs happened to succeed has a wide interval and a low lower end; one that is good
+  on most pairs keeps a high lower end. Trials without a stored interval count with their value as lower end.
 
 Normalised space: each searched numeric parameter mapped to [0, 1] over its search range (log scale where the
 space says ``log: true``: eta and Gamma); categorical parameters (the strategy) are not coordinates.
@@ -39,7 +43,7 @@ import numpy as np
 
 from pipeline.errors import ImtuneError
 
-RULES = ("best", "one-se", "smooth")
+RULES = ("best", "one-se", "smooth", "lower-bound")
 DEFAULT_RULE = "best"  # benchmarks/selection_rules.py (README, "Uncertainty")
 SMOOTH_K = 5
 Z95 = 1.959963984540054  # normal quantile of 0.975: SE = half-width / Z95
@@ -159,6 +163,12 @@ def select_trial(study, rule: str | None = None, objective: str = "mAA10", k: in
         info.update(se=se, within_one_se=sorted(cands[i].number for i in idx),
                     note=f"{len(idx)} trial(s) within one SE ({se:.4f}) of the best: the one closest to their "
                          f"centre in {where}")
+        return cands[pick], info
+    if rule == "lower-bound":
+        lows = np.array([(interval_of(t, objective) or [v])[0] for t, v in zip(cands, values)])
+        pick = max(range(len(cands)), key=lambda i: (round(float(lows[i]), 12), values[i], -cands[i].number))
+        info.update(lower_bound=float(lows[pick]),
+                    note=f"the highest lower end of the validation 95% interval ({lows[pick]:.3f})")
         return cands[pick], info
     # smooth
     kk = int(max(0, min(int(k), len(cands) - 1)))
