@@ -55,7 +55,7 @@ def test_real_shared_folders():
     split = default_splits(SHARED / "strecha")
     for family in (("castle-P19", "castle-P30"), ("Herz-Jesus-P8", "Herz-Jesus-P25")):
         assert {"val" if s in split["val"] else "test" for s in family} == {"test"}, family
-    assert default_max_pairs(SHARED / "strecha") == 30  # the main job's pairs per scene on this split
+    assert default_max_pairs(SHARED / "strecha") == 25  # the main job's pairs per scene on this split
     assert default_max_pairs(SHARED / "scannet_sample") is None and default_max_pairs(SHARED / "sacre_coeur") is None
     assert detect_format(SHARED / "sacre_coeur") == "images"
     sc = load_scene(SHARED / "sacre_coeur")
@@ -79,7 +79,7 @@ def test_detect_and_list_synthetic(tmp_path):
     assert detect_format(tmp_path / "st") == "strecha"
     assert list_scenes(tmp_path / "st") == ["castle-P19", "entry-P10", "fountain-P11"]
     assert default_splits(tmp_path / "st") == {"val": ["fountain-P11", "entry-P10"], "test": ["castle-P19"]}
-    assert default_max_pairs(tmp_path / "st") == 30
+    assert default_max_pairs(tmp_path / "st") == 25
     (tmp_path / "st" / "splits.yaml").write_text("val: [castle-P19]\ntest: [entry-P10]\n")
     assert default_max_pairs(tmp_path / "st") is None  # the user's own split: every pair unless --max-pairs
     (tmp_path / "st" / "splits.yaml").unlink()

@@ -225,7 +225,7 @@ def test_run_help_names_the_default_space_and_pairs(user):
     assert ("--space SPACE search-space YAML replacing the default of the estimator family (default: "
             "search_spaces/<family>.yaml, with its per-feature overrides)") in flat, flat
     assert ("--max-pairs MAX_PAIRS use at most N pairs per scene (evenly spread; quick runs) (default: every pair; "
-            "30 on the built-in Strecha split)") in flat
+            "25 on the built-in Strecha split)") in flat
 
 
 def test_build_gt_help_names_where_it_writes_as_the_readme_does(user):
@@ -285,7 +285,7 @@ def test_download_then_every_command_finds_it(user, tmp_path, server, data_home)
     assert {s["scene"]: s["split"] for s in out["scenes"]} == {"fountain-P11": "val", "entry-P10": "val",
                                                                 "Herz-Jesus-P8": "test", "Herz-Jesus-P25": "test",
                                                                 "castle-P19": "test", "castle-P30": "test"}
-    assert out["max_pairs"] == 30
+    assert out["max_pairs"] == 25
     r = tune("data", "scenes", env=user)
     assert r.stdout.splitlines()[0] == f"data: {got}  (found by {out['rule']} ({out['detail']}))"
 

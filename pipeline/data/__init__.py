@@ -49,7 +49,7 @@ STRECHA_VAL_FAMILIES = ("fountain", "entry")
 STRECHA_VAL = tuple(s for f in STRECHA_VAL_FAMILIES for s in STRECHA_FAMILIES[f])
 #: Pairs per scene the main job uses on the default Strecha split (evenly spread, deterministic: the stereo task's
 #: ``max_pairs``), so that six scenes (1,034 pairs) cost about what three (128 pairs) did: notes/h32data.md.
-STRECHA_MAX_PAIRS = 30
+STRECHA_MAX_PAIRS = 25
 
 
 def _other_format(path: Path, exclude: str) -> str | None:
