@@ -1,26 +1,30 @@
-"""Selection rules: which of `--select best | one-se | smooth` generalises best from validation to test.
+"""Selection rules: which of `--select best | one-se | smooth | lower-bound` generalises best, and which Strecha
+families to validate on.
 
-Leave-one-scene-out on the Strecha scenes (fountain-P11, Herz-Jesus-P8, entry-P10): for each held-out scene,
-one study tunes eta, r and Gamma on the other two (the tuner's own objective, TPE, median pruner, budget B), then
-each rule (``tuner.select``) picks a trial from the *same* trials, and that trial's configuration is evaluated on
-every pair of the held-out scene. The untuned paper defaults (r 0.85 both, eta 0.5 px, Gamma 50k) are evaluated
-on the same pairs, and each rule's pick is compared with them by the paired bootstrap.
+Leave-one-family-out on the six Strecha scenes in four families (fountain-P11; entry-P10; Herz-Jesus-P8 + P25;
+castle-P19 + P30: a family stays on one side, its scenes share images or a facade): for each held-out family, one
+study tunes eta, r and Gamma on the other families' validation pairs (the tuner's own objective, TPE, median
+pruner, budget B), then each rule (``tuner.select``) picks a trial from the *same* trials, and that trial's
+configuration is evaluated on the held-out family's pairs. The untuned paper defaults (r 0.85 both, eta 0.5 px,
+Gamma 50k) are evaluated on the same pairs, and each rule's pick is compared with them by the paired bootstrap.
+``--folds halves`` tunes on two families and tests on the other two (the six splits of four families: the
+measurement behind the default split, pipeline.data.STRECHA_VAL_FAMILIES); ``--folds scenes`` is the earlier
+leave-one-scene-out over fountain-P11, Herz-Jesus-P8 and entry-P10.
 
-    python benchmarks/selection_rules.py                       # sift 2000, degensac, 24 trials, 15 pairs/scene
-    python benchmarks/selection_rules.py --trials 40 --max-pairs 0 --seeds 2 --json out.json
-    python benchmarks/selection_rules.py --seeds 2 --first-seed 2 --json more.json
-    python benchmarks/selection_rules.py --combine out.json more.json   # the folds of several runs together
+    python benchmarks/selection_rules.py --trials 14 --max-pairs 15 --test-max-pairs 25 --first-seed 0 --json f0.json
+    python benchmarks/selection_rules.py --folds halves --trials 14 --max-pairs 15 --test-max-pairs 25 --json h0.json
+    python benchmarks/selection_rules.py --combine f0.json f1.json   # the folds of several runs together
 
 Prints per fold and rule: the frozen trial, its validation mAA(10) [95% interval], the held-out test mAA(10)
-[interval], the drop (validation - test) and the difference to the paper defaults [interval]; then per rule the
-mean test mAA(10) over folds, the mean drop and the folds won, and the winner (highest mean test mAA(10); ties:
-the smaller mean drop), and each other rule's fold-by-fold difference to the winner with an exact sign-flip p.
-A fold's Gamma_max comes from a timing calibration, so two runs of the same seed are different studies (their
-folds are pooled as separate folds).
+[interval], the drop (validation - test) and the difference to the paper defaults [interval]; then the held-out
+mAA(10) per fold and rule beside the paper defaults, per rule the mean test mAA(10) over folds, the mean drop and
+the folds won, and the winner (highest mean test mAA(10); ties: the smaller mean drop), and each other rule's
+fold-by-fold difference to the winner with an exact sign-flip p. A fold's Gamma_max comes from a timing
+calibration, so two runs of the same seed are different studies (their folds are pooled as separate folds).
+``--json`` is rewritten after every fold (an interrupted run keeps what it measured).
 
-Measured (README, "How sure a number is"): 15 folds (one run of 1 seed, two of 2), mean held-out mAA(10) best
-0.678, one-se 0.671, smooth 0.650; one-se - best -0.008 (p 0.79), smooth - best -0.029 (p 0.03): best stays
-the default.
+Measured: notes/h32data.md (December 2026, six scenes) and, for the three scenes of before, the README's
+"How sure a number is" (15 folds: best 0.678, one-se 0.671, smooth 0.650).
 """
 from __future__ import annotations
 
