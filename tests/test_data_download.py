@@ -96,8 +96,8 @@ def test_strecha_download_layout_and_downsampling(server, tmp_path, monkeypatch)
     np.testing.assert_allclose(cam["R"], np.eye(3))
     scene = load_strecha(out, "fountain-P11")
     assert len(scene.images) == 11 and len(scene.pairs) == 55
-    assert default_splits(out) == {"val": ["fountain-P11", "entry-P10"], "test": ["Herz-Jesus-P25", "Herz-Jesus-P8",
-                                                                                  "castle-P19", "castle-P30"]}
+    assert default_splits(out) == {"val": ["fountain-P11", "Herz-Jesus-P8", "Herz-Jesus-P25"],
+                                   "test": ["castle-P19", "castle-P30", "entry-P10"]}
     _no_leftovers(dest)
     # already there: no network needed
     assert dl.download("strecha", dest, base_url=_closed_port_url(), quiet=True) == out
