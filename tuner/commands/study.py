@@ -99,7 +99,8 @@ def _select_opts(g) -> None:
     g.add_argument("--select", default=None, choices=list(RULES),
                    help=f"which feasible trial is frozen: best (highest validation mAA), one-se (the centre of the "
                         f"trials within one standard error of the best), smooth (best of the surface averaged over "
-                        f"neighbouring trials); see tuner/select.py (default: the study's rule, else {DEFAULT_RULE})")
+                        f"neighbouring trials), lower-bound (highest lower end of the validation 95%% interval); "
+                        f"see tuner/select.py (default: the study's rule, else {DEFAULT_RULE})")
     g.add_argument("--reference", default=None, metavar="FILE|STUDY|none",
                    help="configuration the test runs are compared with on the same pairs (paired bootstrap): a "
                         "config file or study, none to skip (default: the paper defaults r 0.85 both, eta 0.5 px, "
