@@ -124,3 +124,22 @@ def test_splits_yaml(tmp_path):
         with pytest.raises(ImtuneError, match=msg) as e:
             default_splits(root)
         assert "splits.yaml" in str(e.value) and "\n" not in str(e.value)
+
+
+@needs_shared
+def test_main_job_caps_pairs_on_the_default_strecha_split(tmp_path):
+    """`tune run` on the built-in Strecha split (six scenes, 1,034 pairs) uses at most 20 pairs per scene unless told
+    otherwise; before, every pair (a main job of hours). The user's own scenes, --max-pairs or a multiview run keep
+    their pairs. The parser and settings only: nothing is tuned."""
+    from tuner.cli import build_parser
+    from tuner.commands.study import settings_from_args
+    parser = build_parser()
+
+    def max_pairs(*extra):
+        args = parser.parse_args(["run", "--data", str(SHARED / "strecha"), "--studies-dir", str(tmp_path), *extra])
+        return settings_from_args(args).max_pairs
+
+    assert max_pairs() == 20
+    assert max_pairs("--max-pairs", "5") == 5
+    assert max_pairs("--test-scenes", "entry-P10") is None and max_pairs("--scenes", "fountain-P11") is None
+    assert max_pairs("--task", "multiview") is None
