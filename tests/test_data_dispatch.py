@@ -80,10 +80,14 @@ def test_detect_and_list_synthetic(tmp_path):
     assert detect_format(tmp_path / "st") == "strecha"
     assert list_scenes(tmp_path / "st") == ["castle-P19", "entry-P10", "fountain-P11"]
     assert default_splits(tmp_path / "st") == {"val": ["fountain-P11"], "test": ["castle-P19", "entry-P10"]}
+    assert default_max_pairs(tmp_path / "st") is None  # 1 pair per scene: a small subset keeps every pair
+    _strecha_scene(tmp_path / "st", "castle-P30", n=8)  # 28 pairs > 20: the cap applies to the whole split
     assert default_max_pairs(tmp_path / "st") == 20
     (tmp_path / "st" / "splits.yaml").write_text("val: [castle-P19]\ntest: [entry-P10]\n")
     assert default_max_pairs(tmp_path / "st") is None  # the user's own split: every pair unless --max-pairs
     (tmp_path / "st" / "splits.yaml").unlink()
+    import shutil
+    shutil.rmtree(tmp_path / "st" / "castle-P30")
     assert detect_format(tmp_path / "st" / "entry-P10") == "strecha"
     assert load_scene(tmp_path / "st" / "entry-P10").name == "entry-P10"
     _folder_scene(tmp_path / "imgs", "b_scene")

@@ -168,9 +168,13 @@ def default_splits(data_root: str | Path) -> dict[str, list[str]]:
 
 def default_max_pairs(data_root: str | Path) -> int | None:
     """Pairs per scene the main job uses when none are given: :data:`STRECHA_MAX_PAIRS` where the built-in Strecha
-    split applies (no splits.yaml; a Strecha scene of :data:`STRECHA_VAL` is there), else None (every pair)."""
+    split applies (no splits.yaml; a Strecha scene of :data:`STRECHA_VAL` is there) and some scene of it has more
+    pairs than that, else None (every pair: a small subset of the scenes keeps all of its pairs)."""
     root = Path(data_root)
     if os.path.lexists(root / SPLITS_FILE):
         return None
     cat = _catalog(root)
-    return STRECHA_MAX_PAIRS if any(cat.get(s) == strecha.NAME for s in STRECHA_VAL) else None
+    if not any(cat.get(s) == strecha.NAME for s in STRECHA_VAL):
+        return None
+    most = max(len(load_scene(root, s, verify=False).pairs) for s, fmt in cat.items() if fmt == strecha.NAME)
+    return STRECHA_MAX_PAIRS if most > STRECHA_MAX_PAIRS else None
