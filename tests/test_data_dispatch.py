@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import pipeline
-from pipeline.data import FORMATS, default_splits, detect_format, list_scenes, load_scene
+from pipeline.data import FORMATS, default_max_pairs, default_splits, detect_format, list_scenes, load_scene
 from pipeline.data.strecha import write_camera
 from pipeline.errors import ImtuneError
 
@@ -48,8 +48,16 @@ def test_real_shared_folders():
     # all six Strecha scenes since December 2026 (../shared/data/README.md), listed in sorted order
     six = ["Herz-Jesus-P25", "Herz-Jesus-P8", "castle-P19", "castle-P30", "entry-P10", "fountain-P11"]
     assert list_scenes(SHARED / "strecha") == six
-    # the rule as it stands (fountain-P11 validates, every other scene tests); issue 32 replaces it by a measured split
-    assert default_splits(SHARED / "strecha") == {"val": ["fountain-P11"], "test": six[:5]}
+    # the measured default split (issue 32, notes/h32data.md): the fountain and Herz-Jesus (P8, P25) families
+    # validate, entry and castle (P19, P30) test; written out, not read from STRECHA_VAL
+    assert default_splits(SHARED / "strecha") == {"val": ["fountain-P11", "Herz-Jesus-P8", "Herz-Jesus-P25"],
+                                                  "test": ["castle-P19", "castle-P30", "entry-P10"]}
+    # ... each family on one side: castle-P19 / P30 share 11 byte-identical images, Herz-Jesus-P8 / P25 a facade
+    split = default_splits(SHARED / "strecha")
+    for family in (("castle-P19", "castle-P30"), ("Herz-Jesus-P8", "Herz-Jesus-P25")):
+        assert len({"val" if s in split["val"] else "test" for s in family}) == 1, family
+    assert default_max_pairs(SHARED / "strecha") == 20  # the main job's pairs per scene on this split
+    assert default_max_pairs(SHARED / "scannet_sample") is None and default_max_pairs(SHARED / "sacre_coeur") is None
     assert detect_format(SHARED / "sacre_coeur") == "images"
     sc = load_scene(SHARED / "sacre_coeur")
     assert len(sc.images) == 10 and len(sc.pairs) == 45 and all(im.K is None for im in sc.images.values())
@@ -72,6 +80,14 @@ def test_detect_and_list_synthetic(tmp_path):
     assert detect_format(tmp_path / "st") == "strecha"
     assert list_scenes(tmp_path / "st") == ["castle-P19", "entry-P10", "fountain-P11"]
     assert default_splits(tmp_path / "st") == {"val": ["fountain-P11"], "test": ["castle-P19", "entry-P10"]}
+    assert default_max_pairs(tmp_path / "st") is None  # 1 pair per scene: a small subset keeps every pair
+    _strecha_scene(tmp_path / "st", "castle-P30", n=8)  # 28 pairs > 20: the cap applies to the whole split
+    assert default_max_pairs(tmp_path / "st") == 20
+    (tmp_path / "st" / "splits.yaml").write_text("val: [castle-P19]\ntest: [entry-P10]\n")
+    assert default_max_pairs(tmp_path / "st") is None  # the user's own split: every pair unless --max-pairs
+    (tmp_path / "st" / "splits.yaml").unlink()
+    import shutil
+    shutil.rmtree(tmp_path / "st" / "castle-P30")
     assert detect_format(tmp_path / "st" / "entry-P10") == "strecha"
     assert load_scene(tmp_path / "st" / "entry-P10").name == "entry-P10"
     _folder_scene(tmp_path / "imgs", "b_scene")
@@ -112,3 +128,22 @@ def test_splits_yaml(tmp_path):
         with pytest.raises(ImtuneError, match=msg) as e:
             default_splits(root)
         assert "splits.yaml" in str(e.value) and "\n" not in str(e.value)
+
+
+@needs_shared
+def test_main_job_caps_pairs_on_the_default_strecha_split(tmp_path):
+    """`tune run` on the built-in Strecha split (six scenes, 1,034 pairs) uses at most 20 pairs per scene unless told
+    otherwise; before, every pair (a main job of hours). The user's own scenes, --max-pairs or a multiview run keep
+    their pairs. The parser and settings only: nothing is tuned."""
+    from tuner.cli import build_parser
+    from tuner.commands.study import settings_from_args
+    parser = build_parser()
+
+    def max_pairs(*extra):
+        args = parser.parse_args(["run", "--data", str(SHARED / "strecha"), "--studies-dir", str(tmp_path), *extra])
+        return settings_from_args(args).max_pairs
+
+    assert max_pairs() == 20
+    assert max_pairs("--max-pairs", "5") == 5
+    assert max_pairs("--test-scenes", "entry-P10") is None and max_pairs("--scenes", "fountain-P11") is None
+    assert max_pairs("--task", "multiview") is None

@@ -52,12 +52,17 @@ def _closed_port_url() -> str:
     return f"http://127.0.0.1:{port}"
 
 
+#: the six scenes of Strecha et al. 2008 and their image counts, as ../shared/data README lists them (the upstream
+#: folder Benchmarking_Camera_Calibration_2008): written out here, not read from the code under test
+SIX_SCENES = {"fountain-P11": 11, "Herz-Jesus-P8": 8, "entry-P10": 10, "castle-P19": 19, "castle-P30": 30,
+              "Herz-Jesus-P25": 25}
+
 K_FULL = np.array([[80.0, 0.4, 31.7], [0, 81.0, 23.9], [0, 0, 1]])
 
 
 def _mirror_strecha(root: Path):
     rng = np.random.default_rng(0)
-    for scene, n in dl.STRECHA_SCENES.items():
+    for scene, n in SIX_SCENES.items():  # the upstream layout: a download that fetches fewer misses some
         for k in range(n):
             base = root / STRECHA_PREFIX / scene
             (base / "images").mkdir(parents=True, exist_ok=True)
@@ -78,8 +83,8 @@ def test_strecha_download_layout_and_downsampling(server, tmp_path, monkeypatch)
     dest = tmp_path / "data"
     out = dl.download("strecha", dest, base_url=base, quiet=True)
     assert out == dest / "strecha"
-    assert sorted(p.name for p in out.iterdir()) == sorted(dl.STRECHA_SCENES)
-    for scene, n in dl.STRECHA_SCENES.items():
+    assert sorted(p.name for p in out.iterdir()) == sorted(SIX_SCENES)  # all six scenes of the upstream folder
+    for scene, n in SIX_SCENES.items():
         assert len(list((out / scene / "images").glob("*.jpg"))) == n
         assert len(list((out / scene / "gt_dense_cameras").glob("*.camera"))) == n
     img = cv2.imread(str(out / "fountain-P11" / "images" / "0003.jpg"))
@@ -91,7 +96,8 @@ def test_strecha_download_layout_and_downsampling(server, tmp_path, monkeypatch)
     np.testing.assert_allclose(cam["R"], np.eye(3))
     scene = load_strecha(out, "fountain-P11")
     assert len(scene.images) == 11 and len(scene.pairs) == 55
-    assert default_splits(out) == {"val": ["fountain-P11"], "test": ["Herz-Jesus-P8", "entry-P10"]}
+    assert default_splits(out) == {"val": ["fountain-P11", "Herz-Jesus-P8", "Herz-Jesus-P25"],
+                                   "test": ["castle-P19", "castle-P30", "entry-P10"]}
     _no_leftovers(dest)
     # already there: no network needed
     assert dl.download("strecha", dest, base_url=_closed_port_url(), quiet=True) == out

@@ -12,7 +12,7 @@ import pytest
 from pipeline.data import download as dl
 from pipeline.data import locate as lc
 from pipeline.errors import ImtuneError
-from tests.test_data_download import STRECHA_PREFIX, _closed_port_url, _mirror_strecha, server  # noqa: F401
+from tests.test_data_download import SIX_SCENES, STRECHA_PREFIX, _closed_port_url, _mirror_strecha, server  # noqa: F401
 
 
 def _set(root: Path, name: str = "strecha") -> Path:
@@ -147,9 +147,9 @@ def test_main_job_downloads_the_default_set_then_finds_it(env, server, monkeypat
     home = _default_home(env / "home")
     root = lc.resolve_data(download=True, quiet=True)
     assert root == home / "strecha"
-    assert sorted(p.name for p in root.iterdir()) == sorted(dl.STRECHA_SCENES)
+    assert sorted(p.name for p in root.iterdir()) == sorted(SIX_SCENES)
     err = capsys.readouterr().err
-    assert "downloading the default data set strecha (58 files from 127.0.0.1" in err
+    assert "downloading the default data set strecha (206 files from 127.0.0.1" in err
     # from now on every command finds it by the download-location rule, with no network
     monkeypatch.setenv(dl.ENV_BASE, _closed_port_url())
     loc = lc.locate()

@@ -224,7 +224,8 @@ def test_run_help_names_the_default_space_and_pairs(user):
     flat = " ".join(tune("run", "-h", env=user).stdout.split())
     assert ("--space SPACE search-space YAML replacing the default of the estimator family (default: "
             "search_spaces/<family>.yaml, with its per-feature overrides)") in flat, flat
-    assert "--max-pairs MAX_PAIRS use at most N pairs per scene (evenly spread; quick runs) (default: every pair)" in flat
+    assert ("--max-pairs MAX_PAIRS use at most N pairs per scene (evenly spread; quick runs) (default: every pair; "
+            "20 on the built-in Strecha split)") in flat
 
 
 def test_build_gt_help_names_where_it_writes_as_the_readme_does(user):
@@ -268,7 +269,8 @@ def test_download_then_every_command_finds_it(user, tmp_path, server, data_home)
     assert r.stdout.strip() == f"strecha: ready in {home / 'strecha'}"
     assert "Traceback" not in r.stderr and "no --data" in r.stderr
     got = home / "strecha"
-    assert sorted(p.name for p in got.iterdir()) == ["Herz-Jesus-P8", "entry-P10", "fountain-P11"]
+    assert sorted(p.name for p in got.iterdir()) == ["Herz-Jesus-P25", "Herz-Jesus-P8", "castle-P19", "castle-P30",
+                                                     "entry-P10", "fountain-P11"]
     assert [p.name for p in home.iterdir()] == ["strecha"]  # no temporary folder left
     for f in ("fountain-P11/images/0004.jpg", "entry-P10/gt_dense_cameras/0009.jpg.camera"):
         assert (got / f).read_bytes() == (DATA / "strecha" / f).read_bytes()  # already 1536x1024: kept as is
@@ -279,8 +281,11 @@ def test_download_then_every_command_finds_it(user, tmp_path, server, data_home)
     out = json.loads(r.stdout)
     assert out["data"] == str(got) and out["rule"] == "download location"
     assert out["detail"] == ("$IMTUNE_DATA_HOME" if data_home else "~/.local/share/imtune/data")
-    assert {s["scene"]: s["split"] for s in out["scenes"]} == {"fountain-P11": "val", "Herz-Jesus-P8": "test",
-                                                                "entry-P10": "test"}
+    # the measured default split (notes/h32data.md): fountain and Herz-Jesus validate, entry and castle test
+    assert {s["scene"]: s["split"] for s in out["scenes"]} == {"fountain-P11": "val", "Herz-Jesus-P8": "val",
+                                                                "Herz-Jesus-P25": "val", "entry-P10": "test",
+                                                                "castle-P19": "test", "castle-P30": "test"}
+    assert out["max_pairs"] == 20
     r = tune("data", "scenes", env=user)
     assert r.stdout.splitlines()[0] == f"data: {got}  (found by {out['rule']} ({out['detail']}))"
 
@@ -308,7 +313,7 @@ def test_main_job_downloads_and_goes_on(user, tmp_path, server):  # noqa: F811
              "--calibration-pairs", "2", "--fix", "max_iters=100", "--no-test", "--json", "--quiet", env=user)
     assert r.returncode == 0, r.stderr[-3000:]
     first = r.stderr.splitlines()[0]
-    assert first.startswith("tune: no data found; downloading the default data set strecha (58 files from "
+    assert first.startswith("tune: no data found; downloading the default data set strecha (206 files from "
                             "127.0.0.1:") and first.endswith(f"into {home / 'strecha'}"), r.stderr
     assert (home / "strecha" / "fountain-P11" / "images" / "0010.jpg").is_file()
     out = json.loads(r.stdout)

@@ -72,6 +72,25 @@ def test_one_se_picks_the_centre_of_the_trials_within_one_se():
     assert t.number == 2
 
 
+def test_lower_bound_picks_the_highest_lower_end():
+    # the best (0.80 [0.55, 0.95]) is lucky: few pairs carry it, a wide interval; trial 1 is lower (0.78) but good on
+    # most pairs (0.78 [0.72, 0.84]): its lower end 0.72 is the highest of the feasible trials; 3 (0.99 [0.98, 1.0])
+    # is over budget and never frozen
+    st = make_study([((0.9, 0.5, 0.5), 0.80, (0.55, 0.95), True),   # 0: best value
+                     ((0.1, 0.5, 0.5), 0.78, (0.72, 0.84), True),   # 1: highest lower end
+                     ((0.5, 0.5, 0.5), 0.76, (0.70, 0.82), True),   # 2
+                     ((0.5, 0.9, 0.5), 0.99, (0.98, 1.00), False)])  # 3: over budget
+    t, info = sel.select_trial(st, "lower-bound")
+    assert t.number == 1 and info["best_trial"] == 0 and info["lower_bound"] == pytest.approx(0.72)
+    assert "lower end" in info["note"]
+    # a tie of lower ends: the higher value wins
+    st = make_study([((0.9, 0.5, 0.5), 0.70, (0.60, 0.80), True), ((0.1, 0.5, 0.5), 0.75, (0.60, 0.90), True)])
+    assert sel.select_trial(st, "lower-bound")[0].number == 1
+    # no interval stored (an older imtune's trials): the value stands for the lower end, i.e. the best trial
+    st = make_study([(c, v, None, f) for c, v, _, f in PLATEAU])
+    assert sel.select_trial(st, "lower-bound")[0].number == 0
+
+
 def test_one_se_without_an_interval_falls_back_to_the_best():
     st = make_study([(c, v, None, f) for c, v, _, f in PLATEAU])
     t, info = sel.select_trial(st, "one-se")

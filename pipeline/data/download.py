@@ -59,7 +59,11 @@ class Source(NamedTuple):
 
 _GH = "https://raw.githubusercontent.com"
 _STRECHA_REPO = f"{_GH}/openMVG/SfM_quality_evaluation/master/Benchmarking_Camera_Calibration_2008"
-STRECHA_SCENES = {"fountain-P11": 11, "Herz-Jesus-P8": 8, "entry-P10": 10}
+#: scene -> images (named 0000.jpg ... in the repository; cameras gt_dense_cameras/NNNN.jpg.camera): all six scenes
+#: of Strecha et al. 2008 as ../shared/data holds them (castle-P19 / P30 share 11 images, Herz-Jesus-P8 / P25 a
+#: facade: pipeline.data.STRECHA_FAMILIES keeps each family on one side of the default split)
+STRECHA_SCENES = {"fountain-P11": 11, "Herz-Jesus-P8": 8, "entry-P10": 10, "castle-P19": 19, "castle-P30": 30,
+                  "Herz-Jesus-P25": 25}
 _HLOC_SACRE = f"{_GH}/cvg/Hierarchical-Localization/master/datasets/sacre_coeur/mapping"
 SACRE_COEUR_IMAGES = (
     "02928139_3448003521.jpg", "03903474_1471484089.jpg", "10265353_3838484249.jpg", "17295357_9106075285.jpg",

@@ -96,21 +96,24 @@ def _other_sets(used) -> list[dict]:
 def run_scenes(args) -> int:
     import json
 
-    from pipeline.data import default_splits, list_scenes
+    from pipeline.data import default_max_pairs, default_splits, list_scenes
     from pipeline.data.locate import locate
     loc = locate(args.data)
     root = loc.path
     splits = default_splits(root)
+    cap = default_max_pairs(root)
     scenes = [{"scene": n, "split": "val" if n in splits.get("val", []) else
                "test" if n in splits.get("test", []) else "-"} for n in list_scenes(root)]
     others = _other_sets(root)
     if args.json:
         print(json.dumps({"data": str(root), "rule": loc.rule, "detail": loc.detail, "scenes": scenes,
-                          "other_data_sets": others}, indent=2))
+                          "max_pairs": cap, "other_data_sets": others}, indent=2))
         return 0
     print(f"data: {root}  (found by {loc.describe()})")
     for s in scenes:
         print(f"{s['scene']}\t{s['split']}")
+    if cap is not None:
+        print(f"pairs: the main job uses at most {cap} pairs per scene here (evenly spread; --max-pairs N to change)")
     if not splits.get("test"):
         print(f"note: no test split in {root}: the main job needs --test-scenes NAME[,...] (or --no-test), or a "
               f"splits.yaml there")

@@ -99,7 +99,8 @@ def _select_opts(g) -> None:
     g.add_argument("--select", default=None, choices=list(RULES),
                    help=f"which feasible trial is frozen: best (highest validation mAA), one-se (the centre of the "
                         f"trials within one standard error of the best), smooth (best of the surface averaged over "
-                        f"neighbouring trials); see tuner/select.py (default: the study's rule, else {DEFAULT_RULE})")
+                        f"neighbouring trials), lower-bound (highest lower end of the validation 95%% interval); "
+                        f"see tuner/select.py (default: the study's rule, else {DEFAULT_RULE})")
     g.add_argument("--reference", default=None, metavar="FILE|STUDY|none",
                    help="configuration the test runs are compared with on the same pairs (paired bootstrap): a "
                         "config file or study, none to skip (default: the paper defaults r 0.85 both, eta 0.5 px, "
@@ -111,6 +112,7 @@ def register(sub) -> None:
     from tuner.samplers import DEFAULT_PRUNER, PRUNERS, SAMPLERS
     ap = sub.add_parser("run", help="tune on the validation scenes, freeze the optimum, run the test scenes "
                                     "(the default command)")
+    from pipeline.data import STRECHA_MAX_PAIRS
     from tuner.argtypes import SEED_MAX
     add_pipeline_options(ap, tuning=True, seed_help=f"seed of the sampler (each worker derives its own from it and its "
                                                     f"first trial) and of the seeded estimators, 0 to {SEED_MAX} "
@@ -145,7 +147,8 @@ def register(sub) -> None:
                    help="estimator seconds per pair allowed on test (default 1.0)")
     t.add_argument("--test-scenes", type=scene_list, default=None, help="comma-separated test scenes (default: the data set's test split)")
     t.add_argument("--max-pairs", type=positive_int, default=None,
-                   help="use at most N pairs per scene (evenly spread; quick runs) (default: every pair)")
+                   help=f"use at most N pairs per scene (evenly spread; quick runs) (default: every pair; "
+                        f"{STRECHA_MAX_PAIRS} on the built-in Strecha split)")
     t.add_argument("--chunk-pairs", type=positive_int, default=12,
                    help="pairs per pruning step (an intermediate value after each chunk)")
     t.add_argument("--heartbeat", type=nonnegative_int, default=10,
@@ -276,6 +279,19 @@ def _jsonable(o):
 
 # -- tune run ---------------------------------------------------------------------------------------
 
+def _max_pairs(args, data_root):
+    """``--max-pairs``, else on the built-in Strecha split (no --scenes / --test-scenes, no splits.yaml) its
+    pairs-per-scene cap :data:`pipeline.data.STRECHA_MAX_PAIRS` (six scenes, 1,034 pairs: every pair would make the
+    main job several times longer), else None (every pair). A multiview run takes no pairs cap."""
+    if args.max_pairs is not None or args.scenes or args.test_scenes:
+        return args.max_pairs
+    from pipeline.tasks import is_timed
+    if not is_timed(args.task):
+        return None
+    from pipeline.data import default_max_pairs
+    return default_max_pairs(data_root)
+
+
 def settings_from_args(args):
     """TuneSettings from the `tune run` options."""
     from tuner.study import TuneSettings
@@ -297,15 +313,16 @@ def settings_from_args(args):
     check_multiview_only(args, [args.task])
     quiet = bool(args.quiet or args.json)
     mv = multiview_config(args, seed=args.seed if args.seed is not None else 0)
+    data_root = resolve_data(args.data, download=True, quiet=quiet)
     return TuneSettings(
-        base=base, data_root=resolve_data(args.data, download=True, quiet=quiet), task=args.task, study_name=args.study,
+        base=base, data_root=data_root, task=args.task, study_name=args.study,
         storage=args.storage, studies_dir=_studies_dir(args), space_path=args.space,
         # imported (custom) matches skip the matcher: the ratio test and strategy are then not searched
         fixes=list(args.fix) + (["ratio=1.0", "strategy=both"] if getattr(args, "matches", None) else []),
         n_trials=args.n_trials, timeout=args.timeout, seed=args.seed, sampler=args.sampler, pruner=args.pruner,
         startup_trials=args.startup_trials, budget=args.budget, test_budget=args.test_budget,
         val_scenes=_scenes(args.scenes), test_scenes=_scenes(args.test_scenes), min_covisibility=args.covisibility,
-        max_pairs=args.max_pairs, chunk_pairs=args.chunk_pairs, cache_dir=args.cache,
+        max_pairs=_max_pairs(args, data_root), chunk_pairs=args.chunk_pairs, cache_dir=args.cache,
         heartbeat=args.heartbeat if args.heartbeat and args.heartbeat > 0 else None,
         calibration_pairs=args.calibration_pairs, recalibrate=args.recalibrate, progress=not quiet,
         test=not args.no_test, test_runs=args.test_runs, retest=args.retest, multiview=mv, workers=args.workers,
