@@ -145,6 +145,13 @@ class StudyContext:
     created: bool
 
 
+def study_name(s: TuneSettings, task_name: str | None = None) -> str:
+    """The study's name: ``--study``, else ``<feature>-<num_features>-<ransac>-<task>`` (+ ``-pareto`` / ``-auc10``
+    / ``-auc20`` by objective)."""
+    return s.study_name or default_study_name(s.base, task_name or s.task) + (
+        PARETO_SUFFIX if s.objective == "pareto" else f"-{s.objective}" if s.objective in AUC_OBJECTIVES else "")
+
+
 def setup_study(s: TuneSettings) -> StudyContext:
     """Open the storage, load the validation data, create or resume the study (checking that it was
     created with the same settings), calibrate the budget if the study is new, build the objective."""
@@ -186,8 +193,7 @@ def setup_study(s: TuneSettings) -> StudyContext:
     s.studies_dir = Path(s.studies_dir) if s.studies_dir else default_studies_dir()
     check_studies_dir(s.studies_dir)  # budgets.json, frozen.yaml, reports: read-only or a file in the way -> now
     space = load_study_space(s, task)
-    name = s.study_name or default_study_name(s.base, task.name) + (
-        PARETO_SUFFIX if pareto else f"-{s.objective}" if s.objective in AUC_OBJECTIVES else "")
+    name = study_name(s, task.name)
     from tuner.freeze import check_study_outputs
     check_study_outputs(s.studies_dir, name)  # frozen.yaml, test.json: a file or folder in the way -> now
     storage = open_storage(s.storage, heartbeat=s.heartbeat, studies_dir=s.studies_dir)
