@@ -19,9 +19,10 @@ study's test already opens, and the first study's own figures (``mean``, ``runs`
 that knows nothing of replicates reads the single study as before. The same ``replicated`` block is stored in the first
 study's user attribute ``replicated`` (what `tune results` and the dashboard read).
 
-The interval (``pipeline.metrics.replicates.replicated_interval``): each replicate's per-pair mAA(10) score (averaged
-over its test runs) forms a K x N matrix on the same N test pairs; pair sampling (a scene-stratified bootstrap of the
-pairs, shared by all replicates) and the replicate-to-replicate spread (t-based) add. With K = 1 it is the pair
+The interval (``pipeline.metrics.replicates.replicated_maa_interval``): each replicate's per-pair mAA(10) score
+(averaged over its test runs) forms a K x N matrix on the same N test pairs; pair sampling (the single test interval's
+scene-stratified bootstrap with pseudo-scores, of the replicate-averaged scores) and the replicate-to-replicate spread
+(t-based, s^2 / K) add. With K = 1 it is the pair
 interval alone, and every verdict says the tuning variance was not measured.
 """
 from __future__ import annotations
@@ -34,14 +35,15 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import ImtuneError
-from pipeline.metrics.replicates import NOT_MEASURED, ReplicatedInterval, replicated_interval
+from pipeline.metrics.replicates import NOT_MEASURED, ReplicatedInterval, replicated_maa_interval
 
 #: the frozen parameters whose spread over replicates is reported (r, eta, Gamma)
 SPREAD_PARAMS = ("ratio", "threshold", "max_iters")
 MAX_REPLICATES = 20
-INTERVAL_METHOD = ("two-level: scene-stratified pair bootstrap of the scene-weighted mean (pairs shared by all "
-                   "replicates) + between-replicate variance s^2 / K, t quantile with Welch-Satterthwaite df "
-                   "(pipeline.metrics.replicates.replicated_interval)")
+INTERVAL_METHOD = ("two-level: the test interval's scene-stratified pair bootstrap (with pseudo-scores) of the "
+                   "replicate-averaged pair scores (pairs shared by all replicates), widened by the between-replicate "
+                   "variance s^2 / K, t quantile with Welch-Satterthwaite df "
+                   "(pipeline.metrics.replicates.replicated_maa_interval)")
 
 
 def replicate_name(name: str, k: int) -> str:
@@ -103,12 +105,12 @@ def _pair_key(p):
     return json.dumps(p) if isinstance(p, (list, tuple)) else str(p)
 
 
-def score_matrix(tests: list[dict], tau: int = 10) -> tuple[np.ndarray, np.ndarray]:
+def score_matrix(tests: list[dict], tau: int = 10, scaled: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """(K x N per-pair mAA(tau) scores, averaged over each replicate's test runs, with each column scaled so that the
     plain mean is the scene-weighted mean; N scene labels). Why scaled: a test's mAA is the mean over scenes of the
     per-scene mAA, i.e. sum_p w_p s_p with w_p = 1 / (n_scenes n_scene_pairs); multiplying s_p by N w_p makes
     ``scores.mean()`` that figure, and a bootstrap within scenes (sizes kept) of the scaled mean is exactly the
-    stratified bootstrap of the weighted one. One-line ImtuneError when the replicates were not tested on the same
+    stratified bootstrap of the weighted one (``scaled`` False: the scores as they are). One-line ImtuneError when the replicates were not tested on the same
     pairs or a test has no per-pair errors."""
     from pipeline.metrics.uncertainty import pair_scores
     rows, keys = [], None
@@ -135,6 +137,8 @@ def score_matrix(tests: list[dict], tau: int = 10) -> tuple[np.ndarray, np.ndarr
                               "and --max-pairs, or `tune test` each replicate with the same options)")
         rows.append([np.mean([d[key] for d in per_run]) for key in keys])
     assert keys is not None
+    if not scaled:
+        return np.asarray(rows, float), np.array([key[0] for key in keys])
     scenes = np.array([key[0] for key in keys])
     names, counts = np.unique(scenes, return_counts=True)
     per_scene = dict(zip(names, counts))
@@ -144,8 +148,8 @@ def score_matrix(tests: list[dict], tau: int = 10) -> tuple[np.ndarray, np.ndarr
 
 def replicated_summary(tests: list[dict], seeds: list, *, tau: int = 10, n_boot: int = 2000) -> dict:
     """The ``replicated`` block of test.json from the K replicates' test results (same pairs)."""
-    scores, strata = score_matrix(tests, tau)
-    iv: ReplicatedInterval = replicated_interval(scores, strata, n_boot=int(n_boot), seed=0)
+    scores, strata = score_matrix(tests, tau, scaled=False)
+    iv: ReplicatedInterval = replicated_maa_interval(scores, strata, n_boot=int(n_boot), seed=0)
     reps = []
     for t, seed in zip(tests, seeds):
         m = t.get("mean") or {}
