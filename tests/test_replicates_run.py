@@ -159,7 +159,7 @@ def test_compare_of_two_replicated_runs_prints_p_a_beats_b(runs):
     a = [_maa10_by_hand(_test(runs["studies"], n))[0] for n in (NAME, f"{NAME}-r2", f"{NAME}-r3")]
     b = [_maa10_by_hand(_test(runs["studies"], n))[0] for n in ("other", "other-r2", "other-r3")]
     assert d["difference_a_minus_b"] == pytest.approx(np.mean(a) - np.mean(b), abs=1e-12)
-    wins = sum((x > y) + 0.5 * (x == y) for x in a for y in b) / 9
+    wins = sum((x > y + 1e-9) + 0.5 * (abs(x - y) <= 1e-9) for x in a for y in b) / 9  # equal mAAs: ties
     assert d["p_a_beats_b"] == pytest.approx(wins)
     assert d["ci"][0] <= d["difference_a_minus_b"] <= d["ci"][1]
     text = tune("compare", NAME, "other", "--studies-dir", str(runs["studies"]), cache=runs["cache"]).stdout
@@ -171,3 +171,16 @@ def test_k1_verdict_says_tuning_variance_not_measured(runs):
     r = tune("compare", NAME, "other-r2", "--studies-dir", str(runs["studies"]), cache=runs["cache"])
     assert "the tuning variance was not measured" in r.stdout
     assert "P(A > B)" not in r.stdout
+
+
+def test_results_show_the_replicated_figure_once(runs):
+    """`tune results`: one row per replicated configuration (its -r2 / -r3 studies are not rows), the replicated
+    mean and interval with (K=3); the caption says what K means."""
+    r = tune("results", "--studies-dir", str(runs["studies"]), "--format", "json", cache=runs["cache"])
+    text = tune("results", "--studies-dir", str(runs["studies"]), cache=runs["cache"]).stdout
+    assert "(K=3)" in text and "tuning replicates" in text
+    # both runs are sift 1024 + degensac: one row, the better of the two replicated figures
+    tops = [_test(runs["studies"], n)["replicated"] for n in (NAME, "other")]
+    shown = [f"{t['mAA10']:.3f} [{t['mAA10_ci'][0]:.3f}, {t['mAA10_ci'][1]:.3f}] (K=3)" for t in tops]
+    assert any(x in text for x in shown), (shown, text)
+    assert f"{NAME}-r2" not in r.stdout and "other-r3" not in r.stdout

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
+TIE_TOLERANCE = 1e-12
 NOT_MEASURED = "the tuning variance was not measured (1 replicate): the interval covers test pairs only"
 
 
@@ -106,10 +107,13 @@ def replicated_interval(scores, strata=None, *, alpha: float = 0.05, n_boot: int
 
 
 def p_a_beats_b(a_means, b_means) -> float:
-    """Fraction of (i, j) replicate pairs with A_i > B_j, ties counted half."""
+    """Fraction of (i, j) replicate pairs with A_i > B_j, ties counted half. Means within 1e-12 of each other are
+    ties: the same mAA summed in another order (a scene-weighted mean against a scaled pair mean) differs in the
+    last bits, and such a pair must not count as a win for either side."""
     a = np.asarray(a_means, float)[:, None]
     b = np.asarray(b_means, float)[None, :]
-    return float(((a > b).sum() + 0.5 * (a == b).sum()) / (a.size * b.size))
+    tie = np.abs(a - b) <= TIE_TOLERANCE
+    return float((((a > b) & ~tie).sum() + 0.5 * tie.sum()) / (a.size * b.size))
 
 
 def replicated_difference(a, b, strata=None, *, alpha: float = 0.05, n_boot: int = 2000, seed: int = 0) -> ReplicatedDifference:
