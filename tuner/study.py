@@ -110,6 +110,7 @@ class TuneSettings:
     reference: str | None = None  # test runs compared with: None = paper defaults, "none", a config file or study
     ci_resamples: int = 2000  # bootstrap resamples of every mAA's 95% interval (0 = none)
     unused_options: tuple = ()  # typed options the task does not use (--budget of a multiview run): said, ignored
+    terminate: str = "off"  # "auto": stop when more trials cannot beat the incumbent by its interval (tuner.terminate)
 
     def make_task(self, **extra):
         """The study's task with these settings' options (each task takes those it knows)."""
@@ -353,6 +354,9 @@ def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
                    dynamic_ncols=True)
         _set_postfix(bar, study)
 
+    from tuner.terminate import make_terminator, should_terminate
+    terminator = make_terminator(s.terminate, n_target, s.objective, seed=s.seed)
+
     def callback(st, trial):
         fail_stale_trials(st)
         done = finished(st)
@@ -362,10 +366,13 @@ def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
             bar.refresh()
         if done >= n_target:
             st.stop()
+        elif terminator is not None and trial.state == TrialState.COMPLETE and should_terminate(terminator, st, say=s.say):
+            st.stop()
 
     t0 = time.perf_counter()
     try:
-        if done0 < n_target:
+        stopped = terminator is not None and done0 < n_target and should_terminate(terminator, study, say=s.say)
+        if done0 < n_target and not stopped:  # a terminated study resumed: no trial more
             study.optimize(ctx.objective, n_trials=None, timeout=s.timeout, callbacks=[callback],
                            gc_after_trial=False, show_progress_bar=False)
     except BaseException as e:

@@ -129,6 +129,10 @@ def register(sub) -> None:
                    help="finished trials (complete + pruned) the study should hold; a rerun runs the missing ones "
                         "(default 50; the whole grid with --sampler grid)")
     t.add_argument("--timeout", type=positive_float, default=None, help="stop this worker after this many seconds")
+    t.add_argument("--terminate", default="off", choices=["off", "auto"],
+                   help="auto: stop the study early when more trials cannot beat the incumbent by more than its "
+                        "validation interval (Optuna's terminator: a GP regret bound, after min(20, n_trials / 2) "
+                        "trials); off (default): run every trial")
     t.add_argument("--replicates", type=positive_int, default=1, metavar="K",
                    help="K independent tunings of this configuration (studies NAME, NAME-r2, ...; each its own sampler "
                         "and estimator seed derived from --seed, all sharing the cache), each frozen and tested on "
@@ -291,6 +295,9 @@ def settings_from_args(args):
     if args.pareto_span is not None and args.objective != "pareto":  # it was ignored, unsaid
         raise ImtuneError(f"--pareto-span {args.pareto_span:g} applies to a pareto study only: add --objective pareto, "
                           "or drop --pareto-span")
+    if getattr(args, "terminate", "off") == "auto":
+        from tuner.terminate import make_terminator
+        make_terminator("auto", 50, args.objective)  # a pareto study: one line now, before any calibration
     pinned = [f for f in args.fix if f.partition("=")[0].strip() in ("ratio", "strategy")]
     if getattr(args, "matches", None) and pinned:  # was "--fix ratio is given twice (ratio=0.7 and ratio=1.0)"
         raise ImtuneError(f"--fix {pinned[0].strip()} does not apply with --matches custom:DIR: imported matches skip the "
@@ -318,7 +325,7 @@ def settings_from_args(args):
         gt_dir=args.gt_dir, objective=args.objective,
         pareto_span=PARETO_SPAN if args.pareto_span is None else args.pareto_span, select=args.select,
         reference=resolve_reference(args.reference, _studies_dir(args)), ci_resamples=ci_resamples(args),
-        unused_options=_stereo_only_given(args))
+        unused_options=_stereo_only_given(args), terminate=getattr(args, "terminate", "off"))
 
 
 def run(args) -> int:
