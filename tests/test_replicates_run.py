@@ -184,3 +184,12 @@ def test_results_show_the_replicated_figure_once(runs):
     shown = [f"{t['mAA10']:.3f} [{t['mAA10_ci'][0]:.3f}, {t['mAA10_ci'][1]:.3f}] (K=3)" for t in tops]
     assert any(x in text for x in shown), (shown, text)
     assert f"{NAME}-r2" not in r.stdout and "other-r3" not in r.stdout
+
+
+def test_k1_run_says_tuning_variance_not_measured(runs):
+    """`--replicates 1` (the default) is today's study: the finished first replicate resumed (no trial), and the
+    printed outcome says the tuning variance was not measured."""
+    r = tune(*run_args(runs["studies"], 1, "--replicates", "1", "--quiet"), cache=runs["cache"])
+    assert "this worker ran 0" in r.stdout
+    assert "tuning: 1 replicate: the tuning variance was not measured" in r.stdout
+    assert "replicated test mAA10" not in r.stdout
