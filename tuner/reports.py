@@ -573,9 +573,9 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
         rows = [{ren.get(k, k): v for k, v in r.items() if k != "best"} for r in rows]
         cols = [ren.get(c, c) for c in cols if c != "best"]
     caption = _results_caption(shown, sets, several, truths)
-    if fmt != "json":
+    shown_reps = [n for n in replicated if any(st.name == n for st in shown)]
+    if fmt != "json" and shown_reps:  # a table without replicated rows keeps its caption as it was
         from pipeline.metrics.replicates import NOT_MEASURED
-        shown_reps = [n for n in replicated if any(st.name == n for st in shown)]
         note = ("mAA10 (K=k): the mean over k tuning replicates (`tune --replicates k`), its 95% interval holds the "
                 "tuning variance; ranks pair on every replicate's test runs" if shown_reps else "")
         if len(shown_reps) < len(shown):
