@@ -193,3 +193,15 @@ def test_k1_run_says_tuning_variance_not_measured(runs):
     assert "this worker ran 0" in r.stdout
     assert "tuning: 1 replicate: the tuning variance was not measured" in r.stdout
     assert "replicated test mAA10" not in r.stdout
+
+
+def test_replicates_of_a_bag_task_are_refused_before_tuning(tmp_path):
+    """The replicated figure pairs stereo test pairs: a multiview run with --replicates 2 is one line, exit 2, before
+    any study exists."""
+    env = dict(os.environ, IMTUNE_CACHE=str(tmp_path / "cache"))
+    r = subprocess.run([sys.executable, "-m", "tuner", "run", "--task", "multiview", "--data", str(STRECHA),
+                        "--scenes", "fountain-P11", "--studies-dir", str(tmp_path / "s"), "--replicates", "2"],
+                       capture_output=True, text=True, cwd=ROOT, env=env, timeout=300)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1 and "--replicates 2" in lines[0] and "bags" in lines[0], r.stderr
+    assert not (tmp_path / "s" / "optuna.db").exists()

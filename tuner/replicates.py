@@ -81,6 +81,11 @@ def tune_replicates(s, replicates: int) -> dict:
     if not 1 <= k_max <= MAX_REPLICATES:
         raise ImtuneError(f"--replicates {replicates}: give 1 to {MAX_REPLICATES}")
     name = study_name(s)
+    if k_max > 1:
+        from pipeline.tasks import task_class
+        if task_class(s.task).unit != "pairs":  # before any tuning: the replicated figure pairs test pairs
+            raise ImtuneError(f"--replicates {k_max}: the {s.task} task is measured on {task_class(s.task).unit}, and "
+                              "replicates are combined over stereo test pairs so far; drop --replicates")
     if k_max > 1 and s.warm_start:
         raise ImtuneError("--warm-start with --replicates: every replicate would start from the same trials and the "
                           "replicates would not be independent tunings; drop one of them")
