@@ -205,3 +205,13 @@ def test_replicates_of_a_bag_task_are_refused_before_tuning(tmp_path):
     lines = r.stderr.strip().splitlines()
     assert r.returncode == 2 and len(lines) == 1 and "--replicates 2" in lines[0] and "bags" in lines[0], r.stderr
     assert not (tmp_path / "s" / "optuna.db").exists()
+
+
+def test_two_single_studies_compare_as_before_and_say_tuning_not_measured(runs):
+    """Two unreplicated studies (-r2 of each run) are evaluated on the pairs as before; the verdict names what a
+    single tuning cannot measure."""
+    common = ["compare", f"{NAME}-r2", "other-r2", "--studies-dir", str(runs["studies"]), "--data", str(STRECHA),
+              "--scenes", "Herz-Jesus-P8"]
+    d = json.loads(tune(*common, "--json", "--quiet", cache=runs["cache"]).stdout)
+    assert "overall" in d and "difference" in d["overall"]  # the single-study comparison, unchanged
+    assert d["tuning_variance_measured"] is False and "not measured" in d["tuning_note"]

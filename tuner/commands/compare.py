@@ -118,8 +118,11 @@ def run(args) -> int:
             print(f"warning: {', '.join(tuned_on)} {what} of {spec}: it was tuned on these pairs, so its numbers there "
                   "are not held out (give --scenes its test scenes for a fair comparison)", file=sys.stderr)
     if args.json:
+        from pipeline.metrics.replicates import NOT_MEASURED
+        tuned = any(src.frozen for src in sources)  # a single tuning's figure: which optimum it froze is unmeasured
         objs = [{"a": c["a"], "b": c["b"], "overall": c["overall"], "scenes": c["scenes"],
                  "task": res["task"], "verdict_rule": res["verdict_rule"],
+                 **({"tuning_variance_measured": False, "tuning_note": NOT_MEASURED} if tuned else {}),
                  **({"adjustment": res["adjustment"]} if res["adjustment"] else {})}
                 for c in res["comparisons"]]
         print(json.dumps(_jsonable(objs[0] if len(objs) == 1 else objs), indent=2))
