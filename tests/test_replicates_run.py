@@ -215,3 +215,33 @@ def test_two_single_studies_compare_as_before_and_say_tuning_not_measured(runs):
     d = json.loads(tune(*common, "--json", "--quiet", cache=runs["cache"]).stdout)
     assert "overall" in d and "difference" in d["overall"]  # the single-study comparison, unchanged
     assert d["tuning_variance_measured"] is False and "not measured" in d["tuning_note"]
+
+
+def test_reference_comparison_of_replicates_from_pair_errors():
+    """Synthetic test.json dicts (no tuning): tuned - reference over 3 replicates equals the mean difference of the
+    scene-weighted mAAs computed here; P(tuned > reference) counts replicate pairs; a reference with other settings
+    than the others (not only its seed) gives no comparison."""
+    from tuner.replicates import reference_comparison, replicated_summary
+    rng = np.random.default_rng(3)
+    pairs = [("a", [0, i]) for i in range(6)] + [("b", [1, i]) for i in range(10)]
+
+    def run(shift):
+        return {"pair_errors": [[sc, p, float(e)] for (sc, p), e in zip(pairs, rng.gamma(2.0, 2.0 + shift, len(pairs)))]}
+    tests = []
+    for k, shift in enumerate((0.0, 0.5, -0.5)):
+        t = {"study": f"s{k}", "trial": k, "params": {"ratio": 0.8 + k / 100}, "runs": [run(shift)],
+             "reference": {"label": "paper", "config": {"geometry": {"seed": k, "threshold": 0.5}}, "runs": [run(1.5)]}}
+        t["mean"] = {"mAA10": _maa10_by_hand(t)[0]}
+        tests.append(t)
+    tuned = [_maa10_by_hand(t)[0] for t in tests]
+    ref = [_maa10_by_hand(t["reference"])[0] for t in tests]
+    out = reference_comparison(tests)
+    assert out["difference"] == pytest.approx(np.mean(tuned) - np.mean(ref), abs=1e-12)
+    assert out["mAA10"] == pytest.approx(np.mean(ref), abs=1e-12)
+    wins = sum((x > y + 1e-9) + 0.5 * (abs(x - y) <= 1e-9) for x in tuned for y in ref) / 9
+    assert out["p_tuned_beats_reference"] == pytest.approx(wins)
+    assert out["ci"][0] < out["difference"] < out["ci"][1]
+    summary = replicated_summary(tests, [1, 2, 3])
+    assert summary["mAA10"] == pytest.approx(np.mean(tuned), abs=1e-12) and summary["reference"] == out
+    tests[2]["reference"]["config"]["geometry"]["threshold"] = 1.0
+    assert reference_comparison(tests) is None

@@ -169,7 +169,38 @@ def replicated_summary(tests: list[dict], seeds: list, *, tau: int = 10, n_boot:
             "se_pairs": iv.se_pairs, "se_between": iv.se_between,
             "tuning_variance_measured": iv.tuning_variance_measured,
             "note": "" if iv.tuning_variance_measured else NOT_MEASURED,
-            "spread": spread, "pairs": int(scores.shape[1]), "method": INTERVAL_METHOD, "level": 0.95}
+            "spread": spread, "pairs": int(scores.shape[1]), "method": INTERVAL_METHOD, "level": 0.95,
+            "reference": reference_comparison(tests, tau=tau, n_boot=n_boot)}
+
+
+def reference_comparison(tests: list[dict], *, tau: int = 10, n_boot: int = 2000) -> dict | None:
+    """The tuned configuration (its K replicates) against the reference every replicate's test ran beside it (the
+    paper defaults unless --reference said otherwise), on the same pairs:
+    :func:`pipeline.metrics.replicates.replicated_difference` of tuned - reference (scene-weighted scores), with
+    P(tuned > reference) over replicate pairs. The reference's own replicates differ only in their estimator seeds.
+    None when a replicate's test has no reference (``--reference none``) or they differ."""
+    from pipeline.metrics.replicates import replicated_difference
+    refs = [t.get("reference") for t in tests]
+    if not all(isinstance(r, dict) and r.get("runs") for r in refs):
+        return None
+    def unseeded(r: dict) -> str:  # the reference of replicate k runs with replicate k's estimator seeds
+        conf = json.loads(json.dumps(r.get("config") or {}, default=str))
+        (conf.get("geometry") or {}).pop("seed", None)
+        return json.dumps(conf, sort_keys=True)
+    if len({unseeded(r) for r in refs}) != 1:  # type: ignore[arg-type]
+        return None
+    tuned, strata = score_matrix(tests, tau)
+    try:
+        ref, _ = score_matrix(refs, tau)  # type: ignore[arg-type]
+    except ImtuneError:
+        return None
+    if ref.shape[1] != tuned.shape[1]:
+        return None
+    d = replicated_difference(tuned, ref, strata, n_boot=int(n_boot), seed=0)
+    return {"label": refs[0].get("label"), "mAA10": float(ref.mean()),  # type: ignore[union-attr]
+            "difference": d.diff, "ci": [d.low, d.high], "p_value": d.p_value,
+            "p_tuned_beats_reference": d.p_a_beats_b, "significant": bool(d.p_value < 0.05),
+            "tuning_variance_measured": d.tuning_variance_measured}
 
 
 def record_replicated(studies_dir, name: str, summary: dict) -> Path:
@@ -243,6 +274,15 @@ def replicated_text(summary: dict) -> str:
     out = [head, *lines]
     if spread:
         out.append(f"frozen settings over the replicates: {spread}")
+    ref = summary.get("reference")
+    if ref:
+        lo, hi = ref["ci"]
+        line = (f"against the reference ({ref.get('label')}, mAA10 {ref['mAA10']:.4f}): tuned - reference = "
+                f"{ref['difference']:+.4f} [{lo:+.4f}, {hi:+.4f}], p = {ref['p_value']:.3g} "
+                f"({'significant' if ref['significant'] else 'not significant'})")
+        if ref.get("p_tuned_beats_reference") is not None:
+            line += f", P(tuned > reference) = {ref['p_tuned_beats_reference']:.2f}"
+        out.append(line)
     if not summary.get("tuning_variance_measured"):
         out.append(f"note: {NOT_MEASURED}; rerun with --replicates 3 to measure it")
     return "\n".join(out)
