@@ -84,6 +84,8 @@ def test_three_studies_with_their_own_seeds_and_frozen_settings(runs):
     assert len(set(first_params)) == 3  # not the same draws three times
     reps = _test(runs["studies"], NAME)["replicates"]
     assert [r["study"] for r in reps] == names
+    attr = studies[0].user_attrs["replicated"]  # what optuna-dashboard shows beside the first study
+    assert attr["K"] == 3 and [r["study"] for r in attr["replicates"]] == names
     assert [r["seed"] for r in reps] == seeds
     for r, n in zip(reps, names):
         frozen = _test(runs["studies"], n)

@@ -16,8 +16,8 @@ Where it is recorded: the first study's ``test.json`` gets ``replicates`` (one e
 trial and parameters, test mAA10 with its own interval) and ``replicated`` (the mean over replicates, the two-level
 interval, the spread of the frozen r, eta, Gamma). test.json and not a new file: it is the file every reader of a
 study's test already opens, and the first study's own figures (``mean``, ``runs``) stay where they were, so a reader
-that knows nothing of replicates reads the single study as before. The same ``replicated`` block is stored in the first
-study's user attribute ``replicated`` (what `tune results` and the dashboard read).
+that knows nothing of replicates reads the single study as before (`tune results` and `tune compare` read it there).
+The same block is stored in the first study's user attribute ``replicated`` (optuna-dashboard shows it).
 
 The interval (``pipeline.metrics.replicates.replicated_maa_interval``): each replicate's per-pair mAA(10) score
 (averaged over its test runs) forms a K x N matrix on the same N test pairs; pair sampling (the single test interval's
@@ -40,6 +40,7 @@ from pipeline.metrics.replicates import NOT_MEASURED, ReplicatedInterval, replic
 #: the frozen parameters whose spread over replicates is reported (r, eta, Gamma)
 SPREAD_PARAMS = ("ratio", "threshold", "max_iters")
 MAX_REPLICATES = 20
+REPLICATED_ATTR = "replicated"
 INTERVAL_METHOD = ("two-level: the test interval's scene-stratified pair bootstrap (with pseudo-scores) of the "
                    "replicate-averaged pair scores (pairs shared by all replicates), widened by the between-replicate "
                    "variance s^2 / K, t quantile with Welch-Satterthwaite df "
@@ -100,6 +101,7 @@ def tune_replicates(s, replicates: int) -> dict:
         summary = replicated_summary([o["test"] for o in outs], [replicate_seed(s.seed, k) for k in range(1, k_max + 1)],
                                      n_boot=s.ci_resamples or 2000)
         record_replicated(s.studies_dir, name, summary)
+        _store_attr(s, name, summary)
         out["replicated"] = summary
     return out
 
@@ -216,6 +218,18 @@ def record_replicated(studies_dir, name: str, summary: dict) -> Path:
     d["replicated"] = {k: v for k, v in summary.items() if k != "replicates"}
     atomic_write(path, json.dumps(_plain(d), indent=2))
     return path
+
+
+def _store_attr(s, name: str, summary: dict) -> None:
+    """The ``replicated`` block (each replicate's study, seed, figure; the mean and interval) in the first study's
+    user attribute ``replicated``: what optuna-dashboard shows beside the study."""
+    import optuna
+
+    from tuner.freeze import _plain
+    from tuner.storage import open_storage
+    storage = open_storage(s.storage, heartbeat=None, studies_dir=s.studies_dir)
+    block = {k: v for k, v in summary.items() if k != "method"}
+    optuna.load_study(study_name=name, storage=storage).set_user_attr(REPLICATED_ATTR, _plain(block))
 
 
 def load_replicated(studies_dir, name: str) -> dict | None:
