@@ -344,6 +344,8 @@ def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
     def finished(st) -> int:
         return len(st.get_trials(deepcopy=False, states=(TrialState.COMPLETE, TrialState.PRUNED)))
 
+    from tuner.terminate import make_terminator, should_terminate
+    terminator = make_terminator(s.terminate, n_target, s.objective, seed=s.seed)  # an unknown mode: before any bar
     fail_stale_trials(study)  # trials of killed workers: FAIL, parameters re-enqueued once
     warm_start(study, ctx.storage, ctx.space, s.warm_start, say=s.say)  # a new study only
     done0 = finished(study)
@@ -353,9 +355,6 @@ def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
         bar = tqdm(total=n_target, initial=min(done0, n_target), desc=f"{ctx.name}", unit="trial",
                    dynamic_ncols=True)
         _set_postfix(bar, study)
-
-    from tuner.terminate import make_terminator, should_terminate
-    terminator = make_terminator(s.terminate, n_target, s.objective, seed=s.seed)
 
     def callback(st, trial):
         fail_stale_trials(st)
