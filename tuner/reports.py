@@ -461,6 +461,13 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
     )
     from pipeline.tasks import task_class  # what each study's task declares (its unit, what verifies its matches)
     tested = [s for s in studies if s.test]
+    # replicated studies (`tune --replicates K`, tuner.replicates): the first study stands for all K (its figure the
+    # mean over replicates, its interval the replicated one); the others are not rows of their own
+    from tuner.replicates import load_replicated
+    replicated = {s.name: load_replicated(studies_dir, s.name) for s in tested} if studies_dir is not None else {}
+    replicated = {k: v for k, v in replicated.items() if v}
+    members = {r["study"] for v in replicated.values() for r in v["replicates"][1:]}
+    tested = [s for s in tested if s.name not in members]
     ests = _estimators(tested)
     shown = [st for group in _groups(tested).values() for st in _by_estimator(group).values()]
     sets: dict[str, list[str]] = {}
@@ -488,6 +495,15 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
             if runs:
                 combine = combine_bag_runs_interval if is_bag_records(runs[0]) else combine_runs_interval
                 ci = combine(runs, taus=(10,), n_resamples=n_resamples, seed=seed)["mAA10_ci"]
+            rep = replicated.get(s.name) if s else None
+            if rep is not None and m is not None:  # the replicated figure; the ranks pair on every replicate's runs
+                m, ci = rep["mAA10"], rep["mAA10_ci"]
+                all_runs = list(runs or [])
+                for r in rep["replicates"][1:]:
+                    other = next((x for x in studies if x.name == r["study"]), None)
+                    extra = _test_pair_runs(other, studies_dir, warn) if other is not None else None
+                    all_runs += extra or []
+                runs = all_runs or runs
             row[f"NI {e}"] = round(float(ni), 1) if ni is not None else None
             auc = s.test.get("auc10") if s else None  # pose AUC@10 beside mAA10 (tests before it have none)
             row[f"auc10 {e}"] = round(float(auc), 4) if isinstance(auc, (int, float)) else None
@@ -496,6 +512,8 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
                 row[f"mAA10_ci {e}"] = [round(float(v), 4) for v in ci] if ci else None
             else:
                 row[f"mAA10 {e}"] = _with_ci(m, ci)
+                if rep is not None and m is not None:
+                    row[f"mAA10 {e}"] += f" (K={rep['K']})"
             if m is not None and (best is None or m > best[0]):
                 best = (m, e, runs, ci)
         row["best"] = best[1] if best else None
@@ -575,7 +593,16 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
         # ... and a 'best' column would name that estimator in every row, as if it had won
         rows = [{ren.get(k, k): v for k, v in r.items() if k != "best"} for r in rows]
         cols = [ren.get(c, c) for c in cols if c != "best"]
-    return rows, Columns(cols, caption=_results_caption(shown, sets, several, truths))
+    caption = _results_caption(shown, sets, several, truths)
+    shown_reps = [n for n in replicated if any(st.name == n for st in shown)]
+    if fmt != "json" and shown_reps:  # a table without replicated rows keeps its caption as it was
+        from pipeline.metrics.replicates import NOT_MEASURED
+        note = ("mAA10 (K=k): the mean over k tuning replicates (`tune --replicates k`), its 95% interval holds the "
+                "tuning variance; ranks pair on every replicate's test runs" if shown_reps else "")
+        if len(shown_reps) < len(shown):
+            note += ("; " if note else "") + f"a figure without (K=k) is one tuning: {NOT_MEASURED}"
+        caption = f"{caption} {note[0].upper()}{note[1:]}." if caption else f"{note[0].upper()}{note[1:]}."
+    return rows, Columns(cols, caption=caption)
 
 
 def _results_caption(shown: list[StudyInfo], sets: dict, several: bool, truths: set | None = None) -> str:

@@ -110,6 +110,7 @@ class TuneSettings:
     reference: str | None = None  # test runs compared with: None = paper defaults, "none", a config file or study
     ci_resamples: int = 2000  # bootstrap resamples of every mAA's 95% interval (0 = none)
     unused_options: tuple = ()  # typed options the task does not use (--budget of a multiview run): said, ignored
+    terminate: str = "off"  # "auto": stop when more trials cannot beat the incumbent by its interval (tuner.terminate)
 
     def make_task(self, **extra):
         """The study's task with these settings' options (each task takes those it knows)."""
@@ -143,6 +144,13 @@ class StudyContext:
     attrs: dict
     cache: object
     created: bool
+
+
+def study_name(s: TuneSettings, task_name: str | None = None) -> str:
+    """The study's name: ``--study``, else ``<feature>-<num_features>-<ransac>-<task>`` (+ ``-pareto`` / ``-auc10``
+    / ``-auc20`` by objective)."""
+    return s.study_name or default_study_name(s.base, task_name or s.task) + (
+        PARETO_SUFFIX if s.objective == "pareto" else f"-{s.objective}" if s.objective in AUC_OBJECTIVES else "")
 
 
 def setup_study(s: TuneSettings) -> StudyContext:
@@ -186,8 +194,7 @@ def setup_study(s: TuneSettings) -> StudyContext:
     s.studies_dir = Path(s.studies_dir) if s.studies_dir else default_studies_dir()
     check_studies_dir(s.studies_dir)  # budgets.json, frozen.yaml, reports: read-only or a file in the way -> now
     space = load_study_space(s, task)
-    name = s.study_name or default_study_name(s.base, task.name) + (
-        PARETO_SUFFIX if pareto else f"-{s.objective}" if s.objective in AUC_OBJECTIVES else "")
+    name = study_name(s, task.name)
     from tuner.freeze import check_study_outputs
     check_study_outputs(s.studies_dir, name)  # frozen.yaml, test.json: a file or folder in the way -> now
     storage = open_storage(s.storage, heartbeat=s.heartbeat, studies_dir=s.studies_dir)
@@ -337,6 +344,8 @@ def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
     def finished(st) -> int:
         return len(st.get_trials(deepcopy=False, states=(TrialState.COMPLETE, TrialState.PRUNED)))
 
+    from tuner.terminate import make_terminator, should_terminate
+    terminator = make_terminator(s.terminate, n_target, s.objective, seed=s.seed)  # an unknown mode: before any bar
     fail_stale_trials(study)  # trials of killed workers: FAIL, parameters re-enqueued once
     warm_start(study, ctx.storage, ctx.space, s.warm_start, say=s.say)  # a new study only
     done0 = finished(study)
@@ -356,10 +365,13 @@ def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
             bar.refresh()
         if done >= n_target:
             st.stop()
+        elif terminator is not None and trial.state == TrialState.COMPLETE and should_terminate(terminator, st, say=s.say):
+            st.stop()
 
     t0 = time.perf_counter()
     try:
-        if done0 < n_target:
+        stopped = terminator is not None and done0 < n_target and should_terminate(terminator, study, say=s.say)
+        if done0 < n_target and not stopped:  # a terminated study resumed: no trial more
             study.optimize(ctx.objective, n_trials=None, timeout=s.timeout, callbacks=[callback],
                            gc_after_trial=False, show_progress_bar=False)
     except BaseException as e:

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
+TIE_TOLERANCE = 1e-12
 NOT_MEASURED = "the tuning variance was not measured (1 replicate): the interval covers test pairs only"
 
 
@@ -106,10 +107,13 @@ def replicated_interval(scores, strata=None, *, alpha: float = 0.05, n_boot: int
 
 
 def p_a_beats_b(a_means, b_means) -> float:
-    """Fraction of (i, j) replicate pairs with A_i > B_j, ties counted half."""
+    """Fraction of (i, j) replicate pairs with A_i > B_j, ties counted half. Means within 1e-12 of each other are
+    ties: the same mAA summed in another order (a scene-weighted mean against a scaled pair mean) differs in the
+    last bits, and such a pair must not count as a win for either side."""
     a = np.asarray(a_means, float)[:, None]
     b = np.asarray(b_means, float)[None, :]
-    return float(((a > b).sum() + 0.5 * (a == b).sum()) / (a.size * b.size))
+    tie = np.abs(a - b) <= TIE_TOLERANCE
+    return float((((a > b) & ~tie).sum() + 0.5 * tie.sum()) / (a.size * b.size))
 
 
 def replicated_difference(a, b, strata=None, *, alpha: float = 0.05, n_boot: int = 2000, seed: int = 0) -> ReplicatedDifference:
@@ -139,3 +143,40 @@ def replicated_difference(a, b, strata=None, *, alpha: float = 0.05, n_boot: int
         p = float(2 * (1 - stats.norm.cdf(abs(d) / se * (stats.norm.ppf(1 - alpha / 2) / q))))
     pab = p_a_beats_b(a.mean(axis=1), b.mean(axis=1)) if measured else None
     return ReplicatedDifference(d, d - half, d + half, p, pab, measured)
+
+
+def replicated_maa_interval(scores, strata, *, alpha: float = 0.05, n_boot: int = 2000,
+                            seed: int = 0) -> ReplicatedInterval:
+    """Interval of a tuned mAA from ``scores`` (K replicates x N pairs of per-pair mAA scores in [0, 1], NOT scaled)
+    with the benchmark's weighting (the mean over scenes of each scene's pair mean).
+
+    The pair component is the test interval's own (``pipeline.metrics.uncertainty``: a scene-stratified percentile
+    bootstrap of the replicate-averaged scores with the pseudo-scores 0 and 1 in every scene, the small-sample
+    correction every single test interval has), and the between-replicate component s_between^2 / K is added as in
+    :func:`replicated_interval`: the pair interval is widened about the mean by q sqrt(V) / (z se_pairs), V =
+    se_pairs^2 + se_between^2, q the t quantile with Welch-Satterthwaite df. Why not :func:`replicated_interval`
+    as is: without the pseudo-scores a tuned figure on a few pairs per scene got an interval narrower than each of
+    its replicates' own test intervals (8 pairs, 2 scenes: 0.32 wide against 0.48) for lack of the correction, not
+    for knowing more. With K = 1 it is the single test's pair interval."""
+    from pipeline.metrics.uncertainty.intervals import _stratified
+    from pipeline.metrics.uncertainty.scores import score_range
+    scores, strata = _check(scores, strata)
+    k = scores.shape[0]
+    names = list(dict.fromkeys(strata.tolist()))
+    avg = scores.mean(axis=0)
+    groups = [avg[strata == n] for n in names]
+    w = [1.0 / len(names)] * len(names)
+    m = float(sum(wi * g.mean() for g, wi in zip(groups, w)))
+    (lo, hi), se_p = _stratified(groups, w, int(n_boot), int(seed), 1 - alpha, pseudo=score_range())
+    rep_means = np.array([sum(wi * row[strata == n].mean() for n, wi in zip(names, w)) for row in scores])
+    se_b = float(rep_means.std(ddof=1) / np.sqrt(k)) if k > 1 else 0.0
+    if se_b > 0:
+        q = _combine(float(se_p), se_b, k, alpha)
+        z = float(stats.norm.ppf(1 - alpha / 2))
+        v = float(np.hypot(se_p, se_b))
+        if se_p > 0:
+            f = q * v / (z * float(se_p))
+            lo, hi = m - (m - lo) * f, m + (hi - m) * f
+        else:
+            lo, hi = m - q * v, m + q * v
+    return ReplicatedInterval(m, max(0.0, float(lo)), min(1.0, float(hi)), k, float(se_p), se_b, k > 1)

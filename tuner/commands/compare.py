@@ -64,6 +64,10 @@ def run(args) -> int:
                           "give A B [C ...], each a study name or a config file")
     sdir = Path(args.studies_dir).expanduser().resolve() if args.studies_dir else default_studies_dir()
     sources = load_sources(args.sources, sdir)
+    from tuner.compare import compare_replicated
+    rep = compare_replicated(sources, sdir, n_resamples=args.ci_resamples, seed=args.seed)
+    if rep is not None:  # replicated studies: compared on their recorded test pairs, with the tuning variance
+        return _print_replicated(args, rep)
     objs = {spec: ((src.frozen.get("objective") or {}).get("name", "mAA10") if src.frozen else None)
             for spec, src in zip(args.sources, sources)}
     if len({o for o in objs.values() if o not in (None, "pareto")}) > 1:  # pareto: mAA10 is its first value
@@ -114,8 +118,11 @@ def run(args) -> int:
             print(f"warning: {', '.join(tuned_on)} {what} of {spec}: it was tuned on these pairs, so its numbers there "
                   "are not held out (give --scenes its test scenes for a fair comparison)", file=sys.stderr)
     if args.json:
+        from pipeline.metrics.replicates import NOT_MEASURED
+        tuned = any(src.frozen for src in sources)  # a single tuning's figure: which optimum it froze is unmeasured
         objs = [{"a": c["a"], "b": c["b"], "overall": c["overall"], "scenes": c["scenes"],
                  "task": res["task"], "verdict_rule": res["verdict_rule"],
+                 **({"tuning_variance_measured": False, "tuning_note": NOT_MEASURED} if tuned else {}),
                  **({"adjustment": res["adjustment"]} if res["adjustment"] else {})}
                 for c in res["comparisons"]]
         print(json.dumps(_jsonable(objs[0] if len(objs) == 1 else objs), indent=2))
@@ -135,6 +142,28 @@ def run(args) -> int:
         print(render(comparison_rows(c), "markdown"))
     print(f"verdict: {res['verdict_rule']} (the rule of tune findings"
           + (", adjusted for multiplicity)" if res["adjustment"] else ")"))
+    if any(src.frozen for src in sources):  # a tuned figure from a single tuning: which optimum it froze is unmeasured
+        from pipeline.metrics.replicates import NOT_MEASURED
+        print(f"tuning: {NOT_MEASURED} (studies run with `tune --replicates 3` are compared with it)")
     if res["adjustment"]:
         print(f"multiplicity: {res['adjustment']}")
+    return 0
+
+
+def _print_replicated(args, rep: dict) -> int:
+    """`tune compare` of replicated studies: each side's replicates, A - B with interval, p and P(A > B)."""
+    if args.scenes and sorted(args.scenes.split(",") if isinstance(args.scenes, str) else args.scenes) != rep["scenes"]:
+        raise ImtuneError(f"--scenes: replicated studies are compared on the test pairs they were tested on "
+                          f"({', '.join(rep['scenes'])}); drop --scenes, or `tune test` every replicate on those scenes")
+    if args.json:
+        print(json.dumps(_jsonable(rep), indent=2))
+        return 0
+    print(f"replicated comparison on the recorded test pairs: {', '.join(rep['scenes'])} ({rep['pairs']} pairs); "
+          f"{args.ci_resamples} resamples, seed {args.seed}")
+    for tag in ("a", "b"):
+        s = rep[tag]
+        each = ", ".join(f"{x:.4f}" for x in s["replicate_mAA10"])
+        print(f"{tag.upper()}: {s['study']}  mAA10 {s['mAA10']:.4f} over {s['replicates']} replicate"
+              f"{'s' if s['replicates'] != 1 else ''} ({each})")
+    print(f"verdict: {rep['verdict']}")
     return 0

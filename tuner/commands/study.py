@@ -131,6 +131,15 @@ def register(sub) -> None:
                    help="finished trials (complete + pruned) the study should hold; a rerun runs the missing ones "
                         "(default 50; the whole grid with --sampler grid)")
     t.add_argument("--timeout", type=positive_float, default=None, help="stop this worker after this many seconds")
+    t.add_argument("--terminate", default="off", choices=["off", "auto"],
+                   help="auto: stop the study early when more trials cannot beat the incumbent by more than its "
+                        "validation interval (Optuna's terminator: a GP regret bound, after min(20, n_trials / 2) "
+                        "trials); off (default): run every trial")
+    t.add_argument("--replicates", type=positive_int, default=1, metavar="K",
+                   help="K independent tunings of this configuration (studies NAME, NAME-r2, ...; each its own sampler "
+                        "and estimator seed derived from --seed, all sharing the cache), each frozen and tested on "
+                        "the same pairs; the test figure is their mean with an interval holding the tuning variance "
+                        "(default 1: the tuning variance is not measured); a rerun resumes them")
     t.add_argument("--sampler", default="tpe", choices=list(SAMPLERS), help=f"{' | '.join(SAMPLERS)} (default tpe)")
     t.add_argument("--pruner", default=DEFAULT_PRUNER, choices=list(PRUNERS),
                    help=f"{' | '.join(PRUNERS)}: Optuna's median, successive-halving or Hyperband pruner over the "
@@ -302,6 +311,9 @@ def settings_from_args(args):
     if args.pareto_span is not None and args.objective != "pareto":  # it was ignored, unsaid
         raise ImtuneError(f"--pareto-span {args.pareto_span:g} applies to a pareto study only: add --objective pareto, "
                           "or drop --pareto-span")
+    if getattr(args, "terminate", "off") == "auto":
+        from tuner.terminate import make_terminator
+        make_terminator("auto", 50, args.objective)  # a pareto study: one line now, before any calibration
     pinned = [f for f in args.fix if f.partition("=")[0].strip() in ("ratio", "strategy")]
     if getattr(args, "matches", None) and pinned:  # was "--fix ratio is given twice (ratio=0.7 and ratio=1.0)"
         raise ImtuneError(f"--fix {pinned[0].strip()} does not apply with --matches custom:DIR: imported matches skip the "
@@ -330,19 +342,45 @@ def settings_from_args(args):
         gt_dir=args.gt_dir, objective=args.objective,
         pareto_span=PARETO_SPAN if args.pareto_span is None else args.pareto_span, select=args.select,
         reference=resolve_reference(args.reference, _studies_dir(args)), ci_resamples=ci_resamples(args),
-        unused_options=_stereo_only_given(args))
+        unused_options=_stereo_only_given(args), terminate=getattr(args, "terminate", "off"))
 
 
 def run(args) -> int:
     from tuner.study import tune
     s = settings_from_args(args)
     s.verbose = bool(args.verbose)
+    k = int(getattr(args, "replicates", 1) or 1)
+    if k > 1:  # tuner.replicates: K studies, each tuned, frozen and tested; their figure with the tuning variance
+        from tuner.replicates import tune_replicates
+        out = tune_replicates(s, k)
+        if args.json:
+            print(json.dumps(_jsonable(out), indent=2))
+        else:
+            print_replicated(out)
+        return 0
     out = tune(s)
     if args.json:
         print(json.dumps(_jsonable(out), indent=2))
     else:
         print_outcome(out)
+        if out.get("test"):
+            from pipeline.metrics.replicates import NOT_MEASURED
+            print(f"tuning: 1 replicate: {NOT_MEASURED} (--replicates 3 measures it)")
     return 0
+
+
+def print_replicated(out: dict) -> None:
+    """Each replicate's outcome, then the replicated figure (tuner.replicates.replicated_text)."""
+    from tuner.replicates import replicated_text
+    for i, o in enumerate(out["replicates"], 1):
+        print(f"== replicate {i}/{len(out['replicates'])}")
+        print_outcome(o)
+        print()
+    if out.get("replicated"):
+        print(replicated_text(out["replicated"]))
+    else:
+        print("replicated figure: not computed (a replicate was not tested: --no-test, or trials still running in "
+              "other workers); rerun the command to finish and test them")
 
 
 def print_outcome(out: dict) -> None:
