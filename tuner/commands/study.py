@@ -457,7 +457,7 @@ def _frozen_notes(f: dict) -> str:
             # most trials tie with the best: which one wins is noise, and a noise pick can fail on the test scenes
             lines.append(f"the optimum is flat ({flat['trials']} of {flat['of']} trials tie with the best within its "
                          f"interval): `tune test --study {f.get('study')} --select one-se` freezes the trial at the "
-                         "centre of the tied ones instead (README: --select)")
+                         "centre of the tied ones instead (docs/statistics.md: the selection rule)")
     return ("\n" + "\n".join(lines)) if lines else ""
 
 
