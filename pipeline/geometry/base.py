@@ -158,6 +158,22 @@ class Estimator(ABC):
     def check_available(cls) -> None:
         """Raise ``UnavailableError`` when the backing package is not installed."""
 
+    def _checked_points(self, pts1, pts2) -> tuple[np.ndarray | None, np.ndarray | None, int]:
+        """(p1, p2, M): the matches as contiguous (M, 2) float64 arrays, or (None, None, M) when they are not two
+        (M, 2) arrays of one length or are degenerate (``_degenerate``): the estimate is then a recorded failure."""
+        try:
+            p1 = np.asarray(pts1, dtype=np.float64)
+            p2 = np.asarray(pts2, dtype=np.float64)
+        except (TypeError, ValueError):
+            return None, None, 0
+        m = p1.shape[0] if p1.ndim >= 1 else 0
+        if p1.ndim != 2 or p2.ndim != 2 or p1.shape != p2.shape or p1.shape[1] != 2:
+            return None, None, m
+        p1, p2 = np.ascontiguousarray(p1), np.ascontiguousarray(p2)
+        if self._degenerate(p1, p2):
+            return None, None, m
+        return p1, p2, m
+
     def estimate(self, pts1: np.ndarray, pts2: np.ndarray, threshold: float, confidence: float,
                  max_iters: int, seed: int = 0, *, sizes: Sizes | None = None) -> EstimateResult:
         """Estimate F from tentative matches.
@@ -170,17 +186,8 @@ class Estimator(ABC):
         (``sizes_from_points``).
         Returns an :class:`EstimateResult`; never raises on degenerate input or library errors.
         """
-        try:
-            p1 = np.asarray(pts1, dtype=np.float64)
-            p2 = np.asarray(pts2, dtype=np.float64)
-        except (TypeError, ValueError):
-            return self._failure(0)
-        m = p1.shape[0] if p1.ndim >= 1 else 0
-        if p1.ndim != 2 or p2.ndim != 2 or p1.shape != p2.shape or p1.shape[1] != 2:
-            return self._failure(m)
-        p1 = np.ascontiguousarray(p1)
-        p2 = np.ascontiguousarray(p2)
-        if self._degenerate(p1, p2):
+        p1, p2, m = self._checked_points(pts1, pts2)
+        if p1 is None or p2 is None:
             return self._failure(m)
         if sizes is None:
             sizes = sizes_from_points(p1, p2)

@@ -98,16 +98,8 @@ class EssentialEstimator(Estimator):
         """Estimate E and the relative pose. pts1, pts2: (M, 2) px; threshold: eta in px; K1, K2: (3, 3) px
         (required: ImtuneError without them); the other arguments as :meth:`Estimator.estimate`."""
         K1, K2 = checked_intrinsics(self.name, K1, K2)
-        try:
-            p1 = np.asarray(pts1, dtype=np.float64)
-            p2 = np.asarray(pts2, dtype=np.float64)
-        except (TypeError, ValueError):
-            return self._fail(0)
-        m = p1.shape[0] if p1.ndim >= 1 else 0
-        if p1.ndim != 2 or p2.ndim != 2 or p1.shape != p2.shape or p1.shape[1] != 2:
-            return self._fail(m)
-        p1, p2 = np.ascontiguousarray(p1), np.ascontiguousarray(p2)
-        if self._degenerate(p1, p2):
+        p1, p2, m = self._checked_points(pts1, pts2)
+        if p1 is None or p2 is None:
             return self._fail(m)
         if sizes is None:
             sizes = sizes_from_points(p1, p2)

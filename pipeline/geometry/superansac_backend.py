@@ -39,10 +39,8 @@ def _mask(indices, m: int) -> np.ndarray:
     return mask
 
 
-@ESTIMATORS.register("superansac")
-class SupeRansacFundamental(Estimator):
-    """SupeRANSAC fundamental matrix (7-point, MAGSAC scoring); eta in px (MAGSAC-like noise bound)."""
-    name = "superansac"
+class _SupeRansac:
+    """What the F and E estimators share: the package, no seed, the library's inputs."""
     package = "pysuperansac"
     seedable = False
     seed_used = False
@@ -52,12 +50,24 @@ class SupeRansacFundamental(Estimator):
     def check_available(cls) -> None:
         require("pysuperansac", cls.package)
 
-    def _solve(self, pts1: np.ndarray, pts2: np.ndarray, threshold: float, confidence: float,
-               max_iters: int, seed: int, sizes: Sizes) -> RawSolution:
-        import pysuperansac
+    def _inputs(self, pts1: np.ndarray, pts2: np.ndarray, threshold: float, confidence: float, max_iters: int,
+                sizes: Sizes) -> tuple:
+        """(correspondences (M, 4), config, [w1, h1, w2, h2]) as pysuperansac takes them."""
         corr = np.ascontiguousarray(np.concatenate([pts1, pts2], axis=1))
         cfg = _settings(threshold, confidence, max_iters, self.min_iters)
         wh = [float(sizes[0][0]), float(sizes[0][1]), float(sizes[1][0]), float(sizes[1][1])]
+        return corr, cfg, wh
+
+
+@ESTIMATORS.register("superansac")
+class SupeRansacFundamental(_SupeRansac, Estimator):
+    """SupeRANSAC fundamental matrix (7-point, MAGSAC scoring); eta in px (MAGSAC-like noise bound)."""
+    name = "superansac"
+
+    def _solve(self, pts1: np.ndarray, pts2: np.ndarray, threshold: float, confidence: float,
+               max_iters: int, seed: int, sizes: Sizes) -> RawSolution:
+        import pysuperansac
+        corr, cfg, wh = self._inputs(pts1, pts2, threshold, confidence, max_iters, sizes)
         with timed() as t:
             F, inliers, _score, _iters = pysuperansac.estimateFundamentalMatrix(corr, wh, config=cfg)
         if F is None or len(inliers) == 0:
@@ -66,26 +76,16 @@ class SupeRansacFundamental(Estimator):
 
 
 @ESTIMATORS.register("superansac-e")
-class SupeRansacEssential(EssentialEstimator):
+class SupeRansacEssential(_SupeRansac, EssentialEstimator):
     """SupeRANSAC essential matrix (5-point, MAGSAC scoring) given K1, K2, + recoverPose; eta in px.
 
     The library normalises the points and the px threshold by the intrinsics itself."""
     name = "superansac-e"
-    package = "pysuperansac"
-    seedable = False
-    seed_used = False
-    min_iters: int = 1000
-
-    @classmethod
-    def check_available(cls) -> None:
-        require("pysuperansac", cls.package)
 
     def _solve_e(self, pts1: np.ndarray, pts2: np.ndarray, K1: np.ndarray, K2: np.ndarray, threshold: float,
                  confidence: float, max_iters: int, seed: int, sizes: Sizes) -> RawEssential:
         import pysuperansac
-        corr = np.ascontiguousarray(np.concatenate([pts1, pts2], axis=1))
-        cfg = _settings(threshold, confidence, max_iters, self.min_iters)
-        wh = [float(sizes[0][0]), float(sizes[0][1]), float(sizes[1][0]), float(sizes[1][1])]
+        corr, cfg, wh = self._inputs(pts1, pts2, threshold, confidence, max_iters, sizes)
         with timed() as t:
             E, inliers, _score, _iters = pysuperansac.estimateEssentialMatrix(
                 corr, np.ascontiguousarray(K1), np.ascontiguousarray(K2), wh, config=cfg)
