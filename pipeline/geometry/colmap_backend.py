@@ -19,10 +19,8 @@ from pipeline.geometry.essential import EssentialEstimator, RawEssential
 from pipeline.geometry.registry import ESTIMATORS
 
 
-@ESTIMATORS.register("colmap")
-class ColmapFundamental(Estimator):
-    """COLMAP LO-RANSAC (pycolmap.estimate_fundamental_matrix); eta bounds the Sampson distance."""
-    name = "colmap"
+class _Colmap:
+    """What the F and E estimators share: the package and the RANSAC options (see the module docstring)."""
     package = "pycolmap"
     min_iters: int = 1000
 
@@ -30,10 +28,8 @@ class ColmapFundamental(Estimator):
     def check_available(cls) -> None:
         require("pycolmap", cls.package)
 
-    def _solve(self, pts1: np.ndarray, pts2: np.ndarray, threshold: float, confidence: float,
-               max_iters: int, seed: int, sizes: Sizes) -> RawSolution:
-        from pipeline.colmap_db import import_pycolmap
-        pycolmap = import_pycolmap()
+    def _options(self, pycolmap, threshold: float, confidence: float, max_iters: int, seed: int):
+        """pycolmap.RANSACOptions: eta (px), confidence, Gamma (min_num_trials min(1000, Gamma)), seed, 1 thread."""
         max_iters = max(int(max_iters), 1)
         opt = pycolmap.RANSACOptions()
         opt.max_error = float(threshold)
@@ -42,6 +38,19 @@ class ColmapFundamental(Estimator):
         opt.min_num_trials = min(self.min_iters, max_iters)
         opt.random_seed = int(seed) & 0x7FFFFFFF
         opt.num_threads = 1
+        return opt
+
+
+@ESTIMATORS.register("colmap")
+class ColmapFundamental(_Colmap, Estimator):
+    """COLMAP LO-RANSAC (pycolmap.estimate_fundamental_matrix); eta bounds the Sampson distance."""
+    name = "colmap"
+
+    def _solve(self, pts1: np.ndarray, pts2: np.ndarray, threshold: float, confidence: float,
+               max_iters: int, seed: int, sizes: Sizes) -> RawSolution:
+        from pipeline.colmap_db import import_pycolmap
+        pycolmap = import_pycolmap()
+        opt = self._options(pycolmap, threshold, confidence, max_iters, seed)
         with timed() as t:
             res = pycolmap.estimate_fundamental_matrix(pts1, pts2, opt)
         if res is None:
@@ -56,31 +65,19 @@ def _colmap_camera(pycolmap, K: np.ndarray, size: tuple[float, float]):
 
 
 @ESTIMATORS.register("colmap-e")
-class ColmapEssential(EssentialEstimator):
+class ColmapEssential(_Colmap, EssentialEstimator):
     """COLMAP LO-RANSAC on the 5-point solver (pycolmap.estimate_essential_matrix); eta in px.
 
     pycolmap takes both cameras and a px ``max_error``, which it converts to normalised coordinates with each
     camera's focal length (``CamFromImgThreshold``, averaged over the two cameras); it decomposes E with the
     cheirality check and returns ``cam2_from_cam1`` (R, t: x2 = R x1 + t). Options as for ``colmap``."""
     name = "colmap-e"
-    package = "pycolmap"
-    min_iters: int = 1000
-
-    @classmethod
-    def check_available(cls) -> None:
-        require("pycolmap", cls.package)
 
     def _solve_e(self, pts1: np.ndarray, pts2: np.ndarray, K1: np.ndarray, K2: np.ndarray, threshold: float,
                  confidence: float, max_iters: int, seed: int, sizes: Sizes) -> RawEssential:
         from pipeline.colmap_db import import_pycolmap
         pycolmap = import_pycolmap()
-        opt = pycolmap.RANSACOptions()
-        opt.max_error = float(threshold)
-        opt.confidence = float(confidence)
-        opt.max_num_trials = max_iters
-        opt.min_num_trials = min(self.min_iters, max_iters)
-        opt.random_seed = int(seed) & 0x7FFFFFFF
-        opt.num_threads = 1
+        opt = self._options(pycolmap, threshold, confidence, max_iters, seed)
         cam1, cam2 = _colmap_camera(pycolmap, K1, sizes[0]), _colmap_camera(pycolmap, K2, sizes[1])
         with timed() as t:
             res = pycolmap.estimate_essential_matrix(pts1, pts2, cam1, cam2, opt)

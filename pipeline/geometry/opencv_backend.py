@@ -28,7 +28,8 @@ from pipeline.geometry.essential import EssentialEstimator, RawEssential, mean_f
 from pipeline.geometry.registry import ESTIMATORS
 
 
-class _OpenCV(Estimator):
+class _OpenCVLibrary:
+    """What OpenCV's F and E estimators share: the package, seed_used (see the module docstring), the method flag."""
     package = "opencv-contrib-python-headless"
     seed_used = False
     method_name: str = ""
@@ -36,6 +37,9 @@ class _OpenCV(Estimator):
     @classmethod
     def check_available(cls) -> None:
         require("cv2", cls.package)
+
+
+class _OpenCV(_OpenCVLibrary, Estimator):
 
     def _solve(self, pts1: np.ndarray, pts2: np.ndarray, threshold: float, confidence: float,
                max_iters: int, seed: int, sizes: Sizes) -> RawSolution:
@@ -107,16 +111,9 @@ class Cv8Point(_OpenCV):
         return RawSolution(F[:3], np.ones(len(pts1), dtype=bool), t.seconds)
 
 
-class _OpenCVEssential(EssentialEstimator):
+class _OpenCVEssential(_OpenCVLibrary, EssentialEstimator):
     """cv2.findEssentialMat (5-point, Nister) on points normalised by K1, K2 with an identity camera matrix,
     threshold eta (px) divided by the mean focal length; the pose by cv2.recoverPose on the inliers."""
-    package = "opencv-contrib-python-headless"
-    seed_used = False
-    method_name: str = ""
-
-    @classmethod
-    def check_available(cls) -> None:
-        require("cv2", cls.package)
 
     def _solve_e(self, pts1: np.ndarray, pts2: np.ndarray, K1: np.ndarray, K2: np.ndarray, threshold: float,
                  confidence: float, max_iters: int, seed: int, sizes: Sizes) -> RawEssential:

@@ -19,10 +19,8 @@ from pipeline.geometry.essential import EssentialEstimator, RawEssential
 from pipeline.geometry.registry import ESTIMATORS
 
 
-@ESTIMATORS.register("poselib")
-class PoseLibFundamental(Estimator):
-    """PoseLib LO-RANSAC (7-point + refinement); eta bounds the Sampson distance."""
-    name = "poselib"
+class _PoseLib:
+    """What the F and E estimators share: the package and the RANSAC options (see the module docstring)."""
     package = "poselib"
     min_iters: int = 1000
 
@@ -30,13 +28,23 @@ class PoseLibFundamental(Estimator):
     def check_available(cls) -> None:
         require("poselib", cls.package)
 
+    def _options(self, threshold: float, confidence: float, max_iters: int, seed: int) -> dict:
+        """PoseLib's ransac_opt: eta (px), confidence, Gamma (min_iterations min(1000, Gamma)), seed."""
+        max_iters = max(int(max_iters), 1)
+        return {"max_epipolar_error": float(threshold), "success_prob": float(confidence),
+                "max_iterations": max_iters, "min_iterations": min(self.min_iters, max_iters),
+                "seed": int(seed) & 0xFFFFFFFF}
+
+
+@ESTIMATORS.register("poselib")
+class PoseLibFundamental(_PoseLib, Estimator):
+    """PoseLib LO-RANSAC (7-point + refinement); eta bounds the Sampson distance."""
+    name = "poselib"
+
     def _solve(self, pts1: np.ndarray, pts2: np.ndarray, threshold: float, confidence: float,
                max_iters: int, seed: int, sizes: Sizes) -> RawSolution:
         import poselib
-        max_iters = max(int(max_iters), 1)
-        opt = {"max_epipolar_error": float(threshold), "success_prob": float(confidence),
-               "max_iterations": max_iters, "min_iterations": min(self.min_iters, max_iters),
-               "seed": int(seed) & 0xFFFFFFFF}
+        opt = self._options(threshold, confidence, max_iters, seed)
         with timed() as t:
             F, info = poselib.estimate_fundamental(pts1, pts2, opt, {})
         if F is None or int(info.get("num_inliers", 0)) == 0:
@@ -51,26 +59,18 @@ def _poselib_camera(K: np.ndarray, size: tuple[float, float]) -> dict:
 
 
 @ESTIMATORS.register("poselib-e")
-class PoseLibEssential(EssentialEstimator):
+class PoseLibEssential(_PoseLib, EssentialEstimator):
     """PoseLib LO-RANSAC on the 5-point solver with non-linear refinement (estimate_relative_pose); eta in px.
 
     PoseLib takes the cameras and a px threshold (``max_epipolar_error``), which it divides by the mean focal
     length itself before scoring Sampson errors in normalised coordinates; it returns the refined pose
     (R, t: x2 = R x1 + t) and E is formed from it ([t]_x R). Options as for ``poselib``."""
     name = "poselib-e"
-    package = "poselib"
-    min_iters: int = 1000
-
-    @classmethod
-    def check_available(cls) -> None:
-        require("poselib", cls.package)
 
     def _solve_e(self, pts1: np.ndarray, pts2: np.ndarray, K1: np.ndarray, K2: np.ndarray, threshold: float,
                  confidence: float, max_iters: int, seed: int, sizes: Sizes) -> RawEssential:
         import poselib
-        opt = {"max_epipolar_error": float(threshold), "success_prob": float(confidence),
-               "max_iterations": max_iters, "min_iterations": min(self.min_iters, max_iters),
-               "seed": int(seed) & 0xFFFFFFFF}
+        opt = self._options(threshold, confidence, max_iters, seed)
         cam1, cam2 = _poselib_camera(K1, sizes[0]), _poselib_camera(K2, sizes[1])
         with timed() as t:
             pose, info = poselib.estimate_relative_pose(pts1, pts2, cam1, cam2, opt, {})
