@@ -144,13 +144,16 @@ def score_matrix(tests: list[dict], tau: int = 10, scaled: bool = True) -> tuple
                               "and --max-pairs, or `tune test` each replicate with the same options)")
         rows.append([np.mean([d[key] for d in per_run]) for key in keys])
     assert keys is not None
-    if not scaled:
-        return np.asarray(rows, float), np.array([key[0] for key in keys])
     scenes = np.array([key[0] for key in keys])
+    scores = np.asarray(rows, float)
+    return (scores * scene_scale(scenes)[None, :] if scaled else scores), scenes
+
+
+def scene_scale(scenes: np.ndarray) -> np.ndarray:
+    """Per-column factor N w_p (w_p = 1 / (n_scenes n_scene_pairs)) that makes a plain mean scene-weighted."""
     names, counts = np.unique(scenes, return_counts=True)
     per_scene = dict(zip(names, counts))
-    scale = np.array([len(keys) / (len(names) * per_scene[sc]) for sc in scenes])
-    return np.asarray(rows, float) * scale[None, :], scenes
+    return np.array([len(scenes) / (len(names) * per_scene[sc]) for sc in scenes])
 
 
 def replicated_summary(tests: list[dict], seeds: list, *, tau: int = 10, n_boot: int = 2000) -> dict:
@@ -172,15 +175,18 @@ def replicated_summary(tests: list[dict], seeds: list, *, tau: int = 10, n_boot:
             "tuning_variance_measured": iv.tuning_variance_measured,
             "note": "" if iv.tuning_variance_measured else NOT_MEASURED,
             "spread": spread, "pairs": int(scores.shape[1]), "method": INTERVAL_METHOD, "level": 0.95,
-            "reference": reference_comparison(tests, tau=tau, n_boot=n_boot)}
+            "reference": reference_comparison(tests, tau=tau, n_boot=n_boot,
+                                              tuned=(scores * scene_scale(strata)[None, :], strata))}
 
 
-def reference_comparison(tests: list[dict], *, tau: int = 10, n_boot: int = 2000) -> dict | None:
+def reference_comparison(tests: list[dict], *, tau: int = 10, n_boot: int = 2000,
+                         tuned: tuple[np.ndarray, np.ndarray] | None = None) -> dict | None:
     """The tuned configuration (its K replicates) against the reference every replicate's test ran beside it (the
     paper defaults unless --reference said otherwise), on the same pairs:
     :func:`pipeline.metrics.replicates.replicated_difference` of tuned - reference (scene-weighted scores), with
     P(tuned > reference) over replicate pairs. The reference's own replicates differ only in their estimator seeds.
-    None when a replicate's test has no reference (``--reference none``) or they differ."""
+    None when a replicate's test has no reference (``--reference none``) or they differ. ``tuned``: the tests' scaled
+    :func:`score_matrix`, when the caller has it already."""
     from pipeline.metrics.replicates import replicated_difference
     refs = [t.get("reference") for t in tests]
     if not all(isinstance(r, dict) and r.get("runs") for r in refs):
@@ -191,7 +197,7 @@ def reference_comparison(tests: list[dict], *, tau: int = 10, n_boot: int = 2000
         return json.dumps(conf, sort_keys=True)
     if len({unseeded(r) for r in refs}) != 1:  # type: ignore[arg-type]
         return None
-    tuned, strata = score_matrix(tests, tau)
+    tuned, strata = tuned if tuned is not None else score_matrix(tests, tau)
     try:
         ref, _ = score_matrix(refs, tau)  # type: ignore[arg-type]
     except ImtuneError:
