@@ -251,3 +251,57 @@ def test_summaries_report_cpu_and_wall_seconds_apart():
     bag = {"success": True, "RC": 100.0, "NL": 10, "TL": 3.0, "errors": [1.0], "ATE": None, "NM": 5.0}
     mv = summarize_bags([{**bag, "seconds": 4.0, "cpu_seconds": 6.0}, {**bag, "seconds": 2.0, "cpu_seconds": 2.0}])
     assert mv["seconds"] == pytest.approx(3.0) and mv["cpu_seconds"] == pytest.approx(4.0)
+
+
+# -- an estimator run in-process is timed with one thread, as in a pool worker ---------------------------------------
+
+SEEN_THREADS: list[dict] = []
+
+
+def _thread_counts() -> dict:
+    """The thread counts of every pool this process has loaded: BLAS / OpenMP (threadpoolctl), OpenCV, torch."""
+    import cv2
+    import torch
+    from threadpoolctl import threadpool_info
+    out = {f"{i['internal_api']}:{i['filepath'].rsplit('/', 1)[-1]}": i["num_threads"] for i in threadpool_info()}
+    out.update(cv2=cv2.getNumThreads(), torch=torch.get_num_threads())
+    return out
+
+
+@pytest.fixture
+def counting(monkeypatch):
+    """An estimator (``test-threads``) that records the thread counts it runs under."""
+    from pipeline.geometry import _INSTANCES, ESTIMATORS
+    from pipeline.geometry.base import Estimator, RawSolution, timed
+
+    class Counting(Estimator):
+        name = "test-threads"
+
+        def _solve(self, pts1, pts2, threshold, confidence, max_iters, seed, sizes):
+            with timed() as t:
+                SEEN_THREADS.append(_thread_counts())
+            return RawSolution(F_TRANSLATION.copy(), None, t.seconds)
+    monkeypatch.setitem(ESTIMATORS._items, Counting.name, Counting)
+    monkeypatch.delitem(_INSTANCES, Counting.name, raising=False)
+    SEEN_THREADS.clear()
+    return Counting.name
+
+
+@pytest.mark.skipif(__import__("os").cpu_count() < 2, reason="one CPU: every pool has one thread anyway")
+def test_an_in_process_estimator_is_timed_with_one_thread_and_the_pools_are_restored(counting, tiny, tmp_path, capsys):
+    """--jobs 1 (a trial, a test run, `tune evaluate`) and a calibration timed alone run the estimator in this
+    process, whose BLAS pool had 2 threads: after the k-NN product its idle thread spun on the process's CPU clock
+    (+20-55% of pydegensac's CPU seconds measured). Now every pool has one thread while the estimator runs, as in
+    a pool worker, and its own size again afterwards."""
+    before = _thread_counts()
+    assert max(before.values()) >= 2, before  # else this test could not fail
+    rc, _, err = _cli(["evaluate", "--data", tiny, "--ransac", counting, "--threshold", "1.0", *FAST], capsys)
+    assert rc == 0, err
+    rc, _, err = _cli(["calibrate", "--data", tiny, "--ransac", counting, *FAST, "--studies-dir", tmp_path / "st",
+                       "--pairs", "1", "--budget", "0.001", "--force"], capsys)
+    assert rc == 0, err
+    assert len(SEEN_THREADS) >= 2, SEEN_THREADS
+    for seen in SEEN_THREADS:
+        assert set(seen.values()) == {1}, seen
+    after = _thread_counts()  # (libraries loaded meanwhile join the list: those before are compared)
+    assert {k: after[k] for k in before} == before, after

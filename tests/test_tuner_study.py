@@ -411,8 +411,24 @@ def test_no_feasible_trial(tmp_path, tuner_cache):
     args = quick(tmp_path, "--n-trials", "2", "--budget", "0.000001", "--study", "hopeless")
     r = tune(*args, cache=tuner_cache)
     assert r.returncode == 2 and "no feasible completed trial" in r.stderr, r.stderr
+    # the line says what became of each trial, as the storage holds them (a CI failure once read only "all over
+    # the budget, pruned or failed", and nobody could tell which)
+    import re
+
+    from optuna.trial import TrialState
+    trials = load(f"sqlite:///{tmp_path}/optuna.db", "hopeless").get_trials()
+    over = sum(t.state == TrialState.COMPLETE for t in trials)
+    pruned = sum(t.state == TrialState.PRUNED for t in trials)
+    assert len(trials) == 2 and over + pruned == 2, [t.state for t in trials]
+    line = r.stderr.strip().splitlines()[-1]
+    assert "(2 trials: " in line, line
+    assert (f"{over} over the 1e-06 s budget [fastest median " in line) == (over > 0), line
+    assert (f"{pruned} pruned [#" in line) == (pruned > 0), line
+    if over:
+        fastest = min(t.user_attrs["ransac_seconds_median"] for t in trials if t.state == TrialState.COMPLETE)
+        assert float(re.search(r"fastest median ([0-9.e+-]+) s", line).group(1)) == pytest.approx(fastest, rel=1e-2)
     r = tune("test", "--study", "hopeless", "--studies-dir", str(tmp_path), cache=tuner_cache)
-    assert r.returncode == 2 and "no feasible completed trial" in r.stderr
+    assert r.returncode == 2 and "no feasible completed trial" in r.stderr and "(2 trials: " in r.stderr
     assert r.stderr.strip().count("\n") == 0
     assert not (tmp_path / "hopeless" / "frozen.yaml").exists()
 

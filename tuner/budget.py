@@ -343,7 +343,9 @@ def cap_timer(estimator_name: str, matches, threshold: float, confidence: float,
         with ConcurrentRunner(int(jobs), payload) as run:
             yield lambda g: [s for part in run(_time_cap, int(g)) for s in part]
     else:
-        yield lambda g: _time_cap(payload, int(g))
+        from pipeline.tasks.pool import one_thread_here
+        with one_thread_here():  # timed as in a worker: no idle BLAS thread spinning on this process's CPU clock
+            yield lambda g: _time_cap(payload, int(g))
 
 
 def measure_curve(estimator_name: str, matches, threshold: float, confidence: float, budget: float,

@@ -169,8 +169,9 @@ def frozen_from_study(study, select: str | None = None) -> dict:
     optimum = best_feasible(study)
     best, selection = sel.select_trial(study, sel.check_rule(select or attrs.get("select")))
     if best is None:
-        raise ImtuneError(f"study {study.study_name!r} has no feasible completed trial (none within the "
-                          f"{attrs['budget']['seconds_per_pair']} s per pair budget); run more trials first")
+        from tuner.protocol import no_feasible_reason
+        raise ImtuneError(f"study {study.study_name!r} has no feasible completed trial "
+                          f"({no_feasible_reason(study, attrs['budget']['seconds_per_pair'])}); run more trials first")
     task = task_of(attrs)
     base = pipeline_from_dict(attrs["pipeline"])
     fixed = dict(attrs["search_space_resolved"].get("fixed", {}))

@@ -199,3 +199,29 @@ def best_feasible(study):
         if best is None or key > best[0]:
             best = (key, t)
     return best[1] if best else None
+
+
+def no_feasible_reason(study, budget: float | None) -> str:
+    """Why ``study`` has no feasible trial, for the one-line error: each state's count (complete over B with the
+    lowest median seen, pruned with the first trial's reason, failed, still running), e.g. "2 trials: 1 over the
+    0.5 s budget [fastest median 0.61 s per pair], 1 pruned [#1: likely over budget ...]"."""
+    from optuna.trial import TrialState
+    trials = study.get_trials(deepcopy=False)
+    over = [t for t in trials if t.state == TrialState.COMPLETE]
+    pruned = [t for t in trials if t.state == TrialState.PRUNED]
+    failed = [t for t in trials if t.state == TrialState.FAIL]
+    running = [t for t in trials if t.state in (TrialState.RUNNING, TrialState.WAITING)]
+    parts = []
+    if over:
+        fastest = min(trial_seconds(t) for t in over)
+        parts.append(f"{len(over)} over the {budget:g} s budget [fastest median {fastest:.3g} s per pair]"
+                     if budget is not None else f"{len(over)} complete without a value")
+    if pruned:
+        why = pruned[0].user_attrs.get("pruned_reason") or "pruned by the pruner (below the median of earlier trials)"
+        parts.append(f"{len(pruned)} pruned [#{pruned[0].number}: {why}]")
+    if failed:
+        parts.append(f"{len(failed)} failed [#{failed[0].number}{', ...' if len(failed) > 1 else ''}: an error "
+                     "or a non-finite value; rerun without --quiet to see Optuna's warning]")
+    if running:
+        parts.append(f"{len(running)} still running or waiting")
+    return f"{len(trials)} trial{'s' * (len(trials) != 1)}: " + ", ".join(parts or ["none run"])

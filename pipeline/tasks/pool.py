@@ -92,6 +92,36 @@ def single_thread_env():
                 os.environ[k] = v
 
 
+@contextlib.contextmanager
+def one_thread_here():
+    """BLAS, OpenMP, OpenCV and torch limited to one thread in *this* process inside the block, restored afterwards:
+    an estimator run in-process (``--jobs 1``, a calibration timed alone) is then measured as in a pool worker.
+    Without it, the idle threads of a BLAS pool spin-wait after a product (the k-NN matching, a calibration's
+    matching) and their CPU seconds count against the estimator in ``time.process_time``: measured +20-55% over the
+    calling thread's own CPU time for pydegensac right after a numpy product on 2 cores. threadpoolctl (the
+    library scikit-learn uses for this) sets the loaded BLAS / OpenMP libraries at run time, where the environment
+    variables of :func:`single_thread_env` come too late."""
+    import sys
+
+    from threadpoolctl import threadpool_limits
+    cv2 = sys.modules.get("cv2")
+    torch = sys.modules.get("torch")
+    n_cv = cv2.getNumThreads() if cv2 is not None else None
+    n_torch = torch.get_num_threads() if torch is not None else None
+    with threadpool_limits(limits=1):
+        if n_cv is not None:
+            cv2.setNumThreads(1)
+        if n_torch is not None and n_torch != 1:
+            torch.set_num_threads(1)
+        try:
+            yield
+        finally:
+            if n_cv is not None:
+                cv2.setNumThreads(n_cv)
+            if n_torch is not None and n_torch != 1:
+                torch.set_num_threads(n_torch)
+
+
 TRACKER_WARNING = "ignore::UserWarning:multiprocessing.resource_tracker"
 
 

@@ -7,6 +7,7 @@ estimator failure, < 5 inliers) is a recorded failure with error +inf, never dro
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from dataclasses import dataclass
@@ -425,7 +426,7 @@ class StereoTask(Task):
         from tqdm.auto import tqdm
 
         from pipeline.geometry import get_estimator
-        from pipeline.tasks.pool import WORKER_DIED, PairSpec, pair_pool
+        from pipeline.tasks.pool import WORKER_DIED, PairSpec, one_thread_here, pair_pool
         cache = cache if cache is not None else H5Cache()
         estimator = get_estimator(conf.geometry.ransac)
         t0 = time.perf_counter()
@@ -456,36 +457,39 @@ class StereoTask(Task):
             results = ((k, self._inline_pair(data, scenes, all_pairs, order[k], conf, estimator))
                        for k in range(len(order)))
         next_step = 0
-        try:
-            for k, out in results:
-                si, pi = order[k]
-                scene, pair = scenes[si], all_pairs[si][pi]
-                if out is WORKER_DIED:
-                    out = failed_pair(scene, pair, WORKER_DIED)
-                rec = out.record if isinstance(out, PairResult) else out
-                done[(si, pi)] = rec
-                if self.keep_pairs and isinstance(out, PairResult):
-                    kept[(scene.name, pair.key)] = out
-                bar.update(1)
-                left[step_of[(si, pi)]] -= 1
-                # steps report in order, each with exactly the records of the steps so far (what a serial run
-                # reports, whatever a pool finished early): the pruner sees the same values for any jobs
-                while next_step < len(steps) and left[next_step] == 0:
-                    if on_step is not None:
-                        so_far = {sp: r for sp, r in done.items() if step_of[sp] <= next_step}
-                        summary = self._summaries(scenes, so_far, nf)[0]
-                        summary["units_total"] = len(order)  # what a budget rule may prove from the pairs so far
-                        summary["budget_seconds_units"] = [r["ransac_seconds"] for r in so_far.values()]
-                        on_step(next_step, len(steps), summary)
-                    next_step += 1
-        except KeyboardInterrupt:
-            if pool is not None:
-                pool.terminate()  # Ctrl-C: the workers stop now, not after their pairs
-            raise
-        finally:
-            if hasattr(results, "close"):
-                results.close()  # a pruned trial: what has not started is cancelled
-            bar.close()
+        # in-process (--jobs 1): one BLAS / OpenMP / OpenCV thread while the estimators run, as in a pool worker
+        threads = one_thread_here() if pool is None else contextlib.nullcontext()
+        with threads:
+            try:
+                for k, out in results:
+                    si, pi = order[k]
+                    scene, pair = scenes[si], all_pairs[si][pi]
+                    if out is WORKER_DIED:
+                        out = failed_pair(scene, pair, WORKER_DIED)
+                    rec = out.record if isinstance(out, PairResult) else out
+                    done[(si, pi)] = rec
+                    if self.keep_pairs and isinstance(out, PairResult):
+                        kept[(scene.name, pair.key)] = out
+                    bar.update(1)
+                    left[step_of[(si, pi)]] -= 1
+                    # steps report in order, each with exactly the records of the steps so far (what a serial run
+                    # reports, whatever a pool finished early): the pruner sees the same values for any jobs
+                    while next_step < len(steps) and left[next_step] == 0:
+                        if on_step is not None:
+                            so_far = {sp: r for sp, r in done.items() if step_of[sp] <= next_step}
+                            summary = self._summaries(scenes, so_far, nf)[0]
+                            summary["units_total"] = len(order)  # what a budget rule may prove from the pairs so far
+                            summary["budget_seconds_units"] = [r["ransac_seconds"] for r in so_far.values()]
+                            on_step(next_step, len(steps), summary)
+                        next_step += 1
+            except KeyboardInterrupt:
+                if pool is not None:
+                    pool.terminate()  # Ctrl-C: the workers stop now, not after their pairs
+                raise
+            finally:
+                if hasattr(results, "close"):
+                    results.close()  # a pruned trial: what has not started is cancelled
+                bar.close()
         self._costs_key = spec.key
         self._costs = {sp: float(r.get("ransac_seconds", 0.0)) + float(r.get("filter_seconds", 0.0))
                        for sp, r in done.items()}

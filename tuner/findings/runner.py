@@ -552,8 +552,9 @@ def reuse_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool
         return out
     best = best_feasible(study)
     if best is None:  # what tune() stops on
-        out.reason = (f"could not run: study {name!r}: no feasible completed trial yet (all over the "
-                      f"{attrs['budget']['seconds_per_pair']} s budget, pruned or failed); run more trials")
+        from tuner.protocol import no_feasible_reason
+        out.reason = (f"could not run: study {name!r}: no feasible completed trial yet "
+                      f"({no_feasible_reason(study, attrs['budget']['seconds_per_pair'])}); run more trials")
         out.compute = study_compute(study, None)
         return out
     try:
