@@ -69,7 +69,7 @@ def test_annotate_notes_and_idempotence(tmp_path):
     assert st.metric_names == ["mAA(10°)"]
     study_note, notes = _notes(st)
     assert notes[1] == "**imtune** · " + over_budget_text(0.93, B)
-    assert "over budget: median estimator time 0.93 s > 0.5 s per pair; never frozen" in notes[1]
+    assert "over budget: median estimator CPU time 0.93 s > 0.5 s per pair; never frozen" in notes[1]
     assert "**frozen**" in notes[FROZEN] and "0.550" in notes[FROZEN] and "0.44 s <= 0.5 s" in notes[FROZEN]
     assert notes[0] == "" and notes[3] == ""
     assert f"frozen: trial {FROZEN}, mAA(10°) = 0.550" in study_note
@@ -204,7 +204,7 @@ def test_dashboard_shows_metric_budget_and_frozen(tmp_path):
         # ... so the over-budget best trial is visibly labelled on its own page
         body = page(f"/dashboard/studies/{sid}/trials?numbers=1", "Trial 1 (trial_id=")
         assert "Best Trial" in body
-        assert "over budget: median estimator time 0.93 s > 0.5 s per pair; never frozen" in body
+        assert "over budget: median estimator CPU time 0.93 s > 0.5 s per pair; never frozen" in body
         shot = tmp_path / "dashboard-over-budget-trial.png"
         assert drv.save_screenshot(str(shot))
         assert "feasible False" in body  # the objective's user attribute, shown with the trial
@@ -214,7 +214,7 @@ def test_dashboard_shows_metric_budget_and_frozen(tmp_path):
         body = page(f"/dashboard/studies/{sid}/note", "metric: mAA(10°)")
         assert f"frozen: trial {FROZEN}, mAA(10°) = 0.550" in body
         assert "its trial 1 (mAA(10°) = 0.710) is over budget" in body
-        assert "budget B = 0.5 s median estimator time per pair" in body
+        assert "budget B = 0.5 s median estimator CPU time per pair" in body
     finally:
         drv.quit()
         shutil.rmtree(profile, ignore_errors=True)
@@ -247,13 +247,13 @@ def test_real_tiny_study_is_annotated_by_freeze(tmp_path_factory):
     frozen_no = out["frozen"]["trial"]
     study_note = get_note(st)
     assert f"frozen: trial {frozen_no}, mAA(10°) = {out['frozen']['value']:.3f}" in study_note
-    assert "budget B = 1 s median estimator time per pair" in study_note
+    assert "budget B = 1 s median estimator CPU time per pair" in study_note
     for t in st.trials:
         note = get_note(optuna.Trial(st, t._trial_id))
         if t.number == frozen_no:
             assert note.startswith("**imtune** · **frozen**")
         elif t.user_attrs.get("feasible") is False:
-            assert "over budget: median estimator time" in note and "never frozen" in note
+            assert "over budget: median estimator CPU time" in note and "never frozen" in note
         else:
             assert note == ""
     from tuner.annotate import annotate_study

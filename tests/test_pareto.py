@@ -24,7 +24,7 @@ from tests.conftest import DATA, ROOT, copy_strecha_subset
 STRECHA = DATA / "strecha"
 pytestmark = pytest.mark.skipif(not STRECHA.is_dir(), reason=f"real data not found at {STRECHA}")
 
-B = 0.1  # seconds per pair (median estimator time)
+B = 0.1  # seconds per pair (median estimator CPU time)
 DEG = "sift-1024-degensac-stereo-pareto"
 MAG = "sift-1024-magsac-stereo-pareto"
 CHROMIUM = next((p for p in ("/usr/bin/chromium", "/usr/bin/chromium-browser") if os.path.exists(p)),
@@ -116,7 +116,7 @@ def test_pareto_study_is_two_objective_and_unpruned(runs):
     assert runs["deg"]["study"] == DEG and runs["mag"]["study"] == MAG  # -pareto: never the mAA10 study's name
     st = load(runs, DEG)
     assert st.directions == [optuna.study.StudyDirection.MAXIMIZE, optuna.study.StudyDirection.MINIMIZE]
-    assert st.metric_names == ["mAA(10°)", "median estimator time per pair (s)"]
+    assert st.metric_names == ["mAA(10°)", "median estimator CPU time per pair (s)"]
     ua = st.user_attrs
     assert ua["objective"]["name"] == "pareto" and ua["objective"]["pareto_span"] == 4.0
     b = ua["budget"]
@@ -214,7 +214,7 @@ def _overlay(runs):
 def test_overlay_of_two_fronts(runs):
     from tuner.pareto import best_within_budget, pareto_front
     fig = _overlay(runs)
-    assert fig.layout.xaxis.title.text == "median estimator time per pair (s)" and fig.layout.xaxis.type == "log"
+    assert fig.layout.xaxis.title.text == "median estimator CPU time per pair (s)" and fig.layout.xaxis.type == "log"
     assert fig.layout.yaxis.title.text == "mAA(10°)"
     lines = [s for s in fig.layout.shapes if s.type == "line"]
     assert len(lines) == 1 and lines[0].x0 == lines[0].x1 == B  # one budget, one vertical line
@@ -290,7 +290,7 @@ def test_overlay_renders_in_chromium(runs):
             >= len(load(runs, DEG).trials) + len(load(runs, MAG).trials)
         assert drv.execute_script("return document.querySelectorAll('#pareto-fronts .scatterlayer path.js-line').length") >= 2
         text = drv.find_element(By.ID, "pareto-fronts").text
-        assert "median estimator time per pair (s)" in text and "mAA(10°)" in text and f"budget B = {B:g} s" in text
+        assert "median estimator CPU time per pair (s)" in text and "mAA(10°)" in text and f"budget B = {B:g} s" in text
         # the budget's label sits on its line (a label in data units on a log axis would land far off)
         line_x, label_x = drv.execute_script(
             "var l = document.querySelector('#pareto-fronts .shapelayer path').getBoundingClientRect();"

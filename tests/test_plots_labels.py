@@ -75,8 +75,8 @@ def test_every_figure_has_one_title_and_axis_titles_with_units(sections):
     assert axes == {"inlier threshold eta (px)", "ratio test r"}
     eta_axis = con.layout.xaxis if con.layout.xaxis.title.text.startswith("inlier") else con.layout.yaxis
     assert eta_axis.type == "log" and "1" in eta_axis.ticktext and len(eta_axis.ticktext) >= 3
-    cost = get("Validation mAA 10 vs estimator time per pair")
-    assert cost.layout.xaxis.title.text == "median estimator time per pair (s)"
+    cost = get("Validation mAA 10 vs estimator CPU time per pair")
+    assert cost.layout.xaxis.title.text == "median estimator CPU time per pair (s)"
     assert any("budget B = 0.5 s" in (a.text or "") for a in cost.layout.annotations)
     g = get("Validation mAA 10 vs RANSAC iteration cap Gamma")
     assert g.layout.xaxis.title.text == "iteration cap Gamma (iterations, log scale)" and g.layout.xaxis.type == "log"
@@ -275,7 +275,7 @@ def test_a_multiview_report_does_not_ask_for_an_eta_it_never_searches(tmp_path):
 
 
 def test_a_multiview_report_header_states_no_estimator_budget(tmp_path):
-    """The multiview study's report opened with "budget B = 0.5 s per pair (median estimator time), Gamma_max not
+    """The multiview study's report opened with "budget B = 0.5 s per pair (median estimator CPU time), Gamma_max not
     calibrated": a budget its task never applies (no estimator of imtune's is timed; COLMAP runs its own RANSAC)."""
     from tuner.plots import write_report
     storage = _multiview_study(tmp_path)

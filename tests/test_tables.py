@@ -96,7 +96,7 @@ def test_settings_table_latex_exact():
     assert tex[2] == (r"\caption{Optimal settings on the validation scenes fountain-P11: ratio test $r$ (stereo: from "
                       r"the estimator study with the best validation mAA($10^\circ$); multiview: COLMAP), inlier "
                       r"threshold $\eta$ (px) and maximum iterations $\Gamma$ of each estimator under the time budget "
-                      r"$B = 0.5$\,s per pair (median estimator time). Validation ground truth: not recorded (written "
+                      r"$B = 0.5$\,s per pair (median estimator CPU time). Validation ground truth: not recorded (written "
                       r"before imtune recorded it).}")  # these studies' records predate it
     assert tex[3:] == [
         r"\begin{tabular}{lrrrrrrrrlrr}",

@@ -395,7 +395,7 @@ def test_plot_html_report(two_studies, tuner_cache):
     html = path.read_text()
     assert two_studies["name"] in html and "plotly" in html.lower()
     for section in ("Optimization history", "Parameter importances", "over inlier threshold eta and ratio test r",
-                    "vs estimator time per pair", "vs RANSAC iteration cap Gamma", "vs inlier threshold eta"):
+                    "vs estimator CPU time per pair", "vs RANSAC iteration cap Gamma", "vs inlier threshold eta"):
         assert section in html, section
     assert html.count('class="plotly-graph-div"') >= 4
     # the across-studies eta curves include the other study when it has 2 trials within budget (its 3 trials can

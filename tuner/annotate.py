@@ -8,7 +8,7 @@ What it writes (all idempotent: a second call with the same study and frozen tri
 - the metric name, ``study.set_metric_names(["mAA(10°)"])``, so the dashboard's axes and "Best Trial"
   card say "mAA(10°)" rather than "Objective 0";
 - a dashboard note on every infeasible trial (a completed trial whose budget constraint is > 0 or whose
-  user attribute ``feasible`` is False): "over budget: median estimator time X s > B s per pair; never
+  user attribute ``feasible`` is False): "over budget: median estimator CPU time X s > B s per pair; never
   frozen" (its user attribute ``feasible`` = False is written by the objective while it runs; Optuna
   does not allow user attributes on a finished trial);
 - a note on the frozen trial ("frozen by imtune"), or, with ``frozen=None``, on the best feasible trial
@@ -28,7 +28,7 @@ import warnings
 
 METRIC_NAME = "mAA(10°)"
 MARK = "**imtune**"
-SECONDS_NAME = "median estimator time per pair (s)"  # the second objective of a pareto study
+SECONDS_NAME = "median estimator CPU time per pair (s)"  # the second objective of a pareto study
 
 
 from tuner.protocol import trial_within_budget as is_feasible  # noqa: E402  (the one feasibility rule)
@@ -52,7 +52,7 @@ def _s(x: float | None) -> str:
 
 def over_budget_text(median: float | None, budget: float | None) -> str:
     """The one-line label of an infeasible trial (note, reports, plots)."""
-    return (f"over budget: median estimator time {_s(median)} s > {_s(budget)} s per pair; never frozen")
+    return (f"over budget: median estimator CPU time {_s(median)} s > {_s(budget)} s per pair; never frozen")
 
 
 def _params_text(params: dict) -> str:
@@ -146,7 +146,7 @@ def annotate_study(study, frozen: dict | int | None = None) -> dict:
         t = by_no[pick]
         med = median_seconds(t, budget)
         cost = "" if untimed or budget is None else (
-            f"; median estimator time {_s(med)} s <= {_s(budget)} s per pair")
+            f"; median estimator CPU time {_s(med)} s <= {_s(budget)} s per pair")
         if frozen_no is not None and not is_feasible(t):  # a frozen file of an older rule: say both
             blocks[t.number] += "; yet frozen (frozen.yaml of this study): refreeze with `tune test --study NAME`"
         elif frozen_no is not None:
@@ -166,7 +166,7 @@ def annotate_study(study, frozen: dict | int | None = None) -> dict:
              f"({', '.join((attrs.get('data') or {}).get('val_scenes') or []) or '?'}), maximised"]
     if not untimed and budget is not None:
         gmax = (attrs.get("budget") or {}).get("gamma_max")
-        lines.append(f"budget B = {_s(budget)} s median estimator time per pair"
+        lines.append(f"budget B = {_s(budget)} s median estimator CPU time per pair"
                      + (f" (Gamma_max = {gmax} iterations)" if gmax else "")
                      + "; trials over it are infeasible and never frozen")
     if pick is not None and pick in by_no:

@@ -68,7 +68,7 @@ class Calibration:
     wall_curve: list = dataclasses.field(default_factory=list)
 
     def gamma_max(self, budget: float) -> int:
-        """Largest max_iters whose median estimator time per pair is <= ``budget`` seconds (on the curve's
+        """Largest max_iters whose median estimator CPU time per pair is <= ``budget`` seconds (on the curve's
         non-decreasing envelope: a larger cap never costs less, a lower median there is timing noise)."""
         pts = _envelope(self.curve)
         if not pts:

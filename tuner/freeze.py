@@ -11,7 +11,7 @@ budget (B, Gamma_max), the data (root, scenes, fingerprint) and the validation m
 
 The test run evaluates ``config`` on the test scenes ``runs`` times (default 3, as the paper) with
 estimator seeds ``seed, seed + 1, ...``, and averages; ``test.json`` holds every run's summary, the
-mean and standard deviation, and whether the median estimator time per pair kept within the test
+mean and standard deviation, and whether the median estimator CPU time per pair kept within the test
 budget (default 1 s). The mean is also stored in the study's user attribute ``test`` so that
 ``tune results`` can read it from the storage alone.
 """

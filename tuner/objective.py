@@ -139,7 +139,7 @@ class Objective:
 
     task: a ``pipeline.tasks.Task``; base: the study's fixed pipeline configuration; space: the (resolved)
     search space; vs: the prepared validation set; cache: an H5Cache (shared by all trials of this process);
-    budget: B in seconds per pair (median estimator time; None = no budget); prune_over_budget: stop a trial
+    budget: B in seconds per pair (median estimator CPU time; None = no budget); prune_over_budget: stop a trial
     early once its running budget statistic exceeds this multiple of B (0: never; a guess that saves time, not a
     proof: only more than half of all its pairs over B proves a trial over budget); objectives: :data:`SINGLE` (return the task's objective figure) or :data:`PARETO` (return it
     and the median estimator seconds per pair; a task that times no estimator cannot)."""
@@ -150,7 +150,7 @@ class Objective:
             raise ImtuneError(f"objectives {tuple(objectives)!r}: expected {SINGLE!r} or {PARETO!r}")
         if tuple(objectives) == PARETO and not task.timed:
             raise ImtuneError(f"task {task.name} times no estimator of imtune's: it cannot run a pareto study "
-                              "(accuracy against estimator time); use --objective mAA10")
+                              "(accuracy against estimator CPU time); use --objective mAA10")
         self.objectives = tuple(objectives)
         self.task = task
         self.base = base

@@ -33,7 +33,7 @@ from pathlib import Path
 from pipeline.errors import ImtuneError
 from tuner.protocol import trial_value, within_budget
 
-TIME_AXIS = "median estimator time per pair (s)"
+TIME_AXIS = "median estimator CPU time per pair (s)"
 METRIC = "mAA(10°)"
 COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#e377c2", "#17becf")
 

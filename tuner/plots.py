@@ -6,7 +6,7 @@
         s.fig.show() if s.fig else print(s.title, "-", s.note)
 
 Sections: optimization history (over-budget trials marked), parameter importances, mAA(10°) over the
-inlier threshold eta and the ratio test r (contour), mAA(10°) against the median estimator time per pair
+inlier threshold eta and the ratio test r (contour), mAA(10°) against the median estimator CPU time per pair
 (with the budget B), mAA(10°) against the iteration cap Gamma, the mAA(10°)-against-eta curves of every
 study of the same task in the storage (best mAA(10°) per eta bin: the paper's inlier-threshold figure),
 for a pareto study (``tune --objective pareto``) its accuracy-cost Pareto front (:mod:`tuner.pareto`),
@@ -176,7 +176,7 @@ def fig_contour(study):
 
 
 def fig_cost(study):
-    """mAA(10°) against the median estimator time per pair; B as a vertical line."""
+    """mAA(10°) against the median estimator CPU time per pair; B as a vertical line."""
     import plotly.graph_objects as go
     trials = [t for t in _complete(study) if "ransac_seconds_median" in t.user_attrs]
     fig = go.Figure()
@@ -191,8 +191,8 @@ def fig_cost(study):
     b = (study.user_attrs.get("budget") or {}).get("seconds_per_pair")
     if b:
         fig.add_vline(x=float(b), line_dash="dash", line_color="red", annotation_text=f"budget B = {b:g} s")
-    fig.update_layout(title=f"Validation {METRIC} vs estimator time per pair",
-                      xaxis_title="median estimator time per pair (s)", yaxis_title=f"{METRIC} (validation)")
+    fig.update_layout(title=f"Validation {METRIC} vs estimator CPU time per pair",
+                      xaxis_title="median estimator CPU time per pair (s)", yaxis_title=f"{METRIC} (validation)")
     return fig
 
 
@@ -390,16 +390,16 @@ def report_sections(storage, study_name: str, studies_dir: Path | str | None = N
         sections.append(Section(f"{METRIC} over eta and r", None, "eta and r are not both searched in this study"))
     from pipeline.tasks import TASKS
     if not TASKS.get(task).timed:  # a task that times no estimator of ours
-        sections.append(Section(f"{METRIC} vs estimator time per pair", None,
+        sections.append(Section(f"{METRIC} vs estimator CPU time per pair", None,
                                 f"{task} study: no estimator of imtune's is timed (COLMAP runs its own RANSAC), "
                                 "no estimator budget"))
     else:
-        add(f"{METRIC} vs estimator time per pair", lambda: fig_cost(study))
+        add(f"{METRIC} vs estimator CPU time per pair", lambda: fig_cost(study))
         add(f"{METRIC} vs iteration cap Gamma", lambda: fig_gamma(study),
             "Gamma is not searched in this study (pinned with --fix, or the estimator has no iteration cap)")
         if len(study.directions) > 1:  # a pareto study (tune --objective pareto): its accuracy-cost front
             from tuner.pareto import fig_front
-            add(f"{METRIC} vs estimator time per pair: Pareto front", lambda: fig_front(study))
+            add(f"{METRIC} vs estimator CPU time per pair: Pareto front", lambda: fig_front(study))
     if "threshold" not in TASKS.get(task).uses:  # no number of trials brings an eta to a task that has none
         verifier = TASKS.get(task).verifier  # multiview: COLMAP
         sections.append(Section(f"{METRIC} vs eta across studies", None,
@@ -497,7 +497,7 @@ def write_report(storage, study_name: str, out: Path | str, studies_dir: Path | 
         budget = f"{task} study: no estimator budget (no estimator of imtune's is timed)"
         over = ""
     else:
-        budget = (f"budget B = {b.get('seconds_per_pair')} s per pair (median estimator time), "
+        budget = (f"budget B = {b.get('seconds_per_pair')} s per pair (median estimator CPU time), "
                   + gamma_max_text(b.get("gamma_max"), (attrs.get("search_space_resolved") or {}).get("fixed"),
                                    unit=" iterations"))
     head = [f"<h1>imtune study {html.escape(study_name)}</h1>",

@@ -9,7 +9,7 @@ Optimal settings (``tune table``), as the paper's "optimal hyper-parameters" tab
 feature count, the ratio test r for stereo (``r``) and multiview (``r_multiview``, the frozen r of the
 ``tune --task multiview`` studies, the best by validation multiview mAA(10) when there are several), then
 for each estimator the frozen inlier threshold eta (px) and iteration cap Gamma, and the time budget B
-they were tuned under (seconds per pair, median estimator time). Each estimator study tunes its own r;
+they were tuned under (seconds per pair, median estimator CPU time). Each estimator study tunes its own r;
 ``r`` is that of the study with the best validation mAA(10) (named in ``r from``), the paper's single r
 per feature. ``--format latex`` is a booktabs table with a caption; ``--format json`` gives every
 study's values.
@@ -230,13 +230,13 @@ def _settings_caption(studies: list[StudyInfo], multiview: list[StudyInfo], per_
         b_txt = "B of each study (columns B, s per pair)"
     plain = (f"Optimal settings on the {where}: ratio test r (stereo: from the estimator study with the best "
              f"validation mAA(10°); multiview: COLMAP), inlier threshold eta (px) and maximum iterations Gamma "
-             f"of each estimator under the time budget {b_txt} (median estimator time).")
+             f"of each estimator under the time budget {b_txt} (median estimator CPU time).")
     tex = (f"Optimal settings on the {latex_escape(where)}: ratio test $r$ (stereo: from the estimator study with "
            f"the best validation mAA($10^\\circ$); multiview: COLMAP), inlier threshold $\\eta$ (px) and maximum "
            f"iterations $\\Gamma$ of each estimator under the time budget "
            + (f"$B = {budgets[0]:g}$\\,s per pair" if budgets and not per_est_budget
               else "$B$ of each study (columns $B$, s per pair)")
-           + " (median estimator time).")
+           + " (median estimator CPU time).")
     return plain, tex
 
 

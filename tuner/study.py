@@ -189,7 +189,7 @@ def setup_study(s: TuneSettings) -> StudyContext:
         task.objective = s.objective  # the figure every trial returns and reports (tuner.objective.Objective)
     if pareto and not task.timed:
         raise ImtuneError(f"task {task.name} times no estimator of imtune's: it cannot run a pareto study "
-                          "(accuracy against estimator time); use --objective mAA10")
+                          "(accuracy against estimator CPU time); use --objective mAA10")
     get_estimator(s.base.geometry.ransac)  # unknown / unavailable estimator: one line, now
     s.studies_dir = Path(s.studies_dir) if s.studies_dir else default_studies_dir()
     check_studies_dir(s.studies_dir)  # budgets.json, frozen.yaml, reports: read-only or a file in the way -> now

@@ -7,7 +7,7 @@
     tune table [--format csv|latex|json]               # optimal settings over all studies
     tune results                                       # test results: NF, NI and mAA(10) per estimator
     tune plot --study NAME                             # one HTML report
-    tune --objective pareto ...                        # accuracy vs estimator time: study <default>-pareto
+    tune --objective pareto ...                        # accuracy vs estimator CPU time: study <default>-pareto
     tune plot --pareto A-pareto B-pareto               # their Pareto fronts on one figure, with the budget B
     tune dashboard [--port 8080]                       # optuna-dashboard on 127.0.0.1
 
@@ -488,7 +488,7 @@ def test_table(t: dict) -> str:
     if "ransac_seconds" in cols or "match_seconds" in cols:  # the unit, and which statistic the budget reads
         med = m.get("ransac_seconds_median")
         tail.append("match_seconds, ransac_seconds: seconds per pair, mean over the pairs"
-                    + (f" (the budget is on the median estimator time: {med:.3g} s/pair)"
+                    + (f" (the budget is on the median estimator CPU time: {med:.3g} s/pair)"
                        if isinstance(med, (int, float)) else ""))
     if t.get("interval"):
         from tuner.select import interval_units

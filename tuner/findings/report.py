@@ -124,7 +124,7 @@ def settings_lines(fs, out: dict | None = None) -> list[str]:
         + ", ".join(f"{size}:{count}" for size, count in multiview_bags(fs))
         + ("" if m.get("multiview_bags") else " (the protocol's)")
         + "".join(f"; {note}" for note in multiview_notes(fs)),
-        f"budget: {fs.budget:g} s per pair on validation (median estimator time), {fs.test_budget:g} s on test",
+        f"budget: {fs.budget:g} s per pair on validation (median estimator CPU time), {fs.test_budget:g} s on test",
         f"data: {fs.data_root}; validation scenes: {', '.join(val) or 'none'}; test scenes: {', '.join(test) or 'none'} "
         f"(from {split_source})",
         f"ground truth: {ground_truth_line(fs, val + test)}",
