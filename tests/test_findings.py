@@ -1360,3 +1360,102 @@ def test_a_rerun_with_a_study_that_could_not_be_frozen_never_reads_all_finished(
     studies["a"]["ran_now"] = nothing
     assert R._work_done(out) == "; both of their studies were already finished and tested: re-analysed, no new " \
                                 "trial or test run"
+
+
+# ------------------------------------------------------------------------------------------ tuning replicates
+
+def _replicated(name, errs_per_replicate):
+    """A StudyOutcome with tuning replicates: errs_per_replicate[k] = one test run's {(scene, i): err deg}."""
+    first = _outcome(name, [errs_per_replicate[0]])
+    first.others = [_outcome(f"{name}-r{k}", [e]) for k, e in enumerate(errs_per_replicate[1:], start=2)]
+    return first
+
+
+def test_a_lucky_tuning_is_a_verdict_only_without_replicates():
+    """Known truth: the tuned configuration's three tunings score mAA(10) 0.95, 0.45 and 0.45 on the same pairs (one
+    lucky optimum), the defaults 0.55 on every replicate. Replicate 1 alone 'holds' with p << 0.05, and its verdict
+    says the tuning variance was not measured; with the three replicates the difference is the mean of the
+    replicates' differences, exactly (0.95 + 0.45 + 0.45) / 3 - 0.55, its interval holds the replicate spread and
+    contains 0, the verdict is inconclusive, and P(B > A) = 3 / 9 (one replicate of three beats each defaults one)."""
+    pairs = [("s1", i) for i in range(20)] + [("s2", i) for i in range(20)]
+    # scores: err 0.5 -> 1.0; 1.5 -> 0.9; 5.5 -> 0.5; 6.5 -> 0.4; 4.5 -> 0.6; 5.2 -> 0.5 (thresholds 1..10 deg)
+    def run(lo, hi):  # half the pairs of each scene at each error: mAA exactly the mean of their scores
+        return {p: (lo if p[1] % 2 == 0 else hi) for p in pairs}
+    lucky, unlucky = run(0.5, 1.5), run(5.5, 6.5)  # 0.95, 0.45
+    defaults = [run(4.5, 5.2), run(4.5, 5.2), run(4.5, 5.2)]  # 0.55 each (estimator seeds alone)
+    f = BY_ID[1]
+    single = A.analyse(f, {"defaults": _outcome("d", [defaults[0]]), "tuned": _outcome("t", [lucky])},
+                       n_resamples=500)
+    assert single["verdict"] == "holds" and single["p_value"] < 0.01
+    assert single["measured"]["tuning_variance_measured"] is False
+    outs = {"defaults": _replicated("d", defaults), "tuned": _replicated("t", [lucky, unlucky, unlucky])}
+    rep = A.analyse(f, outs, n_resamples=500)
+    assert rep["difference"] == pytest.approx((0.95 + 0.45 + 0.45) / 3 - 0.55, abs=1e-12)
+    assert rep["ci"][0] < 0 < rep["ci"][1] and rep["verdict"] == "inconclusive"
+    assert rep["measured"]["tuning_variance_measured"] is True and rep["measured"]["replicates"] == [3, 3]
+    assert rep["measured"]["p_b_beats_a"] == pytest.approx(3 / 9)
+    # the tuned figure of each study is the replicates' mean, with every replicate's own figure beside it
+    tuned = rep["measured"]["studies"]["tuned"]
+    assert tuned["mAA10"] == pytest.approx((0.95 + 0.45 + 0.45) / 3, abs=1e-12)
+    assert [e["mAA10"] for e in tuned["replicated"]["replicates"]] == pytest.approx([0.95, 0.45, 0.45])
+    lone = A.study_figures(_outcome("t", [lucky]), 500)["mAA10_ci"]
+    lo, hi = tuned["mAA10_ci"]
+    assert hi - lo > lone[1] - lone[0]  # the replicate spread widens it
+    # the report says it: the tuning-variance cell, and the verdict text with P(B > A)
+    from tuner.findings.report import _difference_text, _tuning_cell
+    res = {"id": 1, "verdict": rep["verdict"], "difference": rep["difference"], "ci": rep["ci"],
+           "p_value": rep["p_value"], "measured": {**rep["measured"], "rule": "better"}}
+    assert _tuning_cell(res) == "K=3x3, P(B>A) 0.33"
+    assert "P(B > A) = 0.33 over replicate pairs" in _difference_text(res)
+    one = {"id": 1, "verdict": single["verdict"], "difference": single["difference"], "ci": single["ci"],
+           "p_value": single["p_value"], "measured": {**single["measured"], "rule": "better"}}
+    assert _tuning_cell(one) == "not measured"
+    assert "the tuning variance was not measured (1 replicate)" in _difference_text(one)
+
+
+def test_findings_with_replicates_end_to_end(subset, tmp_path, monkeypatch, capsys):
+    """`tune findings --replicates 2` on real data: every stereo study of the finding is tuned twice (NAME and
+    NAME-r2, other seeds), the verdict's difference is the mean over replicates of the test mAA(10) differences
+    (read from the studies' own test.json files), the report says the interval holds the tuning variance, and a
+    rerun runs no trial."""
+    import optuna
+    monkeypatch.setenv("IMTUNE_CACHE", str(tmp_path / "cache"))
+    sdir = tmp_path / "studies"
+    args = ["findings", "--data", str(subset), "--studies-dir", str(sdir), "--quick", "--only", "11",
+            "--trials", "2", "--max-pairs", "3", "--ci-resamples", "300", "--jobs", "1", "--replicates", "2", "--json"]
+    rc, out, err = _cli(args, capsys)
+    assert rc == 0, err
+    f = _finding(json.loads(out), 11)
+    storage = f"sqlite:///{sdir / 'optuna.db'}"
+    studies = f["measured"]["studies"]
+    if not all(s["ok"] for s in studies.values()):  # 2 trials all over budget on a busy machine: said, not hidden
+        assert f["verdict"] == "not run" and all(s.get("reason") for s in studies.values() if not s["ok"])
+        pytest.skip(f"a study could not be frozen here: {[s.get('reason') for s in studies.values()]}")
+    names = set(optuna.get_all_study_names(storage))
+    means = {}
+    for role, s in studies.items():
+        reps = s["replicated"]["replicates"]
+        assert [r["study"] for r in reps] == [s["study"], s["study"] + "-r2"] and set(f["studies"]) >= {
+            r["study"] for r in reps}
+        seeds = {optuna.load_study(study_name=r["study"], storage=storage).user_attrs["seed"] for r in reps}
+        assert len(seeds) == 2, seeds  # independent tunings
+        tests = [json.loads((sdir / r["study"] / "test.json").read_text()) for r in reps]
+        assert [r["mAA10"] for r in reps] == pytest.approx([t["mean"]["mAA10"] for t in tests], abs=1e-12)
+        means[role] = float(np.mean([t["mean"]["mAA10"] for t in tests]))
+        assert s["mAA10"] == pytest.approx(means[role], abs=1e-9)
+        assert s["replicated"]["K"] == 2 and {r["study"] for r in reps} <= names
+    assert f["difference"] == pytest.approx(means["mr16"] - means["mr12"], abs=1e-9)
+    assert f["ci"][0] <= f["difference"] <= f["ci"][1]
+    m = f["measured"]
+    assert m["tuning_variance_measured"] is True and m["replicates"] == [2, 2] and 0 <= m["p_b_beats_a"] <= 1
+    md = (sdir / "findings" / "report.md").read_text()
+    assert "tuning replicates: 2 per stereo study" in md and "| tuning variance |" in md
+    row = next(ln for ln in md.splitlines() if ln.startswith("| 11 | "))
+    assert "K=2x2, P(B>A)" in row, row
+    assert "2 x 2 tuning replicates: the interval holds the tuning variance" in md
+    # a rerun reuses every replicate: no trial more
+    before = _trial_count(storage)
+    rc, out, err = _cli(args, capsys)
+    assert rc == 0, err
+    assert _trial_count(storage) == before
+    assert _finding(json.loads(out), 11)["difference"] == pytest.approx(f["difference"], abs=1e-12)

@@ -35,6 +35,10 @@ def register(sub) -> None:
     ap.add_argument("--test-scenes", type=scene_list, default=None, help="comma-separated test scenes (default: the data split)")
     ap.add_argument("--cache", default=None, help="cache folder (else $IMTUNE_CACHE or ~/.cache/imtune)")
     ap.add_argument("--seed", type=seed_int, default=0, help="study and resampling seed")
+    ap.add_argument("--replicates", type=positive_int, default=1, metavar="K",
+                    help="K independent tunings of every stereo study (studies NAME, NAME-r2, ...): tuned figures are "
+                         "means over replicates and every verdict's interval holds the tuning variance, with P(B > A) "
+                         "(default 1: the tuning variance is not measured, and each verdict says so)")
     ap.add_argument("--storage", default=None,
                     help="sqlite:///PATH, postgresql://..., journal:PATH (default sqlite:///<studies dir>/optuna.db)")
     ap.add_argument("--studies-dir", default=None,
@@ -66,7 +70,7 @@ def settings(args):
                             quick=args.quick, only=only, jobs=args.jobs, trials=args.trials, max_pairs=args.max_pairs,
                             test_runs=args.test_runs, cache_dir=args.cache, seed=args.seed,
                             val_scenes=_scenes(args.val_scenes), test_scenes=_scenes(args.test_scenes),
-                            n_resamples=args.ci_resamples, progress=not quiet)
+                            n_resamples=args.ci_resamples, replicates=args.replicates, progress=not quiet)
 
 
 def run(args) -> int:

@@ -82,6 +82,10 @@ def check_settings(fs: FindingsSettings) -> None:
         v = getattr(fs, k)
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
             raise bad(k, "a finite number of seconds per pair > 0", v)
+    from tuner.replicates import MAX_REPLICATES
+    v = fs.replicates
+    if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= MAX_REPLICATES:
+        raise bad("replicates", f"an integer from 1 to {MAX_REPLICATES}", v)
     v = fs.n_resamples
     if isinstance(v, bool) or not isinstance(v, int) or not MIN_RESAMPLES <= v <= MAX_RESAMPLES:
         raise bad("n_resamples", f"an integer from {MIN_RESAMPLES} to {MAX_RESAMPLES:,}", v)
@@ -259,7 +263,7 @@ def run_findings(fs: FindingsSettings, write: bool = True) -> dict:
         results.append({"id": f.id, "claim": f.claim, "paper": f.paper, "measured": a["measured"],
                         "difference": a["difference"], "ci": a["ci"], "p_value": a["p_value"],
                         "verdict": a["verdict"],
-                        "studies": [o.name for o in outcomes.values() if o.ok] if ok else [],
+                        "studies": [r.name for o in outcomes.values() if o.ok for r in o.replicates()] if ok else [],
                         "this_run": this_run})
         if f.id in ran or a["verdict"] != NOT_RUN_YET:
             fs.say(f"finding {f.id}{'' if f.id in ran else ' (not selected: from its finished studies)'} "

@@ -11,6 +11,11 @@ Rules (the report states the one each finding uses):
   one holds, does not hold when any is reversed; "any": holds when one holds and none is reversed); the one
   relation that alone decides (a reversal for "all", a relation that holds for "any") must be significant at the
   Bonferroni level 0.05 / m over the m relations.
+  With tuning replicates (``--replicates K``, K >= 2 for both studies) the difference, its CI and p come from
+  :func:`pipeline.metrics.replicates.replicated_difference` of the K x N per-pair mAA(10) scores (each replicate's
+  mean over its test runs, scene-weighted): the pair bootstrap plus the between-replicate variance, so the
+  interval holds the tuning variance; P(B > A) over replicate pairs is reported beside it. With K = 1 every verdict
+  says the tuning variance was not measured.
 - ``small_gain`` — the claim "B adds at most a little over A": holds when the upper end of the CI of B - A is
   <= SMALL_GAIN (in mAA(10), 0..1), does not hold when its lower end is above SMALL_GAIN, inconclusive
   otherwise (a CI containing 0 but reaching past the margin says nothing either way).
@@ -115,6 +120,59 @@ def group_status(regions: dict, roles, param: str = "ratio") -> tuple[str, list]
 
 # ------------------------------------------------------------------------------------------ per finding
 
+def _replicated(*outcomes) -> bool:
+    """Whether every outcome has tuning replicates (K >= 2): then its comparisons hold the tuning variance."""
+    return all(o.others for o in outcomes)
+
+
+def _replicate_scores(o, tau: int = 10) -> list[dict]:
+    """Per replicate of ``o``: {(scene, pair): the pair's mAA(tau) score averaged over the replicate's test runs}."""
+    import numpy as np
+
+    from pipeline.metrics.uncertainty import pair_scores
+    out = []
+    for r in o.replicates():
+        per_run = []
+        for run in r.test_runs or []:
+            sc = pair_scores([x["err"] for x in run], tau)
+            per_run.append({(str(x["scene"]), str(x["pair"])): float(v) for x, v in zip(run, sc)})
+        keys = set.intersection(*(set(d) for d in per_run)) if per_run else set()
+        out.append({k: float(np.mean([d[k] for d in per_run])) for k in keys})
+    return out
+
+
+def replicated_relation(oa, ob, n_resamples: int, seed: int = 0, level: float = DEFAULT_LEVEL,
+                        tau: int = 10) -> dict:
+    """B - A of two replicated studies on the test pairs every replicate of both scored: the K_a x N and K_b x N
+    per-pair score matrices, scene-weighted (:func:`tuner.replicates.scene_scale`: a plain mean is the benchmark's
+    mean over scenes), into :func:`pipeline.metrics.replicates.replicated_difference` (pair bootstrap + replicate
+    variance, t quantile). Keys as :func:`paired_bootstrap`'s, plus ``p_b_beats_a`` and ``replicates`` [K_a, K_b]."""
+    import numpy as np
+
+    from pipeline.metrics.replicates import replicated_difference
+    from tuner.replicates import scene_scale
+    sa, sb = _replicate_scores(oa, tau), _replicate_scores(ob, tau)
+    in_a, in_b = set.intersection(*(set(d) for d in sa)), set.intersection(*(set(d) for d in sb))
+    keys = sorted(in_a & in_b)
+    strata = np.array([k[0] for k in keys])
+    scale = scene_scale(strata)[None, :]
+    a = np.array([[d[k] for k in keys] for d in sa]) * scale
+    b = np.array([[d[k] for k in keys] for d in sb]) * scale
+    d = replicated_difference(b, a, strata, alpha=1 - level, n_boot=int(n_resamples), seed=int(seed))
+    return {"mAA10_a": float(a.mean()), "mAA10_b": float(b.mean()), "difference": d.diff, "ci": [d.low, d.high],
+            "p_value": d.p_value, "p_b_beats_a": d.p_a_beats_b, "pairs": len(keys),
+            "dropped_a": len(in_a - in_b), "dropped_b": len(in_b - in_a), "replicates": [len(sa), len(sb)]}
+
+
+def _difference(oa, ob, n_resamples: int, seed: int, level: float = DEFAULT_LEVEL) -> dict:
+    """B - A on the same test pairs: :func:`replicated_relation` when both studies have replicates, else the paired
+    bootstrap of their test runs."""
+    if _replicated(oa, ob):
+        return replicated_relation(oa, ob, n_resamples, seed, level)
+    return paired_bootstrap(_flat(oa.test_runs), _flat(ob.test_runs), tau=10, n_resamples=n_resamples, seed=seed,
+                            level=level)
+
+
 def _flat(runs) -> list:
     """The test runs' records in one list, each with its run index (run k of two studies: the k-th seed), which
     lets the paired bootstrap see a run effect shared by all pairs (pipeline.metrics.uncertainty.paired_bootstrap)."""
@@ -148,7 +206,33 @@ def study_figures(o, n_resamples: int) -> dict:
                  mAA10_records=ci["mAA10"], test_runs=len(o.test_runs), pairs=(o.test.get("data") or {}).get("pairs"),
                  within_budget=(o.test.get("budget") or {}).get("within_budget"), records=o.records_note,
                  test_file=o.test_path)
+        if o.others:
+            d["replicated"] = replicated_figures(o, n_resamples)
+            d["mAA10"], d["mAA10_ci"] = d["replicated"]["mAA10"], d["replicated"]["mAA10_ci"]
     return d
+
+
+def replicated_figures(o, n_resamples: int) -> dict:
+    """The tuned figure of a replicated study: the mean test mAA(10) over its K replicates with the two-level
+    interval (:func:`pipeline.metrics.replicates.replicated_maa_interval`, what `tune --replicates` reports), each
+    replicate's study, seed-derived name, frozen parameters and own mAA(10), and the spread of r, eta, Gamma."""
+    import numpy as np
+
+    from pipeline.metrics.replicates import replicated_maa_interval
+    from tuner.replicates import SPREAD_PARAMS
+    scores = _replicate_scores(o)
+    keys = sorted(set.intersection(*(set(d) for d in scores)))
+    iv = replicated_maa_interval(np.array([[d[k] for k in keys] for d in scores]), np.array([k[0] for k in keys]),
+                                 n_boot=int(n_resamples), seed=0)
+    each = [{"study": r.name, "params": (r.frozen or {}).get("params"), "mAA10": (r.test or {}).get("mean", {}).get("mAA10")}
+            for r in o.replicates()]
+    spread = {}
+    for p in SPREAD_PARAMS:
+        vals = [e["params"][p] for e in each if isinstance(e["params"], dict) and p in e["params"]]
+        if vals:
+            spread[p] = [min(vals), max(vals)]
+    return {"K": len(scores), "mAA10": iv.mean, "mAA10_ci": [iv.low, iv.high], "se_pairs": iv.se_pairs,
+            "se_between": iv.se_between, "pairs": len(keys), "replicates": each, "spread": spread}
 
 
 def _validation_value(o) -> float:
@@ -163,12 +247,17 @@ def relation(outcomes: dict, a: str, b: str, n_resamples: int, seed: int = 0) ->
     oa, ob = outcomes.get(a), outcomes.get(b)
     if not (oa and ob and oa.ok and ob.ok and oa.test_runs and ob.test_runs):
         return None
-    pb = paired_bootstrap(_flat(oa.test_runs), _flat(ob.test_runs), tau=10, n_resamples=n_resamples, seed=seed)
+    pb = _difference(oa, ob, n_resamples, seed)
     ma = pb["mAA10_a"]
-    rel = paired_relative(_flat(oa.test_runs), _flat(ob.test_runs), tau=10, n_resamples=n_resamples, seed=seed)
-    return {"a": a, "b": b, "mAA10_a": ma, "mAA10_b": pb["mAA10_b"], "difference": pb["difference"],
-            "relative": (pb["difference"] / ma) if ma else None, "relative_ci": rel["ci"], "ci": pb["ci"],
-            "p_value": pb["p_value"], "pairs": pb["pairs"], "dropped": [pb["dropped_a"], pb["dropped_b"]]}
+    out = {"a": a, "b": b, "mAA10_a": ma, "mAA10_b": pb["mAA10_b"], "difference": pb["difference"],
+           "relative": (pb["difference"] / ma) if ma else None, "relative_ci": None, "ci": pb["ci"],
+           "p_value": pb["p_value"], "pairs": pb["pairs"], "dropped": [pb["dropped_a"], pb["dropped_b"]]}
+    if "replicates" in pb:  # the replicated comparison: P(B > A) over replicate pairs; no joint ratio bootstrap
+        out.update(p_b_beats_a=pb["p_b_beats_a"], replicates=pb["replicates"])
+    else:
+        rel = paired_relative(_flat(oa.test_runs), _flat(ob.test_runs), tau=10, n_resamples=n_resamples, seed=seed)
+        out["relative_ci"] = rel["ci"]
+    return out
 
 
 def _bonferroni_decider(computed: list, statuses: list[str], how: str, outcomes: dict, n_resamples: int,
@@ -188,8 +277,7 @@ def _bonferroni_decider(computed: list, statuses: list[str], how: str, outcomes:
         if st != decider or c is None:
             continue
         oa, ob = outcomes[roles[0]], outcomes[roles[1]]
-        pb = paired_bootstrap(_flat(oa.test_runs), _flat(ob.test_runs), tau=10, n_resamples=resamples, seed=seed,
-                              level=level)
+        pb = _difference(oa, ob, resamples, seed, level)
         c["level"], c["ci_at_level"], c["p_value_at_level"] = level, pb["ci"], pb["p_value"]
         if directional(pb["ci"], pb["p_value"], level) != st:
             out[i] = UNSURE
@@ -241,6 +329,11 @@ def analyse(f: Finding, outcomes: dict, n_resamples: int = 2000, seed: int = 0) 
                                               in zip(computed, statuses) if c is not None and
                                               (s == FAILS if st == FAILS else s != HOLDS if st == UNSURE else True)]
         measured["relative_difference"] = key["relative"]
+        # K >= 2 on both sides of the key: its interval holds the tuning variance; else it covers test pairs only
+        measured["replicates"] = key.get("replicates") or [1, 1]
+        measured["tuning_variance_measured"] = "replicates" in key
+        if "p_b_beats_a" in key:
+            measured["p_b_beats_a"] = key["p_b_beats_a"]
         measured["relative_ci"] = key.get("relative_ci")  # joint bootstrap of the ratio (paired_relative)
         measured["relative_to"] = key["a"]  # the role the relative difference divides by (A of "B vs A")
         extra = _extras(f, outcomes, n_resamples, seed)
@@ -274,6 +367,8 @@ def analyse(f: Finding, outcomes: dict, n_resamples: int = 2000, seed: int = 0) 
                        "missing": [r for r in roles if r not in regions]})
         statuses.append({"differs": HOLDS, "same": FAILS}.get(st, UNSURE))
     measured["groups"] = groups
+    # the flat regions are read off replicate 1's trials (a region over several replicates' trials is not defined)
+    measured["tuning_variance_measured"] = False
     if not regions:
         return {**out, "measured": {**measured, "reason": _reason(missing)}, "verdict": NOT_RUN}
     first = [r for r in f.groups[0][1] if r in regions]

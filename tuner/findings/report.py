@@ -132,6 +132,12 @@ def settings_lines(fs, out: dict | None = None) -> list[str]:
         f"intervals: 95%, stratified bootstrap over test pairs ({fs.n_resamples} resamples, seed {fs.seed}); "
         f"paired differences on the same pairs; p: two-sided paired sign-flip test (Monte Carlo, {fs.n_resamples} "
         f"sign patterns: p >= {1 / (1 + fs.n_resamples):.1g})",
+        (f"tuning replicates: {fs.replicates} per stereo study (studies NAME, NAME-r2, ...; each with its own sampler "
+         "and estimator seeds from --seed): every tuned figure is the mean over replicates and every comparison's "
+         "interval adds the between-replicate variance to the pair bootstrap (pipeline.metrics.replicates), with "
+         "P(B > A) over replicate pairs" if fs.replicates > 1 else
+         "tuning replicates: 1 (the tuning variance was not measured: every interval covers test pairs and test "
+         "runs only, and a rerun with another --seed can freeze other optima; --replicates 3 measures it)"),
         f"sampling: every study's sampler is seeded from --seed {fs.seed}, so studies searching the same space draw "
         "the same first (random start-up) candidates: common random numbers, which sharpen their paired "
         "comparisons; with few trials (--quick) they can share every candidate, and findings 6 and 7 then compare "
@@ -234,6 +240,11 @@ def _study_rows(f: dict) -> list[list[str]]:
             tun = (c.get("calibration_seconds") or 0.0) + (c.get("trial_seconds") or 0.0)
             cost = f"; tuning {tun / 60:.1f} min" + (f", test {c['test_seconds'] / 60:.1f} min"
                                                        if c.get("test_seconds") is not None else "")
+        rep = s.get("replicated")
+        if rep:  # the tuned figure is the replicates' mean; each replicate's own figure and frozen r, eta, Gamma
+            cost += (f"; {rep['K']} replicates, test mAA10 each "
+                     + ", ".join(_num(e.get("mAA10")) for e in rep["replicates"])
+                     + "".join(f"; {k} {_num(v[0], 3)}..{_num(v[1], 3)}" for k, v in (rep.get("spread") or {}).items()))
         rows.append([role, s["study"], _num(s.get("validation_mAA10")), _num(s.get("mAA10")), _ci(s.get("mAA10_ci")),
                      _num(s.get("mAA5")), ps,
                      f"Gamma_max {'>= ' if s.get('gamma_max_at_ceiling') else ''}"
@@ -299,7 +310,9 @@ def summary_lines(findings: list[dict]) -> list[str]:
         why = (f.get("measured") or {}).get("reason") if not num else None
         title = BY_ID[f["id"]].title if f.get("id") in BY_ID else ""
         tail = f"{_compared(f)} | {title}" if num else (f"{why} | {title}" if why else title)
-        out.append(f"{f['id']:>2}  {f['verdict']:<14} {d:<27} {p:<7} {tail}".rstrip())
+        tv = _tuning_cell(f) if num else "-"
+        tv = "tuning variance " + tv if tv != "-" else ""
+        out.append(f"{f['id']:>2}  {f['verdict']:<14} {d:<27} {p:<7} {tail}".rstrip() + (f" | {tv}" if tv else ""))
     return out
 
 
@@ -326,6 +339,8 @@ def _difference_text(f: dict) -> str:
     rel = m.get("relative_difference")
     txt = (f"{m.get('key')}: difference {_num(f['difference'])} mAA(10), 95% CI {_ci(f['ci'])}, "
            f"{_p_is(f['p_value'])}")
+    if m.get("p_b_beats_a") is not None:
+        txt += f", P(B > A) = {m['p_b_beats_a']:.2f} over replicate pairs"
     if rel is not None:
         txt += f" ({100 * rel:+.1f}%{_pct_ci(m.get('relative_ci'))} relative to {m.get('relative_to')})"
     def bonferroni(r) -> str:
@@ -342,7 +357,32 @@ def _difference_text(f: dict) -> str:
     for r in rels:
         txt += (f"; {r['b']} vs {r['a']}: {_num(r['difference'])} {_ci(r['ci'])}, {_p_is(r['p_value'])}"
                 + (f" -> {r['status']}" if r.get("status") else "") + bonferroni(r))
-    return txt
+    return txt + (f"; {tuning_text(m)}" if tuning_text(m) else "")
+
+
+def tuning_text(m: dict) -> str:
+    """Whether a finding's interval holds the tuning variance: "K = 3 x 3 tuning replicates ..." or the note that
+    it was not measured ("" for a finding with no difference measured)."""
+    if "tuning_variance_measured" not in m:
+        return ""
+    if m["tuning_variance_measured"]:
+        ka, kb = m.get("replicates") or ["?", "?"]
+        return (f"{ka} x {kb} tuning replicates: the interval holds the tuning variance (pair bootstrap + "
+                "between-replicate variance)")
+    if m.get("rule") == "regions" or "groups" in m:
+        return "the tuning variance was not measured: the flat regions are those of one tuning (replicate 1)"
+    from pipeline.metrics.replicates import NOT_MEASURED
+    return NOT_MEASURED + "; rerun with --replicates 3 to measure it"
+
+
+def _tuning_cell(f: dict) -> str:
+    m = f.get("measured") or {}
+    if "tuning_variance_measured" not in m or f.get("verdict") in ("not run", "not run yet"):
+        return "-"
+    if not m["tuning_variance_measured"]:
+        return "not measured"
+    p = m.get("p_b_beats_a")
+    return f"K={'x'.join(str(k) for k in m.get('replicates') or [])}" + (f", P(B>A) {p:.2f}" if p is not None else "")
 
 
 def plot_finding(f: dict):
@@ -540,8 +580,8 @@ def write_report(out: dict, fs, seconds: float = 0.0) -> Path:
     if total is not None:  # the header only: findings.json keeps its two keys
         head.append(_compute_line(total))
     verdict_rows = [[f["id"], BY_ID[f["id"]].title, f["verdict"], _compared(f), _num(f["difference"]), _ci(f["ci"]),
-                     _p(f["p_value"])] for f in out["findings"]]
-    vcols = ["#", "finding", "verdict", "difference of", "difference", "95% CI", "p"]
+                     _p(f["p_value"]), _tuning_cell(f)] for f in out["findings"]]
+    vcols = ["#", "finding", "verdict", "difference of", "difference", "95% CI", "p", "tuning variance"]
     md = ["# imtune: the paper's findings on this data", "", *[f"- {h}" for h in head], "",
           _md_table(vcols, verdict_rows), ""]
     body = [f"<h1>imtune: the paper's findings on this data</h1><ul>{''.join(f'<li>{html.escape(h)}</li>' for h in head)}</ul>",

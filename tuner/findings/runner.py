@@ -44,6 +44,7 @@ class FindingsSettings:
     val_scenes: list | None = None
     test_scenes: list | None = None
     n_resamples: int = 2000
+    replicates: int = 1  # K tuning replicates of every stereo study (tuner.replicates): verdicts hold the tuning variance
     progress: bool = True
     log: object = None
     _data_tag: str | None = field(default=None, init=False, repr=False, compare=False)
@@ -86,6 +87,12 @@ class StudyOutcome:
     # what this invocation added to the study (run_study only; None when reused): {"trials": n trials this process
     # ran, "test": whether it wrote the test runs now}. A rerun of finished studies adds nothing, and says so.
     ran_now: dict | None = None
+    # the outcomes of tuning replicates 2..K of this study (``--replicates K``; this outcome is replicate 1)
+    others: list = field(default_factory=list)
+
+    def replicates(self) -> list:
+        """Every replicate's outcome, this one (replicate 1) first."""
+        return [self, *self.others]
 
 
 def canonical_spec(spec: StudySpec, default_features: int) -> StudySpec:
@@ -417,15 +424,49 @@ def _point(recs, task) -> float:
 
 # ------------------------------------------------------------------------------------------ one study
 
+def replicated(spec: StudySpec, fs: FindingsSettings) -> int:
+    """How many tuning replicates the study of ``spec`` runs: ``fs.replicates`` for a task measured on pairs (the
+    replicated interval pairs test pairs, :mod:`tuner.replicates`), 1 otherwise (the multiview study)."""
+    from pipeline.tasks import task_class
+    return int(fs.replicates) if task_class(spec.task).unit == "pairs" else 1
+
+
+def _with_replicates(out: StudyOutcome, spec: StudySpec, fs: FindingsSettings, get) -> StudyOutcome:
+    """``out`` (replicate 1) with the outcomes ``get(k)`` of replicates 2..K in ``out.others``. A replicate that did
+    not run or is not finished makes the whole study so (its reason or pending, naming the replicate): a verdict on
+    fewer replicates than asked would state an interval it does not have."""
+    k_max = replicated(spec, fs)
+    if k_max <= 1 or not out.ok:
+        return out
+    for k in range(2, k_max + 1):
+        o = get(k)
+        out.others.append(o)
+        if not o.ok:
+            out.ok = False
+            if o.pending:
+                out.pending = f"replicate {k} ({o.name}): {o.pending}"
+            else:
+                out.reason = f"replicate {k} ({o.name}): {o.reason}"
+            break
+    return out
+
+
 def run_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool = False) -> StudyOutcome:
-    """Create or resume the study of ``spec``, run its missing trials, freeze, test; then its records."""
+    """Create or resume the study of ``spec`` (and its replicates), run its missing trials, freeze, test; then its
+    records."""
+    out = _run_replicate(spec, fs, cache, need_regions, 1)
+    return _with_replicates(out, spec, fs, lambda k: _run_replicate(spec, fs, cache, False, k))
+
+
+def _run_replicate(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool, k: int) -> StudyOutcome:
+    """:func:`run_study` of replicate ``k`` alone."""
     import optuna
     from optuna.trial import TrialState
 
     from tuner.freeze import study_dir
     from tuner.protocol import best_feasible, trial_within_budget
     from tuner.study import IncompatibleStudy, tune
-    out, s = _open_outcome(spec, fs)
+    out, s = _open_outcome(spec, fs, k)
     if s is None:
         return out
     name = out.name
@@ -482,12 +523,20 @@ def _written_since(test: dict | None, started) -> bool:
         return False
 
 
-def _open_outcome(spec: StudySpec, fs: FindingsSettings):
-    """(the study's empty outcome, its TuneSettings); the settings are None when the study cannot run here (an
-    unavailable feature: ``out.reason`` says why)."""
-    out = StudyOutcome(spec=spec, name=study_name(spec, fs))
+def _open_outcome(spec: StudySpec, fs: FindingsSettings, k: int = 1):
+    """(the empty outcome of replicate ``k`` of the study, its TuneSettings); the settings are None when the study
+    cannot run here (an unavailable feature: ``out.reason`` says why). Replicate k >= 2 is the study
+    ``<name>-r<k>`` with its own sampler and estimator seeds (:func:`tuner.replicates.replicate_settings`)."""
+    from tuner.replicates import replicate_name
+    out = StudyOutcome(spec=spec, name=replicate_name(study_name(spec, fs), k))
     out.reason = unavailable(spec) or ""
-    return out, (None if out.reason else tune_settings(spec, fs))
+    if out.reason:
+        return out, None
+    s = tune_settings(spec, fs)
+    if k > 1:
+        from tuner.replicates import replicate_settings
+        s = replicate_settings(s, k, s.study_name)
+    return out, s
 
 
 def _incompatible_reason(e) -> str:
@@ -497,6 +546,12 @@ def _incompatible_reason(e) -> str:
 
 
 def reuse_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool = False) -> StudyOutcome:
+    """:func:`_reuse_replicate` of every replicate of ``spec``'s study (see there)."""
+    out = _reuse_replicate(spec, fs, cache, need_regions, 1)
+    return _with_replicates(out, spec, fs, lambda k: _reuse_replicate(spec, fs, cache, False, k))
+
+
+def _reuse_replicate(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool, k: int) -> StudyOutcome:
     """The outcome :func:`run_study` would give, read from the storage and the study's folder alone when the study
     is finished: it holds its target of finished trials, its current optimum has a reusable test.json (the one
     ``tune`` would reuse: same trial, configuration, test data and runs) and the records the statistics need are
@@ -518,7 +573,7 @@ def reuse_study(spec: StudySpec, fs: FindingsSettings, cache, need_regions: bool
         study_identity,
         trial_target,
     )
-    out, s = _open_outcome(spec, fs)
+    out, s = _open_outcome(spec, fs, k)
     if s is None:
         return out
     name = out.name
@@ -611,8 +666,9 @@ def findings_command(fs: FindingsSettings, ids) -> str:
             words += [flag, ",".join(v)]
     if fs.cache_dir:
         words += ["--cache", str(fs.cache_dir)]
-    for flag, v, default in (("--seed", fs.seed, 0), ("--trials", fs.trials, None), ("--max-pairs", fs.max_pairs, None),
-                             ("--test-runs", fs.test_runs, None), ("--ci-resamples", fs.n_resamples, 2000)):
+    for flag, v, default in (("--seed", fs.seed, 0), ("--replicates", fs.replicates, 1), ("--trials", fs.trials, None),
+                             ("--max-pairs", fs.max_pairs, None), ("--test-runs", fs.test_runs, None),
+                             ("--ci-resamples", fs.n_resamples, 2000)):
         if v != default:
             words += [flag, str(v)]
     cmd = " ".join(shlex.quote(w) for w in words)
