@@ -20,7 +20,9 @@ is printed beside each phase: on a shared machine "quiet" means "without our hog
 ``--thread-check``: in-process (``--jobs 1``) the budget's ``process_time`` also counts this process's other threads
 (tqdm's monitor, Optuna's heartbeat). It times the estimator on the calibration matches with a tqdm bar and a
 thread that wakes 20 times a second doing a little work, and prints process CPU vs the calling thread's CPU
-(``time.thread_time``; DEGENSAC is single-threaded, so the difference is what the other threads added).
+(``time.thread_time``; DEGENSAC is single-threaded, so the difference is what the other threads added). Then the
+same after a numpy product before each call (the BLAS pool's idle threads spin for a while after one), once with
+the process's own thread pools and once inside ``one_thread_here`` (what an in-process evaluation uses).
 """
 from __future__ import annotations
 
@@ -152,31 +154,44 @@ def report(r: dict, budget: float) -> bool:
     return ok
 
 
-def thread_check(name: str, matches, eta: float, confidence: float, cap: int = 20_000, rounds: int = 5) -> None:
+def thread_check(name: str, matches, eta: float, confidence: float, cap: int = 20_000, rounds: int = 5,
+                 product: bool = False, limited: bool = False) -> None:
+    """Process vs calling-thread CPU of the estimator in this process beside a busy waker thread; ``product``: a
+    numpy matrix product (what the k-NN matching runs, on every BLAS thread) right before each call; ``limited``:
+    the calls inside ``pipeline.tasks.pool.one_thread_here`` (what `--jobs 1` and a calibration alone do now)."""
+    import contextlib
     import threading
 
+    import numpy as np
     from tqdm.auto import tqdm
 
     from pipeline.geometry import get_estimator
+    from pipeline.tasks.pool import one_thread_here
     est = get_estimator(name)
     stop = threading.Event()
+    big = np.random.default_rng(0).normal(size=(1500, 1500)).astype(np.float32)
 
     def waker():  # far busier than Optuna's heartbeat thread (one write every heartbeat_interval seconds)
         while not stop.wait(0.05):
             sum(range(1000))
     threading.Thread(target=waker, daemon=True).start()
     proc = thread = 0.0
-    with tqdm(total=rounds * len(matches), mininterval=0.01, desc="thread check") as bar:
-        for k in range(rounds):
-            for p1, p2, sz in matches:
-                c0, t0 = time.process_time(), time.thread_time()
-                est.estimate(p1, p2, eta, confidence, cap, seed=k, sizes=sz)
-                proc += time.process_time() - c0
-                thread += time.thread_time() - t0
-                bar.update(1)
+    with one_thread_here() if limited else contextlib.nullcontext():
+        with tqdm(total=rounds * len(matches), mininterval=0.01, desc="thread check") as bar:
+            for k in range(rounds):
+                for p1, p2, sz, *_ in matches:
+                    if product:
+                        big @ big
+                    c0, t0 = time.process_time(), time.thread_time()
+                    est.estimate(p1, p2, eta, confidence, cap, seed=k, sizes=sz)
+                    proc += time.process_time() - c0
+                    thread += time.thread_time() - t0
+                    bar.update(1)
     stop.set()
-    print(f"{name}, cap {cap:,}, {rounds * len(matches)} calls in this process: process CPU {proc:.3f} s, calling "
-          f"thread CPU {thread:.3f} s, excess {100 * (proc - thread) / max(thread, 1e-9):.2f}%; {_load()}")
+    what = ("after a BLAS product, " if product else "") + ("one thread (one_thread_here)" if limited else
+                                                            "the process's own thread pools")
+    print(f"{name}, cap {cap:,}, {rounds * len(matches)} calls in this process, {what}: process CPU {proc:.3f} s, "
+          f"calling thread CPU {thread:.3f} s, excess {100 * (proc - thread) / max(thread, 1e-9):.2f}%; {_load()}")
 
 
 def main() -> int:
@@ -201,6 +216,8 @@ def main() -> int:
     if a.thread_check:
         for name in a.estimators:
             thread_check(name, matches, eta, confidence)
+            thread_check(name, matches, eta, confidence, product=True)
+            thread_check(name, matches, eta, confidence, product=True, limited=True)
         return 0
     ok = True
     for name in a.estimators:
