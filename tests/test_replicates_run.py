@@ -247,3 +247,19 @@ def test_reference_comparison_of_replicates_from_pair_errors():
     assert summary["mAA10"] == pytest.approx(np.mean(tuned), abs=1e-12) and summary["reference"] == out
     tests[2]["reference"]["config"]["geometry"]["threshold"] = 1.0
     assert reference_comparison(tests) is None
+
+
+def test_the_plot_report_of_a_replicated_study_gives_the_replicated_figure(runs):
+    """`tune plot --study NAME` of the first replicate: beside its own test figure, the replicated mean and interval
+    and each replicate's study and figure, as test.json records them (it showed the first replicate alone)."""
+    import html as html_mod
+    out = runs["studies"] / "plot.html"
+    tune("plot", "--study", NAME, "--studies-dir", str(runs["studies"]), "--out", str(out), cache=runs["cache"])
+    page = html_mod.unescape(out.read_text())
+    rep = _test(runs["studies"], NAME)["replicated"]
+    lo, hi = rep["mAA10_ci"]
+    assert f"replicated test mAA10 over 3 replicates x {rep['pairs']} pairs: {rep['mAA10']:.4f} [{lo:.4f}, {hi:.4f}]" \
+        in page, page[:3000]
+    for r in _test(runs["studies"], NAME)["replicates"]:
+        assert f"{r['study']} (seed {r['seed']}): trial #{r['trial']}" in page
+        assert f"test mAA10 {r['mAA10']:.4f}" in page
