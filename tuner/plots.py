@@ -456,10 +456,11 @@ def _uncertainty_lines(study, studies_dir=None) -> list[str]:
                 + (f", sample std over runs {(t.get('std') or {}).get('mAA10', 0.0):.3f}"
                    if len(t.get("runs") or []) > 1 else ", one run: no spread over runs"))
         out.append(f"<p><b>{html.escape(line)}</b><br>{html.escape(comparison_text(t.get('reference')))}</p>")
-        if isinstance(t.get("replicated"), dict) and t.get("replicates"):  # `tune --replicates K`: the tuned figure
-            from tuner.replicates import replicated_text
+        from tuner.replicates import replicated_block, replicated_text
+        block = replicated_block(t)
+        if block is not None and block["replicates"]:  # `tune --replicates K`: the tuned figure
             try:
-                rep = replicated_text({**t["replicated"], "replicates": t["replicates"]}).splitlines()
+                rep = replicated_text(block).splitlines()
             except (KeyError, TypeError, ValueError) as e:  # a hand-edited block: said, the report still drawn
                 rep = [f"tuning replicates: the replicated block of test.json cannot be read ({e})"]
             out.append("<p><b>" + html.escape(rep[0]) + "</b><br>" + "<br>".join(html.escape(x) for x in rep[1:])

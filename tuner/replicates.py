@@ -165,11 +165,7 @@ def replicated_summary(tests: list[dict], seeds: list, *, tau: int = 10, n_boot:
         m = t.get("mean") or {}
         reps.append({"study": t.get("study"), "seed": seed, "trial": t.get("trial"), "params": t.get("params"),
                      "mAA10": m.get("mAA10"), "mAA10_ci": m.get("mAA10_ci")})
-    spread = {}
-    for p in SPREAD_PARAMS:
-        vals = [r["params"][p] for r in reps if isinstance(r.get("params"), dict) and p in r["params"]]
-        if vals:
-            spread[p] = {"min": min(vals), "max": max(vals)}
+    spread = {p: {"min": lo, "max": hi} for p, (lo, hi) in param_spread([r.get("params") for r in reps]).items()}
     return {"replicates": reps, "K": len(reps), "mAA10": iv.mean, "mAA10_ci": [iv.low, iv.high],
             "se_pairs": iv.se_pairs, "se_between": iv.se_between,
             "tuning_variance_measured": iv.tuning_variance_measured,
@@ -177,6 +173,17 @@ def replicated_summary(tests: list[dict], seeds: list, *, tau: int = 10, n_boot:
             "spread": spread, "pairs": int(scores.shape[1]), "method": INTERVAL_METHOD, "level": 0.95,
             "reference": reference_comparison(tests, tau=tau, n_boot=n_boot,
                                               tuned=(scores * scene_scale(strata)[None, :], strata))}
+
+
+def param_spread(params: list) -> dict:
+    """{parameter: (min, max)} of the frozen :data:`SPREAD_PARAMS` over the replicates' parameter dicts (a
+    replicate without a parameter, or without parameters, is left out of that parameter's range)."""
+    out = {}
+    for p in SPREAD_PARAMS:
+        vals = [x[p] for x in params if isinstance(x, dict) and p in x]
+        if vals:
+            out[p] = (min(vals), max(vals))
+    return out
 
 
 def reference_comparison(tests: list[dict], *, tau: int = 10, n_boot: int = 2000,
@@ -242,9 +249,14 @@ def load_replicated(studies_dir, name: str) -> dict | None:
     """The ``replicated`` block (with its ``replicates`` list) of study ``name``'s test.json, or None."""
     from tuner.freeze import load_test_file, study_dir
     d, _ = load_test_file(study_dir(studies_dir, name) / "test.json", name, refresh=False)
-    if not d or not isinstance(d.get("replicated"), dict):
+    return replicated_block(d)
+
+
+def replicated_block(test: dict | None) -> dict | None:
+    """The ``replicated`` block of a test.json's content with its ``replicates`` list, or None when it has none."""
+    if not test or not isinstance(test.get("replicated"), dict):
         return None
-    return {**d["replicated"], "replicates": d.get("replicates") or []}
+    return {**test["replicated"], "replicates": test.get("replicates") or []}
 
 
 def replicate_tests(studies_dir, name: str) -> list[dict] | None:
@@ -312,6 +324,6 @@ def _fmt(v) -> str:
     return f"{v:.3g}" if isinstance(v, float) else str(v)
 
 
-__all__ = ["MAX_REPLICATES", "load_replicated", "record_replicated", "replicate_name", "replicate_seed",
-           "replicate_settings", "replicate_tests", "replicated_summary", "replicated_text", "score_matrix",
-           "tune_replicates"]
+__all__ = ["MAX_REPLICATES", "load_replicated", "param_spread", "record_replicated", "replicate_name", "replicate_seed",
+           "replicate_settings", "replicate_tests", "replicated_block", "replicated_summary", "replicated_text",
+           "score_matrix", "tune_replicates"]

@@ -136,9 +136,20 @@ def _replicate_scores(o, tau: int = 10) -> list[dict]:
         for run in r.test_runs or []:
             sc = pair_scores([x["err"] for x in run], tau)
             per_run.append({(str(x["scene"]), str(x["pair"])): float(v) for x, v in zip(run, sc)})
-        keys = set.intersection(*(set(d) for d in per_run)) if per_run else set()
+        keys = _common(per_run) if per_run else set()
         out.append({k: float(np.mean([d[k] for d in per_run])) for k in keys})
     return out
+
+
+def _common(scores: list[dict]) -> set:
+    """The pairs every replicate of ``scores`` (:func:`_replicate_scores`) scored."""
+    return set.intersection(*(set(d) for d in scores))
+
+
+def _matrix(scores: list[dict], keys: list):
+    """K x N: each replicate's score of each pair of ``keys``."""
+    import numpy as np
+    return np.array([[d[k] for k in keys] for d in scores])
 
 
 def replicated_relation(oa, ob, n_resamples: int, seed: int = 0, level: float = DEFAULT_LEVEL,
@@ -152,12 +163,11 @@ def replicated_relation(oa, ob, n_resamples: int, seed: int = 0, level: float = 
     from pipeline.metrics.replicates import replicated_difference
     from tuner.replicates import scene_scale
     sa, sb = _replicate_scores(oa, tau), _replicate_scores(ob, tau)
-    in_a, in_b = set.intersection(*(set(d) for d in sa)), set.intersection(*(set(d) for d in sb))
+    in_a, in_b = _common(sa), _common(sb)
     keys = sorted(in_a & in_b)
     strata = np.array([k[0] for k in keys])
     scale = scene_scale(strata)[None, :]
-    a = np.array([[d[k] for k in keys] for d in sa]) * scale
-    b = np.array([[d[k] for k in keys] for d in sb]) * scale
+    a, b = _matrix(sa, keys) * scale, _matrix(sb, keys) * scale
     d = replicated_difference(b, a, strata, alpha=1 - level, n_boot=int(n_resamples), seed=int(seed))
     return {"mAA10_a": float(a.mean()), "mAA10_b": float(b.mean()), "difference": d.diff, "ci": [d.low, d.high],
             "p_value": d.p_value, "p_b_beats_a": d.p_a_beats_b, "pairs": len(keys),
@@ -219,18 +229,13 @@ def replicated_figures(o, n_resamples: int) -> dict:
     import numpy as np
 
     from pipeline.metrics.replicates import replicated_maa_interval
-    from tuner.replicates import SPREAD_PARAMS
+    from tuner.replicates import param_spread
     scores = _replicate_scores(o)
-    keys = sorted(set.intersection(*(set(d) for d in scores)))
-    iv = replicated_maa_interval(np.array([[d[k] for k in keys] for d in scores]), np.array([k[0] for k in keys]),
-                                 n_boot=int(n_resamples), seed=0)
+    keys = sorted(_common(scores))
+    iv = replicated_maa_interval(_matrix(scores, keys), np.array([k[0] for k in keys]), n_boot=int(n_resamples), seed=0)
     each = [{"study": r.name, "params": (r.frozen or {}).get("params"), "mAA10": (r.test or {}).get("mean", {}).get("mAA10")}
             for r in o.replicates()]
-    spread = {}
-    for p in SPREAD_PARAMS:
-        vals = [e["params"][p] for e in each if isinstance(e["params"], dict) and p in e["params"]]
-        if vals:
-            spread[p] = [min(vals), max(vals)]
+    spread = {p: [lo, hi] for p, (lo, hi) in param_spread([e["params"] for e in each]).items()}
     return {"K": len(scores), "mAA10": iv.mean, "mAA10_ci": [iv.low, iv.high], "se_pairs": iv.se_pairs,
             "se_between": iv.se_between, "pairs": len(keys), "replicates": each, "spread": spread}
 
