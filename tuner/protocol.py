@@ -225,3 +225,9 @@ def no_feasible_reason(study, budget: float | None) -> str:
     if running:
         parts.append(f"{len(running)} still running or waiting")
     return f"{len(trials)} trial{'s' * (len(trials) != 1)}: " + ", ".join(parts or ["none run"])
+
+
+def no_feasible_message(study, budget: float | None) -> str:
+    """"study NAME: no feasible completed trial yet (:func:`no_feasible_reason`)": where `tune` stops, and the
+    reason `tune findings` gives a study it cannot freeze."""
+    return f"study {study.study_name!r}: no feasible completed trial yet ({no_feasible_reason(study, budget)})"

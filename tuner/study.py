@@ -419,9 +419,8 @@ def tune(s: TuneSettings) -> dict:
            "counts": trial_counts(ctx.study), "timed": bool(getattr(ctx.objective.task, "timed", True)),
            "frozen": None, "frozen_path": None, "test": None, "warnings": []}
     if best_feasible(ctx.study) is None:
-        from tuner.protocol import no_feasible_reason
-        raise ImtuneError(f"study {ctx.name!r}: no feasible completed trial yet "
-                          f"({no_feasible_reason(ctx.study, ctx.attrs['budget']['seconds_per_pair'])}); run more "
+        from tuner.protocol import no_feasible_message
+        raise ImtuneError(f"{no_feasible_message(ctx.study, ctx.attrs['budget']['seconds_per_pair'])}; run more "
                           "trials, or a larger --budget")
     frozen, path = freeze(ctx.study, s.studies_dir, select=s.select)
     out["frozen"], out["frozen_path"] = frozen, str(path)

@@ -607,9 +607,8 @@ def _reuse_replicate(spec: StudySpec, fs: FindingsSettings, cache, need_regions:
         return out
     best = best_feasible(study)
     if best is None:  # what tune() stops on
-        from tuner.protocol import no_feasible_reason
-        out.reason = (f"could not run: study {name!r}: no feasible completed trial yet "
-                      f"({no_feasible_reason(study, attrs['budget']['seconds_per_pair'])}); run more trials")
+        from tuner.protocol import no_feasible_message
+        out.reason = f"could not run: {no_feasible_message(study, attrs['budget']['seconds_per_pair'])}; run more trials"
         out.compute = study_compute(study, None)
         return out
     try:
