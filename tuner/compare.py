@@ -297,11 +297,12 @@ def _source_tests(src, sdir: Path) -> list[dict] | None:
 def compare_replicated(sources: list, sdir: Path | str, *, n_resamples: int = 2000, seed: int = 0) -> dict | None:
     """A - B of two studies from their recorded test results when at least one was run with ``--replicates``
     (:func:`pipeline.metrics.replicates.replicated_difference` on the K_A x N and K_B x N per-pair scores of the
-    same test pairs: interval, p-value, P(A > B) over replicate pairs); None when it does not apply (not two
+    same test pairs: interval, t-test p, P(A > B) with its interval, the detectable difference; no verdict when a
+    side has K = 1); None when it does not apply (not two
     studies, no replicates on either side, or a side untested): then `tune compare` evaluates them as before. The
     scores are scene-weighted as the test's mAA (:func:`tuner.replicates.score_matrix`). One-line ImtuneError when the
     two were tested on other pairs."""
-    from pipeline.metrics.replicates import replicated_difference
+    from pipeline.metrics.replicates import METHOD, difference_block, replicated_difference
     from tuner.replicates import score_matrix
     if len(sources) != 2:
         return None
@@ -311,16 +312,13 @@ def compare_replicated(sources: list, sdir: Path | str, *, n_resamples: int = 20
     ta, tb = tests
     scores, strata = score_matrix(list(ta) + list(tb))
     a, b = scores[:len(ta)], scores[len(ta):]
-    d = replicated_difference(a, b, strata, n_boot=int(n_resamples), seed=int(seed))
+    d = replicated_difference(a, b, strata, seed=int(seed))
     sides = []
     for src, t, m in ((sources[0], ta, a), (sources[1], tb, b)):
         sides.append({"study": src.study, "replicates": len(t), "mAA10": float(m.mean()),
                       "replicate_mAA10": [float(x) for x in m.mean(axis=1)],
                       "studies": [x.get("study") for x in t]})
-    return {"a": sides[0], "b": sides[1], "difference_a_minus_b": d.diff, "ci": [d.low, d.high],
-            "p_value": d.p_value, "p_a_beats_b": d.p_a_beats_b, "significant": bool(d.p_value < 0.05),
-            "tuning_variance_measured": d.tuning_variance_measured, "pairs": int(scores.shape[1]),
-            "scenes": sorted(set(strata.tolist())), "verdict": d.verdict(),
-            "method": "pipeline.metrics.replicates.replicated_difference: scene-stratified pair bootstrap of the "
-                      "difference of replicate-averaged scores + between-replicate variance of each side, t with "
-                      "Welch-Satterthwaite df; P(A > B): fraction of replicate pairs (i, j) with A_i > B_j"}
+    block = difference_block(d)
+    block["difference_a_minus_b"] = block.pop("difference")
+    return {"a": sides[0], "b": sides[1], **block, "pairs": int(scores.shape[1]),
+            "scenes": sorted(set(strata.tolist())), "method": METHOD}

@@ -35,16 +35,13 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import ImtuneError
-from pipeline.metrics.replicates import NOT_MEASURED, ReplicatedInterval, replicated_maa_interval
+from pipeline.metrics.replicates import METHOD, NOT_MEASURED, ReplicatedInterval, replicated_maa_interval
 
 #: the frozen parameters whose spread over replicates is reported (r, eta, Gamma)
 SPREAD_PARAMS = ("ratio", "threshold", "max_iters")
 MAX_REPLICATES = 20
 REPLICATED_ATTR = "replicated"
-INTERVAL_METHOD = ("two-level: the test interval's scene-stratified pair bootstrap (with pseudo-scores) of the "
-                   "replicate-averaged pair scores (pairs shared by all replicates), widened by the between-replicate "
-                   "variance s^2 / K, t quantile with Welch-Satterthwaite df "
-                   "(pipeline.metrics.replicates.replicated_maa_interval)")
+INTERVAL_METHOD = METHOD
 
 
 def replicate_name(name: str, k: int) -> str:
@@ -159,7 +156,7 @@ def scene_scale(scenes: np.ndarray) -> np.ndarray:
 def replicated_summary(tests: list[dict], seeds: list, *, tau: int = 10, n_boot: int = 2000) -> dict:
     """The ``replicated`` block of test.json from the K replicates' test results (same pairs)."""
     scores, strata = score_matrix(tests, tau, scaled=False)
-    iv: ReplicatedInterval = replicated_maa_interval(scores, strata, n_boot=int(n_boot), seed=0)
+    iv: ReplicatedInterval = replicated_maa_interval(scores, strata)
     reps = []
     for t, seed in zip(tests, seeds):
         m = t.get("mean") or {}
@@ -194,7 +191,7 @@ def reference_comparison(tests: list[dict], *, tau: int = 10, n_boot: int = 2000
     P(tuned > reference) over replicate pairs. The reference's own replicates differ only in their estimator seeds.
     None when a replicate's test has no reference (``--reference none``) or they differ. ``tuned``: the tests' scaled
     :func:`score_matrix`, when the caller has it already."""
-    from pipeline.metrics.replicates import replicated_difference
+    from pipeline.metrics.replicates import difference_block, replicated_difference
     refs = [t.get("reference") for t in tests]
     if not all(isinstance(r, dict) and r.get("runs") for r in refs):
         return None
@@ -211,11 +208,11 @@ def reference_comparison(tests: list[dict], *, tau: int = 10, n_boot: int = 2000
         return None
     if ref.shape[1] != tuned.shape[1]:
         return None
-    d = replicated_difference(tuned, ref, strata, n_boot=int(n_boot), seed=0)
-    return {"label": refs[0].get("label"), "mAA10": float(ref.mean()),  # type: ignore[union-attr]
-            "difference": d.diff, "ci": [d.low, d.high], "p_value": d.p_value,
-            "p_tuned_beats_reference": d.p_a_beats_b, "significant": bool(d.p_value < 0.05),
-            "tuning_variance_measured": d.tuning_variance_measured}
+    d = replicated_difference(tuned, ref, strata, seed=0)
+    block = difference_block(d, "tuned", "reference", b_tuned=False)
+    block["p_tuned_beats_reference"] = block.pop("p_a_beats_b")
+    block["p_tuned_beats_reference_ci"] = block.pop("p_a_beats_b_ci")
+    return {"label": refs[0].get("label"), "mAA10": float(ref.mean()), **block}  # type: ignore[union-attr]
 
 
 def record_replicated(studies_dir, name: str, summary: dict) -> Path:
@@ -309,11 +306,8 @@ def replicated_text(summary: dict) -> str:
     ref = summary.get("reference")
     if ref:
         lo, hi = ref["ci"]
-        line = (f"against the reference ({ref.get('label')}, mAA10 {ref['mAA10']:.4f}): tuned - reference = "
-                f"{ref['difference']:+.4f} [{lo:+.4f}, {hi:+.4f}], p = {ref['p_value']:.3g} "
-                f"({'significant' if ref['significant'] else 'not significant'})")
-        if ref.get("p_tuned_beats_reference") is not None:
-            line += f", P(tuned > reference) = {ref['p_tuned_beats_reference']:.2f}"
+        line = f"against the reference ({ref.get('label')}, mAA10 {ref['mAA10']:.4f}): "
+        line += ref.get("verdict") or (f"{ref['difference']:+.4f} [{lo:+.4f}, {hi:+.4f}], p = {ref['p_value']:.3g}")
         out.append(line)
     if not summary.get("tuning_variance_measured"):
         out.append(f"note: {NOT_MEASURED}; rerun with --replicates 3 to measure it")

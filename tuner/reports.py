@@ -496,14 +496,15 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
                 combine = combine_bag_runs_interval if is_bag_records(runs[0]) else combine_runs_interval
                 ci = combine(runs, taus=(10,), n_resamples=n_resamples, seed=seed)["mAA10_ci"]
             rep = replicated.get(s.name) if s else None
-            if rep is not None and m is not None:  # the replicated figure; the ranks pair on every replicate's runs
+            per_rep = [runs] if runs else None  # the test runs of each replicate (one for a single tuning)
+            if rep is not None and m is not None:  # the replicated figure; the ranks compare replicates x pairs
                 m, ci = rep["mAA10"], rep["mAA10_ci"]
-                all_runs = list(runs or [])
+                per_rep = [list(runs or [])]
                 for r in rep["replicates"][1:]:
                     other = next((x for x in studies if x.name == r["study"]), None)
                     extra = _test_pair_runs(other, studies_dir, warn) if other is not None else None
-                    all_runs += extra or []
-                runs = all_runs or runs
+                    per_rep.append(list(extra or []))
+                runs = [run for group in per_rep for run in group] or runs
             row[f"NI {e}"] = round(float(ni), 1) if ni is not None else None
             auc = s.test.get("auc10") if s else None  # pose AUC@10 beside mAA10 (tests before it have none)
             row[f"auc10 {e}"] = round(float(auc), 4) if isinstance(auc, (int, float)) else None
@@ -515,7 +516,7 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
                 if rep is not None and m is not None:
                     row[f"mAA10 {e}"] += f" (K={rep['K']})"
             if m is not None and (best is None or m > best[0]):
-                best = (m, e, runs, ci)
+                best = (m, e, runs, ci, per_rep)
         row["best"] = best[1] if best else None
         if several:
             row["test set"] = _test_set(by_est[best[1]]) if best else None
@@ -540,7 +541,15 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
             if why:
                 unpaired = f"{name[i]} and {name[scored[0]]}: {why}"
                 break
-    if unpaired is None:  # the same pairs (bags) everywhere: paired tests
+    tuned_rows = any(rows[i]["_best"][4] and len(rows[i]["_best"][4]) > 1 for i in scored)
+    if unpaired is None and tuned_rows and kinds == {False}:  # replicated rows: the tuned comparison of replicates
+        from pipeline.metrics.replicates import replicated_records_comparison, replicated_records_value
+        ranked = rank_with_ties([(str(i), rows[i]["_best"][4]) for i in scored], n_resamples=n_resamples, seed=seed,
+                                compare=replicated_records_comparison, value=replicated_records_value)
+        rule = (f"tuned comparison over replicates x test pairs (t test, variance components), Bonferroni over the "
+                f"{max(1, len(scored) * (len(scored) - 1) // 2)} pairs of methods; a row tuned once (K = 1) has no "
+                "tuned verdict and shares the rank")
+    elif unpaired is None:  # the same pairs (bags) everywhere: paired tests
         ranked = rank_with_ties([(str(i), recs[i]) for i in scored], n_resamples=n_resamples, seed=seed)
         rule = (f"paired bootstrap and sign-flip test on the test {'bags' if kinds == {True} else 'pairs'}, "
                 f"Bonferroni over the {max(1, len(scored) * (len(scored) - 1) // 2)} pairs of methods")

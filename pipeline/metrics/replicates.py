@@ -1,30 +1,83 @@
-"""Intervals of a tuned figure over K tuning replicates x test pairs (pure numpy/scipy).
+"""Tuned figures and tuned comparisons over K tuning replicates x N test pairs: one variance-components model.
 
-Model: score[k, j] = mu + a_k + e_j + noise, with a_k the tuning (replicate) effect and e_j the pair
-effect. All replicates are tested on the SAME pairs, so pair sampling error is shared by every
-replicate and does not show in the spread of replicate means; the two sources are independent and
-their variances add:  Var(grand mean) = Var_pairs + s_between^2 / K.
-Var_pairs is estimated by a scene-stratified pair bootstrap of the grand mean (pairs resampled once,
-shared across replicates); s_between^2 is the sample variance of the K replicate means. With K = 3 a
-bootstrap over replicates has only 10 distinct resamples and under-covers, so the between component
-is t-based, and the combined interval uses a t quantile with Welch-Satterthwaite degrees of freedom
-(pairs component counted with many df). With K = 1 the tuning variance is not measured: the interval
-is the pair bootstrap alone and ``tuning_variance_measured`` is False.
+Model (a two-way crossed random-effects design, replicates x pairs, one observation per cell):
+
+    score[k, j] = mu + a_k + e_j + (ae)_kj
+
+a_k: the tuning effect of replicate k (which optimum the study froze; variance sigma_t^2), e_j: the effect of test
+pair j (which pairs were sampled), (ae)_kj: everything that differs between replicates pair by pair -- the estimator
+seed and the tuning x pair interaction (variance sigma_r^2, possibly different per pair). All replicates are tested
+on the same pairs. The grand mean's variance is
+
+    Var(mean) = sigma_t^2 / K + sigma_e^2 / N + sigma_r^2 / (K N)
+
+and it is estimated from the ANOVA mean squares, each source counted once (Cornfield & Tukey 1956; Searle, Casella &
+McCulloch, *Variance Components*, 1992, ch. 4):
+
+- pair part V_p = Var over pairs of the replicate-averaged column means / N, scene-stratified (the scenes are fixed
+  strata; the variance of a stratified mean, Cochran, *Sampling Techniques*, 1977, 5.3). It holds sigma_e^2 / N and
+  the interaction's sigma_r^2 / (K N): the pair x seed noise lives here and only here;
+- tuning part T = max(0, s_rows^2 - MS_res / N) / K: s_rows^2, the sample variance of the K replicate figures, holds
+  sigma_t^2 + sigma_r^2 / N; MS_res (the two-way interaction mean square) estimates sigma_r^2, so subtracting
+  MS_res / N removes the seed noise that V_p already counts. (The earlier model added s_rows^2 / K to a pair
+  bootstrap and counted sigma_r^2 / (K N) twice: intervals too wide, tests that lost power.)
+
+The interval is mean +- t_{df} sqrt(V_p + T) with df by Satterthwaite (1946) over the mean squares (V_p on its
+strata's df, s_rows^2 on K - 1, MS_res on (K - 1)(N - 1), the last with a negative coefficient); the p-value is the
+same t test's (exact under the normal model at every level, not a normal tail rescaled to match at alpha). A paired
+difference A - B on the same pairs uses the per-pair differences of the two sides' column means for V_p and adds
+both sides' tuning parts.
+
+What a side with K = 1 cannot give: its tuning variance. A figure with K = 1 gets the pair interval and
+``tuning_variance_measured`` False. A comparison with one side at K = 1 takes that side's tuning variance equal to
+the other side's (a stated assumption: exact when both are the same method; ``assumption`` says so) and gives no
+verdict; with both at K = 1 it gives the pair-only figures and no verdict. ``benchmarks/verdict_calibration.py``
+measures coverage, false positives and power of these functions on synthetic data with known truth.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import functools
+import math
+from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import stats
+from scipy import special
 
 TIE_TOLERANCE = 1e-12
 NOT_MEASURED = "the tuning variance was not measured (1 replicate): the interval covers test pairs only"
+#: power and target difference of the "could detect" / planning lines (mAA units)
+POWER = 0.80
+PLAN_DIFFERENCE = 0.05
+PLAN_K = (3, 5, 10)
+#: the parametric-bootstrap draws of the P(A > B) interval
+PAB_DRAWS = 2000
+#: the confidence level of the replicate term at which the df are computed (see ``_variance``)
+DF_BOUND = 0.40
+
+
+@dataclass(frozen=True)
+class Components:
+    """Variance components of one side (score^2 units): ``k`` replicates x ``n`` pairs. ``row_var``: sample variance
+    of the K replicate figures (nan at K = 1); ``ms_res``: the replicate x pair interaction mean square (seed and
+    tuning x pair noise of one pair, nan at K = 1); ``tuning_var``: sigma_t^2 = max(0, row_var - ms_res / n)."""
+
+    k: int
+    n: int
+    row_var: float
+    ms_res: float
+
+    @property
+    def measured(self) -> bool:
+        return self.k > 1
+
+    @property
+    def tuning_var(self) -> float:
+        return max(0.0, self.row_var - self.ms_res / self.n) if self.measured else math.nan
 
 
 @dataclass(frozen=True)
 class ReplicatedInterval:
-    """Mean of a tuned figure over replicates and pairs, with its two-level interval (same units)."""
+    """Mean of a tuned figure over replicates and pairs, with its interval (same units); ``df`` of its t quantile."""
 
     mean: float
     low: float
@@ -33,150 +86,437 @@ class ReplicatedInterval:
     se_pairs: float
     se_between: float
     tuning_variance_measured: bool
+    df: float = math.inf
 
 
 @dataclass(frozen=True)
 class ReplicatedDifference:
-    """A - B of two tuned configurations on the same pairs; p two-sided; p_a_beats_b over replicate pairs."""
+    """A - B of two tuned configurations on the same pairs (interval at 1 - alpha, two-sided t-test p).
+
+    ``p_a_beats_b`` (with ``p_a_beats_b_ci``): the probability that one new tuning of A scores above one new tuning
+    of B on these test pairs, under the model (the common-language effect size of McGraw & Wong 1992 over
+    replicates); None when neither side measured its tuning variance. ``mde``: the smallest |A - B| this comparison
+    detects with 80% power at its alpha. ``plan``: what K and how many test pairs would detect ``PLAN_DIFFERENCE``.
+    ``assumption``: the assumption the figures rest on when a side has K = 1 (then no verdict), else None."""
 
     diff: float
     low: float
     high: float
     p_value: float
-    p_a_beats_b: float | None
     tuning_variance_measured: bool
+    df: float = math.inf
+    se: float = 0.0
+    alpha: float = 0.05
+    replicates: tuple[int, int] = (1, 1)
+    pairs: int = 0
+    strata: int = 1
+    assumption: str | None = None
+    components: dict = field(default_factory=dict)
+    #: (s^2, df) of one replicate's figure per side (empty: no side measured it)
+    row_terms: tuple = ()
+    seed: int = 0
+    plan_target: float = PLAN_DIFFERENCE
 
-    def verdict(self) -> str:
-        """One line; names the unmeasured tuning variance when either side has one replicate."""
-        sig = "significant" if self.p_value < 0.05 else "not significant"
-        line = f"A - B = {self.diff:+.4f} [{self.low:+.4f}, {self.high:+.4f}], p = {self.p_value:.3g} ({sig})"
-        if self.p_a_beats_b is not None:
-            line += f", P(A > B) = {self.p_a_beats_b:.2f}"
-        if not self.tuning_variance_measured:
-            line += "; " + NOT_MEASURED
+    # computed on first use: each solves for a power or draws a bootstrap, which the many comparisons of a
+    # simulation do not all need
+    @functools.cached_property
+    def mde(self) -> float:
+        return detectable(self.se, self.df, self.alpha)
+
+    @functools.cached_property
+    def plan(self) -> str:
+        if not self.row_terms or self.mde <= self.plan_target:  # it detects the target already: nothing to plan
+            return ""
+        c = self.components
+        return plan_text(self.pairs * max(0.0, c["pair_effects"]), c["interaction_a"], c["interaction_b"],
+                         c["tuning_a"], c["tuning_b"], alpha=self.alpha, target=self.plan_target, n_now=self.pairs,
+                         strata=self.strata)
+
+    @functools.cached_property
+    def _pab(self) -> tuple[float, tuple[float, float]] | None:
+        return _pab(self.diff, self.se, self.df, list(self.row_terms), self.seed, self.alpha) if self.row_terms else None
+
+    @property
+    def p_a_beats_b(self) -> float | None:
+        return self._pab[0] if self._pab else None
+
+    @property
+    def p_a_beats_b_ci(self) -> tuple[float, float] | None:
+        return self._pab[1] if self._pab else None
+
+    @property
+    def verdict_allowed(self) -> bool:
+        """Both sides measured their tuning variance (K >= 2): only then can the comparison say 'significant'."""
+        return self.tuning_variance_measured
+
+    @property
+    def significant(self) -> bool:
+        return self.verdict_allowed and self.p_value < self.alpha
+
+    def verdict(self, a: str = "A", b: str = "B", b_tuned: bool = True) -> str:
+        """One line: the difference ``a`` - ``b``, its interval and p; 'significant' only where both sides have
+        K >= 2; an inconclusive one says what it could have detected and what would detect PLAN_DIFFERENCE.
+        ``b_tuned`` False: B is not a tuned configuration (the paper defaults), so only A's K = 1 is missing."""
+        ka, kb = self.replicates
+        pct = f"{100 * (1 - self.alpha):.0f}%"
+        head = (f"{a} - {b} = {self.diff:+.4f} [{self.low:+.4f}, {self.high:+.4f}] ({pct}), "
+                f"p = {format_p(self.p_value)}")
+        if not self.verdict_allowed:
+            once = [name for name, k, tuned in ((a, ka, True), (b, kb, b_tuned)) if k < 2 and tuned]
+            who = " and ".join(once) or a
+            was = "were" if len(once) > 1 else "was"
+            return (f"{head} {self.assumption_text()}; no tuned verdict: {who} {was} tuned once (K = 1): the "
+                    "tuning variance was not measured; rerun with --replicates 3")
+        if self.significant:
+            line = f"{head}: significant"
+        else:
+            line = f"{head}: inconclusive: could detect |{a} - {b}| >= {self.mde:.3f}"
+            if self.plan:
+                line += f"; {self.plan}"
+        if self.p_a_beats_b is not None and self.p_a_beats_b_ci is not None:
+            lo, hi = self.p_a_beats_b_ci
+            line += f"; P({a} > {b}) = {self.p_a_beats_b:.2f} [{lo:.2f}, {hi:.2f}]"
         return line
 
-
-def _strata_index(strata: np.ndarray) -> list[np.ndarray]:
-    return [np.flatnonzero(strata == s) for s in np.unique(strata)]
-
-
-def _pair_boot_means(scores: np.ndarray, groups: list[np.ndarray], n_boot: int, rng: np.random.Generator) -> np.ndarray:
-    """Bootstrap of the pair mean of per-pair values ``scores`` (N,), resampled within scene strata."""
-    out = np.empty(n_boot)
-    n = scores.size
-    for b in range(n_boot):
-        total = 0.0
-        for g in groups:
-            total += scores[g[rng.integers(0, g.size, g.size)]].sum()
-        out[b] = total / n
-    return out
+    def assumption_text(self) -> str:
+        return f"(assuming {self.assumption})" if self.assumption else "(over test pairs only)"
 
 
-def _check(scores: np.ndarray, strata: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+def format_p(p: float) -> str:
+    return "<0.0001" if p < 1e-4 else f"{p:.3g}"
+
+
+# -- the components -------------------------------------------------------------------------------------------
+
+def _check(scores, strata) -> tuple[np.ndarray, np.ndarray]:
     scores = np.asarray(scores, dtype=float)
-    if scores.ndim != 2 or scores.shape[1] < 2:
+    if scores.ndim != 2 or scores.shape[1] < 2 or scores.shape[0] < 1:
         raise ValueError(f"scores must be replicates x pairs with >= 2 pairs, got shape {scores.shape}")
+    if not np.all(np.isfinite(scores)):
+        raise ValueError("scores must be finite (a failed pair scores 0)")
     strata = np.zeros(scores.shape[1], int) if strata is None else np.asarray(strata)
     if strata.shape != (scores.shape[1],):
         raise ValueError(f"strata must have one entry per pair ({scores.shape[1]}), got {strata.shape}")
     return scores, strata
 
 
-def _combine(se_p: float, se_b: float, k_min: int, alpha: float) -> float:
-    """t quantile with Welch-Satterthwaite df; pair component given 1e6 df (many pairs)."""
-    if k_min < 2 or se_b == 0.0:
-        return float(stats.norm.ppf(1 - alpha / 2))
-    var = se_p**2 + se_b**2
-    df = var**2 / (se_b**4 / (k_min - 1) + se_p**4 / 1e6)
-    return float(stats.t.ppf(1 - alpha / 2, df))
+def pair_part(values: np.ndarray, strata: np.ndarray) -> tuple[float, float]:
+    """(variance, df) of the plain mean of per-pair ``values`` (N,) sampled within fixed ``strata``: the stratified
+    estimator (1 / N^2) sum_s n_s s_s^2 with Satterthwaite's df over the strata (Cochran 1977, 5.4). A stratum of one
+    pair has no within variance: then the strata are pooled (one stratum; conservative)."""
+    values = np.asarray(values, float)
+    n = values.size
+    names = np.unique(strata)
+    sizes = [int(np.sum(strata == s)) for s in names]
+    if min(sizes) < 2:
+        names, sizes, strata = np.array([0]), [n], np.zeros(n, int)
+    terms, dfs = [], []
+    for s, ns in zip(names, sizes):
+        v = values[strata == s]
+        terms.append(ns * float(np.var(v, ddof=1)) / n**2)
+        dfs.append(ns - 1)
+    var = float(sum(terms))
+    den = sum(t * t / d for t, d in zip(terms, dfs))
+    df = var * var / den if den > 0 else float(sum(dfs))
+    return var, float(df)
 
 
-def replicated_interval(scores, strata=None, *, alpha: float = 0.05, n_boot: int = 2000, seed: int = 0) -> ReplicatedInterval:
-    """Interval of the grand mean of ``scores`` (K replicates x N pairs) at 1 - alpha."""
+def components(scores: np.ndarray) -> Components:
+    """The side's :class:`Components` from its K x N score matrix (plain means; scale the columns beforehand for a
+    weighted mean). MS_res = sum of squared two-way residuals / ((K - 1)(N - 1)): E[MS_res] is the mean over pairs
+    of the interaction variance, heteroscedastic pairs included."""
+    k, n = scores.shape
+    if k < 2:
+        return Components(k, n, math.nan, math.nan)
+    rows = scores.mean(axis=1)
+    resid = scores - rows[:, None] - scores.mean(axis=0)[None, :] + scores.mean()
+    ms_res = float(np.sum(resid**2) / ((k - 1) * (n - 1)))
+    return Components(k, n, float(np.var(rows, ddof=1)), ms_res)
+
+
+def _welch(terms: list[tuple[float, float]]) -> tuple[float, float]:
+    """(sum, Welch-Satterthwaite df) of non-negative variance terms (value, df): df = (sum v)^2 / sum v^2 / df_i
+    (Satterthwaite 1946; Welch 1947). inf for a zero sum."""
+    var = float(sum(v for v, _ in terms))
+    den = sum(v * v / d for v, d in terms if v > 0 and d > 0)
+    return var, (var * var / den if den > 0 and var > 0 else math.inf)
+
+
+def _variance(vp: float, dfp: float, sides: list[tuple[Components, float]], n: int) -> tuple[float, float, float]:
+    """(variance, df, pair-effect part) of a mean (one side) or a difference (two sides) over replicates x pairs.
+
+    ``vp`` (on ``dfp`` df): the stratified variance of the mean of the replicate-averaged pair values, which holds
+    the pair effects' variance / N AND each side's interaction (seed, tuning x pair) variance / (K N). ``sides``:
+    (components, coefficient) per side whose replicate figures enter with that coefficient (1 / K, or
+    1 / K_A + 1 / K_B for a borrowed side). Grouped so that each source is counted once and no term is subtracted
+    in the df: variance = sum coef * row_var (the replicate figures' own variance: tuning + their seed noise at N
+    pairs, on K - 1 df each) + (vp - sum coef * ms_res / N) (the pair effects alone: the interaction that the rows
+    already hold taken out of the pair part). The pair-effect part is kept unbiased, not truncated at 0: under "same
+    method" it is 0 in truth, and max(0, .) inflated the variance enough to hold false positives at 3.8% instead of
+    5%. Its df is the pair part's; a negative part enters the sum but not the df, and the sum is floored at half the
+    replicates' part (a guard; rare). A plug-in Satterthwaite df over the ungrouped terms (row_var and -ms_res / N
+    with its negative coefficient) came out at a median 2.8 where the statistic behaved as t with 4 df: 1.5% false
+    positives at 5% (the calibration benchmark).
+
+    The df: Welch-Satterthwaite's plug-in df is too large when a replicate term with K - 1 = 1 or 2 df falls low by
+    chance (chi-square with 1 df has a quarter of its mass below 0.1): the t quantile then shrinks exactly when the
+    true variance is underestimated (coverage 0.908 at K = 2 with a large tuning sd). So the df is computed with each
+    replicate term at its upper DF_BOUND confidence limit, row_var (K - 1) / chi2_{K-1}(DF_BOUND) -- the spirit of
+    Graybill & Wang's (1980) modified large-sample bounds; a rule written here because no library has one for a
+    mean. DF_BOUND = 0.3 held coverage within 0.95-0.96 at K = 2, 3, 5 and every tuning sd in that simulation
+    (0.5: 0.927 at K = 2; 0.2: 0.971); the calibration benchmark measures it on mAA scores."""
+    rows = [(coef * c.row_var, c.k - 1) for c, coef in sides if c.measured]
+    inter = sum(coef * c.ms_res / n for c, coef in sides if c.measured)
+    pair_effects = vp - inter if rows else vp
+    var, _ = _welch([*rows, (max(0.0, pair_effects), dfp)])
+    # the df with each replicate term at its upper DF_BOUND confidence limit (the variance itself stays unbiased)
+    _, df = _welch([*[(v * d / _chi2_quantile(DF_BOUND, d), d) for v, d in rows], (max(0.0, pair_effects), dfp)])
+    if pair_effects < 0:
+        var = max(var + pair_effects, 0.5 * var)
+    return var, df, pair_effects
+
+
+def _chi2_quantile(q: float, df: float) -> float:
+    return float(special.chdtri(df, 1.0 - q))  # chdtri(df, y) is the chi-square quantile of upper tail y
+
+
+# -- a tuned figure -------------------------------------------------------------------------------------------
+
+def replicated_interval(scores, strata=None, *, alpha: float = 0.05, **_ignored) -> ReplicatedInterval:
+    """Interval of the grand mean of ``scores`` (K replicates x N pairs; plain mean) at 1 - alpha: the model of the
+    module doc. K = 1: the pair interval alone (``tuning_variance_measured`` False)."""
     scores, strata = _check(scores, strata)
-    rng = np.random.default_rng(seed)
-    k = scores.shape[0]
-    se_p = float(_pair_boot_means(scores.mean(axis=0), _strata_index(strata), n_boot, rng).std(ddof=1))
-    rep_means = scores.mean(axis=1)
-    se_b = float(rep_means.std(ddof=1) / np.sqrt(k)) if k > 1 else 0.0
-    q = _combine(se_p, se_b, k, alpha)
-    half = q * np.hypot(se_p, se_b)
+    k, n = scores.shape
+    vp, dfp = pair_part(scores.mean(axis=0), strata)
+    c = components(scores)
+    var, df, pe = _variance(vp, dfp, [(c, 1.0 / k)], n)
     m = float(scores.mean())
-    return ReplicatedInterval(m, m - half, m + half, k, se_p, se_b, k > 1)
+    half = t_quantile(1 - alpha / 2, df) * math.sqrt(var) if var > 0 else 0.0
+    se_b = math.sqrt(c.row_var / k) if c.measured else 0.0
+    return ReplicatedInterval(m, m - half, m + half, k, math.sqrt(pe), se_b, c.measured, df)
+
+
+def scene_weights(strata: np.ndarray) -> np.ndarray:
+    """Per-pair factor N w_p (w_p = 1 / (n_scenes n_scene_pairs)) that makes a plain mean the benchmark's mean over
+    scenes (each scene's pair mean, scenes weighing alike)."""
+    names, counts = np.unique(strata, return_counts=True)
+    per = dict(zip(names.tolist(), counts.tolist()))
+    return np.array([len(strata) / (len(names) * per[s]) for s in strata.tolist()])
+
+
+def replicated_maa_interval(scores, strata, *, alpha: float = 0.05, **_ignored) -> ReplicatedInterval:
+    """The tuned mAA `tune` reports: :func:`replicated_interval` of ``scores`` (K x N per-pair mAA scores in [0, 1])
+    weighted as the benchmark's mAA (the mean over scenes of each scene's pair mean), clipped to [0, 1]."""
+    scores, strata = _check(scores, strata)
+    iv = replicated_interval(scores * scene_weights(strata)[None, :], strata, alpha=alpha)
+    return ReplicatedInterval(iv.mean, max(0.0, iv.low), min(1.0, iv.high), iv.replicates, iv.se_pairs,
+                              iv.se_between, iv.tuning_variance_measured, iv.df)
+
+
+# -- a tuned comparison ---------------------------------------------------------------------------------------
+
+def t_quantile(p: float, df: float) -> float:
+    """Student's t quantile (scipy.special.stdtrit: the same function as stats.t.ppf without its per-call
+    overhead, which dominated the calibration benchmark); df inf is the normal."""
+    return float(special.stdtrit(df, p))
+
+
+def t_two_sided_p(t: float, df: float) -> float:
+    return float(min(1.0, 2.0 * special.stdtr(df, -abs(t))))
+
+
+def power(effect: float, df: float, alpha: float) -> float:
+    """Power of the two-sided t test at ``alpha`` when the true difference is ``effect`` standard errors, the
+    variance estimated on ``df`` degrees of freedom: the noncentral t (scipy.special.nctdtr), not the normal
+    approximation, which over-promises at the few df of K = 3 replicates."""
+    q = t_quantile(1 - alpha / 2, df)
+    if not math.isfinite(df):
+        return float(special.ndtr(effect - q) + special.ndtr(-effect - q))
+    upper, lower = (float(np.nan_to_num(special.nctdtr(df, effect, x), nan=0.0)) for x in (q, -q))  # nan: underflow
+    return min(1.0, max(0.0, 1.0 - upper + lower))
+
+
+def detectable(se: float, df: float, alpha: float, target_power: float = POWER) -> float:
+    """The smallest true |difference| that the t test with standard error ``se`` on ``df`` df detects with
+    ``target_power`` at ``alpha`` (``power`` solved for the effect by scipy's brentq)."""
+    from scipy.optimize import brentq
+    if se <= 0:
+        return 0.0
+    if power(60.0, df, alpha) < target_power:  # df < 1: no practical effect size is detectable
+        return math.inf
+    return float(brentq(lambda e: power(e, df, alpha) - target_power, 0.0, 60.0, xtol=1e-4)) * se
+
+
+def _planned_se_df(k: int, n: int, strata: int, pair_var: float, res_a: float, res_b: float, tune_a: float,
+                   tune_b: float) -> tuple[float, float]:
+    """(se, df) of a difference at K replicates per side and n pairs, from the estimated components."""
+    rows = [((tune_a + res_a / n) / k, k - 1), ((tune_b + res_b / n) / k, k - 1)]
+    var, df = _welch([*rows, (pair_var / n, max(1, n - strata))])
+    return math.sqrt(var), df
+
+
+def plan_text(pair_var: float, res_a: float, res_b: float, tune_a: float, tune_b: float, *, alpha: float,
+              target: float = PLAN_DIFFERENCE, n_now: int = 0, strata: int = 1, max_pairs: int = 20000) -> str:
+    """What K (both sides, from ``PLAN_K``) and how many test pairs would detect ``target`` with 80% power at
+    ``alpha``, from the estimated components (per pair: pair effects ``pair_var``, each side's interaction
+    ``res_*``; tuning ``tune_*``), the df and power as :func:`power` computes them; the first K that reaches it
+    with at most ``max_pairs`` pairs, and at least the pairs there are now."""
+    for k in PLAN_K:
+        def ok(n: int, k: int = k) -> bool:
+            se, df = _planned_se_df(k, n, strata, pair_var, res_a, res_b, tune_a, tune_b)
+            return se == 0 or power(target / se, df, alpha) >= POWER
+        if not ok(max_pairs):
+            continue
+        lo, hi = max(2, strata + 1), max_pairs
+        if ok(lo):
+            hi = lo
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            lo, hi = (lo, mid) if ok(mid) else (mid, hi)
+        return f"K = {k} and {max(hi, n_now)} test pairs would detect {target:.2f}"
+    return (f"even K = {PLAN_K[-1]} with {max_pairs} test pairs would not detect {target:.2f}: the tuning "
+            "variance alone is too large")
 
 
 def p_a_beats_b(a_means, b_means) -> float:
-    """Fraction of (i, j) replicate pairs with A_i > B_j, ties counted half. Means within 1e-12 of each other are
-    ties: the same mAA summed in another order (a scene-weighted mean against a scaled pair mean) differs in the
-    last bits, and such a pair must not count as a win for either side."""
+    """Fraction of (i, j) replicate pairs with A_i > B_j, ties (within 1e-12) counted half: the empirical version of
+    :attr:`ReplicatedDifference.p_a_beats_b`, without an interval (kept for readers of older outputs)."""
     a = np.asarray(a_means, float)[:, None]
     b = np.asarray(b_means, float)[None, :]
     tie = np.abs(a - b) <= TIE_TOLERANCE
     return float((((a > b) & ~tie).sum() + 0.5 * tie.sum()) / (a.size * b.size))
 
 
-def replicated_difference(a, b, strata=None, *, alpha: float = 0.05, n_boot: int = 2000, seed: int = 0) -> ReplicatedDifference:
-    """Paired difference A - B (Ka x N and Kb x N on the same pairs) with interval, p-value, P(A > B)."""
+def _pab(diff: float, se: float, df: float, row_terms: list[tuple[float, int]], seed: int,
+         alpha: float) -> tuple[float, tuple[float, float]] | None:
+    """P(one new tuning of A > one of B on these pairs) = Phi(delta / sqrt(s_A^2 + s_B^2)), s_X^2 the variance of one
+    replicate's figure (``row_terms``: (s^2, df) per side), with a parametric-bootstrap interval (the difference
+    drawn from its t, each s^2 from its scaled chi-square). Written here: no library gives this interval."""
+    s2 = sum(v for v, _ in row_terms)
+    if not row_terms:
+        return None
+    if s2 <= 0:
+        est = 0.5 if diff == 0 else float(diff > 0)
+        return est, (est, est)
+    est = float(special.ndtr(diff / math.sqrt(s2)))
+    rng = np.random.default_rng(seed)
+    d = diff + se * rng.standard_t(df if math.isfinite(df) else 1e6, PAB_DRAWS) if se > 0 else np.full(PAB_DRAWS, diff)
+    v = sum(val * rng.chisquare(dfi, PAB_DRAWS) / dfi for val, dfi in row_terms)
+    draws = special.ndtr(d / np.sqrt(np.maximum(v, 1e-300)))
+    lo, hi = np.quantile(draws, [alpha / 2, 1 - alpha / 2])
+    return est, (float(lo), float(hi))
+
+
+def replicated_difference(a, b, strata=None, *, alpha: float = 0.05, seed: int = 0, plan_target: float = PLAN_DIFFERENCE,
+                          **_ignored) -> ReplicatedDifference:
+    """A - B of ``a`` (K_A x N) and ``b`` (K_B x N) on the same N pairs (plain means: scale the columns beforehand
+    for the benchmark's weighting): the model of the module doc, its t interval and p, P(A > B) with an interval,
+    the detectable difference and a plan. A side with K = 1 borrows the other side's tuning variance (stated in
+    ``assumption``); both at K = 1: pairs only. No verdict unless both sides have K >= 2."""
     a, strata = _check(a, strata)
     b, _ = _check(b, strata)
     if a.shape[1] != b.shape[1]:
         raise ValueError(f"A and B must be tested on the same pairs: {a.shape[1]} vs {b.shape[1]}")
-    rng = np.random.default_rng(seed)
+    ka, kb, n = a.shape[0], b.shape[0], a.shape[1]
     per_pair = a.mean(axis=0) - b.mean(axis=0)
-    se_p = float(_pair_boot_means(per_pair, _strata_index(strata), n_boot, rng).std(ddof=1))
-    ka, kb = a.shape[0], b.shape[0]
-    measured = ka > 1 and kb > 1
-    var_b = 0.0
-    if ka > 1:
-        var_b += a.mean(axis=1).var(ddof=1) / ka
-    if kb > 1:
-        var_b += b.mean(axis=1).var(ddof=1) / kb
-    se_b = float(np.sqrt(var_b))
-    q = _combine(se_p, se_b, min(ka, kb), alpha)
-    se = float(np.hypot(se_p, se_b))
     d = float(per_pair.mean())
-    half = q * se
+    vp, dfp = pair_part(per_pair, strata)
+    ca, cb = components(a), components(b)
+    assumption = None
+    if ca.measured and cb.measured:
+        sides = [(ca, 1.0 / ka), (cb, 1.0 / kb)]
+        tune_a, tune_b, res_a, res_b = ca.tuning_var, cb.tuning_var, ca.ms_res, cb.ms_res
+        rows = [(ca.row_var, ka - 1), (cb.row_var, kb - 1)]
+    elif ca.measured or cb.measured:  # one side tuned once: its replicate variance taken equal to the other's
+        c, one = (ca, "A") if ca.measured else (cb, "B")
+        other = "B" if one == "A" else "A"
+        sides = [(c, 1.0 / ka + 1.0 / kb)]
+        tune_a = tune_b = c.tuning_var
+        res_a = res_b = c.ms_res
+        rows = [(c.row_var, c.k - 1), (c.row_var, c.k - 1)]
+        assumption = (f"{other}'s tuning varies as {one}'s, measured over {c.k} replicates: exact when both are the "
+                      "same method")
+    else:
+        sides, rows = [], []
+        tune_a = tune_b = res_a = res_b = 0.0
+    var, df, pair_effects = _variance(vp, dfp, sides, n)
+    se = math.sqrt(max(var, 0.0))
     if se == 0.0:
         p = 1.0 if d == 0.0 else 0.0
+        half = 0.0
     else:
-        p = float(2 * (1 - stats.norm.cdf(abs(d) / se * (stats.norm.ppf(1 - alpha / 2) / q))))
-    pab = p_a_beats_b(a.mean(axis=1), b.mean(axis=1)) if measured else None
-    return ReplicatedDifference(d, d - half, d + half, p, pab, measured)
+        p = t_two_sided_p(d / se, df)
+        half = t_quantile(1 - alpha / 2, df) * se
+    measured = ca.measured and cb.measured
+    return ReplicatedDifference(
+        d, d - half, d + half, p, measured, df=df, se=se, alpha=alpha, replicates=(ka, kb), pairs=n,
+        strata=len(np.unique(strata)), assumption=assumption,
+        components={"pairs": vp, "pairs_df": dfp, "pair_effects": pair_effects, "tuning_a": tune_a,
+                    "tuning_b": tune_b, "interaction_a": res_a, "interaction_b": res_b},
+        row_terms=tuple(rows), seed=seed, plan_target=plan_target)
 
 
-def replicated_maa_interval(scores, strata, *, alpha: float = 0.05, n_boot: int = 2000,
-                            seed: int = 0) -> ReplicatedInterval:
-    """Interval of a tuned mAA from ``scores`` (K replicates x N pairs of per-pair mAA scores in [0, 1], NOT scaled)
-    with the benchmark's weighting (the mean over scenes of each scene's pair mean).
+def difference_block(d: ReplicatedDifference, a: str = "A", b: str = "B", b_tuned: bool = True) -> dict:
+    """The JSON fields every caller records of a tuned comparison (same names in test.json, compare and findings);
+    ``a``, ``b``, ``b_tuned``: the names in its verdict line (:meth:`ReplicatedDifference.verdict`)."""
+    return {"difference": d.diff, "ci": [d.low, d.high], "p_value": d.p_value, "df": d.df, "se": d.se,
+            "significant": d.significant, "verdict_allowed": d.verdict_allowed,
+            "tuning_variance_measured": d.tuning_variance_measured, "replicates": list(d.replicates),
+            "p_a_beats_b": d.p_a_beats_b,
+            "p_a_beats_b_ci": list(d.p_a_beats_b_ci) if d.p_a_beats_b_ci is not None else None,
+            "detectable": d.mde, "plan": d.plan, "assumption": d.assumption, "verdict": d.verdict(a, b, b_tuned),
+            "components": dict(d.components)}
 
-    The pair component is the test interval's own (``pipeline.metrics.uncertainty``: a scene-stratified percentile
-    bootstrap of the replicate-averaged scores with the pseudo-scores 0 and 1 in every scene, the small-sample
-    correction every single test interval has), and the between-replicate component s_between^2 / K is added as in
-    :func:`replicated_interval`: the pair interval is widened about the mean by q sqrt(V) / (z se_pairs), V =
-    se_pairs^2 + se_between^2, q the t quantile with Welch-Satterthwaite df. Why not :func:`replicated_interval`
-    as is: without the pseudo-scores a tuned figure on a few pairs per scene got an interval narrower than each of
-    its replicates' own test intervals (8 pairs, 2 scenes: 0.32 wide against 0.48) for lack of the correction, not
-    for knowing more. With K = 1 it is the single test's pair interval."""
-    from pipeline.metrics.uncertainty.intervals import _stratified
-    from pipeline.metrics.uncertainty.scores import score_range
-    scores, strata = _check(scores, strata)
-    k = scores.shape[0]
-    names = list(dict.fromkeys(strata.tolist()))
-    avg = scores.mean(axis=0)
-    groups = [avg[strata == n] for n in names]
-    w = [1.0 / len(names)] * len(names)
-    m = float(sum(wi * g.mean() for g, wi in zip(groups, w)))
-    (lo, hi), se_p = _stratified(groups, w, int(n_boot), int(seed), 1 - alpha, pseudo=score_range())
-    rep_means = np.array([sum(wi * row[strata == n].mean() for n, wi in zip(names, w)) for row in scores])
-    se_b = float(rep_means.std(ddof=1) / np.sqrt(k)) if k > 1 else 0.0
-    if se_b > 0:
-        q = _combine(float(se_p), se_b, k, alpha)
-        z = float(stats.norm.ppf(1 - alpha / 2))
-        v = float(np.hypot(se_p, se_b))
-        if se_p > 0:
-            f = q * v / (z * float(se_p))
-            lo, hi = m - (m - lo) * f, m + (hi - m) * f
-        else:
-            lo, hi = m - q * v, m + q * v
-    return ReplicatedInterval(m, max(0.0, float(lo)), min(1.0, float(hi)), k, float(se_p), se_b, k > 1)
+
+# -- tuned rows of a table (records of replicates) ------------------------------------------------------------
+
+def _replicate_matrix(replicates, tau: int) -> dict:
+    """{(scene, pair): [score of replicate 1, ...]} from ``replicates`` (per replicate, a list of test runs, each a
+    list of pair records {scene, pair, err}): each replicate's pair score averaged over its runs."""
+    from pipeline.metrics.uncertainty.scores import pair_scores
+    out: dict = {}
+    for k, runs in enumerate(replicates):
+        acc: dict = {}
+        for run in runs:
+            for r, v in zip(run, pair_scores([x["err"] for x in run], tau)):
+                p = r["pair"]
+                acc.setdefault((str(r["scene"]), tuple(p) if isinstance(p, list) else p), []).append(float(v))
+        for key, vals in acc.items():
+            out.setdefault(key, [math.nan] * len(replicates))[k] = float(np.mean(vals))
+    return {key: v for key, v in out.items() if not any(math.isnan(x) for x in v)}
+
+
+def replicated_records_value(replicates, tau: int = 10) -> float:
+    """The tuned mAA(tau) of ``replicates`` (as :func:`_replicate_matrix`): the mean over replicates of the mean over
+    scenes of each scene's pair mean."""
+    m = _replicate_matrix(replicates, tau)
+    if not m:
+        return 0.0
+    keys = sorted(m, key=str)
+    strata = np.array([k[0] for k in keys])
+    return float((np.array([m[k] for k in keys]).T * scene_weights(strata)[None, :]).mean())
+
+
+def replicated_records_comparison(recs_a, recs_b, tau: int = 10, level: float = 0.95, seed: int = 0,
+                                  **_ignored) -> dict:
+    """B - A of two tuned rows given as replicates of test runs (see :func:`_replicate_matrix`), on the pairs every
+    replicate of both scored, scene-weighted: :func:`replicated_difference` with the keys the ranking reads
+    (``significant`` False whenever a side has K = 1: no tuned verdict, the rank is shared). ValueError without
+    common pairs."""
+    ma, mb = _replicate_matrix(recs_a, tau), _replicate_matrix(recs_b, tau)
+    keys = sorted(set(ma) & set(mb), key=str)
+    if len(keys) < 2:
+        raise ValueError("no common pairs")
+    strata = np.array([k[0] for k in keys])
+    w = scene_weights(strata)[None, :]
+    a = np.array([ma[k] for k in keys]).T * w
+    b = np.array([mb[k] for k in keys]).T * w
+    d = replicated_difference(b, a, strata, alpha=1 - level, seed=seed)
+    return {"difference": d.diff, "ci": [d.low, d.high], "p_value": d.p_value, "significant": d.significant,
+            "pairs": len(keys), "replicates": [a.shape[0], b.shape[0]], "verdict_allowed": d.verdict_allowed}
+
+
+METHOD = ("variance components of a replicates x pairs crossed design (pair part: scene-stratified variance of the "
+          "replicate-averaged pair scores; tuning part: s^2 of the replicate figures minus the interaction mean "
+          "square / N, so pair x seed noise counts once), t with Satterthwaite df, t-test p "
+          "(pipeline.metrics.replicates)")

@@ -365,7 +365,8 @@ def run(args) -> int:
         print_outcome(out)
         if out.get("test"):
             from pipeline.metrics.replicates import NOT_MEASURED
-            print(f"tuning: 1 replicate: {NOT_MEASURED} (--replicates 3 measures it)")
+            print(f"tuning: 1 replicate: {NOT_MEASURED}; the verdict against the reference is about this frozen "
+                  "setting, not about tuning at another seed (--replicates 3 measures it)")
     return 0
 
 

@@ -156,8 +156,9 @@ def replicated_relation(oa, ob, n_resamples: int, seed: int = 0, level: float = 
                         tau: int = 10) -> dict:
     """B - A of two replicated studies on the test pairs every replicate of both scored: the K_a x N and K_b x N
     per-pair score matrices, scene-weighted (:func:`tuner.replicates.scene_scale`: a plain mean is the benchmark's
-    mean over scenes), into :func:`pipeline.metrics.replicates.replicated_difference` (pair bootstrap + replicate
-    variance, t quantile). Keys as :func:`paired_bootstrap`'s, plus ``p_b_beats_a`` and ``replicates`` [K_a, K_b]."""
+    mean over scenes), into :func:`pipeline.metrics.replicates.replicated_difference` (variance components, t with
+    Satterthwaite df). Keys as :func:`paired_bootstrap`'s, plus ``p_b_beats_a`` (with ``p_b_beats_a_ci``),
+    ``detectable`` (80% power), ``plan`` and ``replicates`` [K_a, K_b]."""
     import numpy as np
 
     from pipeline.metrics.replicates import replicated_difference
@@ -168,9 +169,11 @@ def replicated_relation(oa, ob, n_resamples: int, seed: int = 0, level: float = 
     strata = np.array([k[0] for k in keys])
     scale = scene_scale(strata)[None, :]
     a, b = _matrix(sa, keys) * scale, _matrix(sb, keys) * scale
-    d = replicated_difference(b, a, strata, alpha=1 - level, n_boot=int(n_resamples), seed=int(seed))
+    d = replicated_difference(b, a, strata, alpha=1 - level, seed=int(seed))
     return {"mAA10_a": float(a.mean()), "mAA10_b": float(b.mean()), "difference": d.diff, "ci": [d.low, d.high],
-            "p_value": d.p_value, "p_b_beats_a": d.p_a_beats_b, "pairs": len(keys),
+            "p_value": d.p_value, "p_b_beats_a": d.p_a_beats_b,
+            "p_b_beats_a_ci": list(d.p_a_beats_b_ci) if d.p_a_beats_b_ci else None, "df": d.df,
+            "detectable": d.mde, "plan": d.plan, "pairs": len(keys),
             "dropped_a": len(in_a - in_b), "dropped_b": len(in_b - in_a), "replicates": [len(sa), len(sb)]}
 
 
@@ -257,8 +260,8 @@ def relation(outcomes: dict, a: str, b: str, n_resamples: int, seed: int = 0) ->
     out = {"a": a, "b": b, "mAA10_a": ma, "mAA10_b": pb["mAA10_b"], "difference": pb["difference"],
            "relative": (pb["difference"] / ma) if ma else None, "relative_ci": None, "ci": pb["ci"],
            "p_value": pb["p_value"], "pairs": pb["pairs"], "dropped": [pb["dropped_a"], pb["dropped_b"]]}
-    if "replicates" in pb:  # the replicated comparison: P(B > A) over replicate pairs; no joint ratio bootstrap
-        out.update(p_b_beats_a=pb["p_b_beats_a"], replicates=pb["replicates"])
+    if "replicates" in pb:  # the replicated comparison: P(B > A) with its interval; no joint ratio bootstrap
+        out.update({k: pb[k] for k in ("p_b_beats_a", "p_b_beats_a_ci", "detectable", "plan", "replicates")})
     else:
         rel = paired_relative(_flat(oa.test_runs), _flat(ob.test_runs), tau=10, n_resamples=n_resamples, seed=seed)
         out["relative_ci"] = rel["ci"]
@@ -337,8 +340,9 @@ def analyse(f: Finding, outcomes: dict, n_resamples: int = 2000, seed: int = 0) 
         # K >= 2 on both sides of the key: its interval holds the tuning variance; else it covers test pairs only
         measured["replicates"] = key.get("replicates") or [1, 1]
         measured["tuning_variance_measured"] = "replicates" in key
-        if "p_b_beats_a" in key:
-            measured["p_b_beats_a"] = key["p_b_beats_a"]
+        for k in ("p_b_beats_a", "p_b_beats_a_ci", "detectable", "plan"):
+            if k in key:
+                measured[k] = key[k]
         measured["relative_ci"] = key.get("relative_ci")  # joint bootstrap of the ratio (paired_relative)
         measured["relative_to"] = key["a"]  # the role the relative difference divides by (A of "B vs A")
         extra = _extras(f, outcomes, n_resamples, seed)

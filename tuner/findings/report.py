@@ -134,8 +134,8 @@ def settings_lines(fs, out: dict | None = None) -> list[str]:
         f"sign patterns: p >= {1 / (1 + fs.n_resamples):.1g})",
         (f"tuning replicates: {fs.replicates} per stereo study (studies NAME, NAME-r2, ...; each with its own sampler "
          "and estimator seeds from --seed): every tuned figure is the mean over replicates and every comparison's "
-         "interval adds the between-replicate variance to the pair bootstrap (pipeline.metrics.replicates), with "
-         "P(B > A) over replicate pairs" if fs.replicates > 1 else
+         "interval holds the tuning variance (variance components of replicates x pairs, each source counted once, "
+         "t with Satterthwaite df), with P(B > A) for one new tuning of each and its interval" if fs.replicates > 1 else
          "tuning replicates: 1 (the tuning variance was not measured: every interval covers test pairs and test "
          "runs only, and a rerun with another --seed can freeze other optima; --replicates 3 measures it)"),
         f"sampling: every study's sampler is seeded from --seed {fs.seed}, so studies searching the same space draw "
@@ -340,7 +340,11 @@ def _difference_text(f: dict) -> str:
     txt = (f"{m.get('key')}: difference {_num(f['difference'])} mAA(10), 95% CI {_ci(f['ci'])}, "
            f"{_p_is(f['p_value'])}")
     if m.get("p_b_beats_a") is not None:
-        txt += f", P(B > A) = {m['p_b_beats_a']:.2f} over replicate pairs"
+        pci = m.get("p_b_beats_a_ci")
+        txt += (f", P(B > A) = {m['p_b_beats_a']:.2f}" + (f" [{pci[0]:.2f}, {pci[1]:.2f}]" if pci else "")
+                + " for one new tuning of each")
+    if f["verdict"] == "inconclusive" and isinstance(m.get("detectable"), (int, float)):
+        txt += f"; could detect |B - A| >= {m['detectable']:.3f}" + (f" ({m['plan']})" if m.get("plan") else "")
     if rel is not None:
         txt += f" ({100 * rel:+.1f}%{_pct_ci(m.get('relative_ci'))} relative to {m.get('relative_to')})"
     def bonferroni(r) -> str:
@@ -367,8 +371,8 @@ def tuning_text(m: dict) -> str:
         return ""
     if m["tuning_variance_measured"]:
         ka, kb = m.get("replicates") or ["?", "?"]
-        return (f"{ka} x {kb} tuning replicates: the interval holds the tuning variance (pair bootstrap + "
-                "between-replicate variance)")
+        return (f"{ka} x {kb} tuning replicates: the interval holds the tuning variance (variance components: "
+                "pairs, tuning, seed noise counted once)")
     if m.get("rule") == "regions" or "groups" in m:
         return "the tuning variance was not measured: the flat regions are those of one tuning (replicate 1)"
     from pipeline.metrics.replicates import NOT_MEASURED

@@ -21,7 +21,7 @@ def _item(it) -> tuple[str, Sequence[Mapping]]:
 
 
 def rank_with_ties(items, tau: int = 10, n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0,
-                   level: float = DEFAULT_LEVEL) -> list[dict]:
+                   level: float = DEFAULT_LEVEL, compare=None, value=None) -> list[dict]:
     """Rank methods by mAA(tau), sharing ranks where a difference is not significant.
 
     items: ``[(name, records), ...]`` or ``[{"name", "records"}, ...]``, records as for
@@ -44,6 +44,10 @@ def rank_with_ties(items, tau: int = 10, n_resamples: int = DEFAULT_RESAMPLES, s
     error distribution were split off rank 1 in 28% of simulated tables (ten: 56%); Holm over the k - 1
     comparisons actually made still 9% (the leader is selected); over all pairs about 1.5%.
 
+    ``compare`` (with ``value``): another paired comparison with :func:`paired_bootstrap`'s signature and keys
+    (``difference``, ``ci``, ``p_value``, ``significant``) and the figure of an item's records; tuned rows with
+    replicates are ranked with :func:`pipeline.metrics.replicates.replicated_records_comparison`.
+
     Returns, best first: ``[{"name", "rank", "mAA<tau>", "shared": bool (rank shared with the rank's leader),
     "comparison": paired_bootstrap overall figures against that leader (None for the first), "note": str}, ...]``."""
     tau = int(tau)
@@ -51,8 +55,10 @@ def rank_with_ties(items, tau: int = 10, n_resamples: int = DEFAULT_RESAMPLES, s
     n_pairs_of_methods = max(1, len(named) * (len(named) - 1) // 2)
     level_each, alpha, resamples_each = bonferroni(level, n_pairs_of_methods, n_resamples)  # every pair (docstring)
     bags = bool(named) and all(is_bag_records(recs) for _, recs in named)
-    compare = paired_bags if bags else paired_bootstrap
-    vals = [_bag_value(recs, tau) if bags else _pair_value(recs, tau) for _, recs in named]
+    if compare is None:
+        compare = paired_bags if bags else paired_bootstrap
+        value = _bag_value if bags else _pair_value
+    vals = [value(recs, tau) for _, recs in named]
     order = sorted(range(len(named)), key=lambda i: -vals[i])
     out: list[dict] = []
     for pos, i in enumerate(order):
