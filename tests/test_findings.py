@@ -1376,7 +1376,8 @@ def test_a_lucky_tuning_is_a_verdict_only_without_replicates():
     lucky optimum), the defaults 0.55 on every replicate. Replicate 1 alone 'holds' with p << 0.05, and its verdict
     says the tuning variance was not measured; with the three replicates the difference is the mean of the
     replicates' differences, exactly (0.95 + 0.45 + 0.45) / 3 - 0.55, its interval holds the replicate spread and
-    contains 0, the verdict is inconclusive, and P(B > A) = 3 / 9 (one replicate of three beats each defaults one)."""
+    contains 0, the verdict is inconclusive, and P(B > A) -- one new tuning of each, under the normal model -- is
+    Phi(difference / sqrt(s_tuned^2 + s_defaults^2)) of the replicate figures (s_defaults = 0 here)."""
     pairs = [("s1", i) for i in range(20)] + [("s2", i) for i in range(20)]
     # scores: err 0.5 -> 1.0; 1.5 -> 0.9; 5.5 -> 0.5; 6.5 -> 0.4; 4.5 -> 0.6; 5.2 -> 0.5 (thresholds 1..10 deg)
     def run(lo, hi):  # half the pairs of each scene at each error: mAA exactly the mean of their scores
@@ -1393,7 +1394,12 @@ def test_a_lucky_tuning_is_a_verdict_only_without_replicates():
     assert rep["difference"] == pytest.approx((0.95 + 0.45 + 0.45) / 3 - 0.55, abs=1e-12)
     assert rep["ci"][0] < 0 < rep["ci"][1] and rep["verdict"] == "inconclusive"
     assert rep["measured"]["tuning_variance_measured"] is True and rep["measured"]["replicates"] == [3, 3]
-    assert rep["measured"]["p_b_beats_a"] == pytest.approx(3 / 9)
+    from scipy import stats
+    pab = stats.norm.cdf(((0.95 + 0.45 + 0.45) / 3 - 0.55) / np.std([0.95, 0.45, 0.45], ddof=1))
+    assert rep["measured"]["p_b_beats_a"] == pytest.approx(pab, abs=1e-9)
+    lo_p, hi_p = rep["measured"]["p_b_beats_a_ci"]
+    assert lo_p < 0.5 < hi_p  # three tunings cannot tell
+    assert rep["measured"]["detectable"] > abs(rep["difference"])
     # the tuned figure of each study is the replicates' mean, with every replicate's own figure beside it
     tuned = rep["measured"]["studies"]["tuned"]
     assert tuned["mAA10"] == pytest.approx((0.95 + 0.45 + 0.45) / 3, abs=1e-12)
@@ -1405,8 +1411,9 @@ def test_a_lucky_tuning_is_a_verdict_only_without_replicates():
     from tuner.findings.report import _difference_text, _tuning_cell
     res = {"id": 1, "verdict": rep["verdict"], "difference": rep["difference"], "ci": rep["ci"],
            "p_value": rep["p_value"], "measured": {**rep["measured"], "rule": "better"}}
-    assert _tuning_cell(res) == "K=3x3, P(B>A) 0.33"
-    assert "P(B > A) = 0.33 over replicate pairs" in _difference_text(res)
+    assert _tuning_cell(res) == f"K=3x3, P(B>A) {pab:.2f}"
+    assert f"P(B > A) = {pab:.2f} [{lo_p:.2f}, {hi_p:.2f}] for one new tuning of each" in _difference_text(res)
+    assert f"could detect |B - A| >= {rep['measured']['detectable']:.3f}" in _difference_text(res)
     one = {"id": 1, "verdict": single["verdict"], "difference": single["difference"], "ci": single["ci"],
            "p_value": single["p_value"], "measured": {**single["measured"], "rule": "better"}}
     assert _tuning_cell(one) == "not measured"

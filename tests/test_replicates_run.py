@@ -110,15 +110,25 @@ def test_replicated_figure_is_the_mean_of_the_replicates_and_its_interval_is_wid
     for p in ("ratio", "threshold", "max_iters"):
         vals = [r["params"][p] for r in top["replicates"]]
         assert rep["spread"][p] == {"min": min(vals), "max": max(vals)}
-    # the same pairs with the between-replicate part dropped (every replicate's scores the mean's): narrower
+    # the same pairs with the tuning part dropped (every replicate's scores the mean's): narrower exactly when the
+    # tuning variance, estimated here by hand (s^2 of the replicate figures minus the interaction mean square / N,
+    # scene-weighted scores), is positive
     from pipeline.metrics.replicates import replicated_maa_interval
-    from tuner.replicates import score_matrix
+    from tuner.replicates import scene_scale, score_matrix
     scores, strata = score_matrix(own, scaled=False)
     assert scores.mean(axis=1) == pytest.approx(by_hand, abs=1e-12)
     one = replicated_maa_interval(scores.mean(axis=0, keepdims=True).repeat(3, 0), strata)
     assert one.se_between == 0 and one.mean == pytest.approx(rep["mAA10"], abs=1e-12)
-    if max(by_hand) > min(by_hand):
-        assert rep["se_between"] > 0 and hi - lo > one.high - one.low
+    w = scores * scene_scale(strata)[None, :]
+    resid = w - w.mean(axis=1, keepdims=True) - w.mean(axis=0, keepdims=True) + w.mean()
+    tuning = np.var(w.mean(axis=1), ddof=1) - np.sum(resid**2) / (2 * (w.shape[1] - 1)) / w.shape[1]
+    iv = replicated_maa_interval(scores, strata)
+    assert (iv.low, iv.high) == pytest.approx((lo, hi), abs=1e-12)
+    if 0 < lo and hi < 1 and 0 < one.low and one.high < 1:  # not clipped to [0, 1]: the variances add
+        from scipy import stats
+        var = ((hi - lo) / 2 / stats.t.ppf(0.975, iv.df)) ** 2
+        var_one = ((one.high - one.low) / 2 / stats.t.ppf(0.975, one.df)) ** 2
+        assert var - var_one == pytest.approx(tuning / 3, rel=1e-6, abs=1e-12)
     if rep["se_between"] >= rep["se_pairs"]:  # the tuning spread dominates: wider than every replicate's own
         for t in own:
             slo, shi = t["mean"]["mAA10_ci"]
@@ -161,11 +171,20 @@ def test_compare_of_two_replicated_runs_prints_p_a_beats_b(runs):
     a = [_maa10_by_hand(_test(runs["studies"], n))[0] for n in (NAME, f"{NAME}-r2", f"{NAME}-r3")]
     b = [_maa10_by_hand(_test(runs["studies"], n))[0] for n in ("other", "other-r2", "other-r3")]
     assert d["difference_a_minus_b"] == pytest.approx(np.mean(a) - np.mean(b), abs=1e-12)
-    wins = sum((x > y + 1e-9) + 0.5 * (abs(x - y) <= 1e-9) for x in a for y in b) / 9  # equal mAAs: ties
-    assert d["p_a_beats_b"] == pytest.approx(wins)
+    # P(one new tuning of A > one of B) = Phi(difference / sqrt(s_A^2 + s_B^2)), s^2 the variance of one replicate's
+    # figure, by hand from the three replicate figures of each side
+    from scipy import stats
+    s2 = np.var(a, ddof=1) + np.var(b, ddof=1)
+    if s2 > 0:
+        assert d["p_a_beats_b"] == pytest.approx(stats.norm.cdf((np.mean(a) - np.mean(b)) / np.sqrt(s2)), abs=1e-9)
+        lo, hi = d["p_a_beats_b_ci"]
+        assert lo <= d["p_a_beats_b"] <= hi
     assert d["ci"][0] <= d["difference_a_minus_b"] <= d["ci"][1]
+    assert d["verdict_allowed"] is True and d["significant"] == (d["p_value"] < 0.05)
     text = tune("compare", NAME, "other", "--studies-dir", str(runs["studies"]), cache=runs["cache"]).stdout
     assert "P(A > B) = " in text and "not measured" not in text
+    if not d["significant"]:  # an inconclusive verdict says what it could have detected
+        assert "inconclusive: could detect |A - B| >= " in text
 
 
 def test_k1_verdict_says_tuning_variance_not_measured(runs):
@@ -173,6 +192,10 @@ def test_k1_verdict_says_tuning_variance_not_measured(runs):
     r = tune("compare", NAME, "other-r2", "--studies-dir", str(runs["studies"]), cache=runs["cache"])
     assert "the tuning variance was not measured" in r.stdout
     assert "P(A > B)" not in r.stdout
+    assert "significant" not in r.stdout and "no tuned verdict: B was tuned once" in r.stdout
+    d = json.loads(tune("compare", NAME, "other-r2", "--studies-dir", str(runs["studies"]), "--json",
+                        cache=runs["cache"]).stdout)
+    assert d["significant"] is False and d["verdict_allowed"] is False and d["assumption"]
 
 
 def test_results_show_the_replicated_figure_once(runs):
@@ -221,7 +244,7 @@ def test_two_single_studies_compare_as_before_and_say_tuning_not_measured(runs):
 
 def test_reference_comparison_of_replicates_from_pair_errors():
     """Synthetic test.json dicts (no tuning): tuned - reference over 3 replicates equals the mean difference of the
-    scene-weighted mAAs computed here; P(tuned > reference) counts replicate pairs; a reference with other settings
+    scene-weighted mAAs computed here; P(tuned > reference) is the model's from the replicate figures; a reference with other settings
     than the others (not only its seed) gives no comparison."""
     from tuner.replicates import reference_comparison, replicated_summary
     rng = np.random.default_rng(3)
@@ -240,8 +263,15 @@ def test_reference_comparison_of_replicates_from_pair_errors():
     out = reference_comparison(tests)
     assert out["difference"] == pytest.approx(np.mean(tuned) - np.mean(ref), abs=1e-12)
     assert out["mAA10"] == pytest.approx(np.mean(ref), abs=1e-12)
-    wins = sum((x > y + 1e-9) + 0.5 * (abs(x - y) <= 1e-9) for x in tuned for y in ref) / 9
-    assert out["p_tuned_beats_reference"] == pytest.approx(wins)
+    # P(one new tuning beats the reference) = Phi(difference / sqrt(s_tuned^2 + s_reference^2)) of the replicate
+    # figures (each side's sample variance), by hand
+    from scipy import stats
+    s2 = np.var(tuned, ddof=1) + np.var(ref, ddof=1)
+    assert out["p_tuned_beats_reference"] == pytest.approx(
+        stats.norm.cdf((np.mean(tuned) - np.mean(ref)) / np.sqrt(s2)), abs=1e-9)
+    lo, hi = out["p_tuned_beats_reference_ci"]
+    assert lo <= out["p_tuned_beats_reference"] <= hi
+    assert out["verdict_allowed"] is True and out["verdict"].startswith("tuned - reference = ")
     assert out["ci"][0] < out["difference"] < out["ci"][1]
     summary = replicated_summary(tests, [1, 2, 3])
     assert summary["mAA10"] == pytest.approx(np.mean(tuned), abs=1e-12) and summary["reference"] == out

@@ -293,7 +293,7 @@ def replicated_interval(scores, strata=None, *, alpha: float = 0.05, **_ignored)
     m = float(scores.mean())
     half = t_quantile(1 - alpha / 2, df) * math.sqrt(var) if var > 0 else 0.0
     se_b = math.sqrt(c.row_var / k) if c.measured else 0.0
-    return ReplicatedInterval(m, m - half, m + half, k, math.sqrt(pe), se_b, c.measured, df)
+    return ReplicatedInterval(m, m - half, m + half, k, math.sqrt(max(pe, 0.0)), se_b, c.measured, df)
 
 
 def scene_weights(strata: np.ndarray) -> np.ndarray:
