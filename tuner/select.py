@@ -48,7 +48,7 @@ import numpy as np
 from pipeline.errors import ImtuneError
 
 RULES = ("best", "one-se", "smooth", "lower-bound")
-DEFAULT_RULE = "best"  # benchmarks/selection_rules.py: no rule beats it measurably (notes/h32data.md, 36 folds)
+DEFAULT_RULE = "best"  # benchmarks/selection_rules.py: no rule beats it measurably (benchmarks/results/selection-rules/, docs/statistics.md)
 SMOOTH_K = 5
 Z95 = 1.959963984540054  # normal quantile of 0.975: SE = half-width / Z95
 

@@ -100,7 +100,7 @@ def _select_opts(g) -> None:
                    help=f"which feasible trial is frozen: best (highest validation mAA), one-se (the centre of the "
                         f"trials within one standard error of the best), smooth (best of the surface averaged over "
                         f"neighbouring trials), lower-bound (highest lower end of the validation 95%% interval); "
-                        f"see tuner/select.py (default: the study's rule, else {DEFAULT_RULE})")
+                        f"see the docs' Tuning page (default: the study's rule, else {DEFAULT_RULE})")
     g.add_argument("--reference", default=None, metavar="FILE|STUDY|none",
                    help="configuration the test runs are compared with on the same pairs (paired bootstrap): a "
                         "config file or study, none to skip (default: the paper defaults r 0.85 both, eta 0.5 px, "
@@ -143,7 +143,7 @@ def register(sub) -> None:
     t.add_argument("--sampler", default="tpe", choices=list(SAMPLERS), help=f"{' | '.join(SAMPLERS)} (default tpe)")
     t.add_argument("--pruner", default=DEFAULT_PRUNER, choices=list(PRUNERS),
                    help=f"{' | '.join(PRUNERS)}: Optuna's median, successive-halving or Hyperband pruner over the "
-                        f"chunks of pairs, or none (default {DEFAULT_PRUNER}; see the README's tuning section)")
+                        f"chunks of pairs, or none (default {DEFAULT_PRUNER}; see Tuning in the docs)")
     t.add_argument("--warm-start", action="append", default=[], metavar="STUDY",
                    help="first trials: the frozen optimum and the 3 best feasible trials of STUDY (same storage), "
                         "projected into this study's space (clipped to its ranges, Gamma to its Gamma_max); "
@@ -166,7 +166,8 @@ def register(sub) -> None:
     t.add_argument("--calibration-pairs", type=positive_int, default=8, help="pairs timed by the automatic calibration")
     t.add_argument("--recalibrate", action="store_true", help="measure Gamma_max again even if stored")
     t.add_argument("--no-test", action="store_true", help="do not run the test scenes at the end")
-    t.add_argument("--test-runs", type=positive_int, default=3)
+    t.add_argument("--test-runs", type=positive_int, default=3,
+                   help="test runs of the frozen settings, each with its own estimator seed, averaged (default 3)")
     t.add_argument("--retest", action="store_true", help="rerun the test even if test.json matches the frozen settings")
     t.add_argument("--verbose", action="store_true", help="Optuna's per-trial log lines")
     _select_opts(t)
