@@ -1,4 +1,4 @@
-"""Reports say where a scene's ground truth comes from: the scene's own poses (Strecha's laser-scan cameras) or a
+"""Reports say where a scene's ground truth comes from: the scene's own poses (the camera files of its Strecha-layout folder) or a
 reconstruction imtune built by SfM (`tune data build-gt` on an image folder). One real short study: validation on
 4 fountain-P11 images (own poses), test on 4 Herz-Jesus-P8 images given as a plain
 image folder (SfM poses); the study's attributes, frozen settings, test.json, `tune test`'s table, the HTML report
@@ -15,7 +15,7 @@ from tests.conftest import DATA, ROOT, copy_strecha_subset
 
 STRECHA = DATA / "strecha"
 pytestmark = pytest.mark.skipif(not STRECHA.is_dir(), reason=f"real data not found at {STRECHA}")
-OWN = "the scene's own poses (Strecha's laser-scan cameras)"
+OWN = "the scene's own poses (the camera files of its Strecha-layout folder)"
 SFM = "imtune's SfM reconstruction (tune data build-gt, pycolmap; 4 of 4 images registered)"
 
 
@@ -97,7 +97,7 @@ def test_tune_results_and_table_name_the_ground_truth_in_their_caption(tested):
     caption = [ln for ln in table.splitlines() if ln.startswith("Table: ")]
     assert len(caption) == 1 and caption[0].endswith(f" Validation ground truth: fountain-P11: {OWN}."), table
     latex = tune("table", "--studies-dir", studies, "--format", "latex", env=env).stdout
-    assert "Validation ground truth: fountain-P11: the scene's own poses (Strecha's laser-scan cameras)." in latex
+    assert "Validation ground truth: fountain-P11: the scene's own poses (the camera files of its Strecha-layout folder)." in latex
     rows = json.loads(tune("results", "--studies-dir", studies, "--format", "json", env=env).stdout)
     assert [r["ground truth"] for r in rows] == [f"herz: {SFM}"], rows
     rows = json.loads(tune("table", "--studies-dir", studies, "--format", "json", env=env).stdout)
