@@ -434,6 +434,9 @@ def frozen_table(f: dict) -> str:
     rows.append({"parameter": f"validation {task.objective}",
                  "value": with_ci(obj, v.get(f"{task.objective}_ci")) if obj is not None else _fmt(obj),
                  "": f"{task.name}: {others}"})
+    from tuner.formatting import TERMINAL_WIDTH, wrapped_cell_rows
+    room = TERMINAL_WIDTH - 10 - sum(max(len(str(r[c])) for r in rows + [{c: c}]) for c in ("parameter", "value"))
+    rows = wrapped_cell_rows(rows, "", max(30, room))  # the notes continue on rows of their own: 100 columns
     return render(rows, "markdown", ["parameter", "value", ""]) + _frozen_notes(f)
 
 
@@ -458,8 +461,9 @@ def _frozen_notes(f: dict) -> str:
             # most trials tie with the best: which one wins is noise, and a noise pick can fail on the test scenes
             lines.append(f"the optimum is flat ({flat['trials']} of {flat['of']} trials tie with the best within its "
                          f"interval): `tune test --study {f.get('study')} --select one-se` freezes the trial at the "
-                         "centre of the tied ones instead (docs/statistics.md: the selection rule)")
-    return ("\n" + "\n".join(lines)) if lines else ""
+                         "centre of the tied ones instead (the selection rules: How sure a number is, in the docs)")
+    from tuner.formatting import fit_text
+    return ("\n" + "\n".join(fit_text(x) for x in lines)) if lines else ""
 
 
 def test_table(t: dict) -> str:
@@ -503,7 +507,10 @@ def test_table(t: dict) -> str:
     origin = ground_truth_text((t.get("data") or {}).get("ground_truth"))
     tail.append(f"ground truth: {origin}" if origin else "ground truth: not recorded (a test.json written before imtune "
                 "recorded it: rerun `tune test` to record it)")
-    return head + ")\n" + render(rows, "markdown", cols) + "".join("\n" + x for x in tail)
+    from tuner.formatting import fit_text, render_fitted
+    # split by columns where the table would be wider than a terminal (each part keeps the scene column)
+    return (fit_text(head + ")") + "\n" + render_fitted(rows, cols)
+            + "".join("\n" + fit_text(x) for x in tail))
 
 
 # -- tune calibrate ---------------------------------------------------------------------------------
