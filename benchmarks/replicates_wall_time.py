@@ -10,7 +10,7 @@ replicated mean and interval).
     python benchmarks/replicates_wall_time.py                       # 2048 SIFT, 8 pairs per scene, 20 trials
     python benchmarks/replicates_wall_time.py --n-trials 50 --max-pairs 12
 
-Measured: see notes/h32run.md. Goal of the issue: K = 3 within twice the K = 1 time with frozen figures as good.
+Measured: see benchmarks/results/replicated-tunings-run.md. The target: K = 3 within twice the K = 1 time with frozen figures as good.
 """
 from __future__ import annotations
 

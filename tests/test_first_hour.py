@@ -281,7 +281,7 @@ def test_download_then_every_command_finds_it(user, tmp_path, server, data_home)
     out = json.loads(r.stdout)
     assert out["data"] == str(got) and out["rule"] == "download location"
     assert out["detail"] == ("$IMTUNE_DATA_HOME" if data_home else "~/.local/share/imtune/data")
-    # the measured default split (notes/h32data.md): fountain and Herz-Jesus validate, entry and castle test
+    # the measured default split (benchmarks/results/default-split-and-freeze-rules.md): fountain and Herz-Jesus validate, entry and castle test
     assert {s["scene"]: s["split"] for s in out["scenes"]} == {"fountain-P11": "val", "Herz-Jesus-P8": "val",
                                                                 "Herz-Jesus-P25": "val", "entry-P10": "test",
                                                                 "castle-P19": "test", "castle-P30": "test"}
