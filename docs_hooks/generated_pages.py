@@ -5,7 +5,8 @@
   command shows here on the next build.
 - ``plugins.md``: the features, estimators, pre-filters and tasks registered in this build's registries, each
   with its registry description: a new estimator appears in the table by being registered.
-- ``changelog.md``: CHANGELOG.md of the project root, as a page.
+- ``changelog.md`` and ``contributing.md``: CHANGELOG.md and CONTRIBUTING.md of the project root, as pages (their
+  links into ``docs/`` made relative to the site).
 """
 
 from __future__ import annotations
@@ -184,5 +185,11 @@ def registry_tables() -> str:
 def on_files(files, config):
     files.append(File.generated(config, "cli.md", content=cli_reference()))
     files.append(File.generated(config, "plugins.md", content=registry_tables()))
-    files.append(File.generated(config, "changelog.md", content=(ROOT / "CHANGELOG.md").read_text()))
+    for name in ("CHANGELOG.md", "CONTRIBUTING.md"):
+        files.append(File.generated(config, name.lower(), content=root_page(name)))
     return files
+
+
+def root_page(name: str) -> str:
+    """A Markdown file of the project root as a site page: its links to ``docs/PAGE.md`` become ``PAGE.md``."""
+    return re.sub(r"\]\(docs/", "](", (ROOT / name).read_text())

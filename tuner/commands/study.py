@@ -366,7 +366,8 @@ def run(args) -> int:
         print_outcome(out)
         if out.get("test"):
             from pipeline.metrics.replicates import NOT_MEASURED
-            print(f"tuning: 1 replicate: {NOT_MEASURED} (--replicates 3 measures it)")
+            from tuner.formatting import fit_text
+            print(fit_text(f"tuning: 1 replicate: {NOT_MEASURED} (--replicates 3 measures it)"))
     return 0
 
 
