@@ -813,7 +813,8 @@ def run_studies(args) -> int:
                 and (k != "infeasible" or any(r["infeasible"] is not None for r in rows))]
         if any("_cell" in r for r in rows):
             cols.append("ground truth")
-        print(render([{**r, "ground truth": r.get("_cell")} for r in rows], "markdown", cols))
+        from tuner.formatting import render_fitted  # split by columns to fit a terminal, the study in each part
+        print(render_fitted([{**r, "ground truth": r.get("_cell")} for r in rows], cols))
     else:
         print("no studies", file=sys.stderr)
     if foreign and not args.json:
