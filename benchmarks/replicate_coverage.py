@@ -1,4 +1,4 @@
-"""Does the replicated interval of a tuned difference cover the truth? A simulation with known truth (issue 32).
+"""Does the replicated interval of a tuned difference cover the truth? A simulation with known truth.
 
 Two configurations A and B are each tuned over (r, eta, Gamma) -- here the unit cube, x = (r, log eta, log Gamma)
 rescaled -- on a synthetic response surface with noisy validation pairs, frozen at the validation optimum and

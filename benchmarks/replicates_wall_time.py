@@ -1,4 +1,4 @@
-"""Wall time of a replicated tuning (K = 3) against today's single one (K = 1), side by side in one run (issue 32).
+"""Wall time of a replicated tuning (K = 3) against today's single one (K = 1), side by side in one run.
 
 Each configuration is the real `tune run` command (a subprocess, as a user runs it) on the same small job, each in
 its own studies folder, all sharing one feature / k-NN cache that a warm-up run fills first (so no row pays for

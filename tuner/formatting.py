@@ -227,9 +227,17 @@ def render(rows: list[dict], fmt: str = "markdown", columns: list[str] | None = 
 TERMINAL_WIDTH = 100
 
 
-def fit_text(text: str, width: int = TERMINAL_WIDTH) -> str:
-    """A line of prose in lines of at most ``width`` characters (the continuation indented by two), words whole."""
+def fit_text(text: str, width: int | None = None) -> str:
+    """A line of prose as a terminal shows it best: on a terminal, in lines of at most ``width`` characters
+    (default: the terminal's width, at most :data:`TERMINAL_WIDTH`; the continuation indented by two, words whole);
+    into a pipe or a file, one line as before, so that what reads the output line by line keeps working."""
+    import shutil
+    import sys
     import textwrap
+    if width is None:
+        if not sys.stdout.isatty():
+            return text
+        width = min(TERMINAL_WIDTH, shutil.get_terminal_size((TERMINAL_WIDTH, 24)).columns)
     if len(text) <= width:
         return text
     return "\n".join(textwrap.wrap(text, width=width, subsequent_indent="  ", break_long_words=False,
