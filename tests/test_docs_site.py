@@ -405,3 +405,22 @@ def test_no_cli_message_names_a_source_file():
             if isinstance(n, ast.Constant) and isinstance(n.value, str) and id(n) not in docs and pat.search(n.value):
                 found.append(f"{f.relative_to(ROOT)}:{n.lineno}: {n.value[:100]}")
     assert not found, found
+
+
+def test_every_option_has_a_help_text():
+    """`--test-runs` had an empty help text, `tune dashboard --port` and `tune studies --json` too: in the CLI
+    reference their rows said nothing."""
+    import argparse
+
+    from tuner.cli import build_parser
+    todo, empty, seen = [("tune", build_parser())], [], 0
+    while todo:
+        name, p = todo.pop()
+        for a in p._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                todo += [(f"{name} {k}", sp) for k, sp in a.choices.items()]
+            elif a.option_strings and a.help is not argparse.SUPPRESS:
+                seen += 1
+                if not (a.help or "").strip():
+                    empty.append(f"{name} {a.option_strings[0]}")
+    assert seen > 200 and not empty, empty

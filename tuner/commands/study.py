@@ -255,7 +255,7 @@ def register(sub) -> None:
 
     d = sub.add_parser("dashboard", help="serve optuna-dashboard on the storage (127.0.0.1)")
     _storage_opts(d)
-    d.add_argument("--port", type=int, default=8080)
+    d.add_argument("--port", type=int, default=8080, help="port of the dashboard's web server (default 8080)")
     d.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
     d.set_defaults(func=run_dashboard)
 
@@ -267,7 +267,8 @@ def register(sub) -> None:
     ex.set_defaults(func=run_export)
     ls = sub.add_parser("studies", help="list the studies in a storage")
     _storage_opts(ls)
-    ls.add_argument("--json", action="store_true")
+    ls.add_argument("--json", action="store_true", help="print a JSON list, one object per study, with the whole "
+                                                        "ground-truth phrases")
     ls.set_defaults(func=run_studies)
 
 
