@@ -147,8 +147,9 @@ def cli_reference() -> str:
     _PARSERS.update({tuple(p): ap for p, ap in commands})
     out = ["# CLI reference", "",
            "Every `tune` command with its options, generated from the parsers `tune` itself builds when this "
-           "site is built: the same options, defaults and help as `tune COMMAND -h` prints. `tune` with an option "
-           "first and no command runs `tune run` (the main job).", ""]
+           "site is built: the same options, defaults and help as `tune COMMAND -h` prints (`tune run -h` describes "
+           "the options most people set and names the others, which `tune run --help-all` describes). `tune` with "
+           "an option first and no command runs `tune run` (the main job).", ""]
     out += [f"- [`{' '.join(p)}`](#{'-'.join(p)})" for p, _ in commands]
     for path, parser in commands:
         out += command_section(path, parser)

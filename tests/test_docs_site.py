@@ -424,3 +424,26 @@ def test_every_option_has_a_help_text():
                 if not (a.help or "").strip():
                     empty.append(f"{name} {a.option_strings[0]}")
     assert seen > 200 and not empty, empty
+
+
+def test_run_help_describes_what_most_people_set_and_names_the_rest():
+    """`tune run -h` was 232 lines, ~60 options in one wall of text: it now describes what most people set and
+    names the less used options in one paragraph; `--help-all` describes every one, and every option is still
+    accepted."""
+    from tuner.commands.study import RUN_LESS_USED
+    short, full = tune("run", "-h"), tune("run", "--help-all")
+    assert short.returncode == 0 and full.returncode == 0, short.stderr + full.stderr
+    s, f = short.stdout, full.stdout
+    assert len(s.splitlines()) < 140 < len(f.splitlines()), (len(s.splitlines()), len(f.splitlines()))
+    for opt in ("--feature FEATURE", "--num-features NUM_FEATURES", "--ransac RANSAC", "--n-trials N_TRIALS",
+                "--budget BUDGET", "--studies-dir STUDIES_DIR", "--replicates K"):
+        assert opt in s and opt in f, opt
+    head, tail = s.split("less used options", 1)
+    named = re.findall(r"--[\w-]+", tail)
+    for opt in RUN_LESS_USED:
+        described = re.compile(rf"^\s+{re.escape(opt)}(\s|,|$)", re.M)  # an option's line of the help
+        assert opt in named and described.search(f), opt  # named by -h, described by --help-all
+        assert not described.search(head), opt  # not described by -h
+    assert "--fginn" in tail and "FGINN: 2nd neighbour" in f and "FGINN: 2nd neighbour" not in s
+    from tests.test_docs_commands import check_line
+    assert check_line(["run", "--fginn", "--confidence", "0.99", "--bags", "5:2"]) == []

@@ -138,7 +138,7 @@ def test_every_option_help_shows_its_default():
 
 
 def test_run_help_shows_defaults(user):
-    r = tune("run", "-h", env=user)
+    r = tune("run", "--help-all", env=user)  # `-h` names the less used options; --help-all describes every one
     assert r.returncode == 0, r.stderr
     flat = " ".join(r.stdout.split())
     for s in ("--confidence CONFIDENCE RANSAC confidence tau (the protocol fixes 0.999999) (default: 0.999999)",
@@ -169,7 +169,7 @@ def test_pipeline_options_help_says_units_and_real_defaults(user):
     3 for SIFT, 6 for the learned ones), "--scenes SCENES ... (default: none)" (every scene for evaluate, the
     validation split for run) and bare "--distance-threshold ... (default: none)", "--clahe ... (default: none)",
     "--confidence ..." with no unit or meaning."""
-    flat = {c: " ".join(tune(c, "-h", env=user).stdout.split()) for c in ("evaluate", "run")}
+    flat = {c: " ".join(tune(c, h, env=user).stdout.split()) for c, h in (("evaluate", "-h"), ("run", "--help-all"))}
     for c, text in flat.items():
         for s in ("descriptor support scale (SIFT mrSize: the patch is 4 x mr_size sigmas) (default: the "
                   "descriptor's own, 3 for SIFT, 6 for the learned ones)",

@@ -107,6 +107,18 @@ def _select_opts(g) -> None:
                         "Gamma 50k with the study's feature and estimator)")
 
 
+#: the options of `tune run` that `tune run -h` only names (`tune run --help-all` and the CLI reference describe
+#: them): ablations of the pipeline, the multiview task's, the intervals', and the study's fine controls
+RUN_LESS_USED = [
+    "--no-low-threshold", "--upright", "--upright-plus", "--clahe", "--mr-size", "--max-side", "--feature-option",
+    "--matcher", "--distance-threshold", "--fginn", "--prefilter", "--matches", "--confidence", "--covisibility",
+    "--cache", "--warm-start", "--startup-trials", "--test-budget", "--chunk-pairs", "--heartbeat",
+    "--calibration-pairs", "--recalibrate", "--retest", "--verbose", "--reference", "--pareto-span", "--terminate",
+    "--bags", "--bag-min-points", "--bag-seed", "--mv-intrinsics", "--workers", "--keep-models", "--gt-dir", "--ci",
+    "--ci-resamples",
+]
+
+
 def register(sub) -> None:
     from tuner.options import add_jobs_option, add_multiview_options, task_choices
     from tuner.samplers import DEFAULT_PRUNER, PRUNERS, SAMPLERS
@@ -184,6 +196,8 @@ def register(sub) -> None:
     add_jobs_option(t)
     from tuner.cli import RESUME_NOTE
     ap.set_defaults(func=run, on_interrupt=RESUME_NOTE)
+    if hasattr(ap, "set_less_used"):  # `tune run -h`: what most people set; `tune run --help-all`: everything
+        ap.set_less_used(RUN_LESS_USED)
 
     c = sub.add_parser("calibrate", help="measure estimator CPU seconds per pair vs max-iters; store Gamma_max(B)")
     add_pipeline_options(c, tuning=True)
