@@ -447,3 +447,29 @@ def test_run_help_describes_what_most_people_set_and_names_the_rest():
     assert "--fginn" in tail and "FGINN: 2nd neighbour" in f and "FGINN: 2nd neighbour" not in s
     from tests.test_docs_commands import check_line
     assert check_line(["run", "--fginn", "--confidence", "0.99", "--bags", "5:2"]) == []
+
+
+def test_a_docs_extra_serves_the_site_without_the_test_packages():
+    """mkdocs came only with the lint extra, which `install.sh --test` installs beside Debian packages through
+    apt and sudo: a reader could not serve the site without them."""
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11+
+    extras = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    names = {re.split(r"[<>=\[ ]", d, maxsplit=1)[0] for d in extras["docs"]}
+    assert {"mkdocs", "mkdocs-material", "mkdocstrings"} <= names, names
+    script = (ROOT / ".ci" / "install.sh").read_text()
+    assert "--docs) DOCS=1" in script and "'.[docs]'" in script
+    docs_branch = script.split('elif [ "$DOCS" -eq 1 ]; then', 1)[1].split("else", 1)[0]
+    assert "apt-get" not in docs_branch and "SUDO" not in docs_branch
+    r = subprocess.run(["bash", str(ROOT / ".ci" / "install.sh"), "--help"], capture_output=True, text=True)
+    assert r.returncode == 0 and "--docs" in r.stdout
+    assert "bash .ci/install.sh --docs" in (ROOT / "README.md").read_text()
+
+
+def test_a_strecha_layout_scene_is_not_called_laser_scanned():
+    """`tune test` on a KITTI sequence, the Middlebury temple or an IMC scene in the Strecha layout said "the scene's
+    own poses (Strecha's laser-scan cameras)": the layout tells only that each image has a camera file."""
+    from pipeline.data.scene import Scene
+    scene = Scene(name="kitti-00", root=ROOT, images={}, source="strecha")
+    origin = scene.truth_origin()
+    assert origin == "the scene's own poses (the camera files of its Strecha-layout folder)", origin
+    assert "laser" not in origin.lower()
