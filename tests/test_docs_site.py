@@ -3,7 +3,8 @@
 The site is built once (`mkdocs build --strict`, the venv's mkdocs) and then
 
 - opened in headless Chromium at 1400 px (the Debian chromium + chromedriver the dashboard test drives): no code
-  block or table of the CLI reference is wider than its column (nothing cut off on the right), and no page has a
+  block or table of the CLI reference is wider than its column (nothing cut off on the right), no code block of
+  any page is (the 100-column terminal output the pages quote fits), and no page has a
   paragraph holding a line that starts with "- " or "| " (a list or a table that Markdown did not render, for want
   of a blank line before it);
 - checked for every link of README.md: each one that is not an outside address resolves to a page (and anchor) of
@@ -114,7 +115,7 @@ def test_the_cli_reference_shows_options_as_tables(site):
 OVERFLOW_JS = """
 const main = document.querySelector('.md-content') || document.body;
 const out = [];
-for (const el of main.querySelectorAll('pre, table')) {
+for (const el of main.querySelectorAll(arguments[0] || 'pre, table')) {
   // a table sits in Material's scroll wrapper: what matters is whether the wrapper has to scroll
   const box = el.tagName === 'TABLE' ? (el.closest('.md-typeset__scrollwrap') || el.parentElement) : el;
   if (box.scrollWidth > box.clientWidth + 1) {
@@ -164,6 +165,19 @@ def test_no_code_block_or_table_of_the_cli_reference_overflows_at_1400px(site, b
     n = browser.execute_script("return document.querySelectorAll('.md-content pre, .md-content table').length")
     assert n > 20, n  # the page has its tables: an empty page would pass
     assert browser.execute_script(OVERFLOW_JS) == []
+
+
+@NEEDS_BROWSER
+def test_no_code_block_of_any_page_overflows_at_1400px(site, browser):
+    """The pages quote 100-column terminal output: the content column is as wide as the window (a stylesheet;
+    Material's default fitted ~82 characters), so no code block scrolls. (Wide tables of figures may scroll.)"""
+    bad = {}
+    for page in site_pages(site):
+        browser.get(page.as_uri())
+        found = browser.execute_script(OVERFLOW_JS, "pre")
+        if found:
+            bad[str(page.relative_to(site))] = found
+    assert not bad, bad
 
 
 @NEEDS_BROWSER
