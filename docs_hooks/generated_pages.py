@@ -99,6 +99,11 @@ def command_section(path: list[str], parser: argparse.ArgumentParser) -> list[st
         help_of = next((a.help for a in _parent_choices(path) if a.dest == path[-1]), None)
         if help_of:
             out += [_md_keep_code(help_of[0].upper() + help_of[1:]) + ".", ""]
+    less = getattr(parser, "less_used", None)
+    if less:
+        out += [f"`{name} -h` describes the options most people set and only names the less used ones "
+                f"({', '.join(f'`{o}`' for o in less)}); `{name} --help-all` describes them all, as the tables below "
+                "do.", ""]
     if sub:
         out += ["| command | what it does |", "|---|---|"]
         helps = {a.dest: a.help for a in _choices_actions(parser)}
