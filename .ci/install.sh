@@ -8,14 +8,19 @@
 #                                browser test) and postgresql (the multi-worker tests start their own server on
 #                                loopback), through apt-get (with sudo when not root), and the test extras
 #                                (pytest, selenium, psycopg2) and the checkers CI runs first (ruff, mypy).
+#   bash .ci/install.sh --docs   the Python side plus what the documentation site needs (mkdocs, mkdocs-material,
+#                                mkdocstrings: the `docs` extra); no sudo, no system package. Then
+#                                `.venv/bin/mkdocs serve` serves the site on http://127.0.0.1:8000.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 TEST=0
+DOCS=0
 for arg in "$@"; do
   case "$arg" in
     --test) TEST=1 ;;
-    -h|--help) sed -n '2,10p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
-    *) echo "install.sh: unknown option '$arg' (use --test, or nothing for the Python side only)" >&2; exit 2 ;;
+    --docs) DOCS=1 ;;
+    -h|--help) sed -n '2,13p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    *) echo "install.sh: unknown option '$arg' (use --test, --docs, or nothing for the Python side only)" >&2; exit 2 ;;
   esac
 done
 
@@ -41,14 +46,17 @@ if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv || { echo "install.sh: '$PY -m venv' failed: Debian needs the python3-venv package" >&2; exit 2; }
 fi
 .venv/bin/python -m pip install -q --upgrade pip
-# torch first, pinned: torch==2.13.0 is the CPU build (2.13.0+cpu) that lies on this machine kind's disk, where pip
-# finds it without downloading; any other spec, including the project's own `torch>=2.2` alone, makes pip download
-# a multi-GB CUDA build instead. Installed first, it already satisfies `torch>=2.2`. (TORCH_SPEC overrides it, e.g.
+# torch first, pinned: torch==2.13.0 is the CPU build (2.13.0+cpu), found in the local wheel index of the CI machines
+# without a download; any other spec, including the project's own `torch>=2.2` alone, makes pip download a multi-GB
+# CUDA build instead. Installed first, it already satisfies `torch>=2.2`. (TORCH_SPEC overrides it, e.g.
 # on a machine with a GPU.)
 .venv/bin/python -m pip install -q "${TORCH_SPEC:-torch==2.13.0}"
 if [ "$TEST" -eq 1 ]; then
   .venv/bin/python -m pip install -q -e '.[test,lint]'
   echo "imtune and its test tools installed in $(pwd)/.venv"
+elif [ "$DOCS" -eq 1 ]; then
+  .venv/bin/python -m pip install -q -e '.[docs]'
+  echo "imtune and its documentation tools installed in $(pwd)/.venv (serve the site: .venv/bin/mkdocs serve)"
 else
   .venv/bin/python -m pip install -q -e .
   echo "imtune installed in $(pwd)/.venv"

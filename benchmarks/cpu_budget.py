@@ -1,4 +1,4 @@
-"""The budget's clock beside CPU-bound neighbours (issue 31): per-cap median estimator seconds and Gamma_max(B),
+"""The budget's clock beside CPU-bound neighbours: per-cap median estimator seconds and Gamma_max(B),
 measured quiet and beside CPU hogs in one run, in CPU time (what the budget bounds) and in wall time.
 
 For each estimator and each --jobs setting, the calibration matches (the ones `tune calibrate` times: validation

@@ -1,5 +1,5 @@
 """Per-pair time and accuracy of the calibrated E estimators (and SupeRANSAC F) against DEGENSAC's F -> E, at the
-same iteration budget, side by side in one run (issue 33).
+same iteration budget, side by side in one run.
 
 Every estimator sees the same tentative matches (SIFT, ``--num-features`` per image, ratio 0.85, mutual NN) of the
 same pairs of one Strecha scene, the same confidence (0.999999) and the same iteration cap Gamma (``--iters``); each

@@ -1,4 +1,4 @@
-"""Multiview benchmark (issue 4 targets): ground truth from known poses, and the multiview evaluation of a
+"""Multiview benchmark: ground truth from known poses, and the multiview evaluation of a
 scene with all its bags, serial vs parallel.
 
     python benchmarks/multiview.py                       # fountain-P11, 8k SIFT, all bags, workers 1 and 2

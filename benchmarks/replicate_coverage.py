@@ -1,4 +1,4 @@
-"""Does the replicated interval of a tuned difference cover the truth? A simulation with known truth (issue 32).
+"""Does the replicated interval of a tuned difference cover the truth? A simulation with known truth.
 
 Two configurations A and B are each tuned over (r, eta, Gamma) -- here the unit cube, x = (r, log eta, log Gamma)
 rescaled -- on a synthetic response surface with noisy validation pairs, frozen at the validation optimum and
@@ -22,7 +22,7 @@ interval (replicate 1 of each: K = 1, the pair interval alone: what `tune compar
     python benchmarks/replicate_coverage.py                   # 300 comparisons, random search
     python benchmarks/replicate_coverage.py --sims 200 --sampler tpe
 
-Measured: see notes/h32run.md (and the printed table).
+Measured: see benchmarks/results/replicated-tunings-run.md (and the printed table).
 """
 from __future__ import annotations
 

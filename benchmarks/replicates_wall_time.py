@@ -1,4 +1,4 @@
-"""Wall time of a replicated tuning (K = 3) against today's single one (K = 1), side by side in one run (issue 32).
+"""Wall time of a replicated tuning (K = 3) against today's single one (K = 1), side by side in one run.
 
 Each configuration is the real `tune run` command (a subprocess, as a user runs it) on the same small job, each in
 its own studies folder, all sharing one feature / k-NN cache that a warm-up run fills first (so no row pays for
@@ -10,7 +10,7 @@ replicated mean and interval).
     python benchmarks/replicates_wall_time.py                       # 2048 SIFT, 8 pairs per scene, 20 trials
     python benchmarks/replicates_wall_time.py --n-trials 50 --max-pairs 12
 
-Measured: see notes/h32run.md. Goal of the issue: K = 3 within twice the K = 1 time with frozen figures as good.
+Measured: see benchmarks/results/replicated-tunings-run.md. The target: K = 3 within twice the K = 1 time with frozen figures as good.
 """
 from __future__ import annotations
 

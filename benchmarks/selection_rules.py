@@ -23,7 +23,7 @@ fold-by-fold difference to the winner with an exact sign-flip p. A fold's Gamma_
 calibration, so two runs of the same seed are different studies (their folds are pooled as separate folds).
 ``--json`` is rewritten after every fold (an interrupted run keeps what it measured).
 
-Measured: notes/h32data.md (December 2026, six scenes) and, for the three scenes of before, the README's
+Measured: benchmarks/results/default-split-and-freeze-rules.md (December 2026, six scenes) and, for the earlier three-scene data (before December 2026), the docs'
 "How sure a number is" (15 folds: best 0.678, one-se 0.671, smooth 0.650).
 """
 from __future__ import annotations

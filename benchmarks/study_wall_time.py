@@ -1,4 +1,4 @@
-"""Wall time of the default study, serial vs every core, and the pruners compared (issue 10).
+"""Wall time of the default study, serial vs every core, and the pruners compared.
 
 Part 1 runs the README's main job (`tune --feature sift --ransac degensac`: 8k SIFT, DEGENSAC, 50 trials, the
 default data, then the 3 test runs) from a cold cache, once with ``--jobs 1`` and once with all cores, one after

@@ -48,7 +48,7 @@ def test_real_shared_folders():
     # all six Strecha scenes since December 2026 (../shared/data/README.md), listed in sorted order
     six = ["Herz-Jesus-P25", "Herz-Jesus-P8", "castle-P19", "castle-P30", "entry-P10", "fountain-P11"]
     assert list_scenes(SHARED / "strecha") == six
-    # the measured default split (issue 32, notes/h32data.md): the fountain and Herz-Jesus (P8, P25) families
+    # the measured default split (benchmarks/results/default-split-and-freeze-rules.md): the fountain and Herz-Jesus (P8, P25) families
     # validate, entry and castle (P19, P30) test; written out, not read from STRECHA_VAL
     assert default_splits(SHARED / "strecha") == {"val": ["fountain-P11", "Herz-Jesus-P8", "Herz-Jesus-P25"],
                                                   "test": ["castle-P19", "castle-P30", "entry-P10"]}

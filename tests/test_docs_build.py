@@ -42,7 +42,7 @@ def test_docs_build_fails_on_a_broken_link(tmp_path):
     needs_mkdocs()
     copy = tmp_path / "copy"
     copy.mkdir()
-    for name in ("mkdocs.yml", "CHANGELOG.md"):
+    for name in ("mkdocs.yml", "CHANGELOG.md", "CONTRIBUTING.md"):
         shutil.copy(ROOT / name, copy / name)
     for name in ("docs", "docs_hooks", "pipeline", "tuner", "search_spaces"):
         shutil.copytree(ROOT / name, copy / name, ignore=shutil.ignore_patterns("__pycache__"))

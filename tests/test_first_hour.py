@@ -138,7 +138,7 @@ def test_every_option_help_shows_its_default():
 
 
 def test_run_help_shows_defaults(user):
-    r = tune("run", "-h", env=user)
+    r = tune("run", "--help-all", env=user)  # `-h` names the less used options; --help-all describes every one
     assert r.returncode == 0, r.stderr
     flat = " ".join(r.stdout.split())
     for s in ("--confidence CONFIDENCE RANSAC confidence tau (the protocol fixes 0.999999) (default: 0.999999)",
@@ -169,7 +169,7 @@ def test_pipeline_options_help_says_units_and_real_defaults(user):
     3 for SIFT, 6 for the learned ones), "--scenes SCENES ... (default: none)" (every scene for evaluate, the
     validation split for run) and bare "--distance-threshold ... (default: none)", "--clahe ... (default: none)",
     "--confidence ..." with no unit or meaning."""
-    flat = {c: " ".join(tune(c, "-h", env=user).stdout.split()) for c in ("evaluate", "run")}
+    flat = {c: " ".join(tune(c, h, env=user).stdout.split()) for c, h in (("evaluate", "-h"), ("run", "--help-all"))}
     for c, text in flat.items():
         for s in ("descriptor support scale (SIFT mrSize: the patch is 4 x mr_size sigmas) (default: the "
                   "descriptor's own, 3 for SIFT, 6 for the learned ones)",
@@ -281,7 +281,7 @@ def test_download_then_every_command_finds_it(user, tmp_path, server, data_home)
     out = json.loads(r.stdout)
     assert out["data"] == str(got) and out["rule"] == "download location"
     assert out["detail"] == ("$IMTUNE_DATA_HOME" if data_home else "~/.local/share/imtune/data")
-    # the measured default split (notes/h32data.md): fountain and Herz-Jesus validate, entry and castle test
+    # the measured default split (benchmarks/results/default-split-and-freeze-rules.md): fountain and Herz-Jesus validate, entry and castle test
     assert {s["scene"]: s["split"] for s in out["scenes"]} == {"fountain-P11": "val", "Herz-Jesus-P8": "val",
                                                                 "Herz-Jesus-P25": "val", "entry-P10": "test",
                                                                 "castle-P19": "test", "castle-P30": "test"}

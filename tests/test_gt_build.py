@@ -290,11 +290,11 @@ def test_sfm_ground_truth_on_a_posed_scene_says_it_replaces_the_scenes_poses(tmp
     scene = load_scene(data, "fountain-P11")
     assert attach_ground_truth(scene, tmp_path / "gt-sfm")
     assert scene.truth_origin() == ("imtune's SfM reconstruction (tune data build-gt, pycolmap; 4 of 4 images "
-                                    "registered), in place of the scene's own poses (Strecha's laser-scan cameras)")
+                                    "registered), in place of the scene's own poses (the camera files of its Strecha-layout folder)")
     scene = load_scene(data, "fountain-P11")
-    assert scene.truth_origin() == "the scene's own poses (Strecha's laser-scan cameras)"  # nothing built attached
+    assert scene.truth_origin() == "the scene's own poses (the camera files of its Strecha-layout folder)"  # nothing built attached
     assert attach_ground_truth(scene, tmp_path / "gt-auto")
-    assert scene.truth_origin() == ("the scene's own poses (Strecha's laser-scan cameras); co-visibility from 3D "
+    assert scene.truth_origin() == ("the scene's own poses (the camera files of its Strecha-layout folder); co-visibility from 3D "
                                     "points triangulated with them (tune data build-gt)")
 
 

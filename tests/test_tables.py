@@ -166,9 +166,12 @@ def test_tune_test_table_shows_each_scenes_seconds(tmp_path):
              "--reference", "none", "--ci", "none", "--jobs", "1", "--quiet", env={"IMTUNE_CACHE": str(tmp_path / "c")})
     assert r.returncode == 0, r.stderr[-2000:]
     lines = r.stdout.splitlines()
-    head = next(ln for ln in lines if ln.startswith("| scene"))
-    row = next(ln for ln in lines if ln.startswith("| fountain-P11"))
-    cells = dict(zip([c.strip() for c in head.split("|")], [c.strip() for c in row.split("|")]))
+    assert max(len(ln) for ln in lines if ln.startswith("|")) <= 100, r.stdout  # split by columns, scene in each
+    heads = [ln for ln in lines if ln.startswith("| scene")]
+    rows = [ln for ln in lines if ln.startswith("| fountain-P11")]
+    cells = {}
+    for head, row in zip(heads, rows):
+        cells.update(zip([c.strip() for c in head.split("|")], [c.strip() for c in row.split("|")]))
     for col in ("match_seconds", "ransac_seconds"):
         assert cells[col] not in ("-", "") and float(cells[col]) >= 0, (col, row)
     t = json.loads((sdir / "X" / "test.json").read_text())
@@ -235,6 +238,19 @@ def test_a_quick_study_beside_the_main_one_does_not_replace_its_settings():
     assert rows[0]["studies"]["degensac"]["study"] == "b"
 
 
+def frozen_row(text: str, name: str) -> str:
+    """The row of the frozen table named ``name``, its note's continuation rows (empty first cell) joined to it."""
+    lines = text.splitlines()
+    i = next(k for k, ln in enumerate(lines) if ln.startswith(f"| {name} "))
+    out = [lines[i].rstrip(" |")]
+    for ln in lines[i + 1:]:
+        cells = ln.split("|")
+        if not ln.startswith("|") or cells[1].strip():
+            break
+        out.append(cells[-2].strip())
+    return " ".join(x.strip() for x in out)
+
+
 def test_frozen_table_states_the_budget_statistic_of_the_frozen_trial():
     """The frozen-settings table printed "budget | 0.5 s/pair" and, in the validation row, "ransac_seconds 0.5769"
     (the mean over pairs) for a trial within budget: the budget is on the median (0.3415 s here), which the table
@@ -248,8 +264,9 @@ def test_frozen_table_states_the_budget_statistic_of_the_frozen_trial():
                         "NM": 1437.3, "NI": 1282.8, "failed": 0, "match_seconds": 0.0932, "ransac_seconds": 0.5769,
                         "ransac_seconds_median": 0.3415, "ransac_seconds_p90": 1.607}}
     text = frozen_table(f)
-    budget = next(ln for ln in text.splitlines() if ln.startswith("| budget"))
+    budget = frozen_row(text, "budget")
     assert "median 0.342 s/pair" in budget and "mean 0.577" in budget, budget
+    assert max(len(ln) for ln in text.splitlines() if ln.startswith("|")) <= 100, text  # notes on rows of their own
 
 
 def test_a_study_with_another_strategy_or_pinned_settings_gets_its_own_row():
@@ -295,7 +312,7 @@ def test_frozen_table_rounds_the_validation_figures_as_every_table_does():
          "validation": {"mAA10": 0.85091, "mAA10_ci": [0.75254, 0.94], "mAA5": 0.84727, "pairs": 55, "NF": 8000.0,
                         "NM": 1437.3, "NI": 1282.8, "failed": 0, "match_seconds": 0.093162, "ransac_seconds": 0.57693,
                         "ransac_seconds_median": 0.3415}}
-    row = next(ln for ln in frozen_table(f).splitlines() if ln.startswith("| validation mAA10"))
+    row = frozen_row(frozen_table(f), "validation mAA10")
     assert "0.851 [0.753, 0.940]" in row and "mAA5 0.847," in row, row
     assert "match_seconds 0.0932," in row and "NM 1437," in row, row
 

@@ -80,10 +80,52 @@ class _TopFormatter(argparse.RawDescriptionHelpFormatter, _HelpFormatter):
     """The top-level help keeps the examples' layout."""
 
 
+class _HelpAllAction(argparse.Action):
+    """``--help-all``: the help with every option described, the less used ones included."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        parser.print_help(full=True)
+        parser.exit(0)
+
+
 class _Parser(argparse.ArgumentParser):
     def __init__(self, *args, **kwargs):
         kwargs.setdefault("formatter_class", _HelpFormatter)
         super().__init__(*args, **kwargs)
+        self.less_used: list[str] = []  # options `-h` names in one paragraph; `--help-all` describes them
+
+    def set_less_used(self, options: list[str]) -> None:
+        """``-h`` describes what most people set and names these options in one paragraph at the end;
+        ``--help-all`` describes every option. Every option is accepted either way."""
+        known = {s for a in self._actions for s in a.option_strings}
+        missing = [o for o in options if o not in known]
+        if missing:
+            raise ValueError(f"{self.prog}: no such options {missing}")
+        self.less_used = list(options)
+        self.add_argument("--help-all", action=_HelpAllAction, help="show every option, the less used ones too")
+
+    def format_help(self, full: bool = False) -> str:
+        if full or not self.less_used:
+            return super().format_help()
+        hidden = [a for a in self._actions if set(a.option_strings) & set(self.less_used)]
+        saved = [a.help for a in hidden]
+        try:
+            for a in hidden:
+                a.help = argparse.SUPPRESS
+            text = super().format_help()
+        finally:
+            for a, h in zip(hidden, saved):
+                a.help = h
+        import textwrap
+        tail = textwrap.fill(f"less used options (`{self.prog} --help-all` describes them): "
+                             + ", ".join(self.less_used), width=min(100, _help_width()), break_on_hyphens=False)
+        return text.rstrip("\n") + "\n\n" + tail + "\n"
+
+    def print_help(self, file=None, full: bool = False):
+        self._print_message(self.format_help(full=full), file or sys.stdout)
 
     def error(self, message):  # one line, exit 2 (argparse's own usage dump is noise here)
         sys.stderr.write(f"tune: error: {message}\n")
@@ -113,6 +155,11 @@ class _Parser(argparse.ArgumentParser):
         noun = str(action.metavar or action.dest).lower().replace("_", " ").replace("-", " ")
         where = f"{'/'.join(action.option_strings)}: " if action.option_strings else ""
         self.error(f"{where}unknown {noun} {value!r}{hint} (choose from {', '.join(names)})")
+
+
+def _help_width() -> int:
+    import shutil
+    return shutil.get_terminal_size((100, 24)).columns - 2
 
 
 class _VersionAction(argparse.Action):

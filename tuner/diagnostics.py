@@ -129,12 +129,12 @@ def gamma_ceiling_warning(budget: dict, ceiling: int | None = None, over: int = 
     if int(gmax) < ceiling:
         return None
     b = budget.get("seconds_per_pair")
-    head = (f"Gamma_max = {_g(int(gmax))} is the search ceiling (tuner/budget.py GAMMA_CEILING): the estimator "
+    head = (f"Gamma_max = {_g(int(gmax))} is the search ceiling (the largest iteration cap imtune searches): the estimator "
             f"stayed within the {_g(b) if b is not None else 'B'} s per pair budget at every cap measured")
     if over:  # "never bound Gamma" beside trials timed over B at their r / eta: the calibration's settings missed it
         return (f"{head} at the calibration's r and eta, yet {over} of {completed} completed trials ran over it at "
                 "their own: the budget binds at some settings and Gamma_max did not follow it (time it at a "
-                "smaller eta: a --space file whose 'calibration' section sets threshold, see tuner/space.py)")
+                "smaller eta: a --space file whose 'calibration' section sets threshold; see the Budgets page of the docs)")
     return (f"{head}, so the budget never bound Gamma (a faster machine, an estimator that stops early, or a loose "
             "--budget)")
 

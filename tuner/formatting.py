@@ -223,6 +223,57 @@ def render(rows: list[dict], fmt: str = "markdown", columns: list[str] | None = 
     return "\n".join(out)
 
 
+#: the terminal width the tables and notes `tune` prints keep to (characters per line)
+TERMINAL_WIDTH = 100
+
+
+def fit_text(text: str, width: int | None = None) -> str:
+    """A line of prose as a terminal shows it best: on a terminal, in lines of at most ``width`` characters
+    (default: the terminal's width, at most :data:`TERMINAL_WIDTH`; the continuation indented by two, words whole);
+    into a pipe or a file, one line as before, so that what reads the output line by line keeps working."""
+    import shutil
+    import sys
+    import textwrap
+    if width is None:
+        if not sys.stdout.isatty():
+            return text
+        width = min(TERMINAL_WIDTH, shutil.get_terminal_size((TERMINAL_WIDTH, 24)).columns)
+    if len(text) <= width:
+        return text
+    return "\n".join(textwrap.wrap(text, width=width, subsequent_indent="  ", break_long_words=False,
+                                    break_on_hyphens=False))
+
+
+def render_fitted(rows: list[dict], columns: list[str], width: int = TERMINAL_WIDTH, keep: int = 1,
+                  digits: int = 4) -> str:
+    """The markdown table, split by columns into tables of at most ``width`` characters (each repeating the first
+    ``keep`` columns, e.g. the scene): a table that fits is one table."""
+    def wide(cols: list[str]) -> int:
+        return max(len(ln) for ln in render(rows, "markdown", cols, digits).splitlines())
+    columns = list(columns)
+    chunks, chunk = [], columns[:keep]
+    for c in columns[keep:]:
+        if len(chunk) > keep and wide(chunk + [c]) > width:
+            chunks.append(chunk)
+            chunk = columns[:keep]
+        chunk = chunk + [c]
+    chunks.append(chunk)
+    return "\n\n".join(render(rows, "markdown", ch, digits) for ch in chunks)
+
+
+def wrapped_cell_rows(rows: list[dict], column: str, width: int) -> list[dict]:
+    """Rows whose ``column`` text is longer than ``width`` continued on rows of their own (other cells empty),
+    the text broken after a comma or a space, so that a table of notes fits a terminal."""
+    import textwrap
+    out = []
+    for r in rows:
+        text = str(r.get(column, "") or "")
+        parts = textwrap.wrap(text, width=width, break_long_words=False, break_on_hyphens=False) or [""]
+        out.append({**r, column: parts[0]})
+        out += [{**{k: "" for k in r}, column: part} for part in parts[1:]]
+    return out
+
+
 def gamma_max_text(gmax, fixed=None, unit: str = "") -> str:
     """``Gamma_max 48213`` (``unit`` appended, e.g. " iterations"), or what stands for it where no calibration was
     made (a study that fixed max_iters measures none: the frozen table and the report said 'Gamma_max None')."""

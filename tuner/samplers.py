@@ -8,7 +8,7 @@ from pipeline.errors import ImtuneError
 
 SAMPLERS = ("tpe", "random", "cmaes", "grid")
 PRUNERS = ("median", "sha", "hyperband", "none")
-DEFAULT_PRUNER = "hyperband"  # the fastest to the same frozen optimum in benchmarks/study_wall_time.py (README)
+DEFAULT_PRUNER = "hyperband"  # the fastest to the same frozen optimum in benchmarks/study_wall_time.py (docs/tuning.md)
 
 
 def quiet_optuna(verbose: bool = False):

@@ -31,8 +31,8 @@ Normalised space: each searched numeric parameter mapped to [0, 1] over its sear
 space says ``log: true``: eta and Gamma); categorical parameters (the strategy) are not coordinates.
 
 Which rule generalises best from validation to test was measured by ``benchmarks/selection_rules.py``:
-on the three Strecha scenes of before (leave-one-scene-out, 15 folds) best 0.678, one-se 0.671 (p 0.79), smooth
-0.650 (p 0.03); on the six scenes (December 2026, notes/h32data.md: 2048 SIFT, DEGENSAC, 14 trials; 24 leave-one-family-out and
+on the earlier three-scene Strecha data (leave-one-scene-out, 15 folds) best 0.678, one-se 0.671 (p 0.79), smooth
+0.650 (p 0.03); on the six scenes (December 2026, benchmarks/results/default-split-and-freeze-rules.md: 2048 SIFT, DEGENSAC, 14 trials; 24 leave-one-family-out and
 12 two-families-vs-two folds) mean held-out mAA(10) one-se 0.565, best 0.556, lower-bound 0.556, smooth 0.538;
 best - one-se -0.009 (sign-flip p 0.20), lower-bound - one-se -0.008 (p 0.24), smooth - one-se -0.027 (p 0.01).
 Best, one-se and lower-bound cannot be told apart (one-se's lead is within the noise and was a deficit of -0.008
@@ -48,7 +48,7 @@ import numpy as np
 from pipeline.errors import ImtuneError
 
 RULES = ("best", "one-se", "smooth", "lower-bound")
-DEFAULT_RULE = "best"  # benchmarks/selection_rules.py: no rule beats it measurably (notes/h32data.md, 36 folds)
+DEFAULT_RULE = "best"  # benchmarks/selection_rules.py: no rule beats it measurably (benchmarks/results/default-split-and-freeze-rules.md)
 SMOOTH_K = 5
 Z95 = 1.959963984540054  # normal quantile of 0.975: SE = half-width / Z95
 

@@ -44,7 +44,7 @@ STRECHA_FAMILIES: dict[str, tuple[str, ...]] = {
     "fountain": ("fountain-P11",), "entry": ("entry-P10",), "Herz-Jesus": ("Herz-Jesus-P8", "Herz-Jesus-P25"),
     "castle": ("castle-P19", "castle-P30")}
 #: The default Strecha split: these families validate, every other Strecha scene tests (entry-P10, castle-P19 / P30).
-#: MEASURED (benchmarks/selection_rules.py --folds halves, 2 seeds, notes/h32data.md "The default split"): of the six
+#: MEASURED (benchmarks/selection_rules.py --folds halves, 2 seeds, benchmarks/results/default-split-and-freeze-rules.md): of the six
 #: ways to validate on two families, fountain + Herz-Jesus is the only one whose tuned settings beat the paper
 #: defaults on the held-out pairs in both seeds (+0.080 [+0.032, +0.136] and +0.107 [+0.043, +0.175] mAA(10));
 #: fountain + entry (the other candidate) gave -0.006 and -0.073 [-0.135, -0.015].
@@ -52,7 +52,7 @@ STRECHA_VAL_FAMILIES = ("fountain", "Herz-Jesus")
 STRECHA_VAL = tuple(s for f in STRECHA_VAL_FAMILIES for s in STRECHA_FAMILIES[f])
 #: Pairs per scene the main job uses on the default Strecha split (evenly spread, deterministic: the stereo task's
 #: ``max_pairs``): 60 validation and 60 test pairs, so that six scenes (1,034 pairs) cost about what three (55 + 73
-#: pairs, ~15 min) did: notes/h32data.md, "The default main job's expected time".
+#: pairs, ~15 min) did: benchmarks/results/default-split-and-freeze-rules.md.
 STRECHA_MAX_PAIRS = 20
 
 

@@ -14,7 +14,9 @@ import numpy as np
 
 #: loader name -> where a scene of that format has its own ground-truth poses from (what reports name)
 OWN_POSES = {
-    "strecha": "Strecha's laser-scan cameras",
+    # what the layout tells (a camera file per image), not where the cameras came from: the layout also holds a
+    # KITTI sequence, the Middlebury temple or an IMC scene, whose cameras no laser scan measured
+    "strecha": "the camera files of its Strecha-layout folder",
     "imc_pt2020": "IMC-PT calibration files",
     "imc2022": "IMC 2022 calibration.csv",
     "colmap": "its COLMAP model",
@@ -78,7 +80,7 @@ class Scene:
 
     def truth_origin(self) -> str:
         """Where the poses this scene is evaluated against come from, one phrase for reports: the scene's own
-        (Strecha's laser-scan cameras, IMC-PT's calibration, a pairs list's relative poses) or imtune's SfM
+        (the camera files of the Strecha layout, IMC-PT's calibration, a pairs list's relative poses) or imtune's SfM
         reconstruction (`tune data build-gt`: an image folder, or ``--method sfm``); and what a built ground truth
         adds (co-visibility from its 3D points)."""
         own = OWN_POSES.get(self.source)

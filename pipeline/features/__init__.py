@@ -50,7 +50,7 @@ def _resolve_dynamic(name: str):
 EXTRACTORS.add_resolver(_resolve_dynamic)
 
 
-@EXTRACTORS.register("custom", "bring your own: --feature custom:DIR (IMC h5 import layout, docs/extending.md)")
+@EXTRACTORS.register("custom", "bring your own: --feature custom:DIR (IMC h5 import layout; see Extending in the docs)")
 class _CustomPlaceholder(Extractor):
     """Listed by `tune list`; the usable name is ``custom:DIR``."""
 

@@ -235,7 +235,7 @@ class CNe(Prefilter):
     @classmethod
     def check_available(cls) -> None:
         raise UnavailableError("cne needs trained weights that are not distributed with imtune; register a "
-                               "trained model as a Prefilter (docs/extending.md)")
+                               "trained model as a Prefilter (see Extending in the docs)")
 
     def filter(self, matches, ctx):  # pragma: no cover - never constructed
         raise NotImplementedError

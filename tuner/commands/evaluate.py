@@ -221,7 +221,8 @@ def run(args) -> int:
                 ci = (out[name].get("ci") or {})
                 note = task.note + (f"; [95% interval: {ci['method']}, {ci['resamples']} resamples]" if ci else "")
                 print(f"{name}: {note}" if note else name)
-                print(render(rows, "markdown", cols))
+                from tuner.formatting import render_fitted  # split by columns to fit a terminal, scene in each
+                print(render_fitted(rows, cols))
         if "intermediate" in out:
             im = out["intermediate"]
             rows = [dict(scene=n, **{k: s.get(k) for k in IM_COLUMNS[1:]}) for n, s in im["scenes"].items()]

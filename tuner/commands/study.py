@@ -100,11 +100,23 @@ def _select_opts(g) -> None:
                    help=f"which feasible trial is frozen: best (highest validation mAA), one-se (the centre of the "
                         f"trials within one standard error of the best), smooth (best of the surface averaged over "
                         f"neighbouring trials), lower-bound (highest lower end of the validation 95%% interval); "
-                        f"see tuner/select.py (default: the study's rule, else {DEFAULT_RULE})")
+                        f"see the docs' Tuning page (default: the study's rule, else {DEFAULT_RULE})")
     g.add_argument("--reference", default=None, metavar="FILE|STUDY|none",
                    help="configuration the test runs are compared with on the same pairs (paired bootstrap): a "
                         "config file or study, none to skip (default: the paper defaults r 0.85 both, eta 0.5 px, "
                         "Gamma 50k with the study's feature and estimator)")
+
+
+#: the options of `tune run` that `tune run -h` only names (`tune run --help-all` and the CLI reference describe
+#: them): ablations of the pipeline, the multiview task's, the intervals', and the study's fine controls
+RUN_LESS_USED = [
+    "--no-low-threshold", "--upright", "--upright-plus", "--clahe", "--mr-size", "--max-side", "--feature-option",
+    "--matcher", "--distance-threshold", "--fginn", "--prefilter", "--matches", "--confidence", "--covisibility",
+    "--cache", "--warm-start", "--startup-trials", "--test-budget", "--chunk-pairs", "--heartbeat",
+    "--calibration-pairs", "--recalibrate", "--retest", "--verbose", "--reference", "--pareto-span", "--terminate",
+    "--bags", "--bag-min-points", "--bag-seed", "--mv-intrinsics", "--workers", "--keep-models", "--gt-dir", "--ci",
+    "--ci-resamples",
+]
 
 
 def register(sub) -> None:
@@ -143,7 +155,7 @@ def register(sub) -> None:
     t.add_argument("--sampler", default="tpe", choices=list(SAMPLERS), help=f"{' | '.join(SAMPLERS)} (default tpe)")
     t.add_argument("--pruner", default=DEFAULT_PRUNER, choices=list(PRUNERS),
                    help=f"{' | '.join(PRUNERS)}: Optuna's median, successive-halving or Hyperband pruner over the "
-                        f"chunks of pairs, or none (default {DEFAULT_PRUNER}; see the README's tuning section)")
+                        f"chunks of pairs, or none (default {DEFAULT_PRUNER}; see Tuning in the docs)")
     t.add_argument("--warm-start", action="append", default=[], metavar="STUDY",
                    help="first trials: the frozen optimum and the 3 best feasible trials of STUDY (same storage), "
                         "projected into this study's space (clipped to its ranges, Gamma to its Gamma_max); "
@@ -166,7 +178,8 @@ def register(sub) -> None:
     t.add_argument("--calibration-pairs", type=positive_int, default=8, help="pairs timed by the automatic calibration")
     t.add_argument("--recalibrate", action="store_true", help="measure Gamma_max again even if stored")
     t.add_argument("--no-test", action="store_true", help="do not run the test scenes at the end")
-    t.add_argument("--test-runs", type=positive_int, default=3)
+    t.add_argument("--test-runs", type=positive_int, default=3,
+                   help="test runs of the frozen settings, each with its own estimator seed, averaged (default 3)")
     t.add_argument("--retest", action="store_true", help="rerun the test even if test.json matches the frozen settings")
     t.add_argument("--verbose", action="store_true", help="Optuna's per-trial log lines")
     _select_opts(t)
@@ -183,6 +196,8 @@ def register(sub) -> None:
     add_jobs_option(t)
     from tuner.cli import RESUME_NOTE
     ap.set_defaults(func=run, on_interrupt=RESUME_NOTE)
+    if hasattr(ap, "set_less_used"):  # `tune run -h`: what most people set; `tune run --help-all`: everything
+        ap.set_less_used(RUN_LESS_USED)
 
     c = sub.add_parser("calibrate", help="measure estimator CPU seconds per pair vs max-iters; store Gamma_max(B)")
     add_pipeline_options(c, tuning=True)
@@ -254,7 +269,7 @@ def register(sub) -> None:
 
     d = sub.add_parser("dashboard", help="serve optuna-dashboard on the storage (127.0.0.1)")
     _storage_opts(d)
-    d.add_argument("--port", type=int, default=8080)
+    d.add_argument("--port", type=int, default=8080, help="port of the dashboard's web server (default 8080)")
     d.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
     d.set_defaults(func=run_dashboard)
 
@@ -266,7 +281,8 @@ def register(sub) -> None:
     ex.set_defaults(func=run_export)
     ls = sub.add_parser("studies", help="list the studies in a storage")
     _storage_opts(ls)
-    ls.add_argument("--json", action="store_true")
+    ls.add_argument("--json", action="store_true", help="print a JSON list, one object per study, with the whole "
+                                                        "ground-truth phrases")
     ls.set_defaults(func=run_studies)
 
 
@@ -365,8 +381,9 @@ def run(args) -> int:
         print_outcome(out)
         if out.get("test"):
             from pipeline.metrics.replicates import NOT_MEASURED
-            print(f"tuning: 1 replicate: {NOT_MEASURED}; the verdict against the reference is about this frozen "
-                  "setting, not about tuning at another seed (--replicates 3 measures it)")
+            from tuner.formatting import fit_text
+            print(fit_text(f"tuning: 1 replicate: {NOT_MEASURED}; the verdict against the reference is about this "
+                           "frozen setting, not about tuning at another seed (--replicates 3 measures it)"))
     return 0
 
 
@@ -434,6 +451,9 @@ def frozen_table(f: dict) -> str:
     rows.append({"parameter": f"validation {task.objective}",
                  "value": with_ci(obj, v.get(f"{task.objective}_ci")) if obj is not None else _fmt(obj),
                  "": f"{task.name}: {others}"})
+    from tuner.formatting import TERMINAL_WIDTH, wrapped_cell_rows
+    room = TERMINAL_WIDTH - 10 - sum(max(len(str(r[c])) for r in rows + [{c: c}]) for c in ("parameter", "value"))
+    rows = wrapped_cell_rows(rows, "", max(30, room))  # the notes continue on rows of their own: 100 columns
     return render(rows, "markdown", ["parameter", "value", ""]) + _frozen_notes(f)
 
 
@@ -458,8 +478,9 @@ def _frozen_notes(f: dict) -> str:
             # most trials tie with the best: which one wins is noise, and a noise pick can fail on the test scenes
             lines.append(f"the optimum is flat ({flat['trials']} of {flat['of']} trials tie with the best within its "
                          f"interval): `tune test --study {f.get('study')} --select one-se` freezes the trial at the "
-                         "centre of the tied ones instead (docs/statistics.md: the selection rule)")
-    return ("\n" + "\n".join(lines)) if lines else ""
+                         "centre of the tied ones instead (the selection rules: How sure a number is, in the docs)")
+    from tuner.formatting import fit_text
+    return ("\n" + "\n".join(fit_text(x) for x in lines)) if lines else ""
 
 
 def test_table(t: dict) -> str:
@@ -503,7 +524,10 @@ def test_table(t: dict) -> str:
     origin = ground_truth_text((t.get("data") or {}).get("ground_truth"))
     tail.append(f"ground truth: {origin}" if origin else "ground truth: not recorded (a test.json written before imtune "
                 "recorded it: rerun `tune test` to record it)")
-    return head + ")\n" + render(rows, "markdown", cols) + "".join("\n" + x for x in tail)
+    from tuner.formatting import fit_text, render_fitted
+    # split by columns where the table would be wider than a terminal (each part keeps the scene column)
+    return (fit_text(head + ")") + "\n" + render_fitted(rows, cols)
+            + "".join("\n" + fit_text(x) for x in tail))
 
 
 # -- tune calibrate ---------------------------------------------------------------------------------
@@ -805,7 +829,8 @@ def run_studies(args) -> int:
                 and (k != "infeasible" or any(r["infeasible"] is not None for r in rows))]
         if any("_cell" in r for r in rows):
             cols.append("ground truth")
-        print(render([{**r, "ground truth": r.get("_cell")} for r in rows], "markdown", cols))
+        from tuner.formatting import render_fitted  # split by columns to fit a terminal, the study in each part
+        print(render_fitted([{**r, "ground truth": r.get("_cell")} for r in rows], cols))
     else:
         print("no studies", file=sys.stderr)
     if foreign and not args.json:

@@ -292,8 +292,8 @@ FINDINGS = FINDINGS + (
         "With both cameras' intrinsics known, estimating the essential matrix directly (5-point, PoseLib's "
         "LO-RANSAC, tuned) gives more accurate poses than the paper's protocol of a tuned fundamental matrix "
         "(DEGENSAC) turned into E = K2^T F K1, on the same features, matches, budget and pairs.",
-        "Not a claim of the paper: imtune's own finding (issue 33). The paper's stereo protocol (as imtune "
-        "implements it, DESIGN.md) estimates F and derives E = K2^T F K1 although the intrinsics are known; no "
+        "Not a claim of the paper: imtune's own finding. The paper's stereo protocol (as imtune "
+        "implements it) estimates F and derives E = K2^T F K1 although the intrinsics are known; no "
         "quote of the paper on E vs F was checked for this entry. Both studies are tuned (r, eta, Gamma within the "
         "budget) and tested on the same test pairs",
         {"f-to-e": SIFT_DEGENSAC, "e": POSELIB_E}, "better", relations=(("f-to-e", "e"),),
