@@ -44,6 +44,7 @@ from scipy import special, stats
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.metrics.replicates import (  # noqa: E402
+    MIN_VERDICT_K,
     power,
     replicated_difference,
     replicated_maa_interval,
@@ -226,7 +227,8 @@ def run_cell(args) -> list[dict]:
     rows = []
     for m, x in acc.items():
         p = np.array(x["p_null"])
-        claim = "verdict" if min(ka, kb) > 1 else ("assumption" if max(ka, kb) > 1 else "pairs only")
+        claim = ("verdict" if min(ka, kb) >= MIN_VERDICT_K else "K = 2: no verdict" if min(ka, kb) == 2 else
+                 "assumption" if max(ka, kb) > 1 else "pairs only")
         row = {"k_a": ka, "k_b": kb, "pairs": n_pairs, "tuning_sd": sd_name, "method": m, "claim": claim,
                "coverage_mean": float(np.mean(x["cov_mean"])), "coverage_diff": float(np.mean(x["cov_diff"])),
                "fp05": float(np.mean(p < 0.05)), "fp01": float(np.mean(p < 0.01)),
@@ -244,7 +246,8 @@ TARGETS = "coverage 0.93-0.97; fp05 0.035-0.065; fp01 <= 0.015"
 
 
 def check(cells: list[dict], sims: int) -> tuple[list[str], list[str]]:
-    """(cells with a verdict outside the targets, cells under the K = 1 assumption outside them), each with a
+    """(cells with a verdict outside the targets, cells without a verdict -- K = 1 under its stated assumption, or
+    K = 2 -- outside them), each with a
     Monte-Carlo allowance of 3 binomial sds at ``sims``; and any cell whose power falls below the replaced method's
     where that one's false positives were within 0.035-0.065."""
     bad, assumed = [], []
@@ -271,6 +274,8 @@ def check(cells: list[dict], sims: int) -> tuple[list[str], list[str]]:
             for pw in ("power05", "power10"):
                 if c[pw] < o[pw] - 3 * math.sqrt(max(o[pw] * (1 - o[pw]), 0.01) / sims):
                     problems.append(f"{pw} {c[pw]:.3f} < old {o[pw]:.3f}")
+        if c["claim"] != "verdict":  # no verdict here: the power of a p that makes no claim is not compared
+            problems = [p for p in problems if not p.startswith("power")]
         if problems:
             line = f"K_A={key[0]} K_B={key[1]} pairs={key[2]} {key[3]}: " + ", ".join(problems)
             (bad if c["claim"] == "verdict" else assumed).append(line)
@@ -337,7 +342,8 @@ def main(argv=None) -> int:
         print(f"cells with a verdict (K >= 2 on both sides) outside the targets: {len(bad)}")
         for line in bad:
             print("  " + line)
-        print(f"cells under the stated K = 1 assumption (no verdict) outside the targets: {len(assumed)}")
+        print(f"cells without a verdict (a side with K = 1 under its stated assumption, or K = 2) outside the targets: "
+              f"{len(assumed)}")
         for line in assumed:
             print("  " + line)
     return 0

@@ -1455,6 +1455,8 @@ def test_findings_with_replicates_end_to_end(subset, tmp_path, monkeypatch, caps
     assert f["ci"][0] <= f["difference"] <= f["ci"][1]
     m = f["measured"]
     assert m["tuning_variance_measured"] is True and m["replicates"] == [2, 2] and 0 <= m["p_b_beats_a"] <= 1
+    # K = 2 rests the tuning variance on one df: measured, but no calibrated verdict (pipeline.metrics.replicates)
+    assert m["verdict_allowed"] is False and f["verdict"] == "inconclusive"
     md = (sdir / "findings" / "report.md").read_text()
     assert "tuning replicates: 2 per stereo study" in md and "| tuning variance |" in md
     row = next(ln for ln in md.splitlines() if ln.startswith("| 11 | "))

@@ -173,7 +173,7 @@ def replicated_relation(oa, ob, n_resamples: int, seed: int = 0, level: float = 
     return {"mAA10_a": float(a.mean()), "mAA10_b": float(b.mean()), "difference": d.diff, "ci": [d.low, d.high],
             "p_value": d.p_value, "p_b_beats_a": d.p_a_beats_b,
             "p_b_beats_a_ci": list(d.p_a_beats_b_ci) if d.p_a_beats_b_ci else None, "df": d.df,
-            "detectable": d.mde, "plan": d.plan, "pairs": len(keys),
+            "detectable": d.mde, "plan": d.plan, "verdict_allowed": d.verdict_allowed, "pairs": len(keys),
             "dropped_a": len(in_a - in_b), "dropped_b": len(in_b - in_a), "replicates": [len(sa), len(sb)]}
 
 
@@ -261,7 +261,8 @@ def relation(outcomes: dict, a: str, b: str, n_resamples: int, seed: int = 0) ->
            "relative": (pb["difference"] / ma) if ma else None, "relative_ci": None, "ci": pb["ci"],
            "p_value": pb["p_value"], "pairs": pb["pairs"], "dropped": [pb["dropped_a"], pb["dropped_b"]]}
     if "replicates" in pb:  # the replicated comparison: P(B > A) with its interval; no joint ratio bootstrap
-        out.update({k: pb[k] for k in ("p_b_beats_a", "p_b_beats_a_ci", "detectable", "plan", "replicates")})
+        out.update({k: pb[k] for k in ("p_b_beats_a", "p_b_beats_a_ci", "detectable", "plan", "replicates",
+                                       "verdict_allowed")})
     else:
         rel = paired_relative(_flat(oa.test_runs), _flat(ob.test_runs), tau=10, n_resamples=n_resamples, seed=seed)
         out["relative_ci"] = rel["ci"]
@@ -312,7 +313,7 @@ def analyse(f: Finding, outcomes: dict, n_resamples: int = 2000, seed: int = 0) 
             key = max(cands, key=lambda c: _validation_value(outcomes[c[0][1]]))[1]
             measured["key"] = (f"{key['b']} (the best on validation of {', '.join(r[1] for r, _ in cands)}) "
                                f"vs {key['a']}")
-            st = small_gain(key["ci"])
+            st = small_gain(key["ci"]) if key.get("verdict_allowed", True) else UNSURE
         else:
             computed = [(r, relation(outcomes, *r, n_resamples, seed)) for r in rels]
             measured["relations"] = [c for _, c in computed if c is not None]
@@ -324,15 +325,17 @@ def analyse(f: Finding, outcomes: dict, n_resamples: int = 2000, seed: int = 0) 
                                                                 "reason": _reason(missing)}}
             measured["key"] = f"{key_roles[1]} vs {key_roles[0]}"
             if f.rule == "small_gain":
-                st = small_gain(key["ci"])
+                st = small_gain(key["ci"]) if key.get("verdict_allowed", True) else UNSURE
             else:
-                statuses = [directional(c["ci"], c["p_value"]) if c is not None else UNSURE for _, c in computed]
+                # a replicated relation with K = 2 on a side has no calibrated verdict (MIN_VERDICT_K): inconclusive
+                statuses = [directional(c["ci"], c["p_value"]) if c is not None and c.get("verdict_allowed", True)
+                            else UNSURE for _, c in computed]
                 statuses = _bonferroni_decider(computed, statuses, f.combine, outcomes, n_resamples, seed)
                 for (_, c), s in zip(computed, statuses):
                     if c is not None:
                         c["status"] = s
                 st = combine(statuses, f.combine)
-                if directional(key["ci"], key["p_value"]) != st:  # the key alone says otherwise: name the deciders
+                if key.get("verdict_allowed", True) and directional(key["ci"], key["p_value"]) != st:  # the key alone says otherwise: name the deciders
                     measured["decided_by"] = [{"a": c["a"], "b": c["b"], "status": s} for (_, c), s
                                               in zip(computed, statuses) if c is not None and
                                               (s == FAILS if st == FAILS else s != HOLDS if st == UNSURE else True)]
@@ -340,7 +343,7 @@ def analyse(f: Finding, outcomes: dict, n_resamples: int = 2000, seed: int = 0) 
         # K >= 2 on both sides of the key: its interval holds the tuning variance; else it covers test pairs only
         measured["replicates"] = key.get("replicates") or [1, 1]
         measured["tuning_variance_measured"] = "replicates" in key
-        for k in ("p_b_beats_a", "p_b_beats_a_ci", "detectable", "plan"):
+        for k in ("p_b_beats_a", "p_b_beats_a_ci", "detectable", "plan", "verdict_allowed"):
             if k in key:
                 measured[k] = key[k]
         measured["relative_ci"] = key.get("relative_ci")  # joint bootstrap of the ratio (paired_relative)
