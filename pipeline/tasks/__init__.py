@@ -4,15 +4,15 @@
     task = get_task("stereo", min_covisibility=0.1)     # or "multiview"
     result = task.evaluate(scenes, conf, cache)
 
-Registered here: ``stereo`` (two-view pose from F, the paper's stereo task) and ``multiview`` (COLMAP
-reconstructions of bags of images). ``TASKS.names()`` lists them; docs/extending.md shows how to add one.
+Registered here: ``stereo`` (two-view pose from F, the paper's stereo task), ``multiview`` (COLMAP
+reconstructions of bags of images) and ``reconstruction`` (IMC 2024/2025 datasets reconstructed whole and clustered). ``TASKS.names()`` lists them; docs/extending.md shows how to add one.
 """
 from __future__ import annotations
 
 # Importing registers the tasks: the import order is the listing order, so isort leaves it.
 # isort: off
 from pipeline.tasks.base import TASKS, Task, TaskResult
-from pipeline.tasks import stereo, multiview  # noqa: F401,E402
+from pipeline.tasks import stereo, multiview, reconstruction  # noqa: F401,E402
 from pipeline.features import load_plugins  # noqa: E402  (after the tasks: a plug-in may register one)
 # isort: on
 
