@@ -300,6 +300,8 @@ def check_multiview_only(args: argparse.Namespace, tasks: list[str]) -> None:
     takers = " / ".join(n for n in TASKS.names() if TASKS.get(n).takes("mv"))
     typed = explicit_options(args)
     for dest, default in MULTIVIEW_ONLY.items():
+        if any(task_class(t).takes(dest) for t in tasks):  # --workers of the reconstruction task
+            continue
         if hasattr(args, dest) and (dest in typed or getattr(args, dest) != default):
             flag = "--" + dest.replace("_", "-")
             raise ImtuneError(f"{flag} is an option of the {takers} task, and only the {' and '.join(tasks)} task "

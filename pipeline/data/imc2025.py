@@ -226,7 +226,8 @@ def load_imc2025(root: Path, scene: str | None = None, verify: bool = True) -> S
                                   "(the challenge's mAA needs them): add its row")
         K = None
         if has_K and row.get("calibration_matrix") and not outlier:
-            K = check_K(_numbers(row["calibration_matrix"], 9, f"{where} (calibration_matrix)"), where)
+            Kv = _numbers(row["calibration_matrix"], 9, f"{where} (calibration_matrix)", allow_nan=True)
+            K = None if Kv is None else check_K(Kv, where)
         path = _image_path(train, scene, gscene, image)
         size = None
         if verify:

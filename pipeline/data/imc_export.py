@@ -76,7 +76,9 @@ def export_imc(data_root, scenes: list[str], out, dataset: str, outliers: list[s
     with_K = all(im.K is not None for sc, is_out in loaded if not is_out for im in sc.images.values())
     header = ["dataset", "scene", "image", "rotation_matrix", "translation_vector"] + (["calibration_matrix"]
                                                                                        if with_K else [])
-    rows, counts, n_out = [], {}, 0
+    rows: list[list[str]] = []
+    counts: dict[str, int] = {}
+    n_out = 0
     for sc, is_out in loaded:
         for n, im in sc.images.items():
             name = f"{sc.name}_{Path(n).name}"

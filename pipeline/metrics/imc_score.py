@@ -174,7 +174,7 @@ def score_dataset(truth: dict[str, dict[str, np.ndarray | None]], clusters: dict
     for s in scenes:
         gt_imgs = truth[s]
         m = len(gt_imgs)
-        table = []
+        table: list[tuple] = []
         for k, c in enumerate(names):
             if c == OUTLIERS:
                 table.append((0, 0.0, k, None))

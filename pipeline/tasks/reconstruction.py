@@ -40,7 +40,7 @@ import numpy as np
 
 from pipeline.cache import H5Cache
 from pipeline.config import PipelineConfig
-from pipeline.data.scene import Pair, Scene
+from pipeline.data.scene import Scene
 from pipeline.errors import ImtuneError
 from pipeline.metrics.imc_score import OUTLIERS, centre, score_dataset
 from pipeline.tasks.base import TASKS, Task, TaskResult
@@ -90,8 +90,8 @@ def shortlist_pairs(feats: dict, names: list[str], k: int) -> list[tuple[str, st
     :data:`SHORTLIST_FEATURES` strongest descriptors of each image; ties: the earlier image); pairs in name order."""
     order = {n: i for i, n in enumerate(names)}
     descs = []
-    for n in names:
-        f = feats[n]
+    for name in names:
+        f = feats[name]
         d = np.asarray(f.descriptors, np.float32)
         if f.scores is not None and len(f.scores) == len(d):
             d = d[np.argsort(-np.asarray(f.scores))[:SHORTLIST_FEATURES]]
@@ -99,10 +99,10 @@ def shortlist_pairs(feats: dict, names: list[str], k: int) -> list[tuple[str, st
             d = d[:SHORTLIST_FEATURES]
         d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
         descs.append(d)
-    n = len(names)
-    sim = np.zeros((n, n))
-    for i in range(n):
-        for j in range(i + 1, n):
+    count = len(names)
+    sim = np.zeros((count, count))
+    for i in range(count):
+        for j in range(i + 1, count):
             a, b = descs[i], descs[j]
             if len(a) < 2 or len(b) < 2:
                 continue
@@ -114,7 +114,7 @@ def shortlist_pairs(feats: dict, names: list[str], k: int) -> list[tuple[str, st
             ok = (nn21[nn12[:, 0]] == rows) & (d1 < SHORTLIST_RATIO * d2)
             sim[i, j] = sim[j, i] = float(ok.sum())
     pairs = set()
-    for i in range(n):
+    for i in range(count):
         part = [j for j in np.argsort(-sim[i], kind="stable") if j != i][:k]
         for j in part:
             a, b = (names[i], names[j]) if i < j else (names[j], names[i])
@@ -325,7 +325,8 @@ def score_rows(scene: Scene, rows: list[tuple]):
         tv = np.array([float(x) for x in t.split(";")], float)
         clusters.setdefault(c, {})[n] = centre(Rv, tv) if np.all(np.isfinite(Rv)) and np.all(np.isfinite(tv)) \
             else np.full(3, math.nan)
-    return score_dataset(truth, clusters, dict(scene.thresholds or {}), dataset=scene.name)
+    return score_dataset(truth, clusters, {k: list(v) for k, v in (scene.thresholds or {}).items()},
+                         dataset=scene.name)
 
 
 # ------------------------------------------------------------------------------------------------ task
@@ -407,8 +408,8 @@ class ReconstructionTask(Task):
         if scene.excluded:
             notes.append(f"dataset {scene.name}: {len(scene.excluded)} image file(s) in no label row left out "
                          f"(e.g. {scene.excluded[0]})")
-        small = sorted({g for g in (scene.groups or {}).values() if g != OUTLIERS
-                        and sum(1 for x in scene.groups.values() if x == g) <= 3})  # type: ignore[union-attr]
+        groups = scene.groups or {}
+        small = sorted({g for g in groups.values() if g != OUTLIERS and list(groups.values()).count(g) <= 3})
         for g in small:
             notes.append(f"dataset {scene.name}: scene {g} has 3 images or fewer: the challenge deducts 3 cameras, so "
                          "it adds nothing to the mAA's numerator")
