@@ -127,8 +127,13 @@ class SceneScore:
     numerator: int
     mAA: float
 
+    @property
+    def clusterness(self) -> float:
+        """The scene's own share of its matched cluster (shared / cluster size; 0 without a cluster)."""
+        return self.shared / self.cluster_size if self.cluster_size else 0.0
+
     def to_dict(self) -> dict:
-        return dict(self.__dict__)
+        return {**self.__dict__, "clusterness": self.clusterness}
 
 
 @dataclass

@@ -507,10 +507,10 @@ class ReconstructionTask(Task):
                        "outliers_registered": result.outliers_registered,
                        "pair_failures": sum(1 for r in verified if r["failure"])}
             per[sc.name] = summary
-            records.append({"dataset": sc.name, **{k: summary[k] for k in ("score", "mAA", "clusterness", "registered",
+            records.append({"dataset": sc.name, "scene": sc.name, "pair": "the whole dataset", **{k: summary[k] for k in ("score", "mAA", "clusterness", "registered",
                                                                            "clusters", "map_seconds", "failure",
                                                                            "submission")},
-                            "ransac_seconds": rs})
+                            "ransac_seconds": float(np.sum(rs)), "pair_ransac_seconds": rs})
             if on_step is not None:
                 on_step(idx, len(scenes), _mean(per))
         summary = _mean(per)
