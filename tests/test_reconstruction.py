@@ -199,3 +199,34 @@ def test_task_writes_a_submission_scored_like_the_reference(subset, shared_cache
     assert abs(theirs["score"] - out["score"]) < 1e-6
     assert abs(theirs["mAA"] - out["mAA"]) < 1e-6
     assert abs(theirs["clusterness"] - out["clusterness"]) < 1e-6
+
+
+def test_short_study_freezes_and_tests(tmp_path):
+    """Validate on a Strecha mix written by `tune data to-imc`, test on the real dataset's subset (whole datasets on
+    each side); Gamma fixed so that no budget calibration runs; the mapper options are searched."""
+    require(DATA / "strecha")
+    both = tmp_path / "both"
+    both.mkdir()
+    _subset(both / "real", church=6, theater=4)
+    from pipeline.data import load_scene
+    from pipeline.data.imc_export import export_imc
+    src = tmp_path / "strecha"
+    for s, keep in (("fountain-P11", 5), ("Herz-Jesus-P8", 5)):
+        names = sorted(load_scene(DATA / "strecha", s, verify=False).images)[:keep]
+        from tests.conftest import copy_strecha_subset
+        copy_strecha_subset(src, names, scene=s)
+    export_imc(src, ["fountain-P11", "Herz-Jesus-P8"], both / "mix", "strecha-mix")
+    (both / "splits.yaml").write_text(f"val: [strecha-mix]\ntest: [{DATASET}]\n")
+    r = tune("--task", "reconstruction", "--data", str(both), "--num-features", "512", "--n-trials", "2",
+             "--test-runs", "1", "--fix", "max_iters=2000", "--studies-dir", str(tmp_path / "studies"),
+             "--cache", str(tmp_path / "cache"), "--workers", "1", "--seed", "0", "--quiet", "--json",
+             timeout=1500)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    text = json.dumps(out)
+    assert "min_inliers" in text and "min_model_size" in text  # the mapper options were searched and frozen
+    frozen = list((tmp_path / "studies").rglob("frozen.yaml"))
+    assert frozen, sorted(p.name for p in (tmp_path / "studies").rglob("*"))
+    import yaml
+    fz = yaml.safe_load(frozen[0].read_text())
+    assert fz["task"] == "reconstruction" and "mapper" in fz["config"]

@@ -149,9 +149,10 @@ class StudyContext:
 
 
 def study_name(s: TuneSettings, task_name: str | None = None) -> str:
-    """The study's name: ``--study``, else ``<feature>-<num_features>-<ransac>-<task>`` (+ ``-pareto`` / ``-auc10``
-    / ``-auc20`` by objective)."""
+    """The study's name: ``--study``, else ``<feature>-<num_features>-<ransac>-<task>`` (+ ``-global`` for the
+    reconstruction task's global mapper, + ``-pareto`` / ``-auc10`` / ``-auc20`` by objective)."""
     return s.study_name or default_study_name(s.base, task_name or s.task) + (
+        f"-{s.mapper}" if s.mapper and s.mapper != "incremental" else "") + (
         PARETO_SUFFIX if s.objective == "pareto" else f"-{s.objective}" if s.objective in AUC_OBJECTIVES else "")
 
 
