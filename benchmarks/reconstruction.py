@@ -48,6 +48,7 @@ def main(argv=None) -> int:
     from pipeline.tasks.reconstruction import (
         ReconstructionConfig,
         ReconstructionTask,
+        clusters_from_models,
         map_dataset,
         score_rows,
         submission_rows,
@@ -80,8 +81,7 @@ def main(argv=None) -> int:
                 rc = dataclasses.replace(ReconstructionConfig(), mapper=mapper)
                 with tempfile.TemporaryDirectory(prefix="imtune-bench-") as tmp:
                     models, failure, dt = map_dataset(Path(tmp), images, verified, conf, rc, threads=workers)
-                    clusters = {f"cluster{k}": {n: p for n, p in cdb.model_poses(m).items()}
-                                for k, m in enumerate(models)}
+                    clusters = clusters_from_models(models, list(sc.images), conf.mapper.min_model_size)
                 times[mapper].append(dt)
                 s = score_rows(sc, submission_rows(ds, list(sc.images), clusters))
                 reg = {n for c in clusters.values() for n in c}

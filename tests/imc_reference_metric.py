@@ -20,8 +20,12 @@ import numpy as np
 def read_rows(path) -> dict:
     """{dataset: {scene: {image: centre (3,)}}} in file order; the centre of a nan pose is nan."""
     data: dict = {}
+    seen: set = set()
     with open(path, newline="") as f:
         for row in csv.DictReader(f):
+            key = (row["dataset"], row["image"])
+            assert key not in seen, f"{path}: image {row['image']} of {row['dataset']} is written twice"  # check_data
+            seen.add(key)
             R = np.array([float(x) for x in row["rotation_matrix"].split(";")]).reshape(3, 3)
             t = np.array([float(x) for x in row["translation_vector"].split(";")])
             data.setdefault(row["dataset"], {}).setdefault(row["scene"], {})[row["image"]] = -R.T @ t
