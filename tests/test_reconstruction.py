@@ -230,3 +230,22 @@ def test_short_study_freezes_and_tests(tmp_path):
     import yaml
     fz = yaml.safe_load(frozen[0].read_text())
     assert fz["task"] == "reconstruction" and "mapper" in fz["config"]
+
+
+def test_each_image_is_in_one_cluster_only(monkeypatch):
+    """COLMAP's incremental mapper may register an image in two models: it stays in the larger one; a model left with
+    fewer than min_model_size images is no cluster; every image has one submission row, nan where unregistered."""
+    from pipeline import colmap_db
+    from pipeline.tasks.reconstruction import clusters_from_models, submission_rows
+    monkeypatch.setattr(colmap_db, "model_poses", lambda m: m)
+    pose = (np.eye(3), np.zeros(3))
+    big = {n: pose for n in "abcdef"}
+    second = {n: pose for n in "efgh"}  # e, f already in the first
+    third = {n: pose for n in "fgi"}  # only i is new: no cluster
+    names = list("abcdefghij")
+    clusters = clusters_from_models([big, second, third], names, 2)
+    assert {k: sorted(v) for k, v in clusters.items()} == {"cluster0": list("abcdef"), "cluster1": ["g", "h"]}
+    rows = submission_rows("ds", names, clusters)
+    assert sorted(r[2] for r in rows) == names
+    assert [r[1] for r in rows if r[2] in "ij"] == ["outliers", "outliers"]
+    assert all("nan" in r[3] for r in rows if r[1] == "outliers")
