@@ -49,9 +49,13 @@ def is_timed(name: str) -> bool:
 
 
 def task_list(spec: str) -> list[str]:
-    """Task names from a spec: one name, a comma-separated list, or ``both`` / ``all`` (every task)."""
-    if spec in ("both", "all"):
+    """Task names from a spec: one name, a comma-separated list, ``both`` (every task that evaluates the paper's
+    scenes: stereo, multiview and plug-in tasks; not ``reconstruction``, which needs IMC datasets: ``Task.in_both``)
+    or ``all`` (every task)."""
+    if spec == "all":
         return TASKS.names()
+    if spec == "both":
+        return [n for n in TASKS.names() if TASKS.get(n).in_both]
     names = [s.strip() for s in str(spec).split(",") if s.strip()]
     for n in names:
         TASKS.get(n)  # unknown -> one-line error listing the tasks

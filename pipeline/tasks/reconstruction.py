@@ -373,6 +373,7 @@ class ReconstructionTask(Task):
     timed = True
     unit, unit_one = "datasets", "dataset"
     units_label = "IMC reconstruction datasets"
+    in_both = False  # IMC datasets only: `--task both` (the paper's scenes) leaves it out
     test_figures = "IMC 2025 score (harmonic mean of mAA and clusterness) of the test datasets, mean over runs"
 
     @classmethod
