@@ -172,7 +172,7 @@ def _subset(dst: Path, church: int = 10, theater: int = 6) -> Path:
 
 @pytest.fixture(scope="module")
 def subset(tmp_path_factory):
-    return _subset(tmp_path_factory.mktemp("imc") / "data")
+    return _subset(tmp_path_factory.mktemp("imc") / "data", church=8, theater=5)
 
 
 @pytest.fixture(scope="module")
@@ -184,7 +184,7 @@ def shared_cache(tmp_path_factory):
 def test_task_writes_a_submission_scored_like_the_reference(subset, shared_cache, tmp_path, mapper):
     sub = tmp_path / "submission.csv"
     r = tune("evaluate", "--task", "reconstruction", "--data", str(subset), "--cache", str(shared_cache),
-             "--num-features", "2048", "--mapper", mapper, "--submission", str(sub), "--workers", "1", "--json")
+             "--num-features", "1024", "--mapper", mapper, "--submission", str(sub), "--workers", "1", "--json")
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)["reconstruction"]
     ds = out["scenes"][DATASET]
