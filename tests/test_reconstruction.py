@@ -249,3 +249,21 @@ def test_each_image_is_in_one_cluster_only(monkeypatch):
     assert sorted(r[2] for r in rows) == names
     assert [r[1] for r in rows if r[2] in "ij"] == ["outliers", "outliers"]
     assert all("nan" in r[3] for r in rows if r[1] == "outliers")
+
+
+def test_loads_the_imc2024_layout_with_intrinsics(tmp_path):
+    """IMC 2024: labels in train/ with image_name and calibration_matrix columns, images under train/<dataset>/images."""
+    from pipeline.data import load_scene
+    from pipeline.data.imc2025 import describe
+    train = tmp_path / "train"
+    K = "500;0;31.5;0;500;23.5;0;0;1"
+    rows = [f"im{k}.jpg,{R_OK},{k};0;0,{K},ds,A" for k in range(4)]
+    train.mkdir()
+    (train / "train_labels.csv").write_text("image_name,rotation_matrix,translation_vector,calibration_matrix,dataset,"
+                                            "scene\n" + "".join(r + "\n" for r in rows))
+    (train / "train_thresholds.csv").write_text("dataset,scene,thresholds\nds,A,0.025;0.05;0.1;0.2;0.5;1.0\n")
+    for k in range(4):
+        _jpeg(train / "ds" / "images" / f"im{k}.jpg", k)
+    sc = load_scene(tmp_path, "ds")
+    assert len(sc.images) == 4 and np.allclose(sc.images["im2.jpg"].K[0, 0], 500)
+    assert describe(tmp_path)[0]["intrinsics"] is True
