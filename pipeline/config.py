@@ -217,10 +217,37 @@ class GeometryConfig:
 
 
 @dataclass(frozen=True)
+class MapperConfig:
+    """The mapper options that decide registration in the reconstruction task (``pipeline.tasks.reconstruction``;
+    searched there, ignored by every other task).
+
+    min_inliers: a verified pair enters the view graph with at least this many inliers of our estimator (COLMAP's
+        ``min_num_matches``, default 15): it decides which images connect, hence which scenes split or merge.
+    min_model_size: a reconstruction of fewer images is no cluster (its images are written as outliers; COLMAP's
+        ``min_model_size``): it decides whether small fragments and look-alike outliers count as clusters.
+    """
+    min_inliers: int = 15
+    min_model_size: int = 3
+
+    def __post_init__(self):
+        _set_types(self)
+        if _number("min_inliers", self.min_inliers, integer=True) < 5:
+            raise ImtuneError(f"min_inliers must be an integer >= 5, got {self.min_inliers}")
+        if _number("min_model_size", self.min_model_size, integer=True) < 2:
+            raise ImtuneError(f"min_model_size must be an integer >= 2, got {self.min_model_size}")
+
+
+@dataclass(frozen=True)
 class PipelineConfig:
     feature: FeatureConfig = field(default_factory=FeatureConfig)
     matching: MatchConfig = field(default_factory=MatchConfig)
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
+    mapper: MapperConfig = field(default_factory=MapperConfig)
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """The sections as plain dicts; ``mapper`` only where it differs from its defaults (it is read by the
+        reconstruction task alone, and every other configuration, study and frozen file keeps its form)."""
+        d = dataclasses.asdict(self)
+        if self.mapper == MapperConfig():
+            d.pop("mapper")
+        return d

@@ -22,10 +22,10 @@ import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
-from pipeline.config import FeatureConfig, GeometryConfig, MatchConfig, PipelineConfig
+from pipeline.config import FeatureConfig, GeometryConfig, MapperConfig, MatchConfig, PipelineConfig
 from pipeline.errors import ImtuneError
 
-SECTIONS = {"feature": FeatureConfig, "matching": MatchConfig, "geometry": GeometryConfig}
+SECTIONS = {"feature": FeatureConfig, "matching": MatchConfig, "geometry": GeometryConfig, "mapper": MapperConfig}
 #: flat (command-line) names -> (section, field); names equal to a field of exactly one section are added below
 FLAT: dict[str, tuple[str, str]] = {"feature": ("feature", "name"), "matcher": ("matching", "method"),
                                     "ransac": ("geometry", "ransac"), "matches": ("matching", "custom_matches"),

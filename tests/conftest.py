@@ -47,7 +47,8 @@ SLOWEST_FILES = ("test_tuner_study.py", "test_faults_processes.py", "test_findin
                  "test_faults_storage.py", "test_intervals_real.py", "test_gt_build.py", "test_warm_start.py",
                  "test_ground_truth_origin.py", "test_evaluate_config.py", "test_cli_evaluate.py",
                  "test_credentials.py", "test_viz_multiview.py", "test_tuner_postgres.py",
-                 "test_dashboard_browser.py", "test_parallel_pairs.py", "test_tuner_multiview.py")
+                 "test_dashboard_browser.py", "test_parallel_pairs.py", "test_tuner_multiview.py",
+                 "test_reconstruction.py")
 
 
 def pytest_collection_modifyitems(session, config, items):

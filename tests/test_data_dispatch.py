@@ -94,7 +94,7 @@ def test_detect_and_list_synthetic(tmp_path):
     _folder_scene(tmp_path / "imgs", "a_scene")
     assert detect_format(tmp_path / "imgs") == "images"
     assert default_splits(tmp_path / "imgs") == {"val": ["a_scene"], "test": ["b_scene"]}
-    assert set(FORMATS) == {"strecha", "imc_pt2020", "imc2022", "colmap", "pairs_with_gt", "images"}
+    assert set(FORMATS) == {"strecha", "imc_pt2020", "imc2022", "imc2025", "colmap", "pairs_with_gt", "images"}
 
 
 def test_unknown_scene_and_bad_roots(tmp_path):

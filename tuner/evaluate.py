@@ -71,7 +71,8 @@ def evaluate_config(conf: PipelineConfig, data_root: Path, scenes=None, cache_di
                     with_pairs: bool = False, task: str = "stereo", multiview=None, workers: int | None = None,
                     gt_dir=None, with_bags: bool = False, keep_models=None, intermediate: bool = False,
                     max_pairs: int | None = None, ci_resamples: int | None = None, jobs: int | None = None,
-                    task_options: dict | None = None) -> dict:
+                    task_options: dict | None = None, mapper: str | None = None,
+                    submission=None) -> dict:
     """Evaluate one configuration; returns the JSON-able result of `tune evaluate`.
 
     task: a registered task name (``stereo``, ``multiview``), a comma-separated list, or ``both``: the result
@@ -82,7 +83,8 @@ def evaluate_config(conf: PipelineConfig, data_root: Path, scenes=None, cache_di
     built ground truth lives; intermediate: add an "intermediate" section (repeatability, matching scores,
     ``pipeline.tasks.intermediate``); ci_resamples: bootstrap resamples of the mAA intervals (``mAA5_ci``,
     ``mAA10_ci``; None: the task's default, 2000; 0: none); jobs: stereo pair worker processes (None: every
-    usable CPU; the records do not depend on it); task_options: a task's :meth:`~pipeline.tasks.base.Task.options`
+    usable CPU; the records do not depend on it); mapper: "incremental" / "global" and submission: where
+    submission.csv goes (reconstruction); task_options: a task's :meth:`~pipeline.tasks.base.Task.options`
     (a study's recorded ones, with one task; the arguments above override them where given: multiview then None). ``ground_truth``: scene name -> where the poses it is evaluated
     against come from (``Scene.truth_origin``). Raises ImtuneError when there is nothing to evaluate."""
     from pipeline.cache import H5Cache
@@ -100,7 +102,8 @@ def evaluate_config(conf: PipelineConfig, data_root: Path, scenes=None, cache_di
         # each task takes the options its constructor knows (pipeline.tasks.make_task)
         t = TASKS.get(name).from_options(task_options, min_covisibility=min_covisibility, max_pairs=max_pairs,
                                          mv=multiview, workers=workers, keep_models=keep_models, progress=progress,
-                                         jobs=jobs, **({} if ci_resamples is None else {"ci_resamples": ci_resamples}))
+                                         jobs=jobs, mapper=mapper, submission=submission,
+                                         **({} if ci_resamples is None else {"ci_resamples": ci_resamples}))
         units = sum(len(t.evaluation_units(s)) for s in scene_objs)
         if units == 0:
             raise ImtuneError(f"nothing to evaluate: no {name} pairs in {', '.join(s.name for s in scene_objs)} "

@@ -274,6 +274,12 @@ def add_multiview_options(ap: argparse.ArgumentParser, bags_default: str = "the 
     g.add_argument("--workers", type=positive_int, default=None, help="bags in parallel (default: available CPUs)")
     g.add_argument("--keep-models", default=None, help="keep every bag's COLMAP database and model in this folder")
     g.add_argument("--gt-dir", default=None, help="built ground truth folder (default $IMTUNE_GT, $IMTUNE_CACHE/gt or ~/.cache/imtune/gt)")
+    r = ap.add_argument_group("reconstruction (IMC 2024/2025 datasets: --task reconstruction)")
+    r.add_argument("--mapper", default=None, choices=["incremental", "global"],
+                   help="pycolmap mapper: incremental (default) or global (GLOMAP)")
+    r.add_argument("--submission", default=None, metavar="PATH",
+                   help="where submission.csv is written (a .csv file or a folder; default: a folder per "
+                        "configuration under the cache, printed in the result)")
 
 
 #: the multiview task's options (dest -> default): given while no multiview task runs, each was ignored, unsaid
@@ -294,6 +300,8 @@ def check_multiview_only(args: argparse.Namespace, tasks: list[str]) -> None:
     takers = " / ".join(n for n in TASKS.names() if TASKS.get(n).takes("mv"))
     typed = explicit_options(args)
     for dest, default in MULTIVIEW_ONLY.items():
+        if any(task_class(t).takes(dest) for t in tasks):  # --workers of the reconstruction task
+            continue
         if hasattr(args, dest) and (dest in typed or getattr(args, dest) != default):
             flag = "--" + dest.replace("_", "-")
             raise ImtuneError(f"{flag} is an option of the {takers} task, and only the {' and '.join(tasks)} task "
@@ -346,5 +354,6 @@ def task_options(args: argparse.Namespace, **overrides) -> dict:
     v = dict(vars(args))
     v.update(overrides)
     return {"min_covisibility": v.get("covisibility"), "max_pairs": v.get("max_pairs"),
-            "mv": multiview_config(args, **overrides) if "bags" in v else None,
+            "mv": multiview_config(args, **overrides) if "bags" in v else None, "mapper": v.get("mapper"),
+            "submission": v.get("submission"),
             "workers": v.get("workers"), "keep_models": v.get("keep_models"), "jobs": v.get("jobs")}

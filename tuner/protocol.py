@@ -96,6 +96,11 @@ LEAVES: dict[str, Leaf] = {
     # Gamma up to what the estimators take (pipeline.config.MAX_ITERS; a larger value was clamped to it silently)
     "max_iters": Leaf("max_iters", "geometry", "max_iters", "int", 1, MAX_ITERS, unit="iterations",
                       symbol=r"$\Gamma$", label="Gamma"),
+    # the reconstruction task's mapper options that decide registration (pipeline.config.MapperConfig)
+    "min_inliers": Leaf("min_inliers", "mapper", "min_inliers", "int", 5, 1000, unit="inliers",
+                        symbol=r"$n_{\min}$", label="min inliers"),
+    "min_model_size": Leaf("min_model_size", "mapper", "min_model_size", "int", 2, 1000, unit="images",
+                           symbol=r"$m_{\min}$", label="min model size"),
 }
 PARAMS: tuple[str, ...] = tuple(LEAVES)
 TYPES: dict[str, str] = {k: v.type for k, v in LEAVES.items()}
@@ -150,7 +155,7 @@ def blank_searched(conf: PipelineConfig, names) -> dict:
     d = conf.to_dict()
     for name in names:
         lf = leaf(name)
-        d[lf.section][lf.field] = None
+        d.setdefault(lf.section, {})[lf.field] = None  # mapper: absent from to_dict() at its defaults
     d["geometry"]["seed"] = None
     return d
 

@@ -192,7 +192,12 @@ def _param(s: StudyInfo, name: str):
     fixed = (s.attrs.get("search_space_resolved") or {}).get("fixed", {})
     if name in fixed:
         return fixed[name]
-    sec = "matching" if name in ("ratio", "strategy") else "geometry"
+    from tuner.protocol import LEAVES
+    lf = LEAVES.get(name)
+    sec = lf.section if lf is not None else "geometry"
+    if sec == "mapper" and "mapper" not in (s.attrs.get("pipeline") or {}):  # at its defaults, not written
+        from pipeline.config import MapperConfig
+        return getattr(MapperConfig(), lf.field) if lf is not None else None
     return (s.attrs.get("pipeline") or {}).get(sec, {}).get(name)
 
 

@@ -97,6 +97,7 @@ class TuneSettings:
     test_runs: int = 3
     retest: bool = False
     multiview: object = None  # MultiviewConfig of task "multiview" (None: the protocol's bags)
+    mapper: str | None = None  # task "reconstruction": "incremental" / "global" (None: the task's default)
     workers: int | None = None  # multiview: bag processes per trial (None: the task's default, all CPUs)
     jobs: int | None = None  # stereo: pair worker processes (None: every usable CPU); calibration uses as many
     warm_start: list = field(default_factory=list)  # studies (same storage) whose optimum + best trials go first
@@ -117,6 +118,7 @@ class TuneSettings:
         from pipeline.tasks import make_task
         return make_task(self.task, min_covisibility=self.min_covisibility, max_pairs=self.max_pairs,
                          step_pairs=self.chunk_pairs, mv=self.multiview, workers=self.workers, jobs=self.jobs,
+                         mapper=self.mapper,
                          **{"ci_resamples": self.ci_resamples, **extra})
 
     def say(self, msg: str) -> None:
@@ -147,9 +149,10 @@ class StudyContext:
 
 
 def study_name(s: TuneSettings, task_name: str | None = None) -> str:
-    """The study's name: ``--study``, else ``<feature>-<num_features>-<ransac>-<task>`` (+ ``-pareto`` / ``-auc10``
-    / ``-auc20`` by objective)."""
+    """The study's name: ``--study``, else ``<feature>-<num_features>-<ransac>-<task>`` (+ ``-global`` for the
+    reconstruction task's global mapper, + ``-pareto`` / ``-auc10`` / ``-auc20`` by objective)."""
     return s.study_name or default_study_name(s.base, task_name or s.task) + (
+        f"-{s.mapper}" if s.mapper and s.mapper != "incremental" else "") + (
         PARETO_SUFFIX if s.objective == "pareto" else f"-{s.objective}" if s.objective in AUC_OBJECTIVES else "")
 
 

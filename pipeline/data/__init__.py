@@ -13,7 +13,7 @@ import os
 from pathlib import Path
 from types import ModuleType
 
-from pipeline.data import colmap_model, folder, imc2022, imc_pt2020, pairs_with_gt, strecha
+from pipeline.data import colmap_model, folder, imc2022, imc2025, imc_pt2020, pairs_with_gt, strecha
 from pipeline.data.colmap_model import load_colmap
 from pipeline.data.folder import load_folder
 from pipeline.data.imc2022 import load_imc2022
@@ -33,6 +33,7 @@ FORMATS: dict[str, ModuleType] = {
     strecha.NAME: strecha,
     imc_pt2020.NAME: imc_pt2020,
     imc2022.NAME: imc2022,
+    imc2025.NAME: imc2025,
     colmap_model.NAME: colmap_model,
     pairs_with_gt.NAME: pairs_with_gt,
     folder.NAME: folder,

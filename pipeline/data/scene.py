@@ -21,6 +21,7 @@ OWN_POSES = {
     "imc2022": "IMC 2022 calibration.csv",
     "colmap": "its COLMAP model",
     "pairs_with_gt": "its pairs list",
+    "imc2025": "the IMC 2024/2025 train_labels.csv",
 }
 
 
@@ -77,6 +78,11 @@ class Scene:
     # method ("poses" / "sfm"), images, registered, unregistered (names), pairs_listed, pairs_dropped,
     # pairs_unregistered (pairs kept on their own poses that hold an unregistered image: co-visibility unknown)
     built: dict | None = None
+    # IMC 2024/2025 datasets (pipeline.data.imc2025): image -> its ground-truth scene ("outliers": of none), the
+    # camera-centre thresholds (metres) of each scene, and the image files in no label row (left out, counted)
+    groups: dict[str, str] | None = None
+    thresholds: dict[str, tuple[float, ...]] | None = None
+    excluded: list[str] | None = None
 
     def truth_origin(self) -> str:
         """Where the poses this scene is evaluated against come from, one phrase for reports: the scene's own

@@ -4,15 +4,15 @@
     task = get_task("stereo", min_covisibility=0.1)     # or "multiview"
     result = task.evaluate(scenes, conf, cache)
 
-Registered here: ``stereo`` (two-view pose from F, the paper's stereo task) and ``multiview`` (COLMAP
-reconstructions of bags of images). ``TASKS.names()`` lists them; docs/extending.md shows how to add one.
+Registered here: ``stereo`` (two-view pose from F, the paper's stereo task), ``multiview`` (COLMAP
+reconstructions of bags of images) and ``reconstruction`` (IMC 2024/2025 datasets reconstructed whole and clustered). ``TASKS.names()`` lists them; docs/extending.md shows how to add one.
 """
 from __future__ import annotations
 
 # Importing registers the tasks: the import order is the listing order, so isort leaves it.
 # isort: off
 from pipeline.tasks.base import TASKS, Task, TaskResult
-from pipeline.tasks import stereo, multiview  # noqa: F401,E402
+from pipeline.tasks import stereo, multiview, reconstruction  # noqa: F401,E402
 from pipeline.features import load_plugins  # noqa: E402  (after the tasks: a plug-in may register one)
 # isort: on
 
@@ -49,9 +49,13 @@ def is_timed(name: str) -> bool:
 
 
 def task_list(spec: str) -> list[str]:
-    """Task names from a spec: one name, a comma-separated list, or ``both`` / ``all`` (every task)."""
-    if spec in ("both", "all"):
+    """Task names from a spec: one name, a comma-separated list, ``both`` (every task that evaluates the paper's
+    scenes: stereo, multiview and plug-in tasks; not ``reconstruction``, which needs IMC datasets: ``Task.in_both``)
+    or ``all`` (every task)."""
+    if spec == "all":
         return TASKS.names()
+    if spec == "both":
+        return [n for n in TASKS.names() if TASKS.get(n).in_both]
     names = [s.strip() for s in str(spec).split(",") if s.strip()]
     for n in names:
         TASKS.get(n)  # unknown -> one-line error listing the tasks

@@ -32,7 +32,8 @@ What a task declares (class attributes, read by the tuner, which has no task-spe
 - ``reapplied``: the :meth:`options` a comparison on this task takes from the studies compared (their recorded
   options, which their test runs used), unless typed;
 - ``needs_points``: whether it needs a scene's built 3D points (`tune data build-gt`) to choose its units;
-- ``sweep``: whether `tune findings` sweeps its space's grid rather than sampling it (each trial is expensive).
+- ``sweep``: whether `tune findings` sweeps its space's grid rather than sampling it (each trial is expensive);
+- ``in_both``: whether ``--task both`` runs it (the reconstruction task needs IMC datasets: only by name or ``all``).
 
 How its numbers are resampled is declared by :meth:`Task.intervals` (95% intervals) and :meth:`Task.paired` (a
 paired comparison of two configurations on the same units); which constructor options it takes by
@@ -118,6 +119,7 @@ class Task(abc.ABC):
     reapplied: ClassVar[tuple[str, ...]] = ()
     needs_points: ClassVar[bool] = False
     sweep: ClassVar[bool] = False
+    in_both: ClassVar[bool] = True  # `--task both` runs it (False: it needs data of its own kind, e.g. IMC datasets)
 
     @classmethod
     def takes(cls, option: str) -> bool:

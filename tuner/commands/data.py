@@ -48,7 +48,43 @@ def register(sub) -> None:
     g.add_argument("--json", action="store_true", help="print one JSON object")
     g.add_argument("--quiet", action="store_true", help="no progress messages")
     g.set_defaults(func=run_build_gt)
+    x = dsub.add_parser("to-imc", help="write posed scenes (Strecha, COLMAP models, IMC 2022, ...) into the IMC "
+                        "2024/2025 layout, several scenes mixed into one dataset",
+                        description="Writes OUT/train/<dataset>/<scene>_<image> (images linked, or copied with "
+                                    "--copy), OUT/train_labels.csv (world-to-camera R, t of every image, in the scene's "
+                                    "own units: metres for Strecha) and OUT/train_thresholds.csv (the challenge's six "
+                                    "camera-centre thresholds, scaled by --threshold-scale). Several runs with other "
+                                    "--dataset names add datasets to the same OUT. The reconstruction task then "
+                                    "validates on such a mix and tests on a real challenge dataset.")
+    x.add_argument("--data", default=None, help=DATA_HELP)
+    x.add_argument("--scenes", type=scene_list, required=True, help="comma-separated posed scenes to mix")
+    x.add_argument("--out", required=True, help="the IMC folder written (created; never the data folder)")
+    x.add_argument("--dataset", required=True, help="the dataset's name in the IMC layout")
+    x.add_argument("--outliers", type=scene_list, default=None,
+                   help="comma-separated scenes whose images are written as outliers (no pose)")
+    x.add_argument("--threshold-scale", type=float, default=1.0,
+                   help="multiply the challenge's thresholds (0.025 ... 1.0 m) by this (scenes in other units)")
+    x.add_argument("--copy", action="store_true", help="copy the images (default: symbolic links)")
+    x.add_argument("--json", action="store_true", help="print one JSON object")
+    x.set_defaults(func=run_to_imc)
     ap.set_defaults(func=lambda a: (ap.print_help(), 2)[1])
+
+
+def run_to_imc(args) -> int:
+    import json
+
+    from pipeline.data.imc_export import export_imc
+    from pipeline.data.locate import locate
+    root = locate(args.data).path
+    out = export_imc(root, args.scenes.split(","), args.out, args.dataset,
+                     outliers=args.outliers.split(",") if args.outliers else [],
+                     threshold_scale=args.threshold_scale, copy=args.copy)
+    if args.json:
+        print(json.dumps(out, indent=2))
+    else:
+        print(f"{out['dataset']}: {out['images']} images ({', '.join(f'{k} {v}' for k, v in out['scenes'].items())}"
+              f"{', outliers ' + str(out['outliers']) if out['outliers'] else ''}) -> {out['out']}")
+    return 0
 
 
 def run_download(args) -> int:
@@ -105,13 +141,25 @@ def run_scenes(args) -> int:
     scenes = [{"scene": n, "split": "val" if n in splits.get("val", []) else
                "test" if n in splits.get("test", []) else "-"} for n in list_scenes(root)]
     others = _other_sets(root)
+    from pipeline.data import imc2025
+    imc = {d["dataset"]: d for d in imc2025.describe(root)}  # IMC 2024/2025 datasets: their scenes, outliers, K
+    for s in scenes:
+        if s["scene"] in imc:
+            s["imc"] = imc[s["scene"]]
     if args.json:
         print(json.dumps({"data": str(root), "rule": loc.rule, "detail": loc.detail, "scenes": scenes,
                           "max_pairs": cap, "other_data_sets": others}, indent=2))
         return 0
     print(f"data: {root}  (found by {loc.describe()})")
     for s in scenes:
-        print(f"{s['scene']}\t{s['split']}")
+        d = s.get("imc")
+        extra = ""
+        if d:
+            extra = (f"\tIMC dataset: {d['images']} images; scenes " + ", ".join(f"{k} ({v})" for k, v in
+                                                                         d["scenes"].items())
+                     + f"; outliers {d['outliers']}; intrinsics {'known' if d['intrinsics'] else 'unknown'}"
+                     + (f"; {d['unlabelled']} image(s) in no label row (left out)" if d["unlabelled"] else ""))
+        print(f"{s['scene']}\t{s['split']}{extra}")
     if cap is not None:
         print(f"pairs: the main job uses at most {cap} pairs per scene here (evenly spread; --max-pairs N to change)")
     if not splits.get("test"):

@@ -190,6 +190,7 @@ def run(args) -> int:
     out = evaluate_config(conf, data, args.scenes, cache_dir=args.cache,
                           min_covisibility=args.covisibility, progress=not (args.quiet or args.json),
                           with_pairs=args.pairs, task=args.task, multiview=multiview_config(args), workers=args.workers,
+                          mapper=args.mapper, submission=args.submission,
                           gt_dir=args.gt_dir, with_bags=args.bag_records, keep_models=args.keep_models,
                           intermediate=args.intermediate, ci_resamples=ci_resamples(args), jobs=args.jobs)
     if source:

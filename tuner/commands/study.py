@@ -354,7 +354,7 @@ def settings_from_args(args):
         heartbeat=args.heartbeat if args.heartbeat and args.heartbeat > 0 else None,
         calibration_pairs=args.calibration_pairs, recalibrate=args.recalibrate, progress=not quiet,
         test=not args.no_test, test_runs=args.test_runs, retest=args.retest, multiview=mv, workers=args.workers,
-        jobs=args.jobs, warm_start=list(args.warm_start),
+        mapper=getattr(args, "mapper", None), jobs=args.jobs, warm_start=list(args.warm_start),
         gt_dir=args.gt_dir, objective=args.objective,
         pareto_span=PARETO_SPAN if args.pareto_span is None else args.pareto_span, select=args.select,
         reference=resolve_reference(args.reference, _studies_dir(args)), ci_resamples=ci_resamples(args),
