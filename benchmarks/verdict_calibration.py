@@ -305,7 +305,18 @@ def main(argv=None) -> int:
     ap.add_argument("--json", action="store_true", help="print the table as JSON ({calibration, cells, ...})")
     ap.add_argument("--out", type=Path, help="also write the JSON there")
     ap.add_argument("--quick", action="store_true", help="only K in {1, 3} and 30 pairs (a smoke run)")
+    ap.add_argument("--from-json", type=Path, help="print the table of a saved --json/--out file (no simulation)")
     a = ap.parse_args(argv)
+    if a.from_json:
+        saved = json.loads(a.from_json.read_text())
+        print(table(saved["cells"]))
+        print(f"\n{len(saved['cells']) // 2} cells x {saved['sims']} data sets per scenario, {saved['seconds']} s")
+        for key, what in (("outside_targets", "cells with a verdict outside the targets"),
+                          ("assumption_cells_outside_targets", "cells without a verdict outside the targets")):
+            print(f"{what}: {len(saved[key])}")
+            for line in saved[key]:
+                print("  " + line)
+        return 0
     t0 = time.time()
     with ProcessPoolExecutor(max_workers=max(1, a.jobs)) as ex:
         cal = dict(zip(TUNING_SD, ex.map(calibrate_one, TUNING_SD.values())))

@@ -1,0 +1,51 @@
+"""benchmarks/verdict_calibration.py keeps running, and its target check flags what it should (the figures
+themselves are the benchmark's, documented on the statistics page; a few data sets here only exercise the code)."""
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "verdict_calibration.py"
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("verdict_calibration", BENCH)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_a_cell_runs_both_methods_on_the_same_data_sets():
+    m = _bench()
+    cal = {"tau": 0.05, "pairs": {8: {"mu_a": 0.5, "shifts": {0.0: 0.0, 0.05: 0.1, 0.1: 0.2}}}}
+    rows = m.run_cell((3, 1, 8, "small", cal, 15, 0, 200))
+    assert [r["method"] for r in rows] == ["new", "old"]
+    new = rows[0]
+    assert new["claim"] == "assumption" and new["verdicts05"] == 0.0  # a side with K = 1: never a verdict
+    for r in rows:
+        for k in ("coverage_mean", "coverage_diff", "fp05", "fp01", "ks", "power05", "power10"):
+            assert 0.0 <= r[k] <= 1.0, (k, r)
+        assert r["fp01"] <= r["fp05"]
+
+
+def test_scores_are_the_benchmarks_per_pair_maa():
+    import numpy as np
+    m = _bench()
+    log_err = np.log10(np.array([0.5, 1.0, 1.5, 9.99, 10.0, 10.5, 200.0]))
+    # thresholds 1..10 deg within reach: 10, 10, 9, 1, 1, 0, 0
+    assert m.scores_of(log_err).tolist() == [1.0, 1.0, 0.9, 0.1, 0.1, 0.0, 0.0]
+
+
+def test_the_target_check_flags_a_cell_outside_and_passes_one_inside():
+    m = _bench()
+    base = {"k_a": 3, "k_b": 3, "pairs": 30, "tuning_sd": "small", "claim": "verdict", "coverage_mean": 0.95,
+            "coverage_diff": 0.95, "fp05": 0.05, "fp01": 0.01, "power05": 0.3, "power10": 0.8}
+    good = [{**base, "method": "new"}, {**base, "method": "old", "fp05": 0.02}]
+    assert m.check(good, 2000) == ([], [])
+    bad = [{**base, "method": "new", "fp05": 0.12, "coverage_diff": 0.85}, {**base, "method": "old"}]
+    flagged, _ = m.check(bad, 2000)
+    assert len(flagged) == 1 and "fp05 0.120" in flagged[0] and "coverage_diff 0.850" in flagged[0]
+    weaker = [{**base, "method": "new", "power05": 0.1}, {**base, "method": "old", "fp05": 0.05}]
+    assert "power05 0.100 < old 0.300" in m.check(weaker, 2000)[0][0]
