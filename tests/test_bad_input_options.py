@@ -735,8 +735,8 @@ def test_test_workers_of_a_stereo_study_is_refused(tiny, tmp_path, capsys):
     sdir = _frozen_only(tmp_path / "studies", "s", "stereo", tiny)
     rc, _, err = _cli(["test", "--study", "s", "--workers", "2", "--runs", "1", "--reference", "none", "--cache",
                        tmp_path / "cache", "--studies-dir", sdir, "--quiet", "--jobs", "1"], capsys)
-    _one_line_error(rc, err, "--workers is an option of the multiview task (its parallel processes), and study s is a stereo "
-                             "study: drop --workers")
+    _one_line_error(rc, err, "--workers is an option of the multiview / reconstruction task (its parallel processes), "
+                             "and study s is a stereo study: drop --workers")
     assert not (sdir / "s" / "test.json").exists()
 
 
