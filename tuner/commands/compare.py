@@ -159,7 +159,7 @@ def _print_replicated(args, rep: dict) -> int:
         print(json.dumps(_jsonable(rep), indent=2))
         return 0
     print(f"replicated comparison on the recorded test pairs: {', '.join(rep['scenes'])} ({rep['pairs']} pairs); "
-          f"{args.ci_resamples} resamples, seed {args.seed}")
+          "t test over replicates x pairs (How sure a number is: tuned comparisons)")
     for tag in ("a", "b"):
         s = rep[tag]
         each = ", ".join(f"{x:.4f}" for x in s["replicate_mAA10"])
