@@ -147,10 +147,10 @@ def score_matrix(tests: list[dict], tau: int = 10, scaled: bool = True) -> tuple
 
 
 def scene_scale(scenes: np.ndarray) -> np.ndarray:
-    """Per-column factor N w_p (w_p = 1 / (n_scenes n_scene_pairs)) that makes a plain mean scene-weighted."""
-    names, counts = np.unique(scenes, return_counts=True)
-    per_scene = dict(zip(names, counts))
-    return np.array([len(scenes) / (len(names) * per_scene[sc]) for sc in scenes])
+    """Per-column factor N w_p (w_p = 1 / (n_scenes n_scene_pairs)) that makes a plain mean scene-weighted:
+    :func:`pipeline.metrics.replicates.scene_weights`."""
+    from pipeline.metrics.replicates import scene_weights
+    return scene_weights(np.asarray(scenes))
 
 
 def replicated_summary(tests: list[dict], seeds: list, *, tau: int = 10, n_boot: int = 2000) -> dict:

@@ -163,7 +163,7 @@ class ReplicatedDifference:
         ka, kb = self.replicates
         pct = f"{100 * (1 - self.alpha):.0f}%"
         head = (f"{a} - {b} = {self.diff:+.4f} [{self.low:+.4f}, {self.high:+.4f}] ({pct}), "
-                f"p = {format_p(self.p_value)}")
+                f"p = {format_p(self.p_value, self.alpha)}")
         if not self.verdict_allowed:
             once = [name for name, k, tuned in ((a, ka, True), (b, kb, b_tuned)) if k < 2 and tuned]
             if once:
@@ -191,8 +191,10 @@ class ReplicatedDifference:
         return "(over test pairs only)" if not self.tuning_variance_measured else "(K = 2 x 2)"
 
 
-def format_p(p: float) -> str:
-    return "<0.0001" if p < 1e-4 else f"{p:.3g}"
+def format_p(p: float, alpha: float = 0.05) -> str:
+    """The project's p-value format (:func:`pipeline.metrics.uncertainty.paired.format_p`: on its side of alpha)."""
+    from pipeline.metrics.uncertainty.paired import format_p as fmt
+    return fmt(p, alpha)
 
 
 # -- the components -------------------------------------------------------------------------------------------
