@@ -49,3 +49,24 @@ def test_the_target_check_flags_a_cell_outside_and_passes_one_inside():
     assert len(flagged) == 1 and "fp05 0.120" in flagged[0] and "coverage_diff 0.850" in flagged[0]
     weaker = [{**base, "method": "new", "power05": 0.1}, {**base, "method": "old", "fp05": 0.05}]
     assert "power05 0.100 < old 0.300" in m.check(weaker, 2000)[0][0]
+
+
+def test_the_truth_is_the_expected_score_of_the_simulated_world():
+    """The benchmark's truth (exact, a sum of normal cdfs) against a brute-force average of the very draws the cells
+    make: a truth off by 0.01 would move every coverage and power column of the benchmark."""
+    import numpy as np
+    m = _bench()
+    rng = np.random.default_rng(3)
+    tau, shift, reps, n = 0.1, 0.08, 6000, 50
+    for with_v in (False, True):
+        # each simulated side: one tuning draw, fresh pairs in every scene; its figure the mean over scenes
+        figs = [np.mean([m.draw_side(rng, rng.normal(ms, m.PAIR_SD, n), 1, tau, shift,
+                                     rng.normal(0, m.METHOD_PAIR_SD, n) if with_v else None).mean()
+                         for ms in m.scene_means(3)]) for _ in range(reps)]
+        mc, se = float(np.mean(figs)), float(np.std(figs, ddof=1) / np.sqrt(reps))
+        assert abs(mc - m.expected(tau, shift, 3, with_v)) < 4 * se, (with_v, mc, se, m.expected(tau, shift, 3, with_v))
+    # the tuning sd of the figure: quadrature against 4000 simulated tunings on many pairs
+    t = rng.normal(0, tau, 4000)
+    sd_in = float(np.sqrt(m.PAIR_SD**2 + (tau / 2) ** 2 + m.SEED_SD**2))
+    figures = np.mean([m.expected_score(ms + t, sd_in) for ms in m.scene_means(3)], axis=0)
+    assert abs(figures.std(ddof=1) - m.tuning_sd_of(tau)) < 0.05 * m.tuning_sd_of(tau)
