@@ -1462,6 +1462,10 @@ def test_findings_with_replicates_end_to_end(subset, tmp_path, monkeypatch, caps
     row = next(ln for ln in md.splitlines() if ln.startswith("| 11 | "))
     assert "K=2x2, P(B>A)" in row, row
     assert "2 x 2 tuning replicates: the interval holds the tuning variance" in md
+    # the rule a replicated verdict followed is the tuned comparison's, not the single tuning's paired bootstrap
+    section = md.split("## 11. ", 1)[1].split("\n## ", 1)[0]
+    rule = next(ln for ln in section.splitlines() if ln.startswith("Rule: "))
+    assert "over K tuning replicates" in rule and "fewer than 3 replicates" in rule and "bootstrap" not in rule, rule
     # a rerun reuses every replicate: no trial more
     before = _trial_count(storage)
     rc, out, err = _cli(args, capsys)

@@ -190,3 +190,34 @@ def test_components_known_case():
 def test_empirical_p_a_beats_b_known_case():
     assert p_a_beats_b([1, 2, 3], [0, 0, 0]) == 1.0
     assert p_a_beats_b([1, 2, 3], [2, 2, 2]) == (0 + 1.5 + 3) / 9
+
+
+def test_degrees_of_freedom_by_hand():
+    """A 3 vs 3 comparison: the plug-in Welch-Satterthwaite df over the two replicate parts (s_A^2 / 3 and s_B^2 / 3
+    on 2 df each) and the pair-effect part (the stratified variance of the per-pair differences minus the
+    interaction mean squares / (K N), on its strata's df). A figure of one side: the same with its replicate part at
+    the upper 60% limit of a chi-square with 2 df (its df are lower)."""
+    rng = np.random.default_rng(21)
+    pairs = rng.normal(0.5, 0.25, 30)
+    a, b = _side(rng, pairs, 3, 0.03, 0.08), _side(rng, pairs, 3, 0.03, 0.08, shift=0.02)
+    d = replicated_difference(a, b, STRATA)
+    ca, cb = components(a), components(b)
+    per = a.mean(axis=0) - b.mean(axis=0)
+    groups = [per[STRATA == s] for s in range(3)]
+    vp_terms = [10 * g.var(ddof=1) / 30**2 for g in groups]
+    vp = sum(vp_terms)
+    dfp = vp**2 / sum(t * t / 9 for t in vp_terms)
+    pe = vp - (ca.ms_res + cb.ms_res) / (3 * 30)
+    terms = [(ca.row_var / 3, 2), (cb.row_var / 3, 2), (max(pe, 0.0), dfp)]
+    var = sum(v for v, _ in terms) if pe >= 0 else max(sum(v for v, _ in terms) + pe, 0.5 * sum(v for v, _ in terms))
+    df = sum(v for v, _ in terms) ** 2 / sum(v * v / f for v, f in terms if v > 0)
+    assert d.se == pytest.approx(math.sqrt(var), rel=1e-9)
+    assert d.df == pytest.approx(df, rel=1e-9)
+    # the figure of A: its replicate part enters the df at s^2 * 2 / chi2_2(0.40) (upper 60% limit)
+    iv = replicated_interval(a, STRATA)
+    vpa_terms = [10 * a.mean(axis=0)[STRATA == s].var(ddof=1) / 30**2 for s in range(3)]
+    vpa = sum(vpa_terms)
+    dfpa = vpa**2 / sum(t * t / 9 for t in vpa_terms)
+    pea = max(vpa - ca.ms_res / (3 * 30), 0.0)
+    up = ca.row_var / 3 * 2 / stats.chi2.ppf(0.40, 2)
+    assert iv.df == pytest.approx((up + pea) ** 2 / (up**2 / 2 + pea**2 / dfpa), rel=1e-9)

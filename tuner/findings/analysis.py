@@ -13,9 +13,10 @@ Rules (the report states the one each finding uses):
   Bonferroni level 0.05 / m over the m relations.
   With tuning replicates (``--replicates K``, K >= 2 for both studies) the difference, its CI and p come from
   :func:`pipeline.metrics.replicates.replicated_difference` of the K x N per-pair mAA(10) scores (each replicate's
-  mean over its test runs, scene-weighted): the pair bootstrap plus the between-replicate variance, so the
-  interval holds the tuning variance; P(B > A) over replicate pairs is reported beside it. With K = 1 every verdict
-  says the tuning variance was not measured.
+  mean over its test runs, scene-weighted): variance components of replicates x pairs (pairs, tuning and seed noise
+  each counted once) and a t test, so the interval holds the tuning variance; a verdict needs K >= 3 on both sides
+  (else inconclusive); P(B > A) for one new tuning of each, with its interval, is reported beside it. With K = 1
+  every verdict says the tuning variance was not measured.
 - ``small_gain`` — the claim "B adds at most a little over A": holds when the upper end of the CI of B - A is
   <= SMALL_GAIN (in mAA(10), 0..1), does not hold when its lower end is above SMALL_GAIN, inconclusive
   otherwise (a CI containing 0 but reaching past the margin says nothing either way).

@@ -17,6 +17,14 @@ RULE_TEXT = {
     "better": "paired bootstrap of mAA(10)(B) - mAA(10)(A) on the same test pairs: the 95% CI containing 0 -> "
               "inconclusive; otherwise, when the paired sign-flip test agrees (p < 0.05), CI above 0 -> holds, below "
               "0 -> does not hold, and inconclusive when it does not",
+    "better_replicated": "the tuned difference mAA(10)(B) - mAA(10)(A) over K tuning replicates x the same test "
+                         "pairs (variance components: pairs, tuning and seed noise each counted once; t test): the "
+                         "95% CI containing 0 -> inconclusive; otherwise CI above 0 -> holds, below 0 -> does not "
+                         "hold; inconclusive whenever a side has fewer than 3 replicates",
+    "small_gain_replicated": f"the tuned difference mAA(10)(B) - mAA(10)(A) over K tuning replicates x the same "
+                             f"test pairs (variance components; t interval): CI upper end <= {SMALL_GAIN:g} -> holds "
+                             f"(at most a small gain), lower end > {SMALL_GAIN:g} -> does not hold, otherwise "
+                             "inconclusive; inconclusive whenever a side has fewer than 3 replicates",
     "small_gain": f"paired bootstrap of mAA(10)(B) - mAA(10)(A): CI upper end <= {SMALL_GAIN:g} -> holds (at most a "
                   f"small gain), lower end > {SMALL_GAIN:g} -> does not hold, otherwise inconclusive",
     "regions": "flat region of the optimum = range of the parameter over the feasible trials whose validation "
@@ -593,6 +601,8 @@ def write_report(out: dict, fs, seconds: float = 0.0) -> Path:
     for f in out["findings"]:
         d = BY_ID[f["id"]]
         rule = RULE_TEXT[d.rule]
+        if d.rule in ("better", "small_gain") and (f.get("measured") or {}).get("tuning_variance_measured"):
+            rule = RULE_TEXT[f"{d.rule}_replicated"]
         md += [f"## {f['id']}. {d.title} — {f['verdict']}", "", f"Paper: {f['claim']} ({f['paper']})", "",
                f"Rule: {rule}.", ""]
         if d.notes:
