@@ -29,7 +29,7 @@ see ``assumption`` in the module of the functions), the median detectable differ
 that the comparisons themselves predicted at .05 (the mean of each data set's own power at .05: the "could detect"
 line is right when it matches power05).
 
-    python benchmarks/verdict_calibration.py --sims 400 --json          # about 5 minutes on 2 cores
+    python benchmarks/verdict_calibration.py --sims 400 --json          # 5 min 50 s on 2 cores
     python benchmarks/verdict_calibration.py --sims 2000 --json --out benchmarks/results/verdict_calibration.json
 """
 from __future__ import annotations
@@ -360,7 +360,7 @@ def main(argv=None) -> int:
         print(table(cells))
         print(f"\n{len(cells) // 2} cells x {a.sims} data sets per scenario, {out['seconds']} s; targets: {TARGETS} "
               "(3 Monte-Carlo sds allowed)")
-        print(f"cells with a verdict (K >= 2 on both sides) outside the targets: {len(bad)}")
+        print(f"cells with a verdict (K >= 3 on both sides) outside the targets: {len(bad)}")
         for line in bad:
             print("  " + line)
         print(f"cells without a verdict (a side with K = 1 under its stated assumption, or K = 2) outside the targets: "
