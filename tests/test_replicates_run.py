@@ -113,13 +113,13 @@ def test_replicated_figure_is_the_mean_of_the_replicates_and_its_interval_is_wid
     # the same pairs with the tuning part dropped (every replicate's scores the mean's): narrower exactly when the
     # tuning variance, estimated here by hand (s^2 of the replicate figures minus the interaction mean square / N,
     # scene-weighted scores), is positive
-    from pipeline.metrics.replicates import replicated_maa_interval
-    from tuner.replicates import scene_scale, score_matrix
+    from pipeline.metrics.replicates import replicated_maa_interval, scene_weights
+    from tuner.replicates import score_matrix
     scores, strata = score_matrix(own, scaled=False)
     assert scores.mean(axis=1) == pytest.approx(by_hand, abs=1e-12)
     one = replicated_maa_interval(scores.mean(axis=0, keepdims=True).repeat(3, 0), strata)
     assert one.se_between == 0 and one.mean == pytest.approx(rep["mAA10"], abs=1e-12)
-    w = scores * scene_scale(strata)[None, :]
+    w = scores * scene_weights(strata)[None, :]
     resid = w - w.mean(axis=1, keepdims=True) - w.mean(axis=0, keepdims=True) + w.mean()
     tuning = np.var(w.mean(axis=1), ddof=1) - np.sum(resid**2) / (2 * (w.shape[1] - 1)) / w.shape[1]
     iv = replicated_maa_interval(scores, strata)

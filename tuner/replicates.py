@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import ImtuneError
-from pipeline.metrics.replicates import METHOD, NOT_MEASURED, ReplicatedInterval, replicated_maa_interval
+from pipeline.metrics.replicates import METHOD, NOT_MEASURED, ReplicatedInterval, replicated_maa_interval, scene_weights
 
 #: the frozen parameters whose spread over replicates is reported (r, eta, Gamma)
 SPREAD_PARAMS = ("ratio", "threshold", "max_iters")
@@ -143,14 +143,7 @@ def score_matrix(tests: list[dict], tau: int = 10, scaled: bool = True) -> tuple
     assert keys is not None
     scenes = np.array([key[0] for key in keys])
     scores = np.asarray(rows, float)
-    return (scores * scene_scale(scenes)[None, :] if scaled else scores), scenes
-
-
-def scene_scale(scenes: np.ndarray) -> np.ndarray:
-    """Per-column factor N w_p (w_p = 1 / (n_scenes n_scene_pairs)) that makes a plain mean scene-weighted:
-    :func:`pipeline.metrics.replicates.scene_weights`."""
-    from pipeline.metrics.replicates import scene_weights
-    return scene_weights(np.asarray(scenes))
+    return (scores * scene_weights(scenes)[None, :] if scaled else scores), scenes
 
 
 def replicated_summary(tests: list[dict], seeds: list, *, tau: int = 10, n_boot: int = 2000) -> dict:
@@ -169,7 +162,7 @@ def replicated_summary(tests: list[dict], seeds: list, *, tau: int = 10, n_boot:
             "note": "" if iv.tuning_variance_measured else NOT_MEASURED,
             "spread": spread, "pairs": int(scores.shape[1]), "method": INTERVAL_METHOD, "level": 0.95,
             "reference": reference_comparison(tests, tau=tau, n_boot=n_boot,
-                                              tuned=(scores * scene_scale(strata)[None, :], strata))}
+                                              tuned=(scores * scene_weights(strata)[None, :], strata))}
 
 
 def param_spread(params: list) -> dict:

@@ -43,6 +43,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import special
 
+from pipeline.metrics.uncertainty.paired import format_p  # the project's p format (on its side of alpha)
+
 TIE_TOLERANCE = 1e-12
 NOT_MEASURED = "the tuning variance was not measured (1 replicate): the interval covers test pairs only"
 #: power and target difference of the "could detect" / planning lines (mAA units)
@@ -191,12 +193,6 @@ class ReplicatedDifference:
         return "(over test pairs only)" if not self.tuning_variance_measured else "(K = 2 x 2)"
 
 
-def format_p(p: float, alpha: float = 0.05) -> str:
-    """The project's p-value format (:func:`pipeline.metrics.uncertainty.paired.format_p`: on its side of alpha)."""
-    from pipeline.metrics.uncertainty.paired import format_p as fmt
-    return fmt(p, alpha)
-
-
 # -- the components -------------------------------------------------------------------------------------------
 
 def _check(scores, strata) -> tuple[np.ndarray, np.ndarray]:
@@ -290,8 +286,8 @@ def _variance(vp: float, dfp: float, sides: list[tuple[Components, float]], n: i
     pair_effects = vp - inter if rows else vp
     var, _ = _welch([*rows, (max(0.0, pair_effects), dfp)])
     # the df with each replicate term at its upper DF_BOUND confidence limit (the variance itself stays unbiased)
-    scale = (lambda d: d / _chi2_quantile(DF_BOUND, d)) if bound_df else (lambda d: 1.0)
-    _, df = _welch([*[(v * scale(d), d) for v, d in rows], (max(0.0, pair_effects), dfp)])
+    bounded = [(v * d / _chi2_quantile(DF_BOUND, d), d) for v, d in rows] if bound_df else rows
+    _, df = _welch([*bounded, (max(0.0, pair_effects), dfp)])
     if pair_effects < 0:
         var = max(var + pair_effects, 0.5 * var)
     return var, df, pair_effects
@@ -460,9 +456,8 @@ def replicated_difference(a, b, strata=None, *, alpha: float = 0.05, seed: int =
     else:
         sides, rows = [], []
         tune_a = tune_b = res_a = res_b = 0.0
-    # two measured sides of K >= 3: the plug-in df (see ``_variance``); a figure, a borrowed side or K = 2: bounded
-    two_measured = ca.measured and cb.measured and min(ka, kb) >= MIN_VERDICT_K
-    var, df, pair_effects = _variance(vp, dfp, sides, n, bound_df=not two_measured)
+    # both sides with K >= 3: the plug-in df (see ``_variance``); a borrowed side or K = 2: bounded
+    var, df, pair_effects = _variance(vp, dfp, sides, n, bound_df=min(ka, kb) < MIN_VERDICT_K)
     se = math.sqrt(max(var, 0.0))
     if se == 0.0:
         p = 1.0 if d == 0.0 else 0.0

@@ -156,19 +156,18 @@ def _matrix(scores: list[dict], keys: list):
 def replicated_relation(oa, ob, n_resamples: int, seed: int = 0, level: float = DEFAULT_LEVEL,
                         tau: int = 10) -> dict:
     """B - A of two replicated studies on the test pairs every replicate of both scored: the K_a x N and K_b x N
-    per-pair score matrices, scene-weighted (:func:`tuner.replicates.scene_scale`: a plain mean is the benchmark's
+    per-pair score matrices, scene-weighted (:func:`pipeline.metrics.replicates.scene_weights`: a plain mean is the benchmark's
     mean over scenes), into :func:`pipeline.metrics.replicates.replicated_difference` (variance components, t with
     Satterthwaite df). Keys as :func:`paired_bootstrap`'s, plus ``p_b_beats_a`` (with ``p_b_beats_a_ci``),
     ``detectable`` (80% power), ``plan`` and ``replicates`` [K_a, K_b]."""
     import numpy as np
 
-    from pipeline.metrics.replicates import replicated_difference
-    from tuner.replicates import scene_scale
+    from pipeline.metrics.replicates import replicated_difference, scene_weights
     sa, sb = _replicate_scores(oa, tau), _replicate_scores(ob, tau)
     in_a, in_b = _common(sa), _common(sb)
     keys = sorted(in_a & in_b)
     strata = np.array([k[0] for k in keys])
-    scale = scene_scale(strata)[None, :]
+    scale = scene_weights(strata)[None, :]
     a, b = _matrix(sa, keys) * scale, _matrix(sb, keys) * scale
     d = replicated_difference(b, a, strata, alpha=1 - level, seed=int(seed))
     return {"mAA10_a": float(a.mean()), "mAA10_b": float(b.mean()), "difference": d.diff, "ci": [d.low, d.high],
