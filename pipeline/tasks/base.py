@@ -22,6 +22,9 @@ What a task declares (class attributes, read by the tuner, which has no task-spe
 - ``note``: one line printed above its tables (units, what the figures mean);
 - ``timed``: whether it times an estimator of ours per pair, so that a time budget applies
   (:meth:`Task.budget_seconds`);
+- ``search_seconds``: the wall seconds of trials a study of this task searches at most unless told (stereo: 300, the
+  main job's bound: its trials cost at most B a pair, so the trial count, not the task, sets their number); None
+  where one evaluation takes minutes (multiview, reconstruction) and a bound would cut a study to a few trials;
 - ``unit`` / ``unit_one``: what one record is, plural and singular ("pairs" / "pair", "bags" / "bag"); the summary
   counts them under ``unit``, intervals and paired tests resample them;
 - ``units_label``: how `tune compare` names what every source is evaluated on ("stereo pairs");
@@ -110,6 +113,7 @@ class Task(abc.ABC):
     records_key: ClassVar[str] = "records"
     note: ClassVar[str] = ""  # one line printed above the task's tables (units, what the figures mean)
     timed: ClassVar[bool] = False  # True: it times an estimator of ours per pair (a time budget applies)
+    search_seconds: ClassVar[float | None] = None  # wall seconds a study's search runs at most unless told; None: no bound
     unit: ClassVar[str] = "pairs"
     unit_one: ClassVar[str] = "pair"
     units_label: ClassVar[str] = ""  # "" -> "<name> <unit>"

@@ -296,6 +296,7 @@ class StereoTask(Task):
     columns = ("pairs", "NF", "NM", "NI", "mAA5", "mAA10", "auc10", "failed", "match_seconds", "ransac_seconds")
     records_key = "pair_records"
     timed = True
+    search_seconds = 300.0  # the main job: 50 trials or 5 min of them, whichever comes first (docs/budgets.md)
     note = "pose from F (or E, calibrated estimators); mAA over 1..5 / 1..10 deg; auc10: pose AUC@10 deg (SuperGlue's trapezoid); seconds per pair"
     units_label = "stereo pairs"
     test_figures = ("NF: features per image; per estimator NI: inliers per pair and mAA(10°) [95% interval over pairs "

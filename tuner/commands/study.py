@@ -23,7 +23,7 @@ import sys
 from pathlib import Path
 
 from pipeline.errors import ImtuneError
-from tuner.argtypes import nonnegative_int, positive_float, positive_int, ratio_float, scene_list
+from tuner.argtypes import nonnegative_float, nonnegative_int, positive_float, positive_int, ratio_float, scene_list
 from tuner.commands.evaluate import add_ci_options, ci_resamples, with_ci
 from tuner.formatting import render
 from tuner.options import add_pipeline_options, build_config, resolve_data
@@ -142,7 +142,10 @@ def register(sub) -> None:
     t.add_argument("--n-trials", type=positive_int, default=None,
                    help="finished trials (complete + pruned) the study should hold; a rerun runs the missing ones "
                         "(default 50; the whole grid with --sampler grid)")
-    t.add_argument("--timeout", type=positive_float, default=None, help="stop this worker after this many seconds")
+    t.add_argument("--timeout", type=nonnegative_float, default=None,
+                   help="stop this worker's search after this many seconds of trials, then freeze and test as usual "
+                        "(default: 300 for a stereo study, the main job's bound; none for multiview and "
+                        "reconstruction; 0 = no limit)")
     t.add_argument("--terminate", default="off", choices=["off", "auto"],
                    help="auto: stop the study early when more trials cannot beat the incumbent by more than its "
                         "validation interval (Optuna's terminator: a GP regret bound, after min(20, n_trials / 2) "
@@ -317,6 +320,15 @@ def _max_pairs(args, data_root):
     return default_max_pairs(data_root)
 
 
+def _timeout(args) -> float | None:
+    """``--timeout`` (0 = no limit), else the task's ``search_seconds`` (stereo: a bound that keeps the main job's
+    wall time stable whatever trials the sampler draws; None for tasks whose one evaluation takes minutes)."""
+    if args.timeout is not None:
+        return args.timeout or None
+    from pipeline.tasks import TASKS
+    return TASKS.get(args.task).search_seconds if args.task in TASKS else None
+
+
 def settings_from_args(args):
     """TuneSettings from the `tune run` options."""
     from tuner.study import TuneSettings
@@ -347,7 +359,7 @@ def settings_from_args(args):
         storage=args.storage, studies_dir=_studies_dir(args), space_path=args.space,
         # imported (custom) matches skip the matcher: the ratio test and strategy are then not searched
         fixes=list(args.fix) + (["ratio=1.0", "strategy=both"] if getattr(args, "matches", None) else []),
-        n_trials=args.n_trials, timeout=args.timeout, seed=args.seed, sampler=args.sampler, pruner=args.pruner,
+        n_trials=args.n_trials, timeout=_timeout(args), seed=args.seed, sampler=args.sampler, pruner=args.pruner,
         startup_trials=args.startup_trials, budget=args.budget, test_budget=args.test_budget,
         val_scenes=_scenes(args.scenes), test_scenes=_scenes(args.test_scenes), min_covisibility=args.covisibility,
         max_pairs=_max_pairs(args, data_root), chunk_pairs=args.chunk_pairs, cache_dir=args.cache,
@@ -407,6 +419,10 @@ def print_outcome(out: dict) -> None:
     over = f" ({c['infeasible']} over budget)" if out.get("timed", True) else ""  # a multiview study has no budget
     print(f"trials: {c['complete']} complete{over}, {c['pruned']} pruned, "
           f"{c['fail']} failed; this worker ran {len(out['worker']['trials_run'])}")
+    if out["worker"].get("time_limit"):
+        w = out["worker"]
+        print(f"search: stopped at its time limit of {w['time_limit']:g} s (--timeout; 0 = none) before the target "
+              f"of {w['target']} trials; rerun the command to run the rest")
     f = out.get("frozen")
     if f:
         print(f"frozen: {out['frozen_path']}  (trial #{f['trial']})")
