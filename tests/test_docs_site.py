@@ -28,7 +28,7 @@ from pathlib import Path
 import pytest
 
 from tests.test_dashboard_browser import CHROMEDRIVER, CHROMIUM, NEEDS_BROWSER
-from tests.test_docs_build import MKDOCS, build
+
 
 ROOT = Path(__file__).resolve().parent.parent
 DOCS = sorted((ROOT / "docs").glob("*.md"))
@@ -45,11 +45,8 @@ SITE_WIDTH = 1400
 # -- the built site -----------------------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def site(tmp_path_factory) -> Path:
-    if not MKDOCS.exists():
-        pytest.skip(f"no mkdocs beside {sys.executable}: bash .ci/install.sh --docs (or --test)")
-    out = tmp_path_factory.mktemp("site") / "site"
-    r = build(ROOT, out)
+def site(docs_build) -> Path:
+    r, out = docs_build  # built once for every docs test (tests/conftest.py)
     assert r.returncode == 0, r.stderr[-3000:]
     return out
 
