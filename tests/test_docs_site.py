@@ -29,7 +29,6 @@ import pytest
 
 from tests.test_dashboard_browser import CHROMEDRIVER, CHROMIUM, NEEDS_BROWSER
 
-
 ROOT = Path(__file__).resolve().parent.parent
 DOCS = sorted((ROOT / "docs").glob("*.md"))
 # pages another change rewrites for a reader (the statistics page, being rewritten with the statistics)
