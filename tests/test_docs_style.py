@@ -566,3 +566,26 @@ def test_the_built_site_has_no_wide_table_or_long_paragraph(docs_build):
         bad += [f"{name}: a paragraph of {len(p.split())} words (at most {MAX_WORDS}): {p[:80]}..."
                 for p in parser.paragraphs if len(p.split()) > MAX_WORDS]
     assert not bad, "\n".join(bad)
+
+
+def test_the_readme_quotes_the_first_run_as_its_results_file_records_it():
+    """The README is no site page and cannot include a file: the first run's transcript it quotes must be the one
+    benchmarks/results/first-run.md records (and the site includes), so that a re-measured run is one edit of the
+    results file, copied here, and never two different runs."""
+    def transcript(text: str) -> str:
+        m = re.search(r"```text\n(study .*?)```", text, flags=re.S)
+        assert m, "no first-run transcript (```text block starting with 'study ')"
+        return m.group(1)
+    readme = transcript((ROOT / "README.md").read_text())
+    recorded = transcript((ROOT / "benchmarks" / "results" / "first-run.md").read_text())
+    assert readme == recorded, "README.md's first-run transcript differs from benchmarks/results/first-run.md's"
+
+
+def test_the_readme_gives_the_main_jobs_time_its_results_file_records():
+    """The main job's measured time in the README is the one benchmarks/results/main-job.md records (the site
+    includes that file): re-measured, both change together."""
+    section = (ROOT / "README.md").read_text().split("## The main job", 1)[1].split("\n## ", 1)[0]
+    m = re.search(r"took \*\*([^*]+)\*\*", section)
+    assert m, "README's main-job section gives no 'took **TIME**'"
+    recorded = (ROOT / "benchmarks" / "results" / "main-job.md").read_text()
+    assert f"**{m.group(1)}**" in recorded, (m.group(1), "not in benchmarks/results/main-job.md")
