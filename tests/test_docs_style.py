@@ -14,8 +14,8 @@ Checked on the Markdown of README.md and docs/*.md with every `--8<--` include e
   belong in a file under benchmarks/results/ that says the command, data and date of its run, and the page
   includes the file's section at build time. A few figures are no measurement of imtune (the paper's own
   numbers, a worked example computed by hand): FIGURE_EXCEPTIONS lists them, each with its reason. Not covered:
-  percentages, figures with fewer than three decimals, and the README (not a site page; the lead keeps its
-  quoted run);
+  percentages, figures with fewer than three decimals, and the README's prose (no site page, it cannot include a
+  file: its quoted first run and main-job time are checked against their results files instead);
 - each docs page opens, before its first `##` section, with what it is for and a command (a code block);
 - a page that uses a term of the glossary (Gamma_max, the budget statistic, auc10, NF / NM / NI, flat region,
   one-se, paired pairs) links its glossary entry;
