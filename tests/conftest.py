@@ -138,3 +138,16 @@ def look_at(C, target=(0.0, 0.0, 0.0)):
     x /= np.linalg.norm(x)
     R = np.stack([x, np.cross(z, x), z])
     return R, -R @ C
+
+
+@pytest.fixture(scope="session")
+def docs_build(tmp_path_factory):
+    """The documentation site built once per test process (`mkdocs build --strict`, the venv's mkdocs): the
+    finished build (its stderr holds any warning) and the site folder. The docs tests share it."""
+    import sys
+
+    from tests.test_docs_build import MKDOCS, build
+    if not MKDOCS.exists():
+        pytest.skip(f"no mkdocs beside {sys.executable}: bash .ci/install.sh --docs (or --test)")
+    out = tmp_path_factory.mktemp("site") / "site"
+    return build(ROOT, out), out

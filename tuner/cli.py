@@ -26,8 +26,8 @@ DEFAULT_SUBCOMMAND = "run"
 
 MAIN_JOB = "tune --feature sift --ransac degensac"
 EXAMPLES = f"""\
-The main job (tune r, eta and Gamma on the validation scenes under a time budget, freeze the optimum, run the
-test scenes; downloads the default data set if none is found):
+The main job (tune r, eta and Gamma on the validation scenes under a time budget, freeze the
+optimum, run the test scenes; downloads the default data set if none is found):
   {MAIN_JOB}
 
 More:
@@ -196,8 +196,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def short_help(ap: argparse.ArgumentParser) -> str:
     """What bare `tune` prints: usage, the main job first, the commands."""
+    import textwrap
     cmds = ap._subparsers._group_actions[0].choices if ap._subparsers else {}
-    return (f"usage: {ap.usage}\n\n{EXAMPLES}\nCommands: {', '.join(cmds)}\n")
+    commands = textwrap.fill(f"Commands: {', '.join(cmds)}", width=100, subsequent_indent="  ")
+    return (f"usage: {ap.usage}\n\n{EXAMPLES}\n{commands}\n")
 
 
 def route(argv: list[str], ap: argparse.ArgumentParser) -> list[str] | None:

@@ -2,6 +2,8 @@
 ground truth. Where data is looked for: :mod:`pipeline.data.locate`."""
 from __future__ import annotations
 
+from pathlib import Path
+
 from pipeline.data.locate import resolve_data
 from pipeline.errors import ImtuneError
 from tuner.argtypes import positive_int, scene_list
@@ -150,23 +152,28 @@ def run_scenes(args) -> int:
         print(json.dumps({"data": str(root), "rule": loc.rule, "detail": loc.detail, "scenes": scenes,
                           "max_pairs": cap, "other_data_sets": others}, indent=2))
         return 0
-    print(f"data: {root}  (found by {loc.describe()})")
+    from tuner.formatting import fit_text
+    print(f"data: {root}  (found by {loc.describe()})")  # the one place the folder's path is said
     for s in scenes:
+        print(f"{s['scene']}\t{s['split']}")
         d = s.get("imc")
-        extra = ""
         if d:
-            extra = (f"\tIMC dataset: {d['images']} images; scenes " + ", ".join(f"{k} ({v})" for k, v in
-                                                                         d["scenes"].items())
-                     + f"; outliers {d['outliers']}; intrinsics {'known' if d['intrinsics'] else 'unknown'}"
-                     + (f"; {d['unlabelled']} image(s) in no label row (left out)" if d["unlabelled"] else ""))
-        print(f"{s['scene']}\t{s['split']}{extra}")
+            print(fit_text(f"  IMC dataset: {d['images']} images; scenes "
+                           + ", ".join(f"{k} ({v})" for k, v in d["scenes"].items())
+                           + f"; outliers {d['outliers']}; intrinsics {'known' if d['intrinsics'] else 'unknown'}"
+                           + (f"; {d['unlabelled']} image(s) in no label row (left out)" if d["unlabelled"] else "")))
     if cap is not None:
-        print(f"pairs: the main job uses at most {cap} pairs per scene here (evenly spread; --max-pairs N to change)")
+        print(fit_text(f"pairs: the main job uses at most {cap} pairs per scene here (evenly spread; --max-pairs N "
+                       "to change)"))
     if not splits.get("test"):
-        print(f"note: no test split in {root}: the main job needs --test-scenes NAME[,...] (or --no-test), or a "
-              f"splits.yaml there")
-    for o in others:
-        print(f"also: {o['name']} at {o['path']}  ({o['rule']}; use with --data {o['path']})")
+        print(fit_text("note: no test split in this folder: the main job needs --test-scenes NAME[,...] (or "
+                       "--no-test), or a splits.yaml beside the scenes"))
+    by_folder: dict[str, list[dict]] = {}
+    for o in others:  # each folder's path once, its data sets by name
+        by_folder.setdefault(str(Path(o["path"]).parent), []).append(o)
+    for folder, sets in by_folder.items():
+        print(fit_text(f"also in {folder} ({sets[0]['rule']}): {', '.join(o['name'] for o in sets)}; use one with "
+                       f"--data {folder}/NAME"))
     return 0
 
 
