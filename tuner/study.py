@@ -488,8 +488,8 @@ def _test_phase(out: dict, ctx: StudyContext, s: TuneSettings) -> None:
                               f"`tune test --study {ctx.name}`")
         if rec is None or phase.stale(rec) or redo:
             if rec is not None and phase.stale(rec):
-                s.say(f"the test phase's worker ({rec.get('host')} pid {rec.get('pid')}) stopped renewing its lease: "
-                      "taking it over")
+                s.warn(f"the test phase's worker ({rec.get('host')} pid {rec.get('pid')}) stopped renewing its lease: "
+                       "taking it over")
             if phase.claim(rec):
                 break
             continue  # another worker claimed it at the same moment: wait for it

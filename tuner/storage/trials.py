@@ -127,11 +127,33 @@ def _proc_start(pid: int) -> str | None:
     return raw.rsplit(")", 1)[-1].split()[19]  # fields after "(comm)": state is field 3, starttime field 22
 
 
+#: environment variable naming this worker's process space (see :func:`process_space`)
+MACHINE_ENV = "IMTUNE_MACHINE"
+
+
+def process_space() -> str | None:
+    """Which processes this one can see: the kernel's boot id and this process's pid namespace
+    (``$IMTUNE_MACHINE`` when set). Two workers with the same value see each other's pids; a host name is not
+    enough (two containers on one host share it, and have separate pid namespaces). None where neither is
+    readable (no /proc): then only the heartbeat tells a dead worker."""
+    import os
+    env = os.environ.get(MACHINE_ENV, "").strip()
+    if env:
+        return env
+    try:
+        with open("/proc/sys/kernel/random/boot_id") as f:
+            boot = f.read().strip()
+        return f"{boot}/{os.readlink('/proc/self/ns/pid')}"
+    except OSError:
+        return None
+
+
 def worker_identity() -> dict:
     """This process as :data:`WORKER_ATTR` records it (no trial_start yet)."""
     import os
     import socket
-    return {"host": socket.gethostname(), "pid": os.getpid(), "proc_start": _proc_start(os.getpid())}
+    return {"host": socket.gethostname(), "space": process_space(), "pid": os.getpid(),
+            "proc_start": _proc_start(os.getpid())}
 
 
 def mark_worker(trial) -> None:
@@ -175,22 +197,24 @@ def retry_failed(study, trial) -> None:
 
 
 def fail_dead_local_trials(study) -> list[int]:
-    """Fail, and retry once, the RUNNING trials whose process (:data:`WORKER_ATTR`) ran on this host and is gone.
+    """Fail, and retry once, the RUNNING trials whose process (:data:`WORKER_ATTR`) ran in this process space
+    (:func:`process_space`: this host, this pid namespace) and is gone.
 
     Written by hand because Optuna's heartbeat is the only dead-worker check it has, and it needs a grace period
     (and an RDB storage: a journal file has none): a resume on the machine where a worker was killed knows at once,
     from the process table, that the trial's process no longer exists. Other hosts' trials are left to the
     heartbeat. Returns the failed trials' numbers."""
     import datetime as _dt
-    import socket
 
     import optuna
     from optuna.trial import TrialState
-    host = socket.gethostname()
-    out = []
+    space = process_space()
+    out: list[int] = []
+    if space is None:
+        return out
     for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
         ident = t.system_attrs.get(WORKER_ATTR)
-        if not isinstance(ident, dict) or ident.get("host") != host or not _process_dead(ident):
+        if not isinstance(ident, dict) or ident.get("space") != space or not _process_dead(ident):
             continue
         try:  # the record must be this run's (a retry carries its failed trial's record until it is marked)
             rec = _dt.datetime.fromisoformat(str(ident.get("trial_start")))
