@@ -211,7 +211,8 @@ def test_sigterm_worker_exact_count_and_test_phase_takeover(pg, data, cache, tmp
     # the test phase taken over: 2 test runs is another phase (its options differ)
     c, d = tmp_path / "c", tmp_path / "d"
     extra = ["--test-runs", "2"]
-    pc = _start(_args(data, c, name, n, *extra), env)
+    # the first tester records another machine: its death is seen by its lease running out, not the process table
+    pc = _start(_args(data, c, name, n, *extra), _env(cache, IMTUNE_STORAGE=pg.url, IMTUNE_MACHINE="machine-c"))
     try:
         deadline = time.time() + 300
         while time.time() < deadline and pc.poll() is None:

@@ -200,8 +200,10 @@ class TestPhase:
         import secrets
         import socket
         self.study, self.key, self.lease, self.settle = study, key, float(lease), float(settle)
+        from tuner.storage.trials import _proc_start, process_space
         self.token = secrets.token_hex(8)
-        self.me = {"host": socket.gethostname(), "pid": os.getpid()}
+        self.me = {"host": socket.gethostname(), "pid": os.getpid(), "space": process_space(),
+                   "proc_start": _proc_start(os.getpid())}
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -211,11 +213,15 @@ class TestPhase:
         return rec if isinstance(rec, dict) and rec.get("key") == self.key else None
 
     def stale(self, rec: dict) -> bool:
-        """A running phase whose owner did not renew its lease in time (or gave it up)."""
+        """A running phase whose owner did not renew its lease in time, gave it up, or is a process of this
+        process space (``tuner.storage.trials.process_space``) that no longer exists."""
         if rec.get("state") == "abandoned":
             return True
         if rec.get("state") != "running":
             return False
+        from tuner.storage.trials import _process_dead, process_space
+        if rec.get("space") is not None and rec.get("space") == process_space() and _process_dead(rec):
+            return True  # its process, in this process space, is gone: no need to wait for the lease
         try:
             beat = _dt.datetime.fromisoformat(rec["beat"])
         except (KeyError, TypeError, ValueError):
