@@ -74,7 +74,10 @@ def fail_stale_trials(study) -> list[int]:
         fail_dead_local_trials(study)  # this host's dead processes: at once, any storage (journal files too)
     except Exception:  # noqa: BLE001 - best effort; the heartbeat check below still runs
         pass
-    optuna.storages.fail_stale_trials(study)
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "experimental" since Optuna 2.9
+        optuna.storages.fail_stale_trials(study)
     backend = getattr(study._storage, "_backend", study._storage)
     interval = getattr(backend, "heartbeat_interval", None)
     if not interval:
