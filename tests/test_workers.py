@@ -264,3 +264,39 @@ def test_stale_running_trial_failed_and_retried_on_resume(data, cache, tmp_path,
     retries = [t for t in ts if t.system_attrs.get("failed_trial") == killed.number]
     assert len(retries) == 1 and retries[0].params == killed.params and retries[0].state.name == "COMPLETE"
     assert before <= {t.number for t in ts if t.state.name == "COMPLETE"}
+
+
+RACE_WORKER = """
+import sys, time, optuna
+from tuner.storage import open_storage
+from tuner.workers import run_to_target
+optuna.logging.set_verbosity(optuna.logging.ERROR)
+url, name, n = sys.argv[1], sys.argv[2], int(sys.argv[3])
+study = optuna.load_study(study_name=name, storage=open_storage(url, heartbeat=1))
+run_to_target(study, lambda t: (t.suggest_float("x", 0, 1), time.sleep(0.05))[0], n, poll=0.1)
+"""
+
+
+def test_four_processes_racing_for_the_last_places_end_at_the_target(pg):
+    """The claim loop alone (tuner.workers.run_to_target) with a 50 ms objective: four processes race for every
+    place, two studies in a row; each ends with exactly its target finished, none RUNNING or WAITING, and every
+    trial beyond the target is a surplus trial that never ran the objective (no parameter sampled into it by the
+    objective's suggest: it has none)."""
+    import optuna
+
+    from tuner.storage import open_storage
+    env = _env(ROOT)
+    for r, n in enumerate((9, 13)):
+        name = f"race-{r}"
+        st = open_storage(pg.url, heartbeat=None)
+        optuna.create_study(study_name=name, storage=st)
+        st.engine.dispose()
+        ps = [subprocess.Popen([sys.executable, "-c", RACE_WORKER, pg.url, name, str(n)], cwd=ROOT, env=env,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(4)]
+        for p in ps:
+            _, err = p.communicate(timeout=300)
+            assert p.returncode == 0, err[-2000:]
+        ts = _check_study(pg.url, name, n)
+        extra = [t for t in ts if t.state.name != "COMPLETE"]
+        assert all(t.state.name == "FAIL" and t.user_attrs.get("surplus") and not t.params for t in extra), extra
+        print(f"WORKERS race: 4 processes, target {n}: {n} complete, {len(extra)} surplus")

@@ -71,7 +71,8 @@ def _retried_numbers(trials) -> set[int]:
 def places(trials, now: _dt.datetime | None = None) -> list:
     """The trials that hold one of the study's places: finished, running, waiting, and a failed trial that is
     about to be retried (failed less than :data:`RETRY_SETTLE_S` ago, not itself a retry, no retry yet, not a
-    surplus trial)."""
+    surplus trial). Optuna records a trial's times in the local time of the worker that wrote them: a failure
+    time ahead of this worker's clock (another time zone) holds no place, so no place is ever held for long."""
     from tuner.storage.trials import MAX_RETRY
     now = now or _dt.datetime.now()
     retried = _retried_numbers(trials)
@@ -82,7 +83,7 @@ def places(trials, now: _dt.datetime | None = None) -> list:
             out.append(t)
         elif s == "FAIL" and not t.user_attrs.get(SURPLUS_ATTR) and t.number not in retried \
                 and len(t.system_attrs.get("retry_history") or []) < MAX_RETRY and t.datetime_complete is not None \
-                and (now - t.datetime_complete.replace(tzinfo=None)).total_seconds() < RETRY_SETTLE_S:
+                and 0 <= (now - t.datetime_complete.replace(tzinfo=None)).total_seconds() < RETRY_SETTLE_S:
             out.append(t)
     return out
 
