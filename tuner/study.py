@@ -523,8 +523,11 @@ def _test_phase(out: dict, ctx: StudyContext, s: TuneSettings) -> None:
             pass
         raise
     test_json = str(Path(out["frozen_path"]).parent / "test.json")
-    phase.finish("done", frozen_trial=frozen["trial"], frozen_path=out["frozen_path"], test_json=test_json,
-                 test=slim_test_result(out["test"]))
+    done = dict(frozen_trial=frozen["trial"], frozen_path=out["frozen_path"], test_json=test_json)
+    try:  # the whole result, as test.json holds it (its per-pair errors: what findings and replicates read)
+        phase.finish("done", **done, test=out["test"])
+    except Exception:  # noqa: BLE001 - too large for the storage's attribute column (MySQL TEXT: 64 KiB)
+        phase.finish("done", **done, test=slim_test_result(out["test"]))
     out["test_phase"] = {"state": "done", "this_worker": True, "test_json": test_json}
 
 
@@ -536,7 +539,8 @@ def _phase_here(rec: dict, s: TuneSettings) -> bool:
 
 
 def _take_phase_result(out: dict, ctx: StudyContext, rec: dict) -> None:
-    """Another worker's finished test phase: its frozen settings and test result (per-pair errors left out)."""
+    """Another worker's finished test phase: its frozen settings and test result (as its test.json holds it; without
+    the per-pair errors where the storage could not hold them)."""
     from tuner.workers import FROZEN_ATTR
     out["frozen"] = ctx.study.user_attrs.get(FROZEN_ATTR)
     out["frozen_path"] = f"{rec.get('host')}:{rec.get('frozen_path')}"

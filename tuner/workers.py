@@ -284,7 +284,8 @@ class TestPhase:
 
 
 def slim_test_result(result: dict) -> dict:
-    """A test result without its per-pair errors (what the phase record keeps for the workers that print it)."""
+    """A test result without its per-pair errors (what the phase record keeps where the whole result is too large
+    for the storage's attribute column)."""
     def slim_runs(runs):
         return [{k: v for k, v in r.items() if not isinstance(v, (list, dict)) or k == "scenes"} for r in runs or []]
     out = {k: v for k, v in result.items() if k not in ("runs", "reference", "identity", "validation")}
