@@ -300,3 +300,34 @@ def test_four_processes_racing_for_the_last_places_end_at_the_target(pg):
         extra = [t for t in ts if t.state.name != "COMPLETE"]
         assert all(t.state.name == "FAIL" and t.user_attrs.get("surplus") and not t.params for t in extra), extra
         print(f"WORKERS race: 4 processes, target {n}: {n} complete, {len(extra)} surplus")
+
+
+
+def test_a_trial_created_in_the_race_is_surplus_and_gives_its_grid_point_back(tmp_path):
+    """The race, made to happen: another worker's trial is created between this worker's check of the places and
+    its own trial's creation (the storage's create_new_trial creates that one first). This worker's trial ranks
+    beyond the target of 1: it is failed unevaluated (user attribute surplus, no parameter), and the grid point
+    GridSampler drew for it is given back (Optuna's GridSampler counts a failed trial's point as visited)."""
+    import optuna
+
+    from tuner.workers import run_to_target
+    optuna.logging.set_verbosity(optuna.logging.ERROR)
+    study = optuna.create_study(storage=f"sqlite:///{tmp_path}/race.db",
+                                sampler=optuna.samplers.GridSampler({"x": [0, 1, 2]}))
+    storage = study._storage
+    inner, other = storage.create_new_trial, []
+
+    def racing(study_id, template_trial=None):
+        if not other:
+            other.append(inner(study_id))  # another worker's trial, created first: it gets the smaller id
+        return inner(study_id, template_trial)
+
+    storage.create_new_trial = racing
+    evaluated = []
+    why = run_to_target(study, lambda t: evaluated.append(t.suggest_categorical("x", [0, 1, 2])) or 0.0, 1,
+                        timeout=1.0, poll=0.1)
+    assert why == "timeout" and evaluated == []  # the other trial holds the only place and never finishes here
+    ts = study.get_trials(deepcopy=False)
+    assert [t.state.name for t in ts] == ["RUNNING", "FAIL"] and ts[0]._trial_id == other[0]
+    assert ts[1].user_attrs.get("surplus") is True and ts[1].params == {}
+    assert ts[1].system_attrs["grid_id"] == -1  # drawn (0, 1 or 2) and given back

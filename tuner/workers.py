@@ -136,6 +136,9 @@ def run_to_target(study, func: Callable, target: int, *, timeout: float | None =
         mark_worker(trial)
         if not holds_place(study.get_trials(deepcopy=False), trial._trial_id, target):
             trial.set_user_attr(SURPLUS_ATTR, True)
+            if "grid_id" in trial.storage.get_trial(trial._trial_id).system_attrs:  # GridSampler counts a failed trial's grid point as visited: the
+                # point this trial drew must stay for a trial that runs (no valid grid id is negative)
+                trial.storage.set_trial_system_attr(trial._trial_id, "grid_id", -1)
             raise SurplusTrial(f"trial {trial.number} was created beyond the study's {target} trials; not evaluated")
         return func(trial)
 
