@@ -22,6 +22,7 @@ SUBCOMMAND_MODULES = ["tuner.commands.evaluate", "tuner.commands.listing", "tune
                       "tuner.commands.viz", "tuner.commands.compare", "tuner.commands.findings"]
 OPTIONAL_MODULES = ["tuner.commands.study"]  # the Optuna commands (run, calibrate, test, table, ...)
 DEFAULT_SUBCOMMAND = "run"
+STORAGE_ENV = "IMTUNE_STORAGE"  # --storage when it is not given (every command that opens a storage)
 
 
 MAIN_JOB = "tune --feature sift --ransac degensac"
@@ -328,6 +329,8 @@ def _main(argv: list[str] | None = None) -> int:
         return 2
     # every message is scrubbed of credentials: exceptions from SQLAlchemy / psycopg2 may embed the URL or DSN
     from tuner.storage import quiet_thread_storage_faults
+    if hasattr(args, "storage") and args.storage is None and os.environ.get(STORAGE_ENV, "").strip():
+        args.storage = os.environ[STORAGE_ENV].strip()  # the connection string kept out of the command line
     url = getattr(args, "storage", None)
     if hasattr(args, "storage"):  # Optuna's heartbeat thread: its storage faults are reported once, below
         quiet_thread_storage_faults(url, getattr(args, "studies_dir", None))

@@ -16,8 +16,9 @@ search space, pipeline, budget or data is a one-line error (name a new study wit
 
 ``n_trials`` is the study's target: a worker stops once the study holds that many finished (COMPLETE
 or PRUNED) trials, so rerunning an interrupted study runs exactly the missing trials, and N workers on
-one storage share the work (trials still running in other workers when the target is reached are
-finished and kept: at most N - 1 beyond the target).
+one storage share the work and end with exactly the target (``tuner.workers``: each trial's place is
+claimed before it runs; a dead worker's trial is failed and retried once by a live one). The first worker
+to see the study complete freezes and tests; the others wait for its result and print it.
 """
 from __future__ import annotations
 
@@ -90,6 +91,7 @@ class TuneSettings:
     chunk_pairs: int = 12
     cache_dir: str | None = None
     heartbeat: int | None = 10
+    test_wait: float = 3600.0  # seconds a worker waits for the test phase another worker runs (0: do not wait)
     calibration_pairs: int = 8
     recalibrate: bool = False
     progress: bool = True
@@ -359,24 +361,29 @@ def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
                    dynamic_ncols=True)
         _set_postfix(bar, study)
 
+    stop = [False]
+
     def callback(st, trial):
-        fail_stale_trials(st)
         done = finished(st)
         if bar is not None:
             bar.n = min(done, n_target)
             _set_postfix(bar, st)
             bar.refresh()
-        if done >= n_target:
-            st.stop()
-        elif terminator is not None and trial.state == TrialState.COMPLETE and should_terminate(terminator, st, say=s.say):
-            st.stop()
+        if done < n_target and terminator is not None and trial.state == TrialState.COMPLETE \
+                and should_terminate(terminator, st, say=s.say):
+            stop[0] = True
 
     t0 = time.perf_counter()
+    reason = "target"
     try:
         stopped = terminator is not None and done0 < n_target and should_terminate(terminator, study, say=s.say)
         if done0 < n_target and not stopped:  # a terminated study resumed: no trial more
-            study.optimize(ctx.objective, n_trials=None, timeout=s.timeout, callbacks=[callback],
-                           gc_after_trial=False, show_progress_bar=False)
+            from tuner.workers import run_to_target
+            # the study-wide target, exact across workers: each trial's place claimed before it runs
+            reason = run_to_target(study, ctx.objective, n_target, timeout=s.timeout, callbacks=(callback,),
+                                   should_stop=lambda: stop[0], on_wait=s.say)
+        elif stopped:
+            reason = "stopped"
     except BaseException as e:
         from tuner.storage import fail_interrupted_trials, interrupt_in_chain
         if isinstance(e, KeyboardInterrupt) or interrupt_in_chain(e) is not None:
@@ -386,7 +393,7 @@ def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
         if bar is not None:
             bar.close()
     return {"trials_run": list(ctx.objective.trials_run), "seconds": time.perf_counter() - t0,
-            "target": n_target}
+            "target": n_target, "stopped": reason}
 
 
 def _set_postfix(bar, study) -> None:
@@ -408,7 +415,6 @@ def tune(s: TuneSettings) -> dict:
     dict: study, storage (masked), counts, frozen settings, test results (None if skipped)."""
     from optuna.trial import TrialState
 
-    from tuner.freeze import freeze, run_test_for_study
     from tuner.storage import storage_label
     ctx = setup_study(s)
     s.say(f"study {ctx.name} in {storage_label(s.storage, s.studies_dir)} "
@@ -429,27 +435,120 @@ def tune(s: TuneSettings) -> dict:
         from tuner.protocol import no_feasible_message
         raise ImtuneError(f"{no_feasible_message(ctx.study, ctx.attrs['budget']['seconds_per_pair'])}; run more "
                           "trials, or a larger --budget")
+    others = ctx.study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))
+    if not s.test or (others and run["stopped"] == "timeout"):
+        _freeze_into(out, ctx, s)
+        if s.test:  # this worker's --timeout ended it before the study was complete
+            s.say(f"{len(others)} trial(s) still running in other workers: skipping the test run "
+                  f"(the worker that completes the study runs it; or `tune test --study {ctx.name}`)")
+        return out
+    _test_phase(out, ctx, s)
+    from tuner.freeze import earlier_test_line
+    if out["test"] and earlier_test_line(out["test"]):
+        s.warn(earlier_test_line(out["test"]))
+    return out
+
+
+def _freeze_into(out: dict, ctx: StudyContext, s: TuneSettings) -> dict:
+    """Freeze the study (``<studies dir>/<study>/frozen.yaml``), say the optimum's warnings; returns the frozen dict."""
+    from tuner.freeze import freeze
     frozen, path = freeze(ctx.study, s.studies_dir, select=s.select)
     out["frozen"], out["frozen_path"] = frozen, str(path)
     from tuner.diagnostics import optimum_warnings  # on a bound, Gamma_max at the ceiling, every trial 0
     out["warnings"] = list(frozen["warnings"]) if "warnings" in frozen else optimum_warnings(ctx.study, frozen)
     for w in out["warnings"]:
         s.warn(f"{ctx.name}: {w}" if s.name_warnings else w)
-    from tuner.storage import fail_stale_trials
-    fail_stale_trials(ctx.study)
-    others = [t for t in ctx.study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))]
-    if not s.test:
-        return out
-    if others:
-        s.say(f"{len(others)} trial(s) still running in other workers: skipping the test run "
-              f"(the last worker runs it; or `tune test --study {ctx.name}`)")
-        return out
-    out["test"] = run_test_for_study(ctx.study, frozen, s.studies_dir, data_root=s.data_root,
-                                     scenes=s.test_scenes, cache=ctx.cache, runs=s.test_runs,
-                                     max_pairs=s.max_pairs, progress=s.progress, reuse=not s.retest, jobs=s.jobs,
-                                     workers=s.workers, reference=s.reference, ci_resamples=s.ci_resamples,
-                                     gt_dir=s.gt_dir)
-    from tuner.freeze import earlier_test_line
-    if earlier_test_line(out["test"]):
-        s.warn(earlier_test_line(out["test"]))
-    return out
+    return frozen
+
+
+def _test_phase(out: dict, ctx: StudyContext, s: TuneSettings) -> None:
+    """The study's one test phase (``tuner.workers.TestPhase``): this worker freezes and tests if it is the first
+    to claim it, else it waits (at most ``s.test_wait`` seconds) for the worker that does and takes its frozen
+    settings and result; a phase whose owner stopped renewing its lease is taken over."""
+    import datetime as _dt2
+
+    from tuner.freeze import run_test_for_study
+    from tuner.storage import DEFAULT_HEARTBEAT_S, classify, default_storage_url, scrub
+    from tuner.workers import FROZEN_ATTR, TestPhase, phase_key, slim_test_result
+    key = phase_key(ctx.study, {"scenes": s.test_scenes, "runs": s.test_runs, "max_pairs": s.max_pairs,
+                                "reference": s.reference, "select": s.select, "ci": s.ci_resamples})
+    server = classify(s.storage or default_storage_url(s.studies_dir))[0] == "rdb"
+    phase = TestPhase(ctx.study, key, lease=3.0 * (s.heartbeat or DEFAULT_HEARTBEAT_S), settle=1.0 if server else 0.25)
+    began = _dt2.datetime.now(_dt2.timezone.utc)
+    deadline = time.monotonic() + max(0.0, float(s.test_wait))
+    said = False
+    while True:
+        rec = phase.record()
+        state = (rec or {}).get("state")
+        redo = s.retest and state == "done" and str(rec.get("finished") or "") < began.isoformat(timespec="seconds")
+        if state == "done" and not redo:
+            if not _phase_here(rec, s):
+                _take_phase_result(out, ctx, rec)
+                return
+            break  # a rerun where the phase ran: frozen and tested again as before (the test.json is reused)
+        if state == "failed":
+            raise ImtuneError(f"the test phase of study {ctx.name} failed in worker {rec.get('host')} pid "
+                              f"{rec.get('pid')}: {rec.get('error')}; fix that and rerun, or run "
+                              f"`tune test --study {ctx.name}`")
+        if rec is None or phase.stale(rec) or redo:
+            if rec is not None and phase.stale(rec):
+                s.warn(f"the test phase's worker ({rec.get('host')} pid {rec.get('pid')}) stopped renewing its lease: "
+                       "taking it over")
+            if phase.claim(rec):
+                break
+            continue  # another worker claimed it at the same moment: wait for it
+        if not said:
+            s.say(f"the test phase runs in worker {rec.get('host')} pid {rec.get('pid')}: waiting for its result "
+                  f"(at most {s.test_wait:g} s)")
+            said = True
+        status, _ = phase.wait(deadline - time.monotonic())
+        if status == "timeout":
+            out["frozen"] = ctx.study.user_attrs.get(FROZEN_ATTR)
+            out["test_phase"] = {"state": "running elsewhere", "host": rec.get("host"), "pid": rec.get("pid"),
+                                 "this_worker": False}
+            return
+    if state != "done":
+        phase.start_renewing()
+    try:
+        frozen = _freeze_into(out, ctx, s)
+        ctx.study.set_user_attr(FROZEN_ATTR, frozen)  # what the waiting workers print
+        out["test"] = run_test_for_study(ctx.study, frozen, s.studies_dir, data_root=s.data_root,
+                                         scenes=s.test_scenes, cache=ctx.cache, runs=s.test_runs,
+                                         max_pairs=s.max_pairs, progress=s.progress, reuse=not s.retest, jobs=s.jobs,
+                                         workers=s.workers, reference=s.reference, ci_resamples=s.ci_resamples,
+                                         gt_dir=s.gt_dir)
+    except KeyboardInterrupt:
+        phase.finish("abandoned")  # a waiting worker takes it over at once
+        raise
+    except Exception as e:
+        try:
+            phase.finish("failed", error=scrub(str(e).splitlines()[0] if str(e) else type(e).__name__, s.storage))
+        except Exception:  # noqa: BLE001 - the storage itself may be what failed: that error is reported
+            pass
+        raise
+    test_json = str(Path(out["frozen_path"]).parent / "test.json")
+    done = dict(frozen_trial=frozen["trial"], frozen_path=out["frozen_path"], test_json=test_json)
+    try:  # the whole result, as test.json holds it (its per-pair errors: what findings and replicates read)
+        phase.finish("done", **done, test=out["test"])
+    except Exception:  # noqa: BLE001 - too large for the storage's attribute column (MySQL TEXT: 64 KiB)
+        phase.finish("done", **done, test=slim_test_result(out["test"]))
+    out["test_phase"] = {"state": "done", "this_worker": True, "test_json": test_json}
+
+
+def _phase_here(rec: dict, s: TuneSettings) -> bool:
+    """Whether a finished test phase ran on this host into this studies folder (a rerun of the same command)."""
+    import socket
+    path = str(rec.get("frozen_path") or "")
+    return rec.get("host") == socket.gethostname() and path.startswith(str(Path(s.studies_dir).resolve()) + "/")
+
+
+def _take_phase_result(out: dict, ctx: StudyContext, rec: dict) -> None:
+    """Another worker's finished test phase: its frozen settings and test result (as its test.json holds it; without
+    the per-pair errors where the storage could not hold them)."""
+    from tuner.workers import FROZEN_ATTR
+    out["frozen"] = ctx.study.user_attrs.get(FROZEN_ATTR)
+    out["frozen_path"] = f"{rec.get('host')}:{rec.get('frozen_path')}"
+    out["test"] = rec.get("test")
+    out["warnings"] = list((out["frozen"] or {}).get("warnings") or [])
+    out["test_phase"] = {"state": "done", "this_worker": False, "host": rec.get("host"), "pid": rec.get("pid"),
+                         "test_json": rec.get("test_json")}

@@ -37,7 +37,7 @@ def _storage_opts(ap, storage: bool = True) -> None:
     if storage:
         g.add_argument("--storage", default=None,
                        help="sqlite:///PATH, postgresql://USER:PASS@HOST:PORT/DB, mysql+pymysql://..., or journal:PATH "
-                            "(default sqlite:///<studies dir>/optuna.db)")
+                            "(default $IMTUNE_STORAGE, else sqlite:///<studies dir>/optuna.db)")
     g.add_argument("--studies-dir", default=None,
                    help="frozen settings, test results, reports, budgets.json (default $IMTUNE_STUDIES, else "
                         "studies/ in the project checkout)")
@@ -112,7 +112,7 @@ def _select_opts(g) -> None:
 RUN_LESS_USED = [
     "--no-low-threshold", "--upright", "--upright-plus", "--clahe", "--mr-size", "--max-side", "--feature-option",
     "--matcher", "--distance-threshold", "--fginn", "--prefilter", "--matches", "--confidence", "--covisibility",
-    "--cache", "--warm-start", "--startup-trials", "--test-budget", "--chunk-pairs", "--heartbeat",
+    "--cache", "--warm-start", "--startup-trials", "--test-budget", "--chunk-pairs", "--heartbeat", "--test-wait",
     "--calibration-pairs", "--recalibrate", "--retest", "--verbose", "--reference", "--pareto-span", "--terminate",
     "--bags", "--bag-min-points", "--bag-seed", "--mv-intrinsics", "--workers", "--keep-models", "--gt-dir", "--ci",
     "--ci-resamples",
@@ -178,6 +178,9 @@ def register(sub) -> None:
     t.add_argument("--heartbeat", type=nonnegative_int, default=10,
                    help="seconds between heartbeats of a running trial (RDB storages; 0 = off); a trial silent "
                         "for 3 heartbeats is failed and retried once")
+    t.add_argument("--test-wait", type=nonnegative_float, default=3600.0, metavar="SECONDS",
+                   help="many workers: how long a worker waits for the test phase another worker runs, then prints "
+                        "its result (0: print where it runs and exit at once) (default 3600)")
     t.add_argument("--calibration-pairs", type=positive_int, default=8, help="pairs timed by the automatic calibration")
     t.add_argument("--recalibrate", action="store_true", help="measure Gamma_max again even if stored")
     t.add_argument("--no-test", action="store_true", help="do not run the test scenes at the end")
@@ -364,6 +367,7 @@ def settings_from_args(args):
         val_scenes=_scenes(args.scenes), test_scenes=_scenes(args.test_scenes), min_covisibility=args.covisibility,
         max_pairs=_max_pairs(args, data_root), chunk_pairs=args.chunk_pairs, cache_dir=args.cache,
         heartbeat=args.heartbeat if args.heartbeat and args.heartbeat > 0 else None,
+        test_wait=args.test_wait,
         calibration_pairs=args.calibration_pairs, recalibrate=args.recalibrate, progress=not quiet,
         test=not args.no_test, test_runs=args.test_runs, retest=args.retest, multiview=mv, workers=args.workers,
         mapper=getattr(args, "mapper", None), jobs=args.jobs, warm_start=list(args.warm_start),
@@ -427,6 +431,13 @@ def print_outcome(out: dict) -> None:
     if f:
         print(f"frozen: {out['frozen_path']}  (trial #{f['trial']})")
         print(frozen_table(f))
+    ph = out.get("test_phase") or {}
+    if ph and not ph.get("this_worker"):  # many workers: the one test phase ran (or runs) in another worker
+        from tuner.formatting import fit_text
+        where = f"worker {ph.get('host')} pid {ph.get('pid')}"
+        print(fit_text(f"test phase: run by {where} (its test.json: {ph.get('test_json')})" if ph.get("state") == "done"
+                       else f"test phase: still running in {where}; its result goes to the study (`tune results`) "
+                            "and to test.json on that machine"))
     t = out.get("test")
     if t:
         print()
