@@ -424,10 +424,9 @@ def tune(s: TuneSettings) -> dict:
         s.say("objective pareto: maximize mAA(10°), minimize median estimator seconds per pair; no pruning "
               "(Optuna prunes single-objective studies only); frozen: the best trial within B on the front")
     run = optimize(ctx, s)
-    done = sum(1 for t in ctx.study.get_trials(deepcopy=False, states=(TrialState.COMPLETE, TrialState.PRUNED)))
     # the search stopped at --timeout before the trial target: said, and recorded (the frozen optimum is that of fewer
     # trials than asked; a rerun of the command runs the missing ones)
-    run["time_limit"] = s.timeout if s.timeout and done < run["target"] and run["seconds"] >= s.timeout else None
+    run["time_limit"] = s.timeout if run.get("stopped") == "timeout" else None
     out = {"study": ctx.name, "storage": storage_label(s.storage, s.studies_dir), "worker": run,
            "counts": trial_counts(ctx.study), "timed": bool(getattr(ctx.objective.task, "timed", True)),
            "frozen": None, "frozen_path": None, "test": None, "warnings": []}
