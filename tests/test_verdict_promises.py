@@ -122,3 +122,14 @@ def test_p_a_beats_b_is_unbiased_and_its_interval_covers(delta):
 def _pair_data(rng, shift):
     pairs = rng.normal(0.5, 0.25, STRATA.size)
     return _side(rng, pairs, 3, shift), _side(rng, pairs, 3)
+
+
+def test_tune_prints_the_few_pairs_note_in_lines_of_at_most_100_columns():
+    from tuner.replicates import replicated_text
+    rng = np.random.default_rng(1)
+    iv = replicated_maa_interval(np.clip(rng.normal(0.9, 0.05, (3, 8)), 0, 1), np.repeat([0, 1], 4))
+    text = replicated_text({"replicates": [], "K": 3, "pairs": 8, "mAA10": iv.mean, "mAA10_ci": [iv.low, iv.high],
+                            "se_pairs": iv.se_pairs, "se_between": iv.se_between, "tuning_variance_measured": True,
+                            "figure_note": iv.note})
+    assert "fewer than 10 test pairs in a scene" in text and "test on more pairs" in text
+    assert max(len(line) for line in text.splitlines()) <= 100
