@@ -241,6 +241,43 @@ def figure_coverage(rng, k: int, tau: float, layout, world: str, truth: float, s
     return hits / sims
 
 
+def figure_scales(sims: int, seed: int) -> list[dict]:
+    """Which scale the tuned figure's interval is formed on: coverage of mean +- t se (symmetric), of the same on the
+    arcsine-square-root and on the logit scale (the delta method, mapped back), with se and df of the model
+    (``replicated_interval`` of the scene-weighted scores), for K in {1, 3, 5}, 8 test pairs (2 x 4, 3 + 3 + 2),
+    both worlds and the small and large tuning sd. ``tune`` uses the logit scale (``replicated_maa_interval``)."""
+    from pipeline.metrics.replicates import replicated_interval, t_quantile
+
+    def scales(m: float, se: float, q: float) -> dict:
+        mm = min(max(m, 1e-9), 1 - 1e-9)
+        g, s = math.asin(math.sqrt(mm)), se / (2 * math.sqrt(mm * (1 - mm)))
+        lo, hi = max(0.0, g - q * s), min(math.pi / 2, g + q * s)
+        gl, sl = math.log(mm / (1 - mm)), se / (mm * (1 - mm))
+        return {"symmetric": (m - q * se, m + q * se), "arcsine": (math.sin(lo) ** 2, math.sin(hi) ** 2),
+                "logit": (float(special.expit(gl - q * sl)), float(special.expit(gl + q * sl)))}
+
+    rng = np.random.default_rng(seed)
+    rows = []
+    for sd_name in ("small", "large"):
+        tau = bisect(tuning_sd_of, TUNING_SD[sd_name], 0.0, 0.6, 30)
+        for world in WORLDS:
+            for layout in ((4, 4), LAYOUT_332):
+                strata = np.repeat(np.arange(len(layout)), layout)
+                means = np.repeat(scene_means(len(layout), world), layout)
+                truth = expected(tau, 0.0, len(layout), False, world)
+                for k in (1, 3, 5):
+                    hits = {"symmetric": 0, "arcsine": 0, "logit": 0}
+                    for _ in range(sims):
+                        a = draw_side(rng, rng.normal(means, PAIR_SD), k, tau)
+                        iv = replicated_interval(a * scene_weights(strata)[None, :], strata)
+                        q = t_quantile(0.975, iv.df)
+                        for name, (lo, hi) in scales(iv.mean, (iv.high - iv.mean) / q, q).items():
+                            hits[name] += lo <= truth <= hi
+                    rows.append({"tuning_sd": sd_name, "world": world, "layout": "+".join(map(str, layout)), "k": k,
+                                 "truth": truth, **{n: h / sims for n, h in hits.items()}})
+    return rows
+
+
 def run_cell(args) -> list[dict]:
     ka, kb, n_pairs, sd_name, cal, sims, seed, n_boot = args
     tau = cal["tau"]
@@ -439,7 +476,19 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, help="also write the JSON there")
     ap.add_argument("--quick", action="store_true", help="only K in {1, 3} and 30 pairs (a smoke run)")
     ap.add_argument("--from-json", type=Path, help="print the table of a saved --json/--out file (no simulation)")
+    ap.add_argument("--figure-scales", action="store_true",
+                    help="only compare the scales of the tuned figure's interval at 8 pairs (JSON rows)")
     a = ap.parse_args(argv)
+    if a.figure_scales:
+        rows = figure_scales(a.sims, a.seed)
+        text = json.dumps({"sims": a.sims, "seed": a.seed, "rows": rows}, indent=1)
+        if a.out:
+            a.out.parent.mkdir(parents=True, exist_ok=True)
+            a.out.write_text(text)
+        print(text if a.json else "\n".join(
+            f"{r['tuning_sd']:6s} {r['world']:9s} {r['layout']:6s} K={r['k']} truth {r['truth']:.3f}: symmetric "
+            f"{r['symmetric']:.3f}, arcsine {r['arcsine']:.3f}, logit {r['logit']:.3f}" for r in rows))
+        return 0
     if a.from_json:
         saved = json.loads(a.from_json.read_text())
         print(table(saved["cells"]))
