@@ -56,8 +56,9 @@ PAB_DRAWS = 2000
 #: a tuned figure from fewer test pairs than this in some scene, above NEAR_CEILING, gets :data:`FEW_PAIRS_NOTE`
 FEW_PAIRS = 10
 NEAR_CEILING = 0.7
-FEW_PAIRS_NOTE = ("fewer than 10 test pairs in a scene and a figure near the ceiling: this interval covered "
-                  "0.89-0.93 for 0.95 in the calibration benchmark (scores near 1 are skewed); test on more pairs")
+FEW_PAIRS_NOTE = ("fewer than 10 test pairs in a scene and a figure near the ceiling: intervals like this one "
+                  "covered as little as 0.88 for 0.95 in the calibration benchmark (scores near 1 are skewed); "
+                  "test on more pairs")
 #: the fewest replicates per side for a tuned verdict: K = 2 leaves the tuning variance one degree of freedom, and
 #: the calibration benchmark measured the interval of a K = 2 figure covering 0.89-0.91 where tuning dominates
 MIN_VERDICT_K = 3
@@ -388,10 +389,11 @@ def logit_interval(mean: float, se: float, q: float) -> tuple[float, float]:
     """[lo, hi] of a mean of scores in [0, 1] with standard error ``se`` and quantile ``q``: mean +- q se on the
     logit scale (the delta method: se / (m (1 - m)) there), mapped back. Why: per-pair scores near 1 are skewed,
     and a sample whose mean is high by chance has a small spread (correlation -0.8 between the figure and its se
-    at 2 scenes x 4 pairs near mAA 0.9), so the symmetric interval missed low: coverage 0.84-0.87 there against
-    0.90-0.97 on the logit scale. Measured against the arcsine-square-root scale (between the two), pseudo-scores
-    at 0 and 1 in each scene (0.99-1.00: far too wide at 4 pairs a scene) and a bounded df for the pair strata (no
-    change) in the calibration benchmark's world. A mean at 0 or 1, or se 0: the point."""
+    at 2 scenes x 4 pairs near mAA 0.9), so the symmetric interval missed low: with 8 test pairs near mAA 0.89 it
+    covered 0.77-0.89, the arcsine-square-root scale 0.83-0.93, the logit scale 0.88-0.96 (``python
+    benchmarks/verdict_calibration.py --figure-scales``). Pseudo-scores at 0 and 1 in each scene covered 0.99-1.00
+    (far too wide at 4 pairs a scene) and a bounded df for the pair strata changed nothing (simulations of the
+    same world). A mean at 0 or 1, or se 0: the point."""
     if se <= 0 or mean <= 0.0 or mean >= 1.0:
         return max(0.0, min(1.0, mean)), max(0.0, min(1.0, mean))
     g = math.log(mean / (1.0 - mean))
