@@ -132,6 +132,7 @@ def test_tune_prints_the_few_pairs_note_in_lines_of_at_most_100_columns():
     text = replicated_text({"replicates": [], "K": 3, "pairs": 8, "mAA10": iv.mean, "mAA10_ci": [iv.low, iv.high],
                             "se_pairs": iv.se_pairs, "se_between": iv.se_between, "tuning_variance_measured": True,
                             "figure_note": iv.note})
-    assert "fewer than 10 test pairs in a scene" in text and "test on more pairs" in text
+    flat = " ".join(text.split())
+    assert "fewer than 10 test pairs in a scene" in flat and "test on more pairs" in flat
     note = text[text.index("note: fewer"):]
     assert max(len(line) for line in note.splitlines()) <= 100
