@@ -25,11 +25,15 @@ Columns, per cell (K_A, K_B, pairs, tuning sd), for each method: coverage of the
 95% difference interval (over the null and both alternatives), false positives at .05 and .01 (p below, null), the
 KS distance of the null p-values from uniform, power at a true difference of .05 and .10 (p < .05 with the right
 sign), and for the new method the share of null data sets with a "significant" verdict (none where a side has K = 1:
-see ``assumption`` in the module of the functions), the median detectable difference at 80% power, and the power
-that the comparisons themselves predicted at .05 (the mean of each data set's own power at .05: the "could detect"
-line is right when it matches power05).
+see ``assumption`` in the module of the functions), the median detectable difference at 80% power over null data
+sets in which B is another method of equal quality (its method x pair term: a real difference always brings one)
+and the power reached when the true difference is that median (``power_at_mde``: the "could detect" line is right
+when it is 0.80), the power that the comparisons themselves predicted at .05 (mean and median of ``power_at(.05)``,
+beside power05), the coverage of the P(A > B) interval over the three scenarios and the estimate's mean error at
+.05 and .10 (the truth Phi(delta / sigma_1), sigma_1^2 by Monte Carlo: ``sigma1_sq``), and the tuned figure's
+coverage from 8 pairs in 3 + 3 + 2 and in a world near the ceiling (``*_high``, true mAA(10) 0.88-0.90).
 
-    python benchmarks/verdict_calibration.py --sims 400 --json          # 5 min 50 s on 2 cores
+    python benchmarks/verdict_calibration.py --sims 400 --json          # 24 min on 2 shared cores
     python benchmarks/verdict_calibration.py --sims 2000 --json --out benchmarks/results/verdict_calibration.json
 """
 from __future__ import annotations
