@@ -1395,9 +1395,14 @@ def test_a_lucky_tuning_is_a_verdict_only_without_replicates():
     assert rep["ci"][0] < 0 < rep["ci"][1] and rep["verdict"] == "inconclusive"
     assert rep["measured"]["tuning_variance_measured"] is True and rep["measured"]["replicates"] == [3, 3]
     from scipy import stats
-    pab = stats.norm.cdf(((0.95 + 0.45 + 0.45) / 3 - 0.55) / np.std([0.95, 0.45, 0.45], ddof=1))
-    assert rep["measured"]["p_b_beats_a"] == pytest.approx(pab, abs=1e-9)
-    lo_p, hi_p = rep["measured"]["p_b_beats_a_ci"]
+    # Phi(d / sqrt(s_1^2 - se^2)) (unbiased; c^2 floored at s_1^2 / 4), s_1^2 the variance of the difference of
+    # two single tunings, held inside its interval: between the plug-in Phi(d / s_1) and Phi(2 d / s_1) (d > 0)
+    m = rep["measured"]
+    s1 = np.var([0.95, 0.45, 0.45], ddof=1) + np.var([0.55] * 3, ddof=1)
+    lo_p, hi_p = m["p_b_beats_a_ci"]
+    plug, far = (stats.norm.cdf(f * rep["difference"] / np.sqrt(s1)) for f in (1, 2))
+    assert min(max(plug, lo_p), hi_p) - 1e-9 <= m["p_b_beats_a"] <= min(max(far, lo_p), hi_p) + 1e-9
+    pab = m["p_b_beats_a"]
     assert lo_p < 0.5 < hi_p  # three tunings cannot tell
     assert rep["measured"]["detectable"] > abs(rep["difference"])
     # the tuned figure of each study is the replicates' mean, with every replicate's own figure beside it

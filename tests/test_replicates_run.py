@@ -124,11 +124,14 @@ def test_replicated_figure_is_the_mean_of_the_replicates_and_its_interval_is_wid
     tuning = np.var(w.mean(axis=1), ddof=1) - np.sum(resid**2) / (2 * (w.shape[1] - 1)) / w.shape[1]
     iv = replicated_maa_interval(scores, strata)
     assert (iv.low, iv.high) == pytest.approx((lo, hi), abs=1e-12)
-    if 0 < lo and hi < 1 and 0 < one.low and one.high < 1:  # not clipped to [0, 1]: the variances add
-        from scipy import stats
-        var = ((hi - lo) / 2 / stats.t.ppf(0.975, iv.df)) ** 2
-        var_one = ((one.high - one.low) / 2 / stats.t.ppf(0.975, one.df)) ** 2
-        assert var - var_one == pytest.approx(tuning / 3, rel=1e-6, abs=1e-12)
+    if 0 < lo and hi < 1 and 0 < one.low and one.high < 1:  # the variances add (intervals on the logit scale)
+        from scipy import special, stats
+        m = rep["mAA10"]
+
+        def var_of(low, high, df):  # se = logit half-width / t * m (1 - m) (the delta method)
+            return ((special.logit(high) - special.logit(low)) / 2 / stats.t.ppf(0.975, df) * m * (1 - m)) ** 2
+        assert var_of(lo, hi, iv.df) - var_of(one.low, one.high, one.df) == pytest.approx(tuning / 3, rel=1e-6,
+                                                                                          abs=1e-12)
     if rep["se_between"] >= rep["se_pairs"]:  # the tuning spread dominates: wider than every replicate's own
         for t in own:
             slo, shi = t["mean"]["mAA10_ci"]
@@ -175,9 +178,10 @@ def test_compare_of_two_replicated_runs_prints_p_a_beats_b(runs):
     # figure, by hand from the three replicate figures of each side
     from scipy import stats
     s2 = np.var(a, ddof=1) + np.var(b, ddof=1)
-    if s2 > 0:
-        assert d["p_a_beats_b"] == pytest.approx(stats.norm.cdf((np.mean(a) - np.mean(b)) / np.sqrt(s2)), abs=1e-9)
+    if s2 > 0:  # Phi(d / sqrt(s^2 - se^2)), unbiased (c^2 floored at s^2 / 4), held inside its interval
         lo, hi = d["p_a_beats_b_ci"]
+        est = stats.norm.cdf((np.mean(a) - np.mean(b)) / np.sqrt(max(s2 - d["se"] ** 2, s2 / 4)))
+        assert d["p_a_beats_b"] == pytest.approx(min(max(est, lo), hi), abs=1e-9)
         assert lo <= d["p_a_beats_b"] <= hi
     assert d["ci"][0] <= d["difference_a_minus_b"] <= d["ci"][1]
     assert d["verdict_allowed"] is True and d["significant"] == (d["p_value"] < 0.05)
@@ -267,9 +271,9 @@ def test_reference_comparison_of_replicates_from_pair_errors():
     # figures (each side's sample variance), by hand
     from scipy import stats
     s2 = np.var(tuned, ddof=1) + np.var(ref, ddof=1)
-    assert out["p_tuned_beats_reference"] == pytest.approx(
-        stats.norm.cdf((np.mean(tuned) - np.mean(ref)) / np.sqrt(s2)), abs=1e-9)
     lo, hi = out["p_tuned_beats_reference_ci"]
+    est = stats.norm.cdf((np.mean(tuned) - np.mean(ref)) / np.sqrt(max(s2 - out["se"] ** 2, s2 / 4)))
+    assert out["p_tuned_beats_reference"] == pytest.approx(min(max(est, lo), hi), abs=1e-9)
     assert lo <= out["p_tuned_beats_reference"] <= hi
     assert out["verdict_allowed"] is True and out["verdict"].startswith("tuned - reference = ")
     assert out["ci"][0] < out["difference"] < out["ci"][1]

@@ -19,7 +19,9 @@ def _bench():
 
 def test_a_cell_runs_both_methods_on_the_same_data_sets():
     m = _bench()
-    cal = {"tau": 0.05, "pairs": {8: {"mu_a": 0.5, "shifts": {0.0: 0.0, 0.05: 0.1, 0.1: 0.2}}}}
+    cal = {"tau": 0.05, "pairs": {8: {"mu_a": 0.5, "mu_a_high": 0.9, "shifts": {0.0: 0.0, 0.05: 0.1, 0.1: 0.2},
+                                      "sigma1_a": 0.004, "sigma1_b": {0.0: 0.004, 0.05: 0.005, 0.1: 0.006}}},
+           "mu_332": {"benchmark": 0.5, "high": 0.9}}
     rows = m.run_cell((3, 1, 8, "small", cal, 15, 0, 200))
     assert [r["method"] for r in rows] == ["new", "old"]
     new = rows[0]
@@ -28,6 +30,12 @@ def test_a_cell_runs_both_methods_on_the_same_data_sets():
         for k in ("coverage_mean", "coverage_diff", "fp05", "fp01", "ks", "power05", "power10"):
             assert 0.0 <= r[k] <= 1.0, (k, r)
         assert r["fp01"] <= r["fp05"]
+    verdict = m.run_cell((3, 3, 8, "small", cal, 15, 1, 200))[0]
+    assert verdict["claim"] == "verdict"
+    for k in ("power_at_mde", "coverage_pab", "coverage_mean_332", "coverage_mean_high", "coverage_mean_332_high",
+              "predicted_power05"):
+        assert 0.0 <= verdict[k] <= 1.0, (k, verdict[k])
+    assert verdict["mde_median"] > 0
 
 
 def test_scores_are_the_benchmarks_per_pair_maa():
@@ -49,6 +57,12 @@ def test_the_target_check_flags_a_cell_outside_and_passes_one_inside():
     assert len(flagged) == 1 and "fp05 0.120" in flagged[0] and "coverage_diff 0.850" in flagged[0]
     weaker = [{**base, "method": "new", "power05": 0.1}, {**base, "method": "old", "fp05": 0.05}]
     assert "power05 0.100 < old 0.300" in m.check(weaker, 2000)[0][0]
+    # the promises of a verdict cell: power at the median mde, P(A > B) coverage, the 3 + 3 + 2 figure
+    kept = {**base, "method": "new", "power_at_mde": 0.81, "coverage_pab": 0.95, "coverage_mean_332": 0.94}
+    assert m.check([kept, {**base, "method": "old", "fp05": 0.02}], 400) == ([], [])
+    broken = {**kept, "power_at_mde": 0.70, "coverage_pab": 0.89, "coverage_mean_332": 0.88}
+    line = m.check([broken, {**base, "method": "old", "fp05": 0.02}], 400)[0][0]
+    assert "power_at_mde 0.700" in line and "coverage_pab 0.890" in line and "coverage_mean_332 0.880" in line
 
 
 def test_the_truth_is_the_expected_score_of_the_simulated_world():

@@ -30,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -159,7 +160,7 @@ def replicated_summary(tests: list[dict], seeds: list, *, tau: int = 10, n_boot:
     return {"replicates": reps, "K": len(reps), "mAA10": iv.mean, "mAA10_ci": [iv.low, iv.high],
             "se_pairs": iv.se_pairs, "se_between": iv.se_between,
             "tuning_variance_measured": iv.tuning_variance_measured,
-            "note": "" if iv.tuning_variance_measured else NOT_MEASURED,
+            "note": "" if iv.tuning_variance_measured else NOT_MEASURED, "figure_note": iv.note,
             "spread": spread, "pairs": int(scores.shape[1]), "method": INTERVAL_METHOD, "level": 0.95,
             "reference": reference_comparison(tests, tau=tau, n_boot=n_boot,
                                               tuned=(scores * scene_weights(strata)[None, :], strata))}
@@ -304,6 +305,8 @@ def replicated_text(summary: dict) -> str:
         out.append(line)
     if not summary.get("tuning_variance_measured"):
         out.append(f"note: {NOT_MEASURED}; rerun with --replicates 3 to measure it")
+    if summary.get("figure_note"):  # a design the calibration benchmark measured short (few pairs near 1)
+        out.extend(textwrap.wrap(f"note: {summary['figure_note']}", 100, subsequent_indent="  "))
     return "\n".join(out)
 
 
