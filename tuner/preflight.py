@@ -106,11 +106,12 @@ def load_study_space(s, task):
     from tuner.protocol import searchable, unused_by
     from tuner.space import SPACES_DIR, load_space
     path = s.space_path or (SPACES_DIR / task.space_file if task.space_file else None)
-    space = load_space(path, feature=s.base.feature.name, estimator=s.base.geometry.ransac, fixes=s.fixes)
+    space = load_space(path, feature=s.base.feature.name, estimator=s.base.geometry.ransac, fixes=s.fixes,
+                       matcher=s.base.matching.method)
     from tuner.space import parse_fixes
     unused = [k for k in parse_fixes(s.fixes) if k in unused_by(task, s.base)]
     if unused:  # dropped below like the rest: a typed pin that does nothing was silently forgotten
-        by = f"the {task.name} task with --matcher {s.base.matching.method}"
+        by = f"the {task.name} task" + (f" with --matcher {s.base.matching.method}" if s.base.matching.learned else "")
         s.warn(f"--fix {', '.join(unused)}: {by} does not use "
                f"{'it' if len(unused) == 1 else 'them'} (it uses {', '.join(searchable(task, s.base))}); ignored")
     if s.unused_options:  # stereo options of a multiview run, found by the command line (tuner.commands.study)
