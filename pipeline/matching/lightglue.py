@@ -18,7 +18,6 @@ thresholded at c is LightGlue's output at ``filter_threshold`` c (``tests/test_l
 from __future__ import annotations
 
 import re
-from typing import ClassVar
 
 import numpy as np
 
@@ -108,7 +107,7 @@ def load_lightglue(kornia_feature: str, component: str, depth_confidence: float,
     from pipeline.features.kornia_base import load_checkpoint
     conf = {**K.features[kornia_feature], "depth_confidence": depth_confidence,
             "width_confidence": width_confidence, "filter_threshold": 0.0, "weights": None}
-    net = K(features=None, **conf)
+    net = K(features=None, **conf)  # type: ignore[arg-type]  # (kornia's hint says str; None is its documented no-weights build)
     sd = load_checkpoint(component)
     for i in range(net.conf.n_layers):  # as kornia.feature.LightGlue.__init__ (the published files' old names)
         for old, new in ((f"self_attn.{i}", f"transformers.{i}.self_attn"),
