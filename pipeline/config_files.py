@@ -98,7 +98,7 @@ def pipeline_from_dict(d: dict, base: PipelineConfig | None = None, where: str =
             if f.name in vals and isinstance(f.default, float) and isinstance(vals[f.name], int) \
                     and not isinstance(vals[f.name], bool):
                 vals[f.name] = float(vals[f.name])
-        for k in ("options", "prefilter_options"):
+        for k in ("options", "prefilter_options", "matcher_options"):
             if k in vals:
                 vals[k] = _options(vals[k], f"{where}: {sec}.{k}")
         try:
