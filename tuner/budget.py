@@ -151,12 +151,16 @@ def _round_down(g: float) -> int:
 
 
 def calibration_key(estimator: str, feature_conf, ratio: float, threshold: float, data_fingerprint: str,
-                    jobs: int = 1) -> str:
+                    jobs: int = 1, matching=None) -> str:
+    """The budgets.json key of a calibration. ``matching``: the MatchConfig whose matches are timed; a learned
+    matcher's (its name and confidence threshold) is part of the key, the k-NN matcher's r is already."""
     from pipeline.config import config_hash
     parts = [socket.gethostname(), estimator, config_hash(feature_conf, 10), f"r={ratio:g}", f"eta={threshold:g}",
              data_fingerprint]
     if int(jobs) != 1:  # a calibration measured alone keeps its key (stores written before --jobs stay valid)
         parts.append(f"jobs={int(jobs)}")
+    if matching is not None and getattr(matching, "learned", False):  # (k-NN keys stay as they were)
+        parts.append(f"{matching.method}:c={matching.min_confidence:g}:{sorted(dict(matching.matcher_options).items())}")
     return "|".join(parts)
 
 
@@ -310,8 +314,9 @@ def calibration_matches(scenes, conf, cache, max_pairs: int = 8, progress: bool 
             out.append((fi.keypoints[m[:, 0]].astype(np.float64), fj.keypoints[m[:, 1]].astype(np.float64),
                         ((fi.width, fi.height), (fj.width, fj.height)), K1, K2))
     if not out:
-        raise ImtuneError("calibration: no validation pair has 8 or more tentative matches at "
-                          f"r={conf.matching.ratio}; cannot time the estimator")
+        at = f"confidence > {conf.matching.min_confidence:g}" if conf.matching.learned else f"r={conf.matching.ratio}"
+        raise ImtuneError(f"calibration: no validation pair has 8 or more tentative matches at {at}; cannot time the "
+                          "estimator")
     return out
 
 
@@ -411,7 +416,8 @@ def calibrate(estimator_name: str, base_conf, scenes, cache, data_fingerprint: s
     from pipeline.geometry import ESTIMATORS
     cls = ESTIMATORS.get(estimator_name)
     conf = dataclasses.replace(base_conf, matching=dataclasses.replace(base_conf.matching, ratio=float(ratio)))
-    key = calibration_key(estimator_name, conf.feature, ratio, threshold, data_fingerprint, jobs=jobs)
+    key = calibration_key(estimator_name, conf.feature, ratio, threshold, data_fingerprint, jobs=jobs,
+                          matching=conf.matching)
     store = Path(studies_dir) / BUDGETS_FILE if studies_dir is not None else None
     bmax = max(budgets)
 

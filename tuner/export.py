@@ -29,9 +29,14 @@ def settings(frozen: dict) -> dict:
     """The exported values of a frozen study: estimator, ratio, strategy, threshold (px), confidence, max_iters."""
     conf = frozen.get("config") or {}
     g, m = conf.get("geometry") or {}, conf.get("matching") or {}
-    return {"estimator": g.get("ransac", frozen.get("ransac")), "ratio": m.get("ratio"), "strategy": m.get("strategy"),
-            "threshold": g.get("threshold"), "confidence": g.get("confidence"), "max_iters": g.get("max_iters"),
-            "max_side": (conf.get("feature") or {}).get("max_side")}
+    out = {"estimator": g.get("ransac", frozen.get("ransac")), "ratio": m.get("ratio"), "strategy": m.get("strategy"),
+           "threshold": g.get("threshold"), "confidence": g.get("confidence"), "max_iters": g.get("max_iters"),
+           "max_side": (conf.get("feature") or {}).get("max_side")}
+    if "min_confidence" in m:  # a learned matcher (to_dict keeps its fields only then): no ratio test
+        out.update(matcher=m.get("method"), min_confidence=m.get("min_confidence"),
+                   matcher_options=dict(m.get("matcher_options") or ()), ratio=None, strategy=None,
+                   feature=(conf.get("feature") or {}).get("name"))
+    return out
 
 
 def figures_line(frozen: dict, test: dict | None) -> str:
@@ -56,6 +61,11 @@ def export(frozen: dict, fmt: str, test: dict | None = None) -> str:
         return json.dumps({"study": frozen.get("study"), "objective": (frozen.get("objective") or {}).get("name", "mAA10"),
                            "settings": s, "validation": frozen.get("validation"),
                            "test": (test or {}).get("mean")}, indent=2)
+    if fmt == "hloc" and s.get("matcher") == "lightglue":  # hloc's match_features conf of LightGlue
+        model = {"name": "lightglue", "features": s["feature"], "filter_threshold": s["min_confidence"],
+                 **s["matcher_options"]}
+        return (f"# {note}\n# hloc.match_features conf: LightGlue at the tuned confidence threshold\n"
+                f"conf = {{'output': 'matches-{s['feature']}-lightglue', 'model': {model!r}}}\n")
     if fmt == "hloc":
         if s["ratio"] is None:
             raise ImtuneError(f"study {frozen.get('study')}: no ratio test in its frozen settings; --format hloc "

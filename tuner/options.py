@@ -52,8 +52,12 @@ def add_pipeline_options(ap: argparse.ArgumentParser, tuning: bool = False, seed
     g.add_argument("--feature-option", action="append", type=feature_option, default=[], metavar="KEY=VALUE",
                    help="an extractor option, e.g. edge_threshold=10 or contrast_threshold=0.04 for sift (an unknown "
                         "KEY lists the extractor's options); repeatable")
-    g.add_argument("--matcher", default="exact", choices=["exact", "flann"],
-                   help="nearest neighbours: exact brute force, or OpenCV FLANN (approximate)")
+    g.add_argument("--matcher", default="exact", choices=["exact", "flann", "lightglue"],
+                   help="nearest neighbours: exact brute force, or OpenCV FLANN (approximate); or lightglue, the "
+                        "learned matcher (features aliked and disk; thresholded at --min-confidence instead of r)")
+    g.add_argument("--matcher-option", action="append", type=feature_option, default=[], metavar="KEY=VALUE",
+                   help="a learned matcher's option: depth_confidence, width_confidence (LightGlue's adaptive depth "
+                        "and width, 0.95 and 0.99; -1 = off); repeatable")
     g.add_argument("--strategy", default="both", help="both | either | uni")
     g.add_argument("--distance-threshold", type=nonnegative_float, default=None,
                    help="drop a match whose descriptor distance exceeds this (L2 for float descriptors, bits for "
@@ -68,6 +72,9 @@ def add_pipeline_options(ap: argparse.ArgumentParser, tuning: bool = False, seed
                    help="RANSAC confidence tau (the protocol fixes 0.999999)")
     if not tuning:
         g.add_argument("--ratio", type=ratio_float, default=0.85, help="ratio test r in (0, 1]; 1 = off")
+        g.add_argument("--min-confidence", type=nonnegative_float, default=0.1,
+                       help="--matcher lightglue: keep matches of confidence above this, in [0, 1) (LightGlue's "
+                            "filter_threshold; takes r's place)")
         g.add_argument("--threshold", type=positive_float, default=0.5, help="inlier threshold eta, px")
         g.add_argument("--max-iters", type=iters_int, default=50000, help="RANSAC iteration cap Gamma")
     g.add_argument("--seed", type=seed_int, default=0, help=seed_help or f"random seed, 0 to {SEED_MAX}")
@@ -86,6 +93,8 @@ def add_pipeline_options(ap: argparse.ArgumentParser, tuning: bool = False, seed
 #: the matcher's options (argparse dests) -> their values when imported matches skip the matcher (r = 1: no test):
 #: pipeline.config_files.SKIPPED_MATCHER under the option names (--matcher sets MatchConfig.method)
 MATCHER_OPTIONS = {("matcher" if k == "method" else k): v for k, v in SKIPPED_MATCHER.items()}
+#: the k-NN options (argparse dests) a learned matcher skips -> the values its configuration records
+LEARNED_SKIPS = {k: v for k, v in MATCHER_OPTIONS.items() if k != "matcher"}
 
 
 def build_config(args: argparse.Namespace, **overrides) -> PipelineConfig:
@@ -114,16 +123,32 @@ def build_config(args: argparse.Namespace, **overrides) -> PipelineConfig:
             raise ImtuneError(f"--{typed[0].replace('_', '-')} does not apply with --matches custom:DIR: imported matches "
                               "skip the matcher (no ratio test, strategy, distance threshold, FGINN); drop it")
         v.update(MATCHER_OPTIONS)
+    from pipeline.matching.learned import is_learned
+    if is_learned(str(v["matcher"])):  # the network matches: the k-NN options were ignored, and r shown for nothing
+        typed = [o for o in LEARNED_SKIPS if o in explicit_options(args) and o not in overrides]
+        if typed:
+            raise ImtuneError(f"--{typed[0].replace('_', '-')} does not apply with --matcher {v['matcher']}: a learned "
+                              "matcher has no ratio test, strategy, distance threshold or FGINN (its threshold is "
+                              "--min-confidence); drop it")
+        v.update(LEARNED_SKIPS)
+    elif "min_confidence" in explicit_options(args) and "min_confidence" not in overrides:
+        raise ImtuneError(f"--min-confidence applies to a learned matcher (--matcher lightglue), not to --matcher "
+                          f"{v['matcher']} (its threshold is --ratio); drop it")
     fc = FeatureConfig(name=v["feature"], num_features=int(v["num_features"]), low_threshold=not v["no_low_threshold"],
                        upright=bool(v["upright"] or v["upright_plus"]), upright_plus=bool(v["upright_plus"]),
                        clahe=v["clahe"], mr_size=v["mr_size"], max_side=int(v["max_side"]),
                        options=tuple(sorted(feature_options(v.get("feature_option")).items())))
     mc = MatchConfig(ratio=float(v["ratio"]), strategy=v["strategy"], distance_threshold=v["distance_threshold"],
                      fginn=bool(v["fginn"]), method=v["matcher"], prefilter=prefilter,
-                     prefilter_options=prefilter_options, custom_matches=custom_matches)
+                     prefilter_options=prefilter_options, custom_matches=custom_matches,
+                     min_confidence=float(v.get("min_confidence", 0.1)),
+                     matcher_options=tuple(sorted(feature_options(v.get("matcher_option")).items())))
     gc = GeometryConfig(ransac=v["ransac"], threshold=float(v["threshold"]), confidence=float(v["confidence"]),
                         max_iters=int(v["max_iters"]), seed=int(v["seed"]))
-    conf = PipelineConfig(feature=fc, matching=mc, geometry=gc)
+    conf = PipelineConfig(feature=fc, matching=mc, geometry=gc)  # a learned matcher without weights for fc: one line
+    if mc.learned:
+        from pipeline.matching.learned import LEARNED_MATCHERS
+        LEARNED_MATCHERS.get(mc.method).check_available()  # its weights here (else one line naming the file)
     if fc.options:
         check_feature_options(conf, "--feature-option")
     return conf
@@ -225,6 +250,7 @@ OPTION_FIELDS: dict[str, tuple[tuple[str, str], ...]] = {
     "mr_size": (("feature", "mr_size"),), "max_side": (("feature", "max_side"),),
     "feature_option": (("feature", "options"),),
     "matcher": (("matching", "method"),), "strategy": (("matching", "strategy"),),
+    "min_confidence": (("matching", "min_confidence"),), "matcher_option": (("matching", "matcher_options"),),
     "distance_threshold": (("matching", "distance_threshold"),), "fginn": (("matching", "fginn"),),
     "prefilter": (("matching", "prefilter"), ("matching", "prefilter_options")),
     "matches": (("matching", "custom_matches"),),

@@ -83,7 +83,8 @@ def pinned_gamma_warning(s, space, fingerprint: str | None = None) -> str | None
         from pipeline.tasks.pool import resolve_jobs
         cal_conf = space.calibration or {}
         key = calibration_key(ransac, s.base.feature, float(cal_conf.get("ratio", 0.9)),
-                              float(cal_conf.get("threshold", 0.5)), fingerprint, jobs=resolve_jobs(s.jobs))
+                              float(cal_conf.get("threshold", 0.5)), fingerprint, jobs=resolve_jobs(s.jobs),
+                              matching=s.base.matching)
         cal = stored_calibration(Path(s.studies_dir), key)
     if cal is not None and cal.clock == CLOCK and cal.covers(s.budget):  # a wall-clock one is measured again
         gmax = cal.gamma_max(s.budget)
@@ -105,16 +106,18 @@ def load_study_space(s, task):
     from tuner.protocol import searchable, unused_by
     from tuner.space import SPACES_DIR, load_space
     path = s.space_path or (SPACES_DIR / task.space_file if task.space_file else None)
-    space = load_space(path, feature=s.base.feature.name, estimator=s.base.geometry.ransac, fixes=s.fixes)
+    space = load_space(path, feature=s.base.feature.name, estimator=s.base.geometry.ransac, fixes=s.fixes,
+                       matcher=s.base.matching.method)
     from tuner.space import parse_fixes
-    unused = [k for k in parse_fixes(s.fixes) if k in unused_by(task)]
+    unused = [k for k in parse_fixes(s.fixes) if k in unused_by(task, s.base)]
     if unused:  # dropped below like the rest: a typed pin that does nothing was silently forgotten
-        s.warn(f"--fix {', '.join(unused)}: the {task.name} task does not use "
-               f"{'it' if len(unused) == 1 else 'them'} (it uses {', '.join(searchable(task))}); ignored")
+        by = f"the {task.name} task" + (f" with --matcher {s.base.matching.method}" if s.base.matching.learned else "")
+        s.warn(f"--fix {', '.join(unused)}: {by} does not use "
+               f"{'it' if len(unused) == 1 else 'them'} (it uses {', '.join(searchable(task, s.base))}); ignored")
     if s.unused_options:  # stereo options of a multiview run, found by the command line (tuner.commands.study)
         s.warn(f"{', '.join(s.unused_options)}: the {task.name} task does not use "
                f"{'it' if len(s.unused_options) == 1 else 'them'} ({task.why_untimed}; --bags sets the work); ignored")
-    for k in unused_by(task):
+    for k in unused_by(task, s.base):  # the task's, and the matcher's: r or a learned matcher's threshold
         space.params.pop(k, None)
         space.fixed.pop(k, None)
     if not space.params:

@@ -96,6 +96,9 @@ LEAVES: dict[str, Leaf] = {
     # Gamma up to what the estimators take (pipeline.config.MAX_ITERS; a larger value was clamped to it silently)
     "max_iters": Leaf("max_iters", "geometry", "max_iters", "int", 1, MAX_ITERS, unit="iterations",
                       symbol=r"$\Gamma$", label="Gamma"),
+    # a learned matcher's (LightGlue's) match-confidence threshold: r's place when --matcher lightglue
+    "min_confidence": Leaf("min_confidence", "matching", "min_confidence", "float", 0.0, 1.0, symbol="$c$",
+                           label="c", unit=""),
     # the reconstruction task's mapper options that decide registration (pipeline.config.MapperConfig)
     "min_inliers": Leaf("min_inliers", "mapper", "min_inliers", "int", 5, 1000, unit="inliers",
                         symbol=r"$n_{\min}$", label="min inliers"),
@@ -118,17 +121,33 @@ def tasks_using(name: str) -> list[str]:
     return [t for t in TASKS.names() if name in TASKS.get(t).uses]
 
 
-def searchable(task) -> tuple[str, ...]:
-    """The parameters ``task`` (a Task or a registered name) consumes, in table order."""
+#: the parameters only the k-NN matchers use (the ratio test and its strategy), and those only a learned matcher
+#: uses (its confidence threshold takes r's place): which set applies follows the configuration's matcher
+KNN_ONLY: tuple[str, ...] = ("ratio", "strategy")
+LEARNED_ONLY: tuple[str, ...] = ("min_confidence",)
+
+
+def _learned(conf) -> bool:
+    """``conf`` (a PipelineConfig, a MatchConfig or None = the k-NN matcher) matches with a learned matcher."""
+    m = getattr(conf, "matching", conf)
+    return bool(getattr(m, "learned", False))
+
+
+def searchable(task, conf=None) -> tuple[str, ...]:
+    """The parameters ``task`` (a Task or a registered name) consumes, in table order, with the matcher of ``conf``
+    (a PipelineConfig or MatchConfig; None: the k-NN matcher): a learned matcher's threshold replaces r and the
+    strategy."""
     if isinstance(task, str):
         from pipeline.tasks import TASKS
         task = TASKS.get(task)
-    return tuple(p for p in PARAMS if p in task.uses)
+    skip = KNN_ONLY if _learned(conf) else LEARNED_ONLY
+    return tuple(p for p in PARAMS if p in task.uses and p not in skip)
 
 
-def unused_by(task) -> tuple[str, ...]:
-    """The parameters ``task`` does not consume: a study of that task never searches or records them."""
-    used = searchable(task)
+def unused_by(task, conf=None) -> tuple[str, ...]:
+    """The parameters ``task`` does not consume (with the matcher of ``conf``, as :func:`searchable`): a study of
+    that task never searches or records them."""
+    used = searchable(task, conf)
     return tuple(p for p in PARAMS if p not in used)
 
 
@@ -162,7 +181,7 @@ def blank_searched(conf: PipelineConfig, names) -> dict:
 
 def fixed_values(conf: PipelineConfig, searched, task) -> dict:
     """The protocol parameters ``task`` uses but the study did not search, with their value in ``conf``."""
-    return {p: value_of(conf, p) for p in searchable(task) if p not in searched}
+    return {p: value_of(conf, p) for p in searchable(task, conf) if p not in searched}
 
 
 def within_budget(seconds: float | None, budget: float | None) -> bool:

@@ -53,7 +53,8 @@ SMOOTH_K = 5
 Z95 = 1.959963984540054  # normal quantile of 0.975: SE = half-width / Z95
 
 #: the untuned "paper defaults" a test run is compared with (r 0.85 mutual, eta 0.5 px, Gamma 50k)
-PAPER_DEFAULTS = {"ratio": 0.85, "strategy": "both", "threshold": 0.5, "max_iters": 50_000}
+PAPER_DEFAULTS = {"ratio": 0.85, "strategy": "both", "threshold": 0.5, "max_iters": 50_000,
+                  "min_confidence": 0.1}  # LightGlue's published filter_threshold (--matcher lightglue: r's place)
 REFERENCE_LABEL = "paper defaults (r 0.85 both, eta 0.5 px, Gamma 50,000)"
 
 PARAM_LABEL = {"threshold": ("eta", "px"), "ratio": ("r", ""), "max_iters": ("Gamma", "")}
@@ -297,7 +298,7 @@ def reference_config(frozen: dict, spec, task=None):
         from pipeline.tasks import TASKS
         task = TASKS.get(frozen.get("task", "stereo"))
     base = pipeline_from_dict(frozen["config"])
-    values = {k: v for k, v in PAPER_DEFAULTS.items() if k in searchable(task)}
+    values = {k: v for k, v in PAPER_DEFAULTS.items() if k in searchable(task, base)}
     return config_for(base, values), reference_label(values)
 
 
@@ -305,6 +306,8 @@ def reference_label(values: dict) -> str:
     """"paper defaults (...)" naming the defaults a task's reference sets: all four for stereo
     (:data:`REFERENCE_LABEL`), only r and the strategy for multiview (COLMAP's own RANSAC: no eta, no Gamma)."""
     parts = []
+    if "min_confidence" in values:
+        parts.append(f"c {values['min_confidence']:g}")
     if "ratio" in values:
         parts.append(f"r {values['ratio']:g}" + (f" {values['strategy']}" if "strategy" in values else ""))
     elif "strategy" in values:

@@ -17,7 +17,8 @@ A file (read with ``yaml.safe_load`` only)::
 
 Parameters: ``ratio`` (Lowe's r in (0, 1]; 1 = off), ``threshold`` (eta, px), ``max_iters`` (Gamma;
 ``high: calibrated`` = the measured cap Gamma_max(B) for the study's budget B), ``strategy``
-(both | either | uni). Unlisted parameters keep the command line's value (``--strategy``) and are
+(both | either | uni), ``min_confidence`` (a learned matcher's confidence threshold in [0, 1], searched in place of
+r and the strategy with ``--matcher lightglue``, dropped otherwise). Unlisted parameters keep the command line's value (``--strategy``) and are
 recorded as fixed. Feature families: ``binary`` (Hamming descriptors), ``float``, ``learned``;
 a feature name (``orb``) wins over its family. ``grid`` lists the values the grid sampler visits
 (default: 5 values over the range; the cap for ``max_iters``).
@@ -381,8 +382,11 @@ def _merge(base: dict, over: dict) -> dict:
     return out
 
 
-def build_space(data: dict, source: str, feature: str | None = None, estimator: str | None = None) -> SearchSpace:
-    """Validate a parsed file and apply the feature's overrides and the estimator's capabilities."""
+def build_space(data: dict, source: str, feature: str | None = None, estimator: str | None = None,
+                matcher: str | None = None) -> SearchSpace:
+    """Validate a parsed file and apply the feature's overrides, the estimator's capabilities and the matcher's: a
+    learned ``matcher`` (``lightglue``) searches its confidence threshold ``min_confidence`` in place of r and the
+    strategy; any other (None: exact) the reverse (``tuner.protocol.KNN_ONLY`` / ``LEARNED_ONLY``)."""
     raw = dict(data["params"])
     for key in feature_families(feature) if feature else []:
         over = (data.get("features") or {}).get(key)
@@ -398,6 +402,11 @@ def build_space(data: dict, source: str, feature: str | None = None, estimator: 
     calibration = {"ratio": 0.9, "threshold": 0.5, **(data.get("calibration") or {})}
     space = SearchSpace(params=params, fixed=fixed, calibration=calibration, source=source,
                         description=str(data.get("description", "")))
+    from pipeline.matching.learned import is_learned
+    from tuner.protocol import KNN_ONLY, LEARNED_ONLY
+    for name in KNN_ONLY if matcher and is_learned(matcher) else LEARNED_ONLY:
+        space.params.pop(name, None)
+        space.fixed.pop(name, None)
     if estimator:
         try:
             from pipeline.geometry import ESTIMATORS
@@ -431,16 +440,16 @@ def default_space_file(estimator: str) -> Path:
 
 
 def load_space(path: str | Path | None = None, *, feature: str | None = None, estimator: str | None = None,
-               fixes: list[str] | dict | None = None) -> SearchSpace:
+               fixes: list[str] | dict | None = None, matcher: str | None = None) -> SearchSpace:
     """The search space: ``path`` (``--space``) or the default file for ``estimator``; the feature's
-    overrides applied; ``fixes`` (``["name=value", ...]`` or a dict) pinned. Raises ImtuneError
-    naming the file and key on any problem."""
+    overrides applied; the parameters ``matcher`` does not use dropped (:func:`build_space`); ``fixes``
+    (``["name=value", ...]`` or a dict) pinned. Raises ImtuneError naming the file and key on any problem."""
     f = Path(path) if path else default_space_file(estimator or "degensac")
     data = read_yaml(f)
     # imtune's own file by its place in the project: the label is stored with a study, and an absolute path named
     # the checkout that created it on every other machine reading the storage (/work/ci/x/search_spaces/...)
     label = str(f) if path else f"{SPACES_DIR.name}/{f.name}"
-    space = build_space(data, label, feature=feature, estimator=estimator)
+    space = build_space(data, label, feature=feature, estimator=estimator, matcher=matcher)
     for name, value in parse_fixes(fixes).items():
         space.fix(name, value)
     return space

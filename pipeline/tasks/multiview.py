@@ -456,7 +456,7 @@ class MultiviewTask(Task):
     ``progress``: tqdm bars. ``on_step`` is called after each scene."""
 
     name = "multiview"
-    uses = ("ratio", "strategy")  # COLMAP verifies the matches with its own RANSAC: eta and Gamma play no part
+    uses = ("ratio", "strategy", "min_confidence")  # COLMAP verifies the matches with its own RANSAC: eta and Gamma play no part
     summary_keys = MULTIVIEW_KEYS[:-1] + ("accuracy",)
     std_keys = ("mAA5", "mAA10", "SR")
     columns = ("bags", "SR", "RC", "NL", "TL", "mAA5", "mAA10", "ATE", "failed", "NM", "seconds")

@@ -281,6 +281,8 @@ def pair_data_key(scenes, pairs, conf, cache_root) -> str:
     from pipeline.matching import neighbours_needed
     m = conf.matching
     parts = [str(cache_root), asdict(conf.feature), m.method, neighbours_needed(m), str(m.custom_matches)]
+    if m.learned:  # its options change its output (the threshold min_confidence is per trial)
+        parts.append(sorted(dict(m.matcher_options).items()))
     for sc, ps in zip(scenes, pairs):
         names = sorted({p.i for p in ps} | {p.j for p in ps})
         parts.append([sc.name, [str(sc.images[n].path) for n in names], [p.key for p in ps]])

@@ -18,9 +18,10 @@ from pipeline.data.scene import ImageInfo
 from pipeline.errors import ImtuneError
 from pipeline.matching import neighbours_needed
 
-COUNTERS: Counter = Counter()  # "extract", "knn": number of real (uncached) computations in this process
+COUNTERS: Counter = Counter()  # "extract", "knn", "learned": number of real (uncached) computations in this process
 FEATURE_STAGE_VERSION = "1"
 KNN_STAGE_VERSION = "1"
+LEARNED_STAGE_VERSION = "1"
 
 
 @dataclass
@@ -40,6 +41,7 @@ class ImageFeatures:
     scores: np.ndarray | None = None
     name: str = ""  # the image's name in its scene (custom matches are keyed by it)
     path: str = ""  # the image file
+    feature: str = ""  # the extractor's registry name (a learned matcher picks its weights by it)
 
 
 def feature_key(info: ImageInfo, conf: FeatureConfig) -> str:
@@ -82,7 +84,7 @@ def image_features(cache: H5Cache, info: ImageInfo, conf: FeatureConfig) -> Imag
                          binary=bool(a["binary"]), sx=float(a["scale"][0]), sy=float(a["scale"][1]),
                          width=int(a["size"][0]), height=int(a["size"][1]), seconds=float(a["seconds"]),
                          scales=a.get("scales"), orientations=a.get("orientations"), scores=a.get("scores"),
-                         name=info.name, path=str(info.path))
+                         name=info.name, path=str(info.path), feature=conf.name)
 
 
 def pair_knn(cache: H5Cache, fi: ImageFeatures, fj: ImageFeatures, conf: MatchConfig):
@@ -90,10 +92,17 @@ def pair_knn(cache: H5Cache, fi: ImageFeatures, fj: ImageFeatures, conf: MatchCo
 
     With ``conf.custom_matches`` no search runs: the tables returned (``CustomTables``) carry the imported
     matches (read ``tentative_matches`` for them; ``filter_matches`` on them gives the same matches when they are
-    one-to-one)."""
+    one-to-one).
+
+    With a learned matcher (``conf.method`` "lightglue") the network runs instead of the search and its raw output
+    (:class:`pipeline.matching.learned.LearnedMatches`: every candidate match and its confidence) is what is
+    cached, per feature set and pair; ``tentative_matches`` thresholds it at ``conf.min_confidence``. The seconds
+    are the network's: matching time, as the search's."""
     from pipeline.matching.knn import KnnTables, knn_tables
     if conf.custom_matches:
         return custom_tables(fi, fj, conf), 0.0
+    if conf.learned:
+        return pair_learned(cache, fi, fj, conf)
     for f in (fi, fj):
         if f.descriptors.ndim != 2 or f.descriptors.shape[1] == 0:
             raise ImtuneError(f"image {f.name or f.key}: the features have no descriptors (custom features without "
@@ -113,6 +122,35 @@ def pair_knn(cache: H5Cache, fi: ImageFeatures, fj: ImageFeatures, conf: MatchCo
     a = cache.get_or_compute("knn", key, compute)
     tab = KnnTables(**{f.name: a[f.name] for f in dataclasses.fields(KnnTables)})
     return tab, float(a["seconds"])
+
+
+def pair_learned(cache: H5Cache, fi: ImageFeatures, fj: ImageFeatures, conf: MatchConfig):
+    """A learned matcher's raw output for a pair (cached; :func:`pair_knn` calls it) and its seconds."""
+    from pipeline.matching.learned import LearnedMatches, get_learned_matcher
+    matcher = get_learned_matcher(conf.method, conf.matcher_options)
+    feature = fi.feature or fj.feature
+    if not feature:
+        raise ImtuneError(f"{conf.method}: the features of {fi.name or fi.key} do not say which extractor made them "
+                          "(ImageFeatures.feature)")
+    key = make_key("learned", fi.key, fj.key, matcher.cache_parts(feature), LEARNED_STAGE_VERSION)
+
+    def compute():
+        matcher.warmup(feature)  # the network's construction is not matching time
+        t0 = time.perf_counter()
+        raw = matcher.match(fi, fj, feature)
+        dt = time.perf_counter() - t0
+        COUNTERS["learned"] += 1
+        return {"matches": raw.matches, "confidence": raw.confidence, "n": np.array([raw.n1, raw.n2], np.int64),
+                "seconds": np.array(dt)}
+
+    a = cache.get_or_compute("learned", key, compute)
+    n = np.asarray(a["n"]).reshape(-1)
+    if int(n[0]) != len(fi.keypoints) or int(n[1]) != len(fj.keypoints):
+        raise ImtuneError(f"cache entry learned/{key}: made for {int(n[0])} and {int(n[1])} keypoints, the pair has "
+                          f"{len(fi.keypoints)} and {len(fj.keypoints)}: delete it (it is recomputed)")
+    raw = LearnedMatches(np.asarray(a["matches"], np.int32).reshape(-1, 2), np.asarray(a["confidence"], np.float32),
+                         int(n[0]), int(n[1]))
+    return raw, float(a["seconds"])
 
 
 # --------------------------------------------------------------------- tentative matches of a pair
@@ -135,10 +173,18 @@ def tentative_matches(tables, conf: MatchConfig, fi: ImageFeatures, fj: ImageFea
     figures call it, so they all see the same matches. The tentative matches a task hands to the estimator (or COLMAP): the matcher's (ratio test,
     strategy, distance threshold, FGINN on the k-NN ``tables``) or the imported ones (custom matches;
     ``task`` "multiview" reads the multiview match file), then the pre-filter ``conf.prefilter``.
-    Returns (matches (M, 2) int32 [i, j], distances (M,) float32; 0 for custom matches)."""
+    A learned matcher's cached output (``LearnedMatches``) is thresholded at ``conf.min_confidence``.
+    Returns (matches (M, 2) int32 [i, j], distances (M,) float32; 0 for custom matches, 1 - confidence for a
+    learned matcher)."""
     from pipeline.matching.custom_matches import CustomTables
     from pipeline.matching.filter import filter_matches
-    if isinstance(tables, CustomTables) or conf.custom_matches:
+    from pipeline.matching.learned import LearnedMatches
+    if isinstance(tables, LearnedMatches) or conf.learned:
+        if not isinstance(tables, LearnedMatches):
+            raise ImtuneError(f"matcher {conf.method}: expected its cached output (pair_knn), got k-NN tables")
+        m, c = tables.select(conf.min_confidence)  # LightGlue's filter_threshold, applied per trial
+        d = (1.0 - c).astype(np.float32)
+    elif isinstance(tables, CustomTables) or conf.custom_matches:
         if task != "stereo" or not isinstance(tables, CustomTables):
             tables = custom_tables(fi, fj, conf, task)
         m = np.asarray(tables.matches, np.int32).reshape(-1, 2)
@@ -148,7 +194,7 @@ def tentative_matches(tables, conf: MatchConfig, fi: ImageFeatures, fj: ImageFea
     if conf.prefilter and conf.prefilter != "none" and len(m):
         from pipeline.matching.prefilters import PairContext, apply_prefilter
         ratio = None
-        if not isinstance(tables, CustomTables) and np.asarray(tables.dist12).ndim == 2 \
+        if not isinstance(tables, (CustomTables, LearnedMatches)) and np.asarray(tables.dist12).ndim == 2 \
                 and np.asarray(tables.dist12).shape[1] >= 2:
             # each match's own ratio: of its row of image 1 when it is that row's nearest neighbour, else (a match
             # found from image 2 only, strategy "either") of its row of image 2
@@ -162,7 +208,7 @@ def tentative_matches(tables, conf: MatchConfig, fi: ImageFeatures, fj: ImageFea
                 ratio = np.where(np.isfinite(d2[:, 1]) & (d2[:, 1] > 0), d2[:, 0] / d2[:, 1], 0.0)
         ctx = PairContext(fi.keypoints, fj.keypoints, (fi.width, fi.height), (fj.width, fj.height),
                           fi.scales, fj.scales, fi.orientations, fj.orientations, ratio,
-                          None if isinstance(tables, CustomTables) else tables)
+                          None if isinstance(tables, (CustomTables, LearnedMatches)) else tables)
         keep = apply_prefilter(conf.prefilter, m, ctx, conf.prefilter_options)
         m, d = m[keep], d[keep]
     return m, d

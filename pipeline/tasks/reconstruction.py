@@ -361,7 +361,7 @@ class ReconstructionTask(Task):
     per configuration under the cache); ``progress``: tqdm bars."""
 
     name = "reconstruction"
-    uses = ("ratio", "strategy", "threshold", "max_iters", "min_inliers", "min_model_size")
+    uses = ("ratio", "strategy", "threshold", "max_iters", "min_confidence", "min_inliers", "min_model_size")
     summary_keys = RECON_KEYS
     std_keys = ("score", "mAA", "clusterness")
     columns = ("score", "mAA", "clusterness", "registered", "clusters", "pairs", "NI", "map_seconds")

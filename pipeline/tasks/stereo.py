@@ -289,7 +289,7 @@ class StereoTask(Task):
     is a recorded failure (``"worker process died"``)."""
 
     name = "stereo"
-    uses = ("ratio", "strategy", "threshold", "max_iters")
+    uses = ("ratio", "strategy", "threshold", "max_iters", "min_confidence")
     summary_keys = ("mAA5", "mAA10", *AUC_KEYS, "NF", "NM", "NI", "match_seconds", "ransac_seconds", "ransac_seconds_median",
                     "ransac_seconds_p90", "failed", "pairs")
     std_keys = ("mAA5", "mAA10", "NI")

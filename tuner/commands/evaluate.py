@@ -211,8 +211,9 @@ def run(args) -> int:
         # multiview alone: COLMAP verifies the matches with its own RANSAC, the estimator's eta and Gamma play no part
         geo = (f"{c.geometry.ransac} eta={c.geometry.threshold}px Gamma={c.geometry.max_iters}"
                if any(is_timed(t) for t in task_list(args.task)) else "COLMAP's own RANSAC")
-        print(f"{c.feature.name} ({c.feature.num_features}) | r={c.matching.ratio} {c.matching.strategy} | "
-              f"{geo} | data {data}")
+        match = (f"{c.matching.method} c>{c.matching.min_confidence:g}" if c.matching.learned
+                 else f"r={c.matching.ratio} {c.matching.strategy}")
+        print(f"{c.feature.name} ({c.feature.num_features}) | {match} | {geo} | data {data}")
         from tuner.formatting import ground_truth_text
         print(f"ground truth: {ground_truth_text(out.get('ground_truth'))}")
         for name in TASKS.names():

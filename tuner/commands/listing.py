@@ -50,6 +50,11 @@ def inventory() -> list[dict]:
     for name, (ok, why) in TASKS.availability().items():
         rows.append({"family": "task", "name": name, "available": "yes" if ok else "no",
                      "note": why or TASKS.description(name)})
+    from pipeline.matching.learned import LEARNED_MATCHERS, is_learned
+    is_learned("")  # registers the learned matchers
+    for name, (ok, why) in LEARNED_MATCHERS.availability().items():  # the learned-matcher family (--matcher NAME)
+        rows.append({"family": "matcher", "name": name, "available": "yes" if ok else "no",
+                     "note": why or LEARNED_MATCHERS.description(name)})
     for name, note in [("exact", "brute-force nearest neighbours, L2 or Hamming (default)"),
                        ("flann", "OpenCV FLANN: 4 KD-trees, 128 checks (LSH for binary)"),
                        ("both", "strategy: mutual nearest neighbours (intersection)"),

@@ -59,7 +59,8 @@ def _check_strategy(args, base) -> None:
     from tuner.space import SPACES_DIR, load_space
     task_file = TASKS.get(args.task).space_file
     path = args.space or (SPACES_DIR / task_file if task_file else None)
-    space = load_space(path, feature=base.feature.name, estimator=base.geometry.ransac, fixes=args.fix)
+    space = load_space(path, feature=base.feature.name, estimator=base.geometry.ransac, fixes=args.fix,
+                       matcher=base.matching.method)
     if "strategy" in space.params:
         raise ImtuneError(f"--strategy {args.strategy} does not apply: the search space {space.source} searches the "
                           f"strategy ({', '.join(space.params['strategy'].choices)}); drop --strategy, or pin it with "
@@ -111,8 +112,9 @@ def _select_opts(g) -> None:
 #: them): ablations of the pipeline, the multiview task's, the intervals', and the study's fine controls
 RUN_LESS_USED = [
     "--no-low-threshold", "--upright", "--upright-plus", "--clahe", "--mr-size", "--max-side", "--feature-option",
-    "--matcher", "--distance-threshold", "--fginn", "--prefilter", "--matches", "--confidence", "--covisibility",
-    "--cache", "--warm-start", "--startup-trials", "--test-budget", "--chunk-pairs", "--heartbeat", "--test-wait",
+    "--matcher", "--matcher-option", "--distance-threshold", "--fginn", "--prefilter", "--matches", "--confidence",
+    "--covisibility", "--cache", "--warm-start", "--startup-trials", "--test-budget", "--chunk-pairs", "--heartbeat",
+    "--test-wait",
     "--calibration-pairs", "--recalibrate", "--retest", "--verbose", "--reference", "--pareto-span", "--terminate",
     "--bags", "--bag-min-points", "--bag-seed", "--mv-intrinsics", "--workers", "--keep-models", "--gt-dir", "--ci",
     "--ci-resamples",
