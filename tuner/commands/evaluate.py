@@ -182,9 +182,11 @@ def run(args) -> int:
     for flag, on in (("--pairs", args.pairs), ("--bag-records", args.bag_records)):
         if on and not args.json:  # the records go into the JSON only: without --json it was ignored, unsaid
             raise ImtuneError(f"{flag} adds records to the JSON output only: add --json (or drop {flag})")
-    conf, source = config_of(args)
     from pipeline.tasks import task_list
-    from tuner.options import check_multiview_only
+    from tuner.options import apply_task_defaults, check_multiview_only
+    if not getattr(args, "config", None):
+        apply_task_defaults(args, task_list(args.task))  # the reconstruction task's own defaults (COLMAP's SIFT)
+    conf, source = config_of(args)
     check_multiview_only(args, task_list(args.task))
     data = resolve_data(args.data)
     out = evaluate_config(conf, data, args.scenes, cache_dir=args.cache,
