@@ -541,10 +541,9 @@ class ReconstructionTask(Task):
                 raise ImtuneError(f"unknown reconstruction option(s) {', '.join(unknown)}")
             rc = ReconstructionConfig(**rc)
         rc = rc or ReconstructionConfig()
-        for name, value in (("mapper", mapper), ("pipeline", pipeline), ("verifier", verifier),
-                            ("two_view", two_view), ("shortlist", shortlist)):
-            if value is not None:
-                rc = dataclasses.replace(rc, **{name: value})
+        given: dict = {"mapper": mapper, "pipeline": pipeline, "verifier": verifier, "two_view": two_view,
+                       "shortlist": shortlist}
+        rc = dataclasses.replace(rc, **{k: v for k, v in given.items() if v is not None})
         self.rc = rc
         self._kept: dict = {}  # verified pairs by key (:meth:`_verified`)
         self.workers = workers
