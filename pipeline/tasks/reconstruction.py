@@ -376,6 +376,26 @@ REFERENCE_SET = ("min_model_size", "max_num_models", "num_threads", "random_seed
                  "mapper.random_seed", "triangulation.random_seed")
 
 
+def reference_stage_options(num_features: int, threads: int) -> tuple:
+    """The reference's (extraction, matching, two-view verification) options: pycolmap's own option objects as
+    constructed, with only ``sift.max_num_features``, the thread counts and the CPU device set
+    (:data:`REFERENCE_STAGE_SET`)."""
+    from pipeline import colmap_db as cdb
+    pycolmap = cdb.import_pycolmap()
+    eo = pycolmap.FeatureExtractionOptions()
+    eo.sift.max_num_features = int(num_features)
+    eo.num_threads = int(threads)
+    eo.use_gpu = False
+    mo = pycolmap.FeatureMatchingOptions()
+    mo.num_threads = int(threads)
+    mo.use_gpu = False
+    return eo, mo, pycolmap.TwoViewGeometryOptions()
+
+
+#: what :func:`reference_stage_options` sets, per option object (every other option is pycolmap's default)
+REFERENCE_STAGE_SET = (("sift.max_num_features", "num_threads", "use_gpu"), ("num_threads", "use_gpu"), ())
+
+
 def reference_database(cache: H5Cache, scene: Scene, num_features: int, threads: int) -> Path:
     """COLMAP's own database of ``scene`` (cached under the cache folder, keyed by the image files, ``num_features``
     and pycolmap's version): ``pycolmap.extract_features`` (its SIFT at ``max_num_features`` = ``num_features``,
@@ -402,16 +422,10 @@ def reference_database(cache: H5Cache, scene: Scene, num_features: int, threads:
     img_dir = Path(scene.images[names[0]].path).parent
     if any(Path(scene.images[n].path).parent != img_dir for n in names):
         raise ImtuneError(f"dataset {scene.name}: the COLMAP reference needs every image in one folder")
-    eo = pycolmap.FeatureExtractionOptions()
-    eo.sift.max_num_features = int(num_features)
-    eo.num_threads = int(threads)
-    eo.use_gpu = False
+    eo, mo, vo = reference_stage_options(num_features, threads)
     pycolmap.extract_features(str(tmp), str(img_dir), image_names=names, extraction_options=eo,
                               device=pycolmap.Device.cpu)
-    mo = pycolmap.FeatureMatchingOptions()
-    mo.num_threads = int(threads)
-    mo.use_gpu = False
-    pycolmap.match_exhaustive(str(tmp), matching_options=mo, device=pycolmap.Device.cpu)
+    pycolmap.match_exhaustive(str(tmp), matching_options=mo, verification_options=vo, device=pycolmap.Device.cpu)
     COUNTERS["reference_database"] += 1
     os.replace(tmp, db_path)
     return db_path
