@@ -517,7 +517,9 @@ class ReconstructionTask(Task):
     per configuration under the cache); ``progress``: tqdm bars."""
 
     name = "reconstruction"
-    uses = ("ratio", "strategy", "threshold", "max_iters", "min_inliers", "min_model_size")
+    uses = ("ratio", "strategy", "threshold", "max_iters", "min_inliers", "min_model_size", "max_num_models",
+            "init_min_num_inliers", "abs_pose_min_num_inliers", "abs_pose_max_error", "filter_max_reproj_error",
+            "global_max_rotation_error", "global_max_angular_error")
     summary_keys = RECON_KEYS
     std_keys = ("score", "mAA", "clusterness")
     columns = ("score", "mAA", "clusterness", "registered", "clusters", "pairs", "NI", "map_seconds")
