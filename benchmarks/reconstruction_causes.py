@@ -42,7 +42,7 @@ def variants(nf: int):
     new = dataclasses.replace(before, feature=dataclasses.replace(before.feature, name=NEW_DEFAULTS["feature"]),
                               geometry=dataclasses.replace(before.geometry, threshold=NEW_DEFAULTS["threshold"]),
                               mapper=MapperConfig())
-    return [
+    rows = [
         ("before", "imtune's defaults before issue 44", before, rc0),
         ("eta", "eta 0.5 -> 4 px (COLMAP verifies at 4 px)", with_("geometry", threshold=4.0), rc0),
         ("two-view geometry", "F -> COLMAP's two-view estimation on our inliers (E / H / F)", before,
@@ -59,6 +59,8 @@ def variants(nf: int):
         ("new defaults", "the reconstruction task's defaults now", new, {**rc0, "shortlist": 10}),
         ("COLMAP reference", "--reference colmap", before, {**rc0, "pipeline": "colmap"}),
     ]
+    first = ("before", "features", "new defaults", "COLMAP reference")  # the rows that matter most run first
+    return sorted(rows, key=lambda r: (r[0] not in first, first.index(r[0]) if r[0] in first else 0))
 
 
 def main(argv=None) -> int:
@@ -68,6 +70,7 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=2, help="pair processes and COLMAP threads")
     ap.add_argument("--seed", type=int, default=0, help="COLMAP's and the estimator's seed")
     ap.add_argument("--only", default=None, help="comma-separated causes to run (default: all)")
+    ap.add_argument("--skip", default=None, help="comma-separated causes not to run")
     ap.add_argument("--cache", default=None)
     ap.add_argument("--write", action="store_true", help="write benchmarks/results/reconstruction-causes.{md,json}")
     a = ap.parse_args(argv)
@@ -79,15 +82,18 @@ def main(argv=None) -> int:
     from pipeline.tasks.reconstruction import ReconstructionTask
     reconstruction.VERIFIED_KEPT = 16  # every row's verification kept: rows that differ after it share it
     cache = H5Cache(a.cache)
-    command = "python benchmarks/reconstruction_causes.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    command = (f"python benchmarks/reconstruction_causes.py --data ../shared/data/{Path(a.data).name} --num-features "
+               f"{a.num_features} --seed {a.seed} --workers {a.workers}" + (f" --only {a.only}" if a.only else "")
+               + (f" --skip {a.skip}" if a.skip else "") + " --write")
     rows = []
     kept: dict = {}
     only = set(a.only.split(",")) if a.only else None
+    skip = set(a.skip.split(",")) if a.skip else set()
     for ds in list_scenes(a.data):
         sc = load_scene(a.data, ds)
         base_score = None
         for cause, what, conf, rc in variants(a.num_features):
-            if only and cause not in only and cause != "before":
+            if (only and cause not in only and cause != "before") or cause in skip:
                 continue
             conf = dataclasses.replace(conf, geometry=dataclasses.replace(conf.geometry, seed=a.seed)) \
                 if isinstance(conf.geometry, GeometryConfig) else conf
@@ -103,6 +109,8 @@ def main(argv=None) -> int:
                    "mAA": s["mAA"], "clusterness": s["clusterness"], "registered": s["registered"],
                    "clusters": s["clusters"], "pairs": s["pairs"], "seconds": dt}
             rows.append(row)
+            if a.write:  # after every row: a long run that is stopped keeps what it measured
+                write(rows, command, a)
             print(f"{ds:<18} {cause:<17} score {base_score:.3f} -> {s['score']:.3f}  mAA {s['mAA']:.3f}  "
                   f"registered {100 * s['registered']:3.0f}%  clusters {s['clusters']}  {dt:5.0f} s", flush=True)
     if a.write:

@@ -56,7 +56,7 @@ COUNTERS: Counter = Counter()
 #: --task reconstruction`, `tune --task reconstruction`; ``Task.pipeline_defaults``): COLMAP's SIFT, whose features
 #: close most of the gap to COLMAP out of the box (benchmarks/reconstruction_causes.py), and eta 1 px
 NEW_DEFAULTS = {"feature": "colmap-sift", "threshold": 1.0}
-VERIFIED_KEPT = 2  # datasets' verified pairs a task keeps in memory (the validation datasets of a study: raise it)
+VERIFIED_KEPT = 8  # dataset verifications a task keeps in memory (a study: its validation datasets, a few trials)
 SHORTLIST_FEATURES = 256
 SHORTLIST_RATIO = 0.8
 RECON_KEYS = ("score", "mAA", "clusterness", "registered", "clusters", "pairs", "NM", "NI", "ransac_seconds_median",
