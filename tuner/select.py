@@ -263,7 +263,10 @@ def reference_kind(value, task) -> str:
     kind = reference_spec(value)
     if kind == "default":
         kind = getattr(task, "default_reference", "paper") if task is not None else "paper"
-    if kind == "colmap" and (task is None or task.reference_task() is None):
+    from pipeline.tasks.base import Task
+    has = task is not None and (type(task).reference_task is not Task.reference_task if not isinstance(task, type)
+                                else task.reference_task is not Task.reference_task)
+    if kind == "colmap" and not has:
         name = getattr(task, "name", "stereo")
         raise ImtuneError(f"--reference colmap: COLMAP's own pipeline is the reconstruction task's reference, not the "
                           f"{name} task's (give paper, none, a config file or a study)")
