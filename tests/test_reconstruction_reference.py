@@ -213,3 +213,28 @@ def test_evaluate_defaults_to_colmap_sift_and_bad_choice_exits_2(two, tmp_path):
                         "--verifier", "magsac"], capture_output=True, text=True, timeout=300)
     assert r.returncode == 2 and "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
     assert "--verifier" in r.stderr
+
+
+def test_to_imc_sparse_subset_and_outlier_cap(tmp_path):
+    """`tune data to-imc --every 3 --max-outliers 2`: every third image of each scene (name order), two outliers spread
+    over the outlier scene; bad values are one line, exit 2."""
+    require(DATA / "strecha")
+    from pipeline.data import load_scene
+    out = tmp_path / "imc"
+    r = subprocess.run([sys.executable, "-m", "tuner", "data", "to-imc", "--data", str(DATA / "strecha"), "--scenes",
+                        "fountain-P11", "--outliers", "entry-P10", "--every", "3", "--max-outliers", "2", "--out",
+                        str(out), "--dataset", "sparse", "--json"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    sc = load_scene(out, "sparse")
+    fountain = sorted(load_scene(DATA / "strecha", "fountain-P11", verify=False).images)
+    entry = sorted(load_scene(DATA / "strecha", "entry-P10", verify=False).images)
+    scene = sorted(n for n, g in sc.groups.items() if g != "outliers")
+    assert scene == [f"fountain-P11_{n}" for n in fountain[::3]]  # 0000, 0003, 0006, 0009 of 11
+    assert sorted(n for n, g in sc.groups.items() if g == "outliers") == [f"entry-P10_{entry[0]}",
+                                                                           f"entry-P10_{entry[-1]}"]
+    for bad, what in ((["--every", "0"], "--every"), (["--max-outliers", "-1"], "--max-outliers")):
+        r = subprocess.run([sys.executable, "-m", "tuner", "data", "to-imc", "--data", str(DATA / "strecha"),
+                            "--scenes", "fountain-P11", "--out", str(tmp_path / "x"), "--dataset", "d", *bad],
+                           capture_output=True, text=True, timeout=300)
+        assert r.returncode == 2 and "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
+        assert what in r.stderr
