@@ -138,12 +138,14 @@ def test_mapper_only_change_reuses_the_verified_pairs(two, cache):
     n0 = COUNTERS["verify"]
     a = task.evaluate([sc], _conf(), cache)
     assert COUNTERS["verify"] == n0 + 1
-    b = task.evaluate([sc], _conf(min_inliers=20, abs_pose_min_num_inliers=12, max_num_models=5), cache)
+    b = task.evaluate([sc], _conf(init_min_num_inliers=40, abs_pose_min_num_inliers=12, max_num_models=5), cache)
     assert COUNTERS["verify"] == n0 + 1  # mapper options only: the verified pairs of the first evaluation
     assert b.scenes["hA"]["pairs"] == a.scenes["hA"]["pairs"]
     c = dataclasses.replace(_conf(), geometry=dataclasses.replace(_conf().geometry, threshold=2.0))
     task.evaluate([sc], c, cache)
     assert COUNTERS["verify"] == n0 + 2  # eta changed: verified again
+    task.evaluate([sc], _conf(min_inliers=40), cache)
+    assert COUNTERS["verify"] == n0 + 3  # min_inliers decides which pairs are verified at all
 
 
 def test_pruned_after_the_first_dataset(two, cache, tmp_path, monkeypatch):

@@ -174,7 +174,10 @@ def _verify_pairs(args) -> list[dict]:
             m, _ = tentative_matches(tab, conf.matching, fa, fb, task="multiview")
             m = np.asarray(m, np.int64).reshape(-1, 2)
             rec["NM"] = len(m)
-            if len(m) >= 8:
+            # a pair with fewer tentative matches than the mapper's min_inliers cannot enter the view graph: no RANSAC
+            # (COLMAP skips such pairs too); most of a shortlist's cross-scene pairs end here, at no estimator cost
+            need = max(8, int(conf.mapper.min_inliers))
+            if len(m) >= need:
                 p1 = fa.keypoints[m[:, 0]].astype(np.float64)
                 p2 = fb.keypoints[m[:, 1]].astype(np.float64)
                 res = est.estimate(p1, p2, g.threshold, g.confidence, g.max_iters, seed=g.seed,
@@ -186,7 +189,7 @@ def _verify_pairs(args) -> list[dict]:
                 else:
                     rec["failure"] = "estimator found no model"
             else:
-                rec["failure"] = f"fewer than 8 matches ({len(m)})"
+                rec["failure"] = f"fewer than {need} matches ({len(m)})"
         except ImtuneError:
             raise
         except Exception as e:  # one pair never stops the dataset
@@ -675,6 +678,7 @@ class ReconstructionTask(Task):
         from pipeline.config import config_hash
         key = config_hash({"data": sc.name, "images": list(sc.images), "feature": conf.feature.__dict__,
                            "matching": conf.matching.__dict__, "geometry": conf.geometry.__dict__,
+                           "min_inliers": conf.mapper.min_inliers,  # pairs below it are not verified
                            "shortlist": [self.rc.shortlist, self.rc.exhaustive_up_to], "verifier": self.rc.verifier})
         hit = self._kept.get(key)
         if hit is not None:
