@@ -38,9 +38,10 @@ def variants(nf: int):
 
     def with_(section: str, **kw):
         return dataclasses.replace(before, **{section: dataclasses.replace(getattr(before, section), **kw)})
-    from pipeline.tasks.reconstruction import NEW_DEFAULTS
+    from pipeline.tasks.reconstruction import NEW_DEFAULTS, ReconstructionConfig
     new = dataclasses.replace(before, feature=dataclasses.replace(before.feature, name=NEW_DEFAULTS["feature"]),
-                              geometry=dataclasses.replace(before.geometry, threshold=NEW_DEFAULTS["threshold"]),
+                              geometry=dataclasses.replace(before.geometry, threshold=NEW_DEFAULTS["threshold"],
+                                                           max_iters=NEW_DEFAULTS["max_iters"]),
                               mapper=MapperConfig())
     rows = [
         ("before", "imtune's defaults before issue 44", before, rc0),
@@ -56,7 +57,8 @@ def variants(nf: int):
         ("max models", "max_num_models 50 -> 25 (IMC 2025 baseline)", with_("mapper", max_num_models=25), rc0),
         ("features", "OpenCV SIFT (strongest responses) -> COLMAP's SIFT (colmap-sift)",
          with_("feature", name="colmap-sift"), rc0),
-        ("new defaults", "the reconstruction task's defaults now", new, {**rc0, "shortlist": 10}),
+        ("new defaults", "the task's defaults now (colmap-sift, eta 1 px, Gamma 10k, shortlist 20, mapper)", new,
+         {**rc0, "shortlist": ReconstructionConfig().shortlist}),
         ("COLMAP reference", "--reference colmap", before, {**rc0, "pipeline": "colmap"}),
     ]
     first = ("before", "features", "new defaults", "COLMAP reference")  # the rows that matter most run first

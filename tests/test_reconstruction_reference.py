@@ -54,17 +54,25 @@ def test_reference_stage_options_are_pycolmaps_defaults():
 
 
 def test_mapper_config_defaults_are_pycolmaps():
+    """MapperConfig's defaults are pycolmap's, read from its option objects, except the documented deviations."""
     pycolmap = pytest.importorskip("pycolmap")
-    from pipeline.config import MapperConfig
+    from pipeline.config import MAPPER_DEVIATIONS, MapperConfig
     inc, glo = pycolmap.IncrementalPipelineOptions(), pycolmap.GlobalPipelineOptions()
     m = MapperConfig()
-    assert m.min_inliers == inc.min_num_matches
-    assert m.init_min_num_inliers == inc.mapper.init_min_num_inliers
-    assert m.abs_pose_min_num_inliers == inc.mapper.abs_pose_min_num_inliers
-    assert m.abs_pose_max_error == inc.mapper.abs_pose_max_error
-    assert m.filter_max_reproj_error == inc.mapper.filter_max_reproj_error
-    assert m.global_max_rotation_error == glo.mapper.rotation_averaging.max_rotation_error_deg
-    assert m.global_max_angular_error == glo.mapper.max_angular_reproj_error_deg
+    theirs = {"min_inliers": inc.min_num_matches, "min_model_size": inc.min_model_size,
+              "max_num_models": inc.max_num_models, "init_min_num_inliers": inc.mapper.init_min_num_inliers,
+              "abs_pose_min_num_inliers": inc.mapper.abs_pose_min_num_inliers,
+              "abs_pose_max_error": inc.mapper.abs_pose_max_error,
+              "filter_max_reproj_error": inc.mapper.filter_max_reproj_error,
+              "global_max_rotation_error": glo.mapper.rotation_averaging.max_rotation_error_deg,
+              "global_max_angular_error": glo.mapper.max_angular_reproj_error_deg}
+    assert set(theirs) == {f.name for f in dataclasses.fields(MapperConfig)}
+    for name, value in theirs.items():
+        if name in MAPPER_DEVIATIONS:
+            assert getattr(m, name) != value, name  # a deviation that is none would be a stale claim
+        else:
+            assert getattr(m, name) == value, name
+    assert m.min_model_size == 3 and m.max_num_models == 25  # the IMC 2025 baseline's
 
 
 @pytest.mark.parametrize("field, value", [("abs_pose_max_error", 0), ("init_min_num_inliers", 0),

@@ -45,7 +45,7 @@ def register(sub) -> None:
                    help="what the database stores of a verified pair: F (default) or colmap (COLMAP's two-view "
                         "estimation on our inliers picks calibrated E, planar H or F)")
     r.add_argument("--shortlist", type=count_int, default=None,
-                   help="partners per image matched above 30 images (default 10; 0: every pair)")
+                   help="partners per image matched above 30 images (default 20; 0: every pair)")
     r.add_argument("--recon-pipeline", default=None, choices=["imtune", "colmap"],
                    help="imtune (default) or colmap: COLMAP out of the box (its SIFT, exhaustive matching, "
                         "verification, mapper), the reference `tune test` compares with")
