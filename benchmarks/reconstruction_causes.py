@@ -33,7 +33,8 @@ def variants(nf: int):
     from pipeline.config import FeatureConfig, GeometryConfig, MapperConfig, MatchConfig, PipelineConfig
     before = PipelineConfig(feature=FeatureConfig(name="sift", num_features=nf), matching=MatchConfig(ratio=0.85),
                             geometry=GeometryConfig(threshold=0.5, max_iters=50_000),
-                            mapper=MapperConfig(max_num_models=50))
+                            mapper=MapperConfig(max_num_models=50, init_min_num_inliers=100,
+                                                abs_pose_min_num_inliers=30))  # pycolmap's, as before issue 44
     rc0 = {"shortlist": 10, "verifier": "ours", "two_view": "F", "pipeline": "imtune"}
 
     def with_(section: str, **kw):
@@ -121,24 +122,37 @@ def main(argv=None) -> int:
 
 
 def write(rows: list[dict], command: str, a) -> None:
-    """Merge ``rows`` into the results files (rows of other datasets kept) and render the markdown table."""
+    """Merge ``rows`` into the results files (a row replaces the dataset's row of the same cause; other rows are kept)
+    and render the markdown table. Every row keeps the command and date that measured it."""
     jpath, mpath = RESULTS / "reconstruction-causes.json", RESULTS / "reconstruction-causes.md"
     old = json.loads(jpath.read_text()) if jpath.is_file() else {"runs": {}}
     date = _dt.date.today().isoformat()
+    order = [c for c, *_ in variants(a.num_features)]
+    for run in old["runs"].values():
+        for r in run["rows"]:  # rows written before rows carried their own command
+            r.setdefault("command", run.get("command"))
+            r.setdefault("date", run.get("date"))
     for ds in {r["dataset"] for r in rows}:
-        old["runs"][ds] = {"command": command, "date": date, "num_features": a.num_features, "seed": a.seed,
-                           "workers": a.workers, "rows": [r for r in rows if r["dataset"] == ds]}
+        run = old["runs"].setdefault(ds, {"rows": []})
+        mine = {r["cause"]: {**r, "command": command, "date": date, "num_features": a.num_features, "seed": a.seed}
+                for r in rows if r["dataset"] == ds}
+        merged = {r["cause"]: r for r in run["rows"]}
+        merged.update(mine)
+        run["rows"] = sorted(merged.values(), key=lambda r: order.index(r["cause"]) if r["cause"] in order else 99)
+        for k in ("command", "date", "num_features", "seed", "workers"):
+            run.pop(k, None)
     jpath.write_text(json.dumps(old, indent=2) + "\n")
     lines = ["| dataset | cause | change | before | after | registered | clusters |",
              "| --- | --- | --- | ---: | ---: | ---: | ---: |"]
-    notes = []
+    commands: dict[str, list[str]] = {}
     for ds, run in old["runs"].items():
         for r in run["rows"]:
             lines.append(f"| `{ds}` | {r['cause']} | {r['change']} | {r['before']:.3f} | {r['score']:.3f} | "
                          f"{100 * r['registered']:.0f}% | {r['clusters']} |")
-        notes.append(f"- `{ds}`: `{run['command']}`, {run['date']}, {run['num_features']} features, seed "
-                     f"{run['seed']}.")
-    mpath.write_text("\n".join(lines) + "\n\nCommands and dates:\n\n" + "\n".join(notes) + "\n")
+            commands.setdefault(f"`{r['command']}`, {r['date']}", []).append(f"{ds}: {r['cause']}")
+    notes = [f"- {c}: {', '.join(v)}." for c, v in commands.items()]
+    mpath.write_text("\n".join(lines) + "\n\nIncremental mapper; every row's command and date:\n\n" + "\n".join(notes)
+                     + "\n")
 
 
 if __name__ == "__main__":

@@ -28,14 +28,15 @@ RESULTS = ROOT / "benchmarks" / "results"
 
 def configs(nf: int) -> dict:
     from pipeline.config import FeatureConfig, GeometryConfig, MapperConfig, MatchConfig, PipelineConfig
-    from pipeline.tasks.reconstruction import NEW_DEFAULTS
+    from pipeline.tasks.reconstruction import NEW_DEFAULTS, ReconstructionConfig
     before = PipelineConfig(feature=FeatureConfig(name="sift", num_features=nf), matching=MatchConfig(ratio=0.85),
                             geometry=GeometryConfig(threshold=0.5, max_iters=50_000),
-                            mapper=MapperConfig(max_num_models=50))
+                            mapper=MapperConfig(max_num_models=50, init_min_num_inliers=100,
+                                                abs_pose_min_num_inliers=30))  # pycolmap's, as before issue 44
     g = {k: v for k, v in NEW_DEFAULTS.items() if k in ("threshold", "max_iters")}
     now = dataclasses.replace(before, feature=dataclasses.replace(before.feature, name=NEW_DEFAULTS["feature"]),
                               geometry=dataclasses.replace(before.geometry, **g), mapper=MapperConfig())
-    return {"before issue 44": before, "defaults now": now}
+    return {"before issue 44": (before, 10), "defaults now": (now, ReconstructionConfig().shortlist)}
 
 
 def main(argv=None) -> int:
@@ -58,18 +59,18 @@ def main(argv=None) -> int:
     for ds in list_scenes(a.data):
         sc = load_scene(a.data, ds)
         res: dict = {}
-        for label, conf in configs(a.num_features).items():
-            ReconstructionTask(workers=a.workers).evaluate([sc], conf, cache)  # fills the caches, not timed
+        for label, (conf, shortlist) in configs(a.num_features).items():
+            ReconstructionTask(workers=a.workers, shortlist=shortlist).evaluate([sc], conf, cache)  # caches, not timed
             times, phases, score = [], [], None
             for _ in range(a.repeat):
                 t0 = time.perf_counter()
-                r = ReconstructionTask(workers=a.workers).evaluate([sc], conf, cache)
+                r = ReconstructionTask(workers=a.workers, shortlist=shortlist).evaluate([sc], conf, cache)
                 times.append(time.perf_counter() - t0)
                 phases.append(r.seconds)
                 score = r.scenes[ds]["score"]
             res[label] = {"seconds": statistics.median(times), "all": times, "phases": phases[-1], "score": score,
                           "feature": conf.feature.name, "eta": conf.geometry.threshold,
-                          "Gamma": conf.geometry.max_iters}
+                          "Gamma": conf.geometry.max_iters, "shortlist": shortlist}
             p = phases[-1]
             print(f"{ds}: {label:<16} {res[label]['seconds']:6.1f} s  (features {p['features']:.1f}, pairs "
                   f"{p['pairs']:.1f}, mapping {p['mapping']:.1f})  score {score:.3f}", flush=True)
@@ -84,7 +85,8 @@ def main(argv=None) -> int:
         for ds, res in out["datasets"].items():
             for label in ("before issue 44", "defaults now"):
                 r = res[label]
-                lines.append(f"| `{ds}` | {label} ({r['feature']}, eta {r['eta']:g} px, Gamma {r['Gamma']:,}) | "
+                lines.append(f"| `{ds}` | {label} ({r['feature']}, eta {r['eta']:g} px, Gamma {r['Gamma']:,}, "
+                             f"shortlist {r['shortlist']}) | "
                              f"{r['seconds']:.1f} | {r['phases']['pairs']:.1f} | {r['phases']['mapping']:.1f} | "
                              f"{r['score']:.3f} |")
             lines.append(f"| `{ds}` | ratio now / before | {res['ratio_now_over_before']:.2f} x | | | |")
