@@ -74,6 +74,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="COLMAP's and the estimator's seed")
     ap.add_argument("--only", default=None, help="comma-separated causes to run (default: all)")
     ap.add_argument("--skip", default=None, help="comma-separated causes not to run")
+    ap.add_argument("--reuse-before", action="store_true",
+                    help="with --only: take the 'before' score from the results file instead of measuring it again")
     ap.add_argument("--cache", default=None)
     ap.add_argument("--write", action="store_true", help="write benchmarks/results/reconstruction-causes.{md,json}")
     a = ap.parse_args(argv)
@@ -95,7 +97,14 @@ def main(argv=None) -> int:
     for ds in list_scenes(a.data):
         sc = load_scene(a.data, ds)
         base_score = None
+        stored = {}
+        jpath = RESULTS / "reconstruction-causes.json"
+        if jpath.is_file():
+            stored = {r["cause"]: r for r in json.loads(jpath.read_text())["runs"].get(ds, {}).get("rows", [])}
         for cause, what, conf, rc in variants(a.num_features):
+            if cause == "before" and only and "before" not in only and "before" in stored and a.reuse_before:
+                base_score = stored["before"]["score"]  # --reuse-before: the stored row of the same command
+                continue
             if (only and cause not in only and cause != "before") or cause in skip:
                 continue
             conf = dataclasses.replace(conf, geometry=dataclasses.replace(conf.geometry, seed=a.seed)) \

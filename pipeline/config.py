@@ -226,9 +226,9 @@ class MapperConfig:
     searched there, ignored by every other task). Their defaults are pycolmap's own (``tests`` assert it against
     ``pycolmap.IncrementalPipelineOptions`` / ``GlobalPipelineOptions``), except :data:`MAPPER_DEVIATIONS`:
     ``min_model_size`` 3 and ``max_num_models`` 25 (the IMC 2025 baseline's settings), and ``init_min_num_inliers``
-    50 and ``abs_pose_min_num_inliers`` 15 (pycolmap: 100 and 30), half of pycolmap's: verified pairs at 2048 features
-    carry tens of inliers, and at pycolmap's values the mapper registered 39% of the 76-image IMC 2025 dataset's
-    images against 62% (``benchmarks/reconstruction_causes.py``, docs/reconstruction.md).
+    25 and ``abs_pose_min_num_inliers`` 12 (pycolmap: 100 and 30): verified pairs at 2048 features carry tens of
+    inliers, and at pycolmap's values the mapper registered 39% of the 76-image IMC 2025 dataset's images against 63%
+    (``benchmarks/reconstruction_causes.py``, docs/reconstruction.md).
 
     min_inliers: a verified pair enters the view graph with at least this many inliers of our estimator (COLMAP's
         ``min_num_matches``, default 15): it decides which images connect, hence which scenes split or merge.
@@ -247,8 +247,8 @@ class MapperConfig:
     min_inliers: int = 15
     min_model_size: int = 3
     max_num_models: int = 25
-    init_min_num_inliers: int = 50
-    abs_pose_min_num_inliers: int = 15
+    init_min_num_inliers: int = 25
+    abs_pose_min_num_inliers: int = 12
     abs_pose_max_error: float = 12.0
     filter_max_reproj_error: float = 4.0
     global_max_rotation_error: float = 10.0
