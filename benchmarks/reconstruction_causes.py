@@ -88,8 +88,9 @@ def main(argv=None) -> int:
     reconstruction.VERIFIED_KEPT = 16  # every row's verification kept: rows that differ after it share it
     cache = H5Cache(a.cache)
     command = (f"python benchmarks/reconstruction_causes.py --data ../shared/data/{Path(a.data).name} --num-features "
-               f"{a.num_features} --seed {a.seed} --workers {a.workers}" + (f" --only {a.only}" if a.only else "")
-               + (f" --skip {a.skip}" if a.skip else "") + " --write")
+               f"{a.num_features} --seed {a.seed} --workers {a.workers}" + (f" --only '{a.only}'" if a.only else "")
+               + (f" --skip '{a.skip}'" if a.skip else "") + (" --reuse-before" if a.reuse_before else "")
+               + " --write")
     rows = []
     kept: dict = {}
     only = set(a.only.split(",")) if a.only else None
