@@ -89,8 +89,9 @@ def export_imc(data_root, scenes: list[str], out, dataset: str, outliers: list[s
     n_out = 0
     out_names = [(sc.name, n) for sc, is_out in loaded if is_out for n in sorted(sc.images)]
     if max_outliers is not None and len(out_names) > max_outliers:
-        pick = np.linspace(0, len(out_names) - 1, max_outliers).round().astype(int) if max_outliers else []
-        out_names = [out_names[i] for i in sorted(set(int(i) for i in pick))]
+        pick: list[int] = (np.linspace(0, len(out_names) - 1, max_outliers).round().astype(int).tolist()
+                           if max_outliers else [])
+        out_names = [out_names[i] for i in sorted(set(pick))]
     keep_out = set(out_names)
     for sc, is_out in loaded:
         names = sorted(sc.images)
