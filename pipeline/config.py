@@ -234,18 +234,43 @@ class GeometryConfig:
         check_seed("seed", self.seed)
 
 
+#: MapperConfig's defaults that are not pycolmap's (see its docstring)
+MAPPER_DEVIATIONS = ("min_model_size", "max_num_models", "init_min_num_inliers", "abs_pose_min_num_inliers")
+
+
 @dataclass(frozen=True)
 class MapperConfig:
     """The mapper options that decide registration in the reconstruction task (``pipeline.tasks.reconstruction``;
-    searched there, ignored by every other task).
+    searched there, ignored by every other task). Their defaults are pycolmap's own (``tests`` assert it against
+    ``pycolmap.IncrementalPipelineOptions`` / ``GlobalPipelineOptions``), except :data:`MAPPER_DEVIATIONS`:
+    ``min_model_size`` 3 and ``max_num_models`` 25 (the IMC 2025 baseline's settings), and ``init_min_num_inliers``
+    25 and ``abs_pose_min_num_inliers`` 12 (pycolmap: 100 and 30): verified pairs at 2048 features carry tens of
+    inliers, and at pycolmap's values the mapper registered 39% of the 76-image IMC 2025 dataset's images against 63%
+    (``benchmarks/reconstruction_causes.py``, docs/reconstruction.md).
 
     min_inliers: a verified pair enters the view graph with at least this many inliers of our estimator (COLMAP's
         ``min_num_matches``, default 15): it decides which images connect, hence which scenes split or merge.
     min_model_size: a reconstruction of fewer images is no cluster (its images are written as outliers; COLMAP's
         ``min_model_size``): it decides whether small fragments and look-alike outliers count as clusters.
+    max_num_models: the incremental mapper starts at most this many models (COLMAP's ``max_num_models``).
+    init_min_num_inliers: inliers the initial pair needs (``mapper.init_min_num_inliers``; COLMAP halves it when no
+        pair qualifies).
+    abs_pose_min_num_inliers: 2D-3D inliers an image needs to be registered (``mapper.abs_pose_min_num_inliers``).
+    abs_pose_max_error: the absolute pose RANSAC's threshold, px (``mapper.abs_pose_max_error``).
+    filter_max_reproj_error: observations reprojecting further are dropped, px (``mapper.filter_max_reproj_error``).
+    global_max_rotation_error: the global mapper's rotation-averaging outlier threshold, degrees
+        (``mapper.rotation_averaging.max_rotation_error_deg``).
+    global_max_angular_error: the global mapper's track filter, degrees (``mapper.max_angular_reproj_error_deg``).
     """
     min_inliers: int = 15
     min_model_size: int = 3
+    max_num_models: int = 25
+    init_min_num_inliers: int = 25
+    abs_pose_min_num_inliers: int = 12
+    abs_pose_max_error: float = 12.0
+    filter_max_reproj_error: float = 4.0
+    global_max_rotation_error: float = 10.0
+    global_max_angular_error: float = 1.0
 
     def __post_init__(self):
         _set_types(self)
@@ -253,6 +278,14 @@ class MapperConfig:
             raise ImtuneError(f"min_inliers must be an integer >= 5, got {self.min_inliers}")
         if _number("min_model_size", self.min_model_size, integer=True) < 2:
             raise ImtuneError(f"min_model_size must be an integer >= 2, got {self.min_model_size}")
+        for name in ("max_num_models", "init_min_num_inliers", "abs_pose_min_num_inliers"):
+            if _number(name, getattr(self, name), integer=True) < 1:
+                raise ImtuneError(f"{name} must be an integer >= 1, got {getattr(self, name)}")
+        for name in ("abs_pose_max_error", "filter_max_reproj_error", "global_max_rotation_error",
+                     "global_max_angular_error"):
+            if not _number(name, getattr(self, name)) > 0:
+                raise ImtuneError(f"{name} must be > 0, got {getattr(self, name)}")
+            object.__setattr__(self, name, float(getattr(self, name)))  # 12 and 12.0: one configuration, one hash
 
 
 @dataclass(frozen=True)

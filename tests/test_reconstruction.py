@@ -230,6 +230,15 @@ def test_short_study_freezes_and_tests(tmp_path):
     import yaml
     fz = yaml.safe_load(frozen[0].read_text())
     assert fz["task"] == "reconstruction" and "mapper" in fz["config"]
+    assert fz["feature"] == "colmap-sift"  # the task's default feature (not typed)
+    # the test compares with COLMAP out of the box (the task's default reference), per dataset and overall
+    ref = out["test"]["reference"]
+    assert ref["label"].startswith("COLMAP out of the box") and ref["spec"] == "colmap"
+    cmp = ref["comparison"]
+    frozen_score = out["test"]["mean"]["scenes"][DATASET]["score"]
+    ref_score = ref["mean"]["scenes"][DATASET]["score"]
+    assert cmp["datasets"][DATASET] == pytest.approx(frozen_score - ref_score)
+    assert cmp["difference"] == pytest.approx(frozen_score - ref_score) and cmp["pairs"] == 1
 
 
 def test_each_image_is_in_one_cluster_only(monkeypatch):

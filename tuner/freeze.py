@@ -475,12 +475,15 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
     conf = pipeline_from_dict(frozen["config"])
     n_ci = int(getattr(task, "ci_resamples", 0) or 0)
     ref = sel.reference_config(frozen, reference, task)
+    rtask = sel.reference_task_of(reference, task) if ref is not None else task  # "colmap": COLMAP's own pipeline
     tb = float(test_budget if test_budget is not None else frozen.get("budget", {}).get("test_seconds_per_pair", 1.0))
     vs = ValidationSet.from_scenes(load_scenes(data_root, names, split="test", gt_dir=gt_dir), task)
     out_path = study_dir(studies_dir, frozen["study"]) / "test.json" if studies_dir is not None else None
     ident = {"trial": frozen.get("trial"), "config": frozen["config"], "task_options": task.options(),
              "fingerprint": vs.fingerprint, "runs": int(runs), "test_budget": tb, "ci_resamples": n_ci,
              "reference": None if ref is None else ref[0].to_dict()}
+    if ref is not None and rtask is not task:
+        ident["reference"] = {**ident["reference"], "reference_task": rtask.options()}
     old = _previous_result(out_path, ident, frozen["study"]) if reuse else None
     if old is not None:
         changed = sel.refresh_intervals(old, n_ci)  # an earlier imtune's intervals
@@ -515,7 +518,7 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
         vs.prepare(rconf, cache, progress=progress)
         rres, rerr = [], []
         for k in range(int(runs)):
-            t, c = task.for_run(rconf, k)
+            t, c = rtask.for_run(rconf, k)
             res = t.evaluate(vs.scene_objs, c, cache)
             f = t.figures(res)
             f.update(run=k, seed=int(c.geometry.seed))
@@ -526,7 +529,10 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
         rmean, rstd = task.aggregate(rres)
         sel.test_interval(rmean, rerr, n_ci)
         cmp = sel.compare_reference(rerr, errors, n_ci or 2000)
-        reference_out = {"label": rlabel, "spec": sel.reference_spec(reference), "config": rconf.to_dict(),
+        if cmp is None:  # no per-unit errors (reconstruction): the task's own comparison of the runs' figures
+            cmp = task.compare_runs(rres, results)
+        reference_out = {"label": rlabel, "spec": sel.reference_kind(reference, task), "config": rconf.to_dict(),
+                         "objective": task.objective,
                          task.objective: rmean.get(task.objective), "mean": rmean, "std": rstd, "runs": rres,
                          "comparison": cmp,
                          "note": "" if cmp else f"no per-pair or per-bag errors in {task.name} records: no paired "
@@ -624,8 +630,9 @@ def _reference_summary(ref: dict | None) -> dict | None:
     if not ref:
         return None
     c = ref.get("comparison") or {}
-    return {"label": ref.get("label"), "mAA10": ref.get("mAA10"),
-            **{k: c.get(k) for k in ("difference", "ci", "p_value", "significant", "pairs") if k in c}}
+    key = ref.get("objective") or "mAA10"
+    return {"label": ref.get("label"), "mAA10": ref.get("mAA10"), **({key: ref.get(key)} if key != "mAA10" else {}),
+            **{k: c.get(k) for k in ("difference", "ci", "p_value", "significant", "pairs", "datasets") if k in c}}
 
 
 def study_data_root(frozen: dict, given=None) -> Path:

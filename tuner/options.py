@@ -260,6 +260,26 @@ OPTION_FIELDS: dict[str, tuple[tuple[str, str], ...]] = {
 }
 
 
+def apply_task_defaults(args: argparse.Namespace, tasks: list[str]) -> list[str]:
+    """Set each pipeline option the command line did not type (:func:`explicit_options`) to the default the tasks
+    that run declare (``Task.pipeline_defaults``: the reconstruction task runs COLMAP's SIFT at eta 1 px, the
+    command line's defaults being the stereo protocol's). Nothing with ``--config`` (the file's values stand) or when
+    the tasks declare different defaults. Returns the options set (argparse dests)."""
+    from pipeline.tasks import task_class
+    if getattr(args, "config", None) or not tasks:
+        return []
+    decl = [task_class(t).pipeline_defaults for t in tasks]
+    if any(d != decl[0] for d in decl):
+        return []
+    typed = explicit_options(args)
+    done = []
+    for dest, value in decl[0].items():
+        if dest not in typed and hasattr(args, dest):
+            setattr(args, dest, value)
+            done.append(dest)
+    return done
+
+
 def config_over(base: PipelineConfig, args: argparse.Namespace, where: str = "configuration") -> tuple:
     """``base`` (a configuration file's) with the pipeline options typed on the command line on top; returns
     (config, the option names that overrode the file). Fields no option sets (``fginn_px``, ...) keep the

@@ -104,6 +104,23 @@ LEAVES: dict[str, Leaf] = {
                         symbol=r"$n_{\min}$", label="min inliers"),
     "min_model_size": Leaf("min_model_size", "mapper", "min_model_size", "int", 2, 1000, unit="images",
                            symbol=r"$m_{\min}$", label="min model size"),
+    # COLMAP's incremental-mapper options entrants hand-tune, and the global mapper's view-graph thresholds
+    "max_num_models": Leaf("max_num_models", "mapper", "max_num_models", "int", 1, 1000, unit="models",
+                           symbol="max models", label="max models"),
+    "init_min_num_inliers": Leaf("init_min_num_inliers", "mapper", "init_min_num_inliers", "int", 1, 10000,
+                                 unit="inliers", symbol="init inliers", label="init inliers"),
+    "abs_pose_min_num_inliers": Leaf("abs_pose_min_num_inliers", "mapper", "abs_pose_min_num_inliers", "int", 1,
+                                     10000, unit="inliers", symbol="abs-pose inliers", label="abs-pose inliers"),
+    "abs_pose_max_error": Leaf("abs_pose_max_error", "mapper", "abs_pose_max_error", "float", 0.0, None,
+                               low_open=True, unit="px", symbol="abs-pose error", label="abs-pose error"),
+    "filter_max_reproj_error": Leaf("filter_max_reproj_error", "mapper", "filter_max_reproj_error", "float", 0.0,
+                                    None, low_open=True, unit="px", symbol="filter error", label="filter error"),
+    "global_max_rotation_error": Leaf("global_max_rotation_error", "mapper", "global_max_rotation_error", "float",
+                                      0.0, 180.0, low_open=True, unit="deg", symbol="GA rotation error",
+                                      label="GA rotation error"),
+    "global_max_angular_error": Leaf("global_max_angular_error", "mapper", "global_max_angular_error", "float", 0.0,
+                                     180.0, low_open=True, unit="deg", symbol="GA angular error",
+                                     label="GA angular error"),
 }
 PARAMS: tuple[str, ...] = tuple(LEAVES)
 TYPES: dict[str, str] = {k: v.type for k, v in LEAVES.items()}

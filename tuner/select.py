@@ -248,12 +248,42 @@ def optimum_warnings(study, frozen: dict) -> list[str]:
 # ------------------------------------------------------------------------------------------ reference
 
 def reference_spec(value: str | None) -> str:
-    """``--reference``: None / "paper" = the paper defaults, "none" = no comparison, else a file or study."""
+    """``--reference``: None = the task's default (``Task.default_reference``), "paper" = the paper defaults,
+    "colmap" = COLMAP's own pipeline (``Task.reference_task``), "none" = no comparison, else a file or study."""
     if value is not None and not isinstance(value, str):
         return "given"  # a resolved configuration (Source or (config, label))
-    if value is None or str(value).strip().lower() in ("", "paper", "default", "defaults"):
-        return "paper"
-    return "none" if str(value).strip().lower() == "none" else str(value)
+    if value is None or str(value).strip().lower() in ("", "default", "defaults"):
+        return "default"
+    low = str(value).strip().lower()
+    return low if low in ("none", "paper", "colmap") else str(value)
+
+
+def reference_kind(value, task) -> str:
+    """:func:`reference_spec` with the task's default resolved: "paper", "colmap", "none", "given" or a file /
+    study; "colmap" for a task without a COLMAP reference is a one-line ImtuneError."""
+    kind = reference_spec(value)
+    if kind == "default":
+        kind = getattr(task, "default_reference", "paper") if task is not None else "paper"
+    from pipeline.tasks.base import Task
+    has = task is not None and (type(task).reference_task is not Task.reference_task if not isinstance(task, type)
+                                else task.reference_task is not Task.reference_task)
+    if kind == "colmap" and not has:
+        name = getattr(task, "name", "stereo")
+        raise ImtuneError(f"--reference colmap: COLMAP's own pipeline is the reconstruction task's reference, not the "
+                          f"{name} task's (give paper, none, a config file or a study)")
+    return kind
+
+
+def reference_task_of(value, task):
+    """The task the reference's runs use: :meth:`Task.reference_task` for "colmap", else ``task`` itself."""
+    return task.reference_task() if reference_kind(value, task) == "colmap" else task
+
+
+def colmap_reference_label(num_features: int) -> str:
+    """What the "colmap" reference runs, with pycolmap's version."""
+    from pipeline.features.colmap_sift import _pycolmap_version
+    return (f"COLMAP out of the box (pycolmap {_pycolmap_version()}: its SIFT at {num_features} features, exhaustive "
+            "matching, default verification, incremental mapper, min_model_size 3, max_num_models 25)")
 
 
 def reference_task_note(reference, task_name: str, flag: str = "--reference",
@@ -288,15 +318,18 @@ def reference_config(frozen: dict, spec, task=None):
         return spec.conf, spec.label
     if isinstance(spec, tuple) and len(spec) == 2:
         return spec
-    kind = reference_spec(spec)
-    if kind == "none":
-        return None
-    if kind != "paper":
-        raise ImtuneError(f"reference {spec!r}: resolve a config file or study first "
-                          "(tuner.sources.resolve_source), or give 'paper' or 'none'")
     if task is None:
         from pipeline.tasks import TASKS
-        task = TASKS.get(frozen.get("task", "stereo"))
+        task = TASKS.get(frozen.get("task", "stereo"))()
+    kind = reference_kind(spec, task)
+    if kind == "none":
+        return None
+    if kind == "colmap":  # the frozen configuration carries the feature count; the reference task ignores the rest
+        base = pipeline_from_dict(frozen["config"])
+        return base, colmap_reference_label(base.feature.num_features)
+    if kind != "paper":
+        raise ImtuneError(f"reference {spec!r}: resolve a config file or study first "
+                          "(tuner.sources.resolve_source), or give 'paper', 'colmap' or 'none'")
     base = pipeline_from_dict(frozen["config"])
     values = {k: v for k, v in PAPER_DEFAULTS.items() if k in searchable(task, base)}
     return config_for(base, values), reference_label(values)
@@ -471,12 +504,18 @@ def comparison_text(ref: dict | None) -> str:
     if not ref:
         return "reference: none"
     c = ref.get("comparison")
-    m = ref.get("mAA10")
-    head = f"vs {ref.get('label')}: reference mAA10 " + (f"{m:.3f}" if m is not None else "?")
+    key = ref.get("objective") or "mAA10"
+    m = ref.get(key)
+    head = f"vs {ref.get('label')}: reference {key} " + (f"{m:.3f}" if m is not None else "?")
+    per = (c or {}).get("datasets")
+    if per:  # per dataset, then overall
+        head += "; frozen - reference per dataset: " + ", ".join(f"{k} {v:+.3f}" for k, v in per.items())
     if not c:
         return head + f" ({ref.get('note') or 'no paired comparison'})"
-    lo, hi = c["ci"]
     from pipeline.metrics.uncertainty import format_p, paired_direction  # the rule of findings and compare
+    if not c.get("ci"):  # one difference: no interval
+        return f"{head}; frozen - reference {c['difference']:+.3f} (one {c.get('units', 'pair')}: no interval)"
+    lo, hi = c["ci"]
     verdict = {0: "no significant difference", 1: "frozen settings significantly better",
                -1: "frozen settings significantly WORSE: tuning did not generalise"}[
         paired_direction(c["ci"], c.get("p_value"))]

@@ -44,10 +44,13 @@ def _append(path: Path, header: list[str], rows: list[list[str]], dataset: str) 
 
 
 def export_imc(data_root, scenes: list[str], out, dataset: str, outliers: list[str] | tuple = (),
-               threshold_scale: float = 1.0, copy: bool = False) -> dict:
+               threshold_scale: float = 1.0, copy: bool = False, every: int = 1,
+               max_outliers: int | None = None) -> dict:
     """Write ``scenes`` (posed) and ``outliers`` (their images as outliers) of ``data_root`` as dataset ``dataset`` of
-    the IMC folder ``out``. Returns a summary dict. One-line ImtuneError for a scene without poses, a name given twice,
-    an output inside the data folder."""
+    the IMC folder ``out``. ``every`` k: a sparse subset, every k-th image of each scene in name order (wider
+    baselines, fewer images: harder to register); ``max_outliers``: at most this many outlier images, spread evenly
+    over the outlier scenes' images in name order. Returns a summary dict. One-line ImtuneError for a scene without
+    poses, a name given twice, an output inside the data folder, ``every`` < 1 or ``max_outliers`` < 0."""
     from pipeline.data import load_scene
     out = Path(out).resolve()
     data_root = Path(data_root).resolve()
@@ -62,6 +65,11 @@ def export_imc(data_root, scenes: list[str], out, dataset: str, outliers: list[s
         raise ImtuneError(f"scene {sorted(both)[0]!r} is named both as a scene and as outliers")
     if not (threshold_scale > 0 and np.isfinite(threshold_scale)):
         raise ImtuneError(f"--threshold-scale must be > 0, got {threshold_scale}")
+    if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+        raise ImtuneError(f"--every must be an integer >= 1 (1: every image), got {every!r}")
+    if max_outliers is not None and (isinstance(max_outliers, bool) or not isinstance(max_outliers, int)
+                                     or max_outliers < 0):
+        raise ImtuneError(f"--max-outliers must be an integer >= 0, got {max_outliers!r}")
     loaded = [(load_scene(data_root, s), False) for s in scenes] + [(load_scene(data_root, s), True) for s in outliers]
     for sc, is_out in loaded:
         if not is_out:
@@ -79,8 +87,17 @@ def export_imc(data_root, scenes: list[str], out, dataset: str, outliers: list[s
     rows: list[list[str]] = []
     counts: dict[str, int] = {}
     n_out = 0
+    out_names = [(sc.name, n) for sc, is_out in loaded if is_out for n in sorted(sc.images)]
+    if max_outliers is not None and len(out_names) > max_outliers:
+        pick: list[int] = (np.linspace(0, len(out_names) - 1, max_outliers).round().astype(int).tolist()
+                           if max_outliers else [])
+        out_names = [out_names[i] for i in sorted(set(pick))]
+    keep_out = set(out_names)
     for sc, is_out in loaded:
-        for n, im in sc.images.items():
+        names = sorted(sc.images)
+        chosen = [n for n in names if (sc.name, n) in keep_out] if is_out else names[::every]
+        for n in [n for n in sc.images if n in set(chosen)]:
+            im = sc.images[n]
             name = f"{sc.name}_{Path(n).name}"
             dst = img_dir / name
             if copy:
@@ -107,4 +124,5 @@ def export_imc(data_root, scenes: list[str], out, dataset: str, outliers: list[s
     th = ";".join(repr(round(float(x) * threshold_scale, 12)) for x in CHALLENGE_THRESHOLDS)
     _append(out / THRESHOLDS, ["dataset", "scene", "thresholds"], [[dataset, s, th] for s in counts], dataset)
     return {"out": str(out), "dataset": dataset, "images": len(rows), "scenes": counts, "outliers": n_out,
+            "every": every,
             "intrinsics": with_K, "thresholds": th}

@@ -31,6 +31,8 @@ from pipeline.features.registry import EXTRACTORS
 from pipeline.features import sift, orb, akaze, brisk, boost, surf  # noqa: F401,E402
 # kornia families (torch/kornia are imported only when one of them runs)
 from pipeline.features import kornia_compose, kornia_e2e, custom_h5  # noqa: F401,E402
+# COLMAP's own SIFT (pycolmap is imported only when it runs)
+from pipeline.features import colmap_sift  # noqa: F401,E402
 # isort: on
 
 __all__ = ["EXTRACTORS", "Extractor", "Features", "get_extractor", "extract", "resolve_feature", "load_plugins"]

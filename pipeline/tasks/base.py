@@ -124,6 +124,22 @@ class Task(abc.ABC):
     needs_points: ClassVar[bool] = False
     sweep: ClassVar[bool] = False
     in_both: ClassVar[bool] = True  # `--task both` runs it (False: it needs data of its own kind, e.g. IMC datasets)
+    #: pipeline options (command-line dests: feature, threshold, ...) this task runs with where the command line does
+    #: not set them (the command-line defaults are the stereo protocol's)
+    pipeline_defaults: ClassVar[dict] = {}
+    #: what ``--reference`` means by default: "paper" (the paper defaults) or "colmap" (:meth:`reference_task`)
+    default_reference: ClassVar[str] = "paper"
+
+    def reference_task(self) -> Task | None:
+        """The task that runs the "colmap" reference (COLMAP's own pipeline on the same data), or None when this
+        task has none."""
+        return None
+
+    @classmethod
+    def compare_runs(cls, ref_runs: list[dict], runs: list[dict]) -> dict | None:
+        """Frozen - reference from the runs' figures (``figures`` dicts, run k of each side with the k-th seed) when
+        the records carry no per-unit errors for a paired bootstrap; None: no such comparison (the default)."""
+        return None
 
     @classmethod
     def takes(cls, option: str) -> bool:

@@ -33,6 +33,7 @@ import os
 import shutil
 import tempfile
 import time
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -46,6 +47,17 @@ from pipeline.metrics.imc_score import OUTLIERS, centre, score_dataset
 from pipeline.tasks.base import TASKS, Task, TaskResult
 
 MAPPERS = ("incremental", "global")
+PIPELINES = ("imtune", "colmap")
+VERIFIERS = ("ours", "colmap")
+TWO_VIEW = ("F", "colmap")
+#: verification runs per dataset (not served from the in-memory cache of a task): tests read it
+COUNTERS: Counter = Counter()
+#: the pipeline options the reconstruction task runs with where the command line does not set them (`tune evaluate
+#: --task reconstruction`, `tune --task reconstruction`; ``Task.pipeline_defaults``): COLMAP's SIFT, whose features
+#: close most of the gap to COLMAP out of the box (benchmarks/reconstruction_causes.py), eta 1 px and Gamma 10,000
+#: (COLMAP's own verification's cap: a shortlist's pairs of two different scenes run to the cap)
+NEW_DEFAULTS = {"feature": "colmap-sift", "threshold": 1.0, "max_iters": 10_000}
+VERIFIED_KEPT = 8  # dataset verifications a task keeps in memory (a study: its validation datasets, a few trials)
 SHORTLIST_FEATURES = 256
 SHORTLIST_RATIO = 0.8
 RECON_KEYS = ("score", "mAA", "clusterness", "registered", "clusters", "pairs", "NM", "NI", "ransac_seconds_median",
@@ -59,22 +71,39 @@ class ReconstructionConfig:
     """Settings of the reconstruction task (the mapper options it searches are ``PipelineConfig.mapper``).
 
     mapper: "incremental" or "global" (GLOMAP).
-    shortlist: partners per image matched when the dataset has more than ``exhaustive_up_to`` images (0: all pairs).
+    shortlist: partners per image matched when the dataset has more than ``exhaustive_up_to`` images (0: all pairs;
+        20, not 10: at 10 the 76-image IMC 2025 dataset's scenes broke into fragments).
     exhaustive_up_to: datasets of at most this many images match every pair.
     intrinsics: "colmap" (EXIF or 1.2 x the long side, refined: IMC 2025 gives none), "prior" or "fixed" (known K:
         IMC 2024's calibration_matrix).
     seed: COLMAP's random seed (vary it across repeated runs).
+    pipeline: "imtune" (our features, matcher and estimator; the mapper options of ``PipelineConfig.mapper``) or
+        "colmap": COLMAP's own pipeline at its defaults, the reference an entrant runs (:func:`colmap_reference`):
+        its SIFT at the configuration's ``num_features``, exhaustive matching, its two-view verification, the
+        incremental mapper at pycolmap's defaults with ``min_model_size`` 3 and ``max_num_models`` 25.
+    verifier: "ours" (the configuration's estimator: r, eta, Gamma) or "colmap" (COLMAP's two-view verification of
+        our tentative matches at pycolmap's defaults; eta and Gamma unused).
+    two_view: what the database stores of a pair our estimator verified: "F" (its fundamental matrix and inliers, as
+        an uncalibrated geometry) or "colmap" (COLMAP's two-view geometry estimation on those inliers picks the
+        configuration: calibrated E, planar / panoramic H or F, as its own verification would).
     """
     mapper: str = "incremental"
-    shortlist: int = 10
+    shortlist: int = 20
     exhaustive_up_to: int = 30
     intrinsics: str = "colmap"
     seed: int = 0
+    pipeline: str = "imtune"
+    verifier: str = "ours"
+    two_view: str = "F"
 
     def __post_init__(self):
         from pipeline.colmap_db import INTRINSICS_MODES
         if self.mapper not in MAPPERS:
             raise ImtuneError(f"unknown mapper {self.mapper!r} (choose {', '.join(MAPPERS)})")
+        for what, v, ok in (("pipeline", self.pipeline, PIPELINES), ("verifier", self.verifier, VERIFIERS),
+                            ("two_view", self.two_view, TWO_VIEW)):
+            if v not in ok:
+                raise ImtuneError(f"unknown reconstruction {what} {v!r} (choose {', '.join(ok)})")
         if self.intrinsics not in INTRINSICS_MODES:
             raise ImtuneError(f"unknown intrinsics mode {self.intrinsics!r} (choose {', '.join(INTRINSICS_MODES)})")
         if int(self.shortlist) < 0 or int(self.exhaustive_up_to) < 0:
@@ -147,7 +176,10 @@ def _verify_pairs(args) -> list[dict]:
             m, _ = tentative_matches(tab, conf.matching, fa, fb, task="multiview")
             m = np.asarray(m, np.int64).reshape(-1, 2)
             rec["NM"] = len(m)
-            if len(m) >= 8:
+            # a pair with fewer tentative matches than the mapper's min_inliers cannot enter the view graph: no RANSAC
+            # (COLMAP skips such pairs too); most of a shortlist's cross-scene pairs end here, at no estimator cost
+            need = max(8, int(conf.mapper.min_inliers))
+            if len(m) >= need:
                 p1 = fa.keypoints[m[:, 0]].astype(np.float64)
                 p2 = fb.keypoints[m[:, 1]].astype(np.float64)
                 res = est.estimate(p1, p2, g.threshold, g.confidence, g.max_iters, seed=g.seed,
@@ -159,7 +191,7 @@ def _verify_pairs(args) -> list[dict]:
                 else:
                     rec["failure"] = "estimator found no model"
             else:
-                rec["failure"] = f"fewer than 8 matches ({len(m)})"
+                rec["failure"] = f"fewer than {need} matches ({len(m)})"
         except ImtuneError:
             raise
         except Exception as e:  # one pair never stops the dataset
@@ -210,12 +242,18 @@ def verify_all(cache: H5Cache, infos: dict, conf: PipelineConfig, pairs: list[tu
 # ------------------------------------------------------------------------------------------- mapping
 
 def _mapper_options(kind: str, conf: PipelineConfig, rc: ReconstructionConfig, threads: int):
+    """pycolmap's options of ``kind`` ("incremental" / "global") with ``conf.mapper``'s values set on them."""
     from pipeline import colmap_db as cdb
     pycolmap = cdb.import_pycolmap()
     mc = conf.mapper
     if kind == "incremental":
         o = cdb.mapper_options(min_model_size=mc.min_model_size, num_threads=threads, seed=rc.seed,
                                fixed_intrinsics=(rc.intrinsics == "fixed"))
+        o.max_num_models = int(mc.max_num_models)
+        o.mapper.init_min_num_inliers = int(mc.init_min_num_inliers)
+        o.mapper.abs_pose_min_num_inliers = int(mc.abs_pose_min_num_inliers)
+        o.mapper.abs_pose_max_error = float(mc.abs_pose_max_error)
+        o.mapper.filter_max_reproj_error = float(mc.filter_max_reproj_error)
     else:
         o = pycolmap.GlobalPipelineOptions()
         o.min_model_size = int(mc.min_model_size)
@@ -226,6 +264,8 @@ def _mapper_options(kind: str, conf: PipelineConfig, rc: ReconstructionConfig, t
         o.mapper.random_seed = int(rc.seed)
         o.mapper.global_positioning.use_gpu = False
         o.mapper.bundle_adjustment.ceres.use_gpu = False
+        o.mapper.rotation_averaging.max_rotation_error_deg = float(mc.global_max_rotation_error)
+        o.mapper.max_angular_reproj_error_deg = float(mc.global_max_angular_error)
         if rc.intrinsics == "fixed":
             o.mapper.bundle_adjustment.refine_focal_length = False
             o.mapper.bundle_adjustment.refine_extra_params = False
@@ -233,36 +273,73 @@ def _mapper_options(kind: str, conf: PipelineConfig, rc: ReconstructionConfig, t
     return o
 
 
+def _write_two_view(db, ids: dict, verified: list[dict], conf: PipelineConfig, rc: ReconstructionConfig,
+                    cameras: dict, keypoints: dict) -> None:
+    """Our verified pairs as two-view geometries: F as an uncalibrated geometry (``two_view`` "F"), or the geometry
+    COLMAP's two-view estimation finds on our inliers (``two_view`` "colmap", pycolmap's default options)."""
+    from pipeline import colmap_db as cdb
+    pycolmap = cdb.import_pycolmap()
+    for r in verified:
+        if r["matches"] is None or r["NI"] < conf.mapper.min_inliers:
+            continue
+        a, b = r["pair"]
+        inl = np.ascontiguousarray(r["matches"][r["inliers"]].astype(np.uint32))
+        if rc.two_view == "colmap":
+            o = pycolmap.TwoViewGeometryOptions()
+            o.ransac.random_seed = int(rc.seed)
+            tvg = pycolmap.estimate_two_view_geometry(
+                cameras[a], (keypoints[a] + cdb.PIXEL_OFFSET).astype(np.float64), cameras[b],
+                (keypoints[b] + cdb.PIXEL_OFFSET).astype(np.float64), inl, o)
+            if len(tvg.inlier_matches) < conf.mapper.min_inliers:
+                continue
+        else:
+            tvg = pycolmap.TwoViewGeometry()
+            tvg.config = pycolmap.TwoViewGeometryConfiguration.UNCALIBRATED
+            tvg.F = np.asarray(r["F"], float)
+            tvg.inlier_matches = inl
+        db.write_two_view_geometry(ids[a], ids[b], tvg)
+
+
 def map_dataset(workdir: Path, images: list, verified: list[dict], conf: PipelineConfig, rc: ReconstructionConfig,
-                threads: int = 1) -> tuple[list, str | None, float]:
-    """Write the database (cameras, keypoints, tentative matches, our verified inliers as two-view geometries) and
-    run the mapper. Returns (reconstructions, failure or None, mapping wall seconds)."""
+                threads: int = 1, tentative: dict | None = None) -> tuple[list, str | None, float]:
+    """Write the database (cameras, keypoints, tentative matches, the verified pairs as two-view geometries) and
+    run the mapper. ``rc.verifier`` "colmap": ``tentative`` ({pair: matches}) are written and COLMAP verifies them
+    (pycolmap's default two-view options) instead of ``verified``. Returns (reconstructions, failure or None,
+    mapping wall seconds)."""
     from pipeline import colmap_db as cdb
     pycolmap = cdb.import_pycolmap()
     cdb.quiet(3)
     workdir.mkdir(parents=True, exist_ok=True)
     db_path = workdir / "database.db"
-    matches = {r["pair"]: r["matches"] for r in verified if r["matches"] is not None}
-    ids = cdb.write_database(db_path, images, matches)
-    db = pycolmap.Database.open(str(db_path))
-    try:
-        for r in verified:
-            if r["matches"] is None or r["NI"] < conf.mapper.min_inliers:
-                continue
-            a, b = r["pair"]
-            tvg = pycolmap.TwoViewGeometry()
-            tvg.config = pycolmap.TwoViewGeometryConfiguration.UNCALIBRATED
-            tvg.F = np.asarray(r["F"], float)
-            tvg.inlier_matches = np.ascontiguousarray(r["matches"][r["inliers"]].astype(np.uint32))
-            db.write_two_view_geometry(ids[a], ids[b], tvg)
-    finally:
-        db.close()
+    if rc.verifier == "colmap":
+        ids = cdb.write_database(db_path, images, tentative or {})
+        o = pycolmap.TwoViewGeometryOptions()
+        o.min_num_inliers = int(conf.mapper.min_inliers)  # COLMAP's 15 at the defaults
+        o.ransac.random_seed = int(rc.seed)
+        cdb.verify(db_path, o, num_threads=threads)
+    else:
+        matches = {r["pair"]: r["matches"] for r in verified if r["matches"] is not None}
+        ids = cdb.write_database(db_path, images, matches)
+        db = pycolmap.Database.open(str(db_path))
+        try:
+            _write_two_view(db, ids, verified, conf, rc, {n: cam for n, cam, _ in images},
+                            {n: np.asarray(k, np.float64).reshape(-1, 2) for n, _, k in images})
+        finally:
+            db.close()
+    return run_mapper(workdir, db_path, _mapper_options(rc.mapper, conf, rc, threads), rc.mapper,
+                      conf.mapper.min_model_size)
+
+
+def run_mapper(workdir: Path, db_path: Path, opts, mapper: str, min_model_size: int) -> tuple[list, str | None, float]:
+    """pycolmap's ``mapper`` on ``db_path`` with ``opts``; the models of at least ``min_model_size`` images, largest
+    first, a failure reason or None, and the mapping wall seconds."""
+    from pipeline import colmap_db as cdb
+    pycolmap = cdb.import_pycolmap()
     out = workdir / "sparse"
     out.mkdir(parents=True, exist_ok=True)
-    opts = _mapper_options(rc.mapper, conf, rc, threads)
     t0 = time.perf_counter()
     try:
-        if rc.mapper == "incremental":
+        if mapper == "incremental":
             recs = pycolmap.incremental_mapping(str(db_path), str(workdir), str(out), opts)
         else:
             recs = pycolmap.global_mapping(str(db_path), str(workdir), str(out), opts)
@@ -270,9 +347,93 @@ def map_dataset(workdir: Path, images: list, verified: list[dict], conf: Pipelin
         msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         return [], f"mapper failed: {msg}", time.perf_counter() - t0
     dt = time.perf_counter() - t0
-    models = [r for r in (recs or {}).values() if r.num_reg_images() >= conf.mapper.min_model_size]
+    models = [r for r in (recs or {}).values() if r.num_reg_images() >= min_model_size]
     models.sort(key=lambda r: -r.num_reg_images())
     return models, (None if models else "the mapper registered no model"), dt
+
+
+# ------------------------------------------------------------------------------------ the COLMAP reference
+
+REFERENCE_MIN_MODEL_SIZE = 3  # the IMC 2025 baseline's settings of COLMAP's incremental mapper
+REFERENCE_MAX_NUM_MODELS = 25
+REFERENCE_STAGE_VERSION = "1"
+
+
+def reference_mapper_options(threads: int, seed: int):
+    """The reference's mapper: ``pycolmap.IncrementalPipelineOptions()`` as constructed (pycolmap's defaults), with
+    only ``min_model_size`` 3 and ``max_num_models`` 25 (the IMC 2025 baseline's), the thread count and the seeds
+    set (:data:`REFERENCE_SET`)."""
+    from pipeline import colmap_db as cdb
+    pycolmap = cdb.import_pycolmap()
+    o = pycolmap.IncrementalPipelineOptions()
+    o.min_model_size = REFERENCE_MIN_MODEL_SIZE
+    o.max_num_models = REFERENCE_MAX_NUM_MODELS
+    o.num_threads = int(threads)
+    o.random_seed = int(seed)
+    o.mapper.num_threads = int(threads)
+    o.mapper.random_seed = int(seed)
+    o.triangulation.random_seed = int(seed)
+    return o
+
+
+#: the options :func:`reference_mapper_options` sets (every other one is pycolmap's default)
+REFERENCE_SET = ("min_model_size", "max_num_models", "num_threads", "random_seed", "mapper.num_threads",
+                 "mapper.random_seed", "triangulation.random_seed")
+
+
+def reference_stage_options(num_features: int, threads: int) -> tuple:
+    """The reference's (extraction, matching, two-view verification) options: pycolmap's own option objects as
+    constructed, with only ``sift.max_num_features``, the thread counts and the CPU device set
+    (:data:`REFERENCE_STAGE_SET`)."""
+    from pipeline import colmap_db as cdb
+    pycolmap = cdb.import_pycolmap()
+    eo = pycolmap.FeatureExtractionOptions()
+    eo.sift.max_num_features = int(num_features)
+    eo.num_threads = int(threads)
+    eo.use_gpu = False
+    mo = pycolmap.FeatureMatchingOptions()
+    mo.num_threads = int(threads)
+    mo.use_gpu = False
+    return eo, mo, pycolmap.TwoViewGeometryOptions()
+
+
+#: what :func:`reference_stage_options` sets, per option object (every other option is pycolmap's default)
+REFERENCE_STAGE_SET = (("sift.max_num_features", "num_threads", "use_gpu"), ("num_threads", "use_gpu"), ())
+
+
+def reference_database(cache: H5Cache, scene: Scene, num_features: int, threads: int) -> Path:
+    """COLMAP's own database of ``scene`` (cached under the cache folder, keyed by the image files, ``num_features``
+    and pycolmap's version): ``pycolmap.extract_features`` (its SIFT at ``max_num_features`` = ``num_features``,
+    every other extraction option pycolmap's default; one camera per image, COLMAP's default camera model and
+    focal-length guess), then ``pycolmap.match_exhaustive`` at pycolmap's default matching and two-view
+    verification options (every pair; its verification's RANSAC seed is pycolmap's default). Built once per key:
+    repeated runs vary the mapper's seed only."""
+    from pipeline import colmap_db as cdb
+    from pipeline.cache import file_digest, make_key
+    from pipeline.features.colmap_sift import _pycolmap_version
+    pycolmap = cdb.import_pycolmap()
+    names = list(scene.images)
+    key = make_key("colmap-reference", [(n, file_digest(scene.images[n].path)) for n in names], int(num_features),
+                   _pycolmap_version(), REFERENCE_STAGE_VERSION)
+    folder = Path(cache.root) / "colmap-reference" / key
+    db_path = folder / "database.db"
+    if db_path.is_file():
+        return db_path
+    folder.mkdir(parents=True, exist_ok=True)
+    tmp = folder / f"database.tmp{os.getpid()}.db"
+    if tmp.exists():
+        tmp.unlink()
+    cdb.quiet(2)
+    img_dir = Path(scene.images[names[0]].path).parent
+    if any(Path(scene.images[n].path).parent != img_dir for n in names):
+        raise ImtuneError(f"dataset {scene.name}: the COLMAP reference needs every image in one folder")
+    eo, mo, vo = reference_stage_options(num_features, threads)
+    pycolmap.extract_features(str(tmp), str(img_dir), image_names=names, extraction_options=eo,
+                              device=pycolmap.Device.cpu)
+    pycolmap.match_exhaustive(str(tmp), matching_options=mo, verification_options=vo, device=pycolmap.Device.cpu)
+    COUNTERS["reference_database"] += 1
+    os.replace(tmp, db_path)
+    return db_path
 
 
 def clusters_from_models(models: list, names: list[str], min_size: int) -> dict[str, dict[str, tuple]]:
@@ -361,7 +522,9 @@ class ReconstructionTask(Task):
     per configuration under the cache); ``progress``: tqdm bars."""
 
     name = "reconstruction"
-    uses = ("ratio", "strategy", "threshold", "max_iters", "min_confidence", "min_inliers", "min_model_size")
+    uses = ("ratio", "strategy", "threshold", "max_iters", "min_confidence", "min_inliers", "min_model_size",
+            "max_num_models", "init_min_num_inliers", "abs_pose_min_num_inliers", "abs_pose_max_error",
+            "filter_max_reproj_error", "global_max_rotation_error", "global_max_angular_error")
     summary_keys = RECON_KEYS
     std_keys = ("score", "mAA", "clusterness")
     columns = ("score", "mAA", "clusterness", "registered", "clusters", "pairs", "NI", "map_seconds")
@@ -373,6 +536,8 @@ class ReconstructionTask(Task):
     timed = True
     unit, unit_one = "datasets", "dataset"
     units_label = "IMC reconstruction datasets"
+    pipeline_defaults = NEW_DEFAULTS
+    default_reference = "colmap"
     in_both = False  # IMC datasets only: `--task both` (the paper's scenes) leaves it out
     test_figures = "IMC 2025 score (harmonic mean of mAA and clusterness) of the test datasets, mean over runs"
 
@@ -388,13 +553,20 @@ class ReconstructionTask(Task):
                 "method": WHY_NO_CI}
 
     def __init__(self, rc: ReconstructionConfig | dict | None = None, mapper: str | None = None,
-                 workers: int | None = None, submission: str | Path | None = None, progress: bool = False):
+                 workers: int | None = None, submission: str | Path | None = None, progress: bool = False,
+                 pipeline: str | None = None, verifier: str | None = None, two_view: str | None = None,
+                 shortlist: int | None = None):
         if isinstance(rc, dict):
+            unknown = sorted(set(rc) - {f.name for f in dataclasses.fields(ReconstructionConfig)})
+            if unknown:
+                raise ImtuneError(f"unknown reconstruction option(s) {', '.join(unknown)}")
             rc = ReconstructionConfig(**rc)
         rc = rc or ReconstructionConfig()
-        if mapper is not None:
-            rc = dataclasses.replace(rc, mapper=mapper)
+        given: dict = {"mapper": mapper, "pipeline": pipeline, "verifier": verifier, "two_view": two_view,
+                       "shortlist": shortlist}
+        rc = dataclasses.replace(rc, **{k: v for k, v in given.items() if v is not None})
         self.rc = rc
+        self._kept: dict = {}  # verified pairs by key (:meth:`_verified`)
         self.workers = workers
         self.submission = submission
         self.progress = progress
@@ -440,11 +612,48 @@ class ReconstructionTask(Task):
     def budget_seconds(self, summary: dict) -> float | None:
         return summary.get("ransac_seconds_median")
 
+    def reference_task(self) -> ReconstructionTask:
+        """The same task on COLMAP's own pipeline (``pipeline`` "colmap": :func:`reference_database`,
+        :func:`reference_mapper_options`)."""
+        return ReconstructionTask(dataclasses.replace(self.rc, pipeline="colmap", mapper="incremental"),
+                                  workers=self.workers, submission=self.submission, progress=self.progress)
+
+    @classmethod
+    def compare_runs(cls, ref_runs: list[dict], runs: list[dict]) -> dict | None:
+        """Frozen - reference, score per dataset: the differences d(dataset, k) of run k of each side (the k-th
+        seeds), their mean over datasets and runs, a 95% Student t interval over those differences and the two-sided
+        one-sample t test's p (scipy). It treats datasets and runs as independent draws; with one dataset the
+        interval holds the run-to-run (seed) variation only, and with one run of one dataset there is none."""
+        from scipy import stats
+        diffs: dict[str, list[float]] = {}
+        for r, f in zip(ref_runs, runs):
+            for ds, s in (f.get("scenes") or {}).items():
+                rs = (r.get("scenes") or {}).get(ds)
+                if rs and s.get("score") is not None and rs.get("score") is not None:
+                    diffs.setdefault(ds, []).append(float(s["score"]) - float(rs["score"]))
+        d = np.array([x for v in diffs.values() for x in v], float)
+        if not len(d):
+            return None
+        mean = float(d.mean())
+        if len(d) > 1 and float(d.std(ddof=1)) > 0:
+            half = float(stats.t.ppf(0.975, len(d) - 1) * d.std(ddof=1) / math.sqrt(len(d)))
+            p = float(stats.ttest_1samp(d, 0.0).pvalue)
+            ci = [mean - half, mean + half]
+        elif len(d) > 1:  # every difference equal: no spread measured
+            ci, p = [mean, mean], (1.0 if mean == 0 else 0.0)
+        else:
+            ci, p = None, None
+        return {"difference": mean, "ci": ci, "p_value": p, "pairs": int(len(d)), "units": "dataset runs",
+                "datasets": {k: float(np.mean(v)) for k, v in diffs.items()},
+                "method": "score(frozen) - score(reference) per dataset and run (the k-th seeds of both); 95% "
+                          "Student t interval and one-sample t test over those differences"}
+
     def for_run(self, conf: PipelineConfig, k: int):
         """COLMAP's seed and the estimator's vary across repeated runs."""
         from pipeline.config import run_seed
         t = ReconstructionTask(dataclasses.replace(self.rc, seed=run_seed(self.rc.seed, k)), workers=self.workers,
                                submission=self.submission, progress=self.progress)
+        t._kept = self._kept  # the estimator's seed is in the key: a run reuses only what it would recompute
         return t, Task.for_run(self, conf, k)[1]  # the estimator's seed too
 
     def pairs_of(self, scene: Scene, feats: dict) -> list[tuple[str, str]]:
@@ -463,6 +672,52 @@ class ReconstructionTask(Task):
             return p / (f"{scene.name}/submission.csv" if several else "submission.csv")
         return p.with_name(f"{p.stem}-{scene.name}{p.suffix}") if several else p
 
+    def _verified(self, cache: H5Cache, sc: Scene, feats: dict, conf: PipelineConfig, workers: int) -> tuple:
+        """(pairs, verified records, tentative matches or None) of a dataset. Verification by our estimator is kept
+        in memory for the last :data:`VERIFIED_KEPT` (dataset, features, matching, estimator, pairs) keys: a trial
+        that changes only mapper options (``PipelineConfig.mapper``, the mapper kind, COLMAP's seed) reuses it;
+        ``COUNTERS["verify"]`` counts the verifications run."""
+        from pipeline.config import config_hash
+        key = config_hash({"data": sc.name, "images": list(sc.images), "feature": conf.feature.__dict__,
+                           "matching": conf.matching.__dict__, "geometry": conf.geometry.__dict__,
+                           "min_inliers": conf.mapper.min_inliers,  # pairs below it are not verified
+                           "shortlist": [self.rc.shortlist, self.rc.exhaustive_up_to], "verifier": self.rc.verifier})
+        hit = self._kept.get(key)
+        if hit is not None:
+            self._kept[key] = self._kept.pop(key)  # most recently used last
+            return hit
+        names = list(sc.images)
+        pairs = self.pairs_of(sc, feats)
+        tentative = None
+        if self.rc.verifier == "colmap":  # COLMAP verifies while the database is written (map_dataset)
+            from pipeline.tasks.prepare import pair_knn, tentative_matches
+            tentative = {}
+            for a, b in pairs:
+                tab, _ = pair_knn(cache, feats[a], feats[b], conf.matching)
+                m, _ = tentative_matches(tab, conf.matching, feats[a], feats[b], task="multiview")
+                tentative[(a, b)] = np.asarray(m, np.int64).reshape(-1, 2)
+            verified = [{"pair": p, "NM": len(m), "NI": 0, "ransac_seconds": 0.0, "matches": None, "inliers": None,
+                         "F": None, "failure": None} for p, m in tentative.items()]
+        else:
+            verified = verify_all(cache, {n: sc.images[n] for n in names}, conf, pairs, workers,
+                                  progress=self.progress, desc=f"{sc.name}: pairs")
+        COUNTERS["verify"] += 1
+        self._kept[key] = (pairs, verified, tentative)
+        while len(self._kept) > VERIFIED_KEPT:
+            self._kept.pop(next(iter(self._kept)))
+        return pairs, verified, tentative
+
+    def _reference_models(self, cache: H5Cache, sc: Scene, conf: PipelineConfig, workers: int, tmp: Path):
+        """The COLMAP reference's models of ``sc`` (``rc.pipeline`` "colmap"): its cached database
+        (:func:`reference_database`) mapped at :func:`reference_mapper_options`."""
+        db_path = reference_database(cache, sc, conf.feature.num_features, max(1, workers))
+        local = tmp / "database.db"
+        shutil.copyfile(db_path, local)
+        from pipeline import colmap_db as cdb
+        cdb.quiet(3)
+        opts = reference_mapper_options(max(1, workers), self.rc.seed)
+        return run_mapper(tmp, local, opts, "incremental", REFERENCE_MIN_MODEL_SIZE)
+
     def evaluate(self, scenes: list[Scene], conf: PipelineConfig, cache: H5Cache | None = None,
                  on_step=None) -> TaskResult:
         from tqdm.auto import tqdm
@@ -472,7 +727,9 @@ class ReconstructionTask(Task):
         from pipeline.geometry import get_estimator
         from pipeline.tasks.prepare import image_features
         cache = cache if cache is not None else H5Cache()
-        get_estimator(conf.geometry.ransac)  # unknown / unavailable: one line, before any work
+        reference = self.rc.pipeline == "colmap"
+        if not reference and self.rc.verifier == "ours":
+            get_estimator(conf.geometry.ransac)  # unknown / unavailable: one line, before any work
         for sc in scenes:
             why = self.check_scene(sc)
             if why:
@@ -482,30 +739,39 @@ class ReconstructionTask(Task):
         records: list[dict] = []
         secs = {"features": 0.0, "pairs": 0.0, "mapping": 0.0}
         for idx, sc in enumerate(scenes):
-            t0 = time.perf_counter()
             names = list(sc.images)
-            feats = {n: image_features(cache, sc.images[n], conf.feature)
-                     for n in tqdm(names, desc=f"{sc.name}: features", disable=not self.progress, leave=False)}
-            secs["features"] += time.perf_counter() - t0
-            t0 = time.perf_counter()
-            pairs = self.pairs_of(sc, feats)
-            verified = verify_all(cache, {n: sc.images[n] for n in names}, conf, pairs, workers,
-                                  progress=self.progress, desc=f"{sc.name}: pairs")
-            secs["pairs"] += time.perf_counter() - t0
-            from pipeline.data.resize import scaled_K
-            images = []
-            for n in names:
-                f, im = feats[n], sc.images[n]
-                K = None if im.K is None else scaled_K(im.K, f.sx, f.sy)
-                images.append((n, cdb.make_camera(f.width, f.height, K, self.rc.intrinsics, im.path), f.keypoints))
+            min_size = REFERENCE_MIN_MODEL_SIZE if reference else conf.mapper.min_model_size
             tmp = Path(tempfile.mkdtemp(prefix="imtune-rec-"))
-            t0 = time.perf_counter()
             try:
-                models, failure, map_dt = map_dataset(tmp, images, verified, conf, self.rc, threads=max(1, workers))
-                clusters = clusters_from_models(models, names, conf.mapper.min_model_size)
+                if reference:
+                    t0 = time.perf_counter()
+                    pairs, verified = [], []
+                    models, failure, map_dt = self._reference_models(cache, sc, conf, workers, tmp)
+                    secs["pairs"] += time.perf_counter() - t0 - map_dt
+                    secs["mapping"] += map_dt
+                else:
+                    t0 = time.perf_counter()
+                    feats = {n: image_features(cache, sc.images[n], conf.feature)
+                             for n in tqdm(names, desc=f"{sc.name}: features", disable=not self.progress,
+                                           leave=False)}
+                    secs["features"] += time.perf_counter() - t0
+                    t0 = time.perf_counter()
+                    pairs, verified, tentative = self._verified(cache, sc, feats, conf, workers)
+                    secs["pairs"] += time.perf_counter() - t0
+                    from pipeline.data.resize import scaled_K
+                    images = []
+                    for n in names:
+                        f, im = feats[n], sc.images[n]
+                        K = None if im.K is None else scaled_K(im.K, f.sx, f.sy)
+                        images.append((n, cdb.make_camera(f.width, f.height, K, self.rc.intrinsics, im.path),
+                                       f.keypoints))
+                    t0 = time.perf_counter()
+                    models, failure, map_dt = map_dataset(tmp, images, verified, conf, self.rc,
+                                                          threads=max(1, workers), tentative=tentative)
+                    secs["mapping"] += time.perf_counter() - t0
+                clusters = clusters_from_models(models, names, min_size)
             finally:
                 shutil.rmtree(tmp, ignore_errors=True)
-            secs["mapping"] += time.perf_counter() - t0
             rows = submission_rows(sc.name, names, clusters)
             path = self._submission_path(sc, conf, cache, len(scenes) > 1)
             write_submission(path, rows)
@@ -515,20 +781,21 @@ class ReconstructionTask(Task):
             registered = {n for c in clusters.values() for n in c}
             summary = {"score": result.score, "mAA": result.mAA, "clusterness": result.clusterness,
                        "registered": (sum(n in registered for n in scene_imgs) / len(scene_imgs)) if scene_imgs else 0.0,
-                       "clusters": len(clusters), "pairs": len(pairs),
+                       "clusters": len(clusters), "pairs": len(pairs) if not reference else len(names) * (len(names) - 1) // 2,
                        "NM": float(np.mean([r["NM"] for r in verified])) if verified else 0.0,
                        "NI": float(np.mean([r["NI"] for r in verified])) if verified else 0.0,
                        "ransac_seconds_median": float(np.median(rs)) if rs else 0.0,
                        "map_seconds": map_dt, "excluded": len(sc.excluded or []),
-                       "mapper": self.rc.mapper, "failure": failure, "submission": str(path),
+                       "mapper": "incremental" if reference else self.rc.mapper, "failure": failure,
+                       "submission": str(path),
                        "ground_truth_scenes": {k: v.to_dict() for k, v in result.scenes.items()},
                        "outliers_registered": result.outliers_registered,
                        "pair_failures": sum(1 for r in verified if r["failure"])}
             per[sc.name] = summary
-            records.append({"dataset": sc.name, "scene": sc.name, "pair": "the whole dataset", **{k: summary[k] for k in ("score", "mAA", "clusterness", "registered",
-                                                                           "clusters", "map_seconds", "failure",
-                                                                           "submission")},
-                            "ransac_seconds": float(np.sum(rs)), "pair_ransac_seconds": rs})
+            records.append({"dataset": sc.name, "scene": sc.name, "pair": "the whole dataset",
+                            **{k: summary[k] for k in ("score", "mAA", "clusterness", "registered", "clusters",
+                                                       "map_seconds", "failure", "submission")},
+                            "ransac_seconds": float(np.sum(rs)) if rs else 0.0, "pair_ransac_seconds": rs})
             if on_step is not None:
                 on_step(idx, len(scenes), _mean(per))
         summary = _mean(per)

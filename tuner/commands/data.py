@@ -6,7 +6,7 @@ from pathlib import Path
 
 from pipeline.data.locate import resolve_data
 from pipeline.errors import ImtuneError
-from tuner.argtypes import positive_int, scene_list
+from tuner.argtypes import count_int, positive_int, scene_list
 
 DATA_HELP = "data folder (default: $IMTUNE_DATA, imtune.yaml, else strecha in the download location or ../shared/data)"
 
@@ -67,6 +67,10 @@ def register(sub) -> None:
     x.add_argument("--threshold-scale", type=float, default=1.0,
                    help="multiply the challenge's thresholds (0.025 ... 1.0 m) by this (scenes in other units)")
     x.add_argument("--copy", action="store_true", help="copy the images (default: symbolic links)")
+    x.add_argument("--every", type=positive_int, default=1,
+                   help="a sparse subset: every k-th image of each scene, in name order (default 1: all)")
+    x.add_argument("--max-outliers", type=count_int, default=None,
+                   help="at most this many outlier images, spread evenly over the --outliers scenes (default: all)")
     x.add_argument("--json", action="store_true", help="print one JSON object")
     x.set_defaults(func=run_to_imc)
     ap.set_defaults(func=lambda a: (ap.print_help(), 2)[1])
@@ -80,7 +84,8 @@ def run_to_imc(args) -> int:
     root = locate(args.data).path
     out = export_imc(root, args.scenes.split(","), args.out, args.dataset,
                      outliers=args.outliers.split(",") if args.outliers else [],
-                     threshold_scale=args.threshold_scale, copy=args.copy)
+                     threshold_scale=args.threshold_scale, copy=args.copy, every=args.every,
+                     max_outliers=args.max_outliers)
     if args.json:
         print(json.dumps(out, indent=2))
     else:

@@ -6,6 +6,7 @@ import math
 import sys
 
 from pipeline.errors import ImtuneError
+from tuner.argtypes import count_int
 from tuner.evaluate import evaluate_config
 from tuner.formatting import render
 from tuner.options import (  # --config (issue 13 item 8)
@@ -36,6 +37,18 @@ def register(sub) -> None:
     add_pipeline_options(ap)
     ap.add_argument("--task", default="stereo", choices=task_choices(), help="a task (see `tune list`), or both")
     add_multiview_options(ap)
+    r = ap.add_argument_group("reconstruction pipeline (--task reconstruction)")
+    r.add_argument("--verifier", default=None, choices=["ours", "colmap"],
+                   help="who verifies the tentative matches: ours (--ransac, eta, Gamma; default) or colmap (COLMAP's "
+                        "two-view verification at pycolmap's defaults)")
+    r.add_argument("--two-view", default=None, choices=["F", "colmap"],
+                   help="what the database stores of a verified pair: F (default) or colmap (COLMAP's two-view "
+                        "estimation on our inliers picks calibrated E, planar H or F)")
+    r.add_argument("--shortlist", type=count_int, default=None,
+                   help="partners per image matched above 30 images (default 20; 0: every pair)")
+    r.add_argument("--recon-pipeline", default=None, choices=["imtune", "colmap"],
+                   help="imtune (default) or colmap: COLMAP out of the box (its SIFT, exhaustive matching, "
+                        "verification, mapper), the reference `tune test` compares with")
     ap.add_argument("--pairs", action="store_true", help="include every pair record in the JSON")
     ap.add_argument("--bag-records", action="store_true", help="include every multiview bag record in the JSON")
     ap.add_argument("--intermediate", action="store_true",
@@ -182,12 +195,20 @@ def run(args) -> int:
     for flag, on in (("--pairs", args.pairs), ("--bag-records", args.bag_records)):
         if on and not args.json:  # the records go into the JSON only: without --json it was ignored, unsaid
             raise ImtuneError(f"{flag} adds records to the JSON output only: add --json (or drop {flag})")
-    conf, source = config_of(args)
     from pipeline.tasks import task_list
-    from tuner.options import check_multiview_only
+    from tuner.options import apply_task_defaults, check_multiview_only
+    if not getattr(args, "config", None):
+        apply_task_defaults(args, task_list(args.task))  # the reconstruction task's own defaults (COLMAP's SIFT)
+    conf, source = config_of(args)
     check_multiview_only(args, task_list(args.task))
+    recon = {k: getattr(args, d) for k, d in (("verifier", "verifier"), ("two_view", "two_view"),
+                                               ("shortlist", "shortlist"), ("pipeline", "recon_pipeline"))
+             if getattr(args, d, None) is not None}
+    if recon and "reconstruction" not in task_list(args.task):
+        flag = {"pipeline": "--recon-pipeline"}.get(next(iter(recon)), "--" + next(iter(recon)).replace("_", "-"))
+        raise ImtuneError(f"{flag} is an option of the reconstruction task: add --task reconstruction, or drop it")
     data = resolve_data(args.data)
-    out = evaluate_config(conf, data, args.scenes, cache_dir=args.cache,
+    out = evaluate_config(conf, data, args.scenes, cache_dir=args.cache, task_options=recon or None,
                           min_covisibility=args.covisibility, progress=not (args.quiet or args.json),
                           with_pairs=args.pairs, task=args.task, multiview=multiview_config(args), workers=args.workers,
                           mapper=args.mapper, submission=args.submission,

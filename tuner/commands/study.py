@@ -85,11 +85,12 @@ def _stereo_only_given(args) -> tuple:
 
 
 def resolve_reference(value: str | None, sdir):
-    """``--reference``: "paper" (None), "none", or a config file / study resolved to its Source."""
+    """``--reference``: the task's default (None), "paper", "colmap", "none", or a config file / study resolved to
+    its Source."""
     from tuner.select import reference_spec
     kind = reference_spec(value)
-    if kind in ("paper", "none"):
-        return kind
+    if kind in ("default", "paper", "colmap", "none"):
+        return None if kind == "default" else kind
     from tuner.sources import resolve_source
     return resolve_source(kind, sdir)
 
@@ -102,9 +103,10 @@ def _select_opts(g) -> None:
                         f"trials within one standard error of the best), smooth (best of the surface averaged over "
                         f"neighbouring trials), lower-bound (highest lower end of the validation 95%% interval); "
                         f"see the docs' Tuning page (default: the study's rule, else {DEFAULT_RULE})")
-    g.add_argument("--reference", default=None, metavar="FILE|STUDY|none",
+    g.add_argument("--reference", default=None, metavar="FILE|STUDY|paper|colmap|none",
                    help="configuration the test runs are compared with on the same pairs (paired bootstrap): a "
-                        "config file or study, none to skip (default: the paper defaults r 0.85 both, eta 0.5 px, "
+                        "config file or study, paper, colmap (COLMAP out of the box: the reconstruction task's "
+                        "default), none to skip (default: the paper defaults r 0.85 both, eta 0.5 px, "
                         "Gamma 50k with the study's feature and estimator)")
 
 
@@ -204,6 +206,8 @@ def register(sub) -> None:
     add_jobs_option(t)
     from tuner.cli import RESUME_NOTE
     ap.set_defaults(func=run, on_interrupt=RESUME_NOTE)
+    from tuner.options import track_explicit
+    track_explicit(ap)  # which pipeline options were typed: the others take the task's defaults (apply_task_defaults)
     if hasattr(ap, "set_less_used"):  # `tune run -h`: what most people set; `tune run --help-all`: everything
         ap.set_less_used(RUN_LESS_USED)
 
@@ -351,6 +355,8 @@ def settings_from_args(args):
     if getattr(args, "matches", None) and pinned:  # was "--fix ratio is given twice (ratio=0.7 and ratio=1.0)"
         raise ImtuneError(f"--fix {pinned[0].strip()} does not apply with --matches custom:DIR: imported matches skip the "
                           "matcher (ratio and strategy are fixed at r=1 both); drop it")
+    from tuner.options import apply_task_defaults
+    apply_task_defaults(args, [args.task])  # the reconstruction task's own defaults (COLMAP's SIFT)
     base = build_config(args, ratio=1.0, threshold=0.5, max_iters=1000,
                         seed=args.seed if args.seed is not None else 0)
     _check_strategy(args, base)
