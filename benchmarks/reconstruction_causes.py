@@ -78,7 +78,11 @@ def main(argv=None) -> int:
                     help="with --only: take the 'before' score from the results file instead of measuring it again")
     ap.add_argument("--cache", default=None)
     ap.add_argument("--write", action="store_true", help="write benchmarks/results/reconstruction-causes.{md,json}")
+    ap.add_argument("--render", action="store_true", help="only write the .md again from the recorded .json")
     a = ap.parse_args(argv)
+    if a.render:
+        write_md(json.loads((RESULTS / "reconstruction-causes.json").read_text()), RESULTS / "reconstruction-causes.md")
+        return 0
 
     from pipeline.cache import H5Cache
     from pipeline.config import GeometryConfig
@@ -152,16 +156,23 @@ def write(rows: list[dict], command: str, a) -> None:
         for k in ("command", "date", "num_features", "seed", "workers"):
             run.pop(k, None)
     jpath.write_text(json.dumps(old, indent=2) + "\n")
-    lines = ["| dataset | cause | change | before | after | registered | clusters |",
-             "| --- | --- | --- | ---: | ---: | ---: | ---: |"]
+    write_md(old, mpath)
+
+
+def write_md(old: dict, mpath: Path) -> None:
+    """The results page: one table per dataset (a page's width: no dataset column), then every row's command."""
+    lines: list[str] = []
     commands: dict[str, list[str]] = {}
     for ds, run in old["runs"].items():
+        lines += [f"Dataset `{ds}`:", "", "| cause | change | before | after | registered | clusters |",
+                  "| --- | --- | ---: | ---: | ---: | ---: |"]
         for r in run["rows"]:
-            lines.append(f"| `{ds}` | {r['cause']} | {r['change']} | {r['before']:.3f} | {r['score']:.3f} | "
+            lines.append(f"| {r['cause']} | {r['change']} | {r['before']:.3f} | {r['score']:.3f} | "
                          f"{100 * r['registered']:.0f}% | {r['clusters']} |")
             commands.setdefault(f"`{r['command']}`, {r['date']}", []).append(f"{ds}: {r['cause']}")
+        lines.append("")
     notes = [f"- {c}: {', '.join(v)}." for c, v in commands.items()]
-    mpath.write_text("\n".join(lines) + "\n\nIncremental mapper; every row's command and date:\n\n" + "\n".join(notes)
+    mpath.write_text("\n".join(lines) + "\nIncremental mapper; every row's command and date:\n\n" + "\n".join(notes)
                      + "\n")
 
 

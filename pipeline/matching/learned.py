@@ -130,4 +130,6 @@ def check_pair(method: str, feature, options=()) -> None:
 
 
 def _register() -> None:
-    import pipeline.matching.lightglue  # noqa: F401  (registers "lightglue")
+    # the package imports its learned matchers (registering them), as pipeline.features imports its extractors:
+    # importing pipeline.matching.lightglue here would tie the two modules in a cycle (it subclasses LearnedMatcher)
+    import pipeline.matching  # noqa: F401
