@@ -94,10 +94,17 @@ def _sqlite_hint(msg: str) -> str:
     return ""
 
 
+WAL_CHECKPOINT_PAGES = 256  # pages of write-ahead log between automatic checkpoints (SQLite's default: 1000)
+WAL_SIZE_LIMIT = 1 << 20  # bytes the log file is truncated to after a checkpoint (SQLite's default: no limit)
+
+
 def _sqlite_pragmas(engine) -> None:
     """Per connection: WAL with synchronous=NORMAL (a commit no longer waits for fsync; a killed
     process loses nothing committed, only a power cut could lose the last commits) and the busy timeout
-    in SQLite itself as well as in the Python driver."""
+    in SQLite itself as well as in the Python driver. The write-ahead log is checkpointed every 256 pages (1 MiB;
+    SQLite's default is 1000, 4 MiB) and truncated to 1 MiB after a checkpoint: every trial's heartbeats and claims
+    are commits, and on a nearly full disk a log grown to 4 MiB beside a study of a few hundred KiB failed a rerun
+    with "database or disk is full" after the space had been freed (tests/test_faults_storage.py)."""
     from sqlalchemy import event
 
     @event.listens_for(engine, "connect")
@@ -106,6 +113,8 @@ def _sqlite_pragmas(engine) -> None:
         try:
             cur.execute(f"PRAGMA busy_timeout={int(SQLITE_TIMEOUT_S * 1000)}")
             cur.execute("PRAGMA synchronous=NORMAL")
+            cur.execute(f"PRAGMA wal_autocheckpoint={WAL_CHECKPOINT_PAGES}")
+            cur.execute(f"PRAGMA journal_size_limit={WAL_SIZE_LIMIT}")
         finally:
             cur.close()
 
