@@ -10,7 +10,6 @@ See ``knn.py`` for how the search is done and ``filter.py`` for the matching con
 from __future__ import annotations
 
 from pipeline.config import MatchConfig
-from pipeline.matching import lightglue  # noqa: F401, E402  (registers the learned matcher "lightglue"; torch loads lazily)
 from pipeline.matching.filter import filter_matches
 from pipeline.matching.knn import KnnTables, knn_tables, warmup
 

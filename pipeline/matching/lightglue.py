@@ -23,7 +23,7 @@ import numpy as np
 
 from pipeline.errors import ImtuneError
 from pipeline.features.kornia_base import package_version
-from pipeline.matching.learned import LEARNED_MATCHERS, LearnedMatcher, LearnedMatches
+from pipeline.matching.learned_base import LEARNED_MATCHERS, LearnedMatcher, LearnedMatches
 
 #: feature registry name -> (kornia's LightGlue feature key, weights component of pipeline.features.kornia_base)
 FEATURES: dict[str, tuple[str, str]] = {"aliked": ("aliked", "lightglue-aliked"), "disk": ("disk", "lightglue-disk")}
