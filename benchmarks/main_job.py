@@ -48,10 +48,10 @@ def one_run(seed: int, mode: str, data: str | None) -> dict:
         raise SystemExit(f"{mode} seed {seed} failed: {(r.stderr.strip().splitlines() or ['?'])[-1]}")
     out = json.loads(r.stdout)
     test = out.get("test") or {}
-    runs = [[{"scene": x["scene"], "pair": x["pair"], "err": x["err"]} for x in run] for run in test_records(tmp)]
+    runs = test_records(tmp)
     shutil.rmtree(tmp, ignore_errors=True)
     mean = test.get("mean") or {}
-    ci = (test.get("ci") or {}).get("mAA10")
+    ci = mean.get("mAA10_ci")
     return {"seed": seed, "mode": mode, "wall": wall, "load_before": load,
             "trials_run": len(out["worker"]["trials_run"]), "search_seconds": out["worker"]["seconds"],
             "time_limit": out["worker"].get("time_limit"), "counts": out["counts"],
@@ -61,12 +61,14 @@ def one_run(seed: int, mode: str, data: str | None) -> dict:
 
 
 def test_records(tmp: Path) -> list:
-    """The per-pair records of every test run of the study under ``tmp`` (its test.json)."""
+    """The per-pair records {scene, pair, err} of every test run of the study under ``tmp`` (its test.json's
+    ``pair_errors``; an error of None / "inf" is a failed pair)."""
     found = sorted((tmp / "studies").glob("*/test.json"))
     if not found:
         return []
     t = json.loads(found[0].read_text())
-    return [run.get("records") or [] for run in t.get("runs") or []]
+    return [[{"scene": sc, "pair": pair, "err": float("inf") if err in (None, "inf") else float(err)}
+             for sc, pair, err in run.get("pair_errors") or []] for run in t.get("runs") or []]
 
 
 def summary(runs: list) -> dict:
