@@ -43,7 +43,8 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
 # first: pytest-xdist hands whole files (--dist loadfile) to its processes in collection order (pyproject:
 # --no-loadscope-reorder; its own reorder, by number of tests, put these few-test, minute-long files last, and
 # the run ended on one of them while the other process idled). Files not listed keep their order after these.
-SLOWEST_FILES = ("test_tuner_study.py", "test_workers.py", "test_faults_processes.py", "test_findings.py", "test_pareto.py",
+SLOWEST_FILES = ("test_tuner_study.py", "test_workers.py", "test_faults_processes.py", "test_findings.py",
+                 "test_export.py", "test_pareto.py", "test_bad_input_files.py",
                  "test_faults_storage.py", "test_intervals_real.py", "test_gt_build.py", "test_warm_start.py",
                  "test_ground_truth_origin.py", "test_evaluate_config.py", "test_cli_evaluate.py",
                  "test_credentials.py", "test_viz_multiview.py", "test_tuner_postgres.py",
