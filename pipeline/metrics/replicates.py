@@ -62,6 +62,16 @@ FEW_PAIRS_NOTE = ("fewer than 10 test pairs in a scene and a figure near the cei
 #: the fewest replicates per side for a tuned verdict: K = 2 leaves the tuning variance one degree of freedom, and
 #: the calibration benchmark measured the interval of a K = 2 figure covering 0.89-0.91 where tuning dominates
 MIN_VERDICT_K = 3
+#: the spread over pairs of a real difference, as a share of it (see :meth:`ReplicatedDifference.se_at`): under
+#: a probit link the per-pair effect of a method shift is proportional to phi(Phi^-1(score)), whose coefficient of
+#: variation over the pairs of the calibration benchmark's world (pair log errors spread 0.45) is about 0.6; the
+#: median se at the truth grew there as if by 0.6-0.65 with 8 pairs and a small tuning sd. 0.4, not 0.6, because
+#: :attr:`ReplicatedDifference.power_se` already errs on the side of power where replicate parts on 2 df dominate
+#: (each part median-unbiased on its own df): over 14 verdict cells simulated to choose it (400-600 data sets
+#: each), 0.3 / 0.4 / 0.6 put the power at the median "could detect" figure in 0.74-0.89 / 0.77-0.90 / 0.79-0.96,
+#: and the calibration benchmark's own cells at 8 pairs reached 0.72 with 5 vs 5 at 0.35, 0.80-0.86 at 0.4. An
+#: assumption about how real differences spread over pairs: docs/statistics.md states it.
+EFFECT_CV = 0.4
 #: the confidence level of the replicate term at which the df are computed (see ``_variance``)
 DF_BOUND = 0.40
 
@@ -134,6 +144,9 @@ class ReplicatedDifference:
     #: the variance parts of ``se`` as (value, df): each replicate part (with its 1 / K coefficient) and the
     #: pair-effect part (possibly negative; see ``_variance``)
     var_terms: tuple = ()
+    #: the figures (plain means) of A and of B, in [0, 1] for mAA scores: :meth:`se_at` scales the lower one's
+    #: replicate part by the slope of the scale there
+    side_means: tuple = ()
 
     # computed on first use: each solves for a power or draws a bootstrap, which the many comparisons of a
     # simulation do not all need
@@ -151,16 +164,51 @@ class ReplicatedDifference:
         parts = [max(v, 0.0) * median_unbiased(d) for v, d in self.var_terms]
         return max(self.se, math.sqrt(sum(parts)))
 
+    def se_at(self, effect: float) -> float:
+        """The standard error the test would have if the true |A - B| were ``effect``: :attr:`power_se` (each part
+        median-unbiased) with two changes that a bounded score brings, both measured in the calibration benchmark
+        (``python benchmarks/verdict_calibration.py``; the truth at the median "could detect" figure reached 0.73
+        with 5 vs 5 replicates on 8 pairs and 0.90 with 3 vs 3 and a large tuning sd before them):
+
+        - a real difference is not the same on every pair: on a score bounded in [0, 1] a method shift moves pairs
+          in mid-range more than pairs near 0 or 1 (a probit link: the effect on a pair is proportional to the
+          slope phi(Phi^-1(score))), so the per-pair differences spread by about ``EFFECT_CV`` x effect and the
+          pair part grows by (EFFECT_CV effect)^2 / N. Null data carry no trace of it (in the benchmark's world the
+          median se at the truth was 1.3x the null's with 8 test pairs and a small tuning sd);
+        - the side that falls by ``effect`` moves toward 0, where the same tuning shift moves the score less: its
+          replicate part is scaled by the squared ratio of the probit slopes at its figure now and at the figure
+          minus ``effect`` (with a large tuning sd the median se fell to 0.87x the null's at the truth). Which
+          side falls: the lower one (B at a tie). A borrowed side (K = 1) keeps the part unscaled.
+
+        At ``effect`` 0 it is :attr:`power_se`."""
+        e = abs(effect)
+        if not self.var_terms or e == 0:
+            return self.power_se
+        var = self.power_se ** 2 + (EFFECT_CV * e) ** 2 / max(self.pairs, 1)
+        if len(self.var_terms) == 3 and self.side_means:  # both sides measured: the falling side's part scales
+            low = 1 if self.side_means[1] <= self.side_means[0] else 0
+            v, d = self.var_terms[low]
+            var -= max(v, 0.0) * median_unbiased(d) * (1.0 - _slope_ratio(self.side_means[low], e) ** 2)
+        return math.sqrt(max(var, 0.0))
+
     def power_at(self, effect: float) -> float:
         """The power of this comparison's test (its df, at its alpha) when the true |A - B| is ``effect``, at
-        :attr:`power_se`: what 'could detect' means (``power_at(mde)`` is 0.80)."""
-        if self.power_se <= 0:
+        :meth:`se_at` (``effect``): what 'could detect' means (``power_at(mde)`` is 0.80)."""
+        se = self.se_at(effect)
+        if se <= 0:
             return 1.0 if effect else self.alpha
-        return power(abs(effect) / self.power_se, self.df, self.alpha)
+        return power(abs(effect) / se, self.df, self.alpha)
 
     @functools.cached_property
     def mde(self) -> float:
-        return detectable(self.power_se, self.df, self.alpha)
+        """The smallest true |A - B| with :meth:`power_at` 0.80 (scipy's brentq over (0, 1]; inf where no
+        difference within the score's range reaches it)."""
+        from scipy.optimize import brentq
+        if self.power_se <= 0:
+            return 0.0
+        if self.power_at(1.0) < POWER:
+            return math.inf
+        return float(brentq(lambda e: self.power_at(e) - POWER, 1e-9, 1.0, xtol=1e-5))
 
     @functools.cached_property
     def plan(self) -> str:
@@ -339,6 +387,15 @@ def _chi2_quantile(q: float, df: float) -> float:
     return float(special.chdtri(df, 1.0 - q))  # chdtri(df, y) is the chi-square quantile of upper tail y
 
 
+def _slope_ratio(m: float, effect: float) -> float:
+    """phi(Phi^-1(m - effect)) / phi(Phi^-1(m)): how much less (or more) a score at mean ``m`` moves per unit of a
+    latent shift after falling by ``effect``, under a probit link (both clipped into [1e-4, 1 - 1e-4])."""
+    lo, hi = 1e-4, 1 - 1e-4
+    z0 = float(special.ndtri(min(max(m, lo), hi)))
+    z1 = float(special.ndtri(min(max(m - effect, lo), hi)))
+    return math.exp(-0.5 * (z1 * z1 - z0 * z0))
+
+
 def median_unbiased(df: float) -> float:
     """The factor df / chi2_df(0.5) that makes a variance estimate on ``df`` df (s^2 ~ sigma^2 chi2_df / df)
     median-unbiased: 1.44 at 2 df, 1.19 at 4, 1.03 at 30, 1 at inf."""
@@ -377,12 +434,22 @@ def replicated_maa_interval(scores, strata, *, alpha: float = 0.05, **_ignored) 
     interval formed on the logit scale (:func:`logit_interval`). ``note``: :data:`FEW_PAIRS_NOTE` where a scene has
     fewer than FEW_PAIRS pairs and the figure is above NEAR_CEILING (where the benchmark measured it short)."""
     scores, strata = _check(scores, strata)
-    iv = replicated_interval(scores * scene_weights(strata)[None, :], strata, alpha=alpha)
-    q = t_quantile(1 - alpha / 2, iv.df)
-    lo, hi = logit_interval(iv.mean, (iv.high - iv.mean) / q if q > 0 else 0.0, q)
+    weighted = scores * scene_weights(strata)[None, :]
+    iv = replicated_interval(weighted, strata, alpha=alpha)
+    # the df at most the pair part's own (the df of K = 1). Why: the model's df pools the replicate figures' K - 1
+    # df with the pair-effect part's, as if each were chi-square; near the ceiling the per-pair scores are skewed
+    # (a few low pairs among many at 1), so the pair variance from 4 pairs a scene is far less stable than
+    # chi-square on its df, and a df above it narrows the interval exactly where the figure is high by chance.
+    # Measured at 8 test pairs near mAA(10) 0.89 (600 simulated data sets per cell of the calibration benchmark's
+    # world): K = 5 covered 0.887-0.937 with the pooled df and 0.932-0.972 with the cap; K = 1 (df = the pair
+    # part's) 0.940-0.970 either way; at 30 pairs and more the cap rarely binds.
+    df = min(iv.df, pair_part(weighted.mean(axis=0), strata)[1])
+    q = t_quantile(1 - alpha / 2, df)
+    half = (iv.high - iv.mean) / t_quantile(1 - alpha / 2, iv.df) if iv.high > iv.mean else 0.0
+    lo, hi = logit_interval(iv.mean, half, q)
     few = min(np.unique(strata, return_counts=True)[1]) < FEW_PAIRS and iv.mean > NEAR_CEILING
     return ReplicatedInterval(iv.mean, lo, hi, iv.replicates, iv.se_pairs, iv.se_between,
-                              iv.tuning_variance_measured, iv.df, FEW_PAIRS_NOTE if few else "")
+                              iv.tuning_variance_measured, df, FEW_PAIRS_NOTE if few else "")
 
 
 def logit_interval(mean: float, se: float, q: float) -> tuple[float, float]:
@@ -554,7 +621,8 @@ def replicated_difference(a, b, strata=None, *, alpha: float = 0.05, seed: int =
         strata=len(np.unique(strata)), assumption=assumption,
         components={"pairs": vp, "pairs_df": dfp, "pair_effects": pair_effects, "tuning_a": tune_a,
                     "tuning_b": tune_b, "interaction_a": res_a, "interaction_b": res_b},
-        row_terms=tuple(rows), seed=seed, plan_target=plan_target, var_terms=tuple(parts))
+        row_terms=tuple(rows), seed=seed, plan_target=plan_target, var_terms=tuple(parts),
+        side_means=(float(a.mean()), float(b.mean())))
 
 
 def difference_block(d: ReplicatedDifference, a: str = "A", b: str = "B", b_tuned: bool = True) -> dict:
