@@ -477,7 +477,10 @@ def table(cells: list[dict]) -> str:
 
 def _span(values) -> str:
     vals = [v for v in values if v is not None and not (isinstance(v, float) and math.isnan(v))]
-    return "-" if not vals else f"{min(vals):.3f}-{max(vals):.3f}" if len(vals) > 1 else f"{vals[0]:.3f}"
+    if not vals:
+        return "-"
+    lo, hi = f"{min(vals):.3f}", f"{max(vals):.3f}"
+    return lo if lo == hi else f"{lo}-{hi}"
 
 
 def sections(saved: dict) -> str:
