@@ -111,6 +111,6 @@ def test_the_docs_sections_hold_each_verdict_cells_power_and_the_figure_ranges()
     text = m.sections({"sims": 400, "cells": cells})
     assert "| 8 | small | 0.81 (0.200) | 0.77 (0.200) | - |" in text
     assert "| 30 | small | - | - | 0.80 (0.200) |" in text
-    assert "Range over the 3 verdict cells: 0.774-0.812." in text
+    assert "Over the 3 verdict cells: 0.774-0.812." in text
     assert "| 3 | 0.950 | 0.960 | 0.930 | 0.920 | - | - |" in text
-    assert text.count("[start:") == text.count("[end:") == 2
+    assert text.count("[start:") == text.count("[end:") == 3
