@@ -222,3 +222,15 @@ def test_tuned_figure_with_5_replicates_from_8_pairs_near_the_ceiling_covers(sd_
         iv = replicated_maa_interval(_maa_side(rng, rng.normal(mu, MAA_PAIR_SD), 5, tau), strata)
         hits += iv.low <= truth <= iv.high
     assert 0.915 <= hits / 400 <= 0.985, hits / 400
+
+
+def test_a_comparison_that_can_detect_nothing_says_so_in_words():
+    """2 test pairs, 3 vs 3 replicates: the spread of a difference over 2 pairs grows as fast as the difference,
+    so no true difference reaches 80% power; the line says so instead of printing '>= inf'."""
+    rng = np.random.default_rng(0)
+    a = np.clip(rng.normal(0.5, 0.3, (3, 2)), 0, 1)
+    b = np.clip(rng.normal(0.5, 0.3, (3, 2)), 0, 1) + rng.normal(0, 0.1, (3, 1))
+    d = replicated_difference(a, b, np.zeros(2, int))
+    assert math.isinf(d.mde) and d.power_at(1.0) < 0.80
+    line = d.verdict()
+    assert "inf" not in line and "no difference would be detected with 80% power" in line

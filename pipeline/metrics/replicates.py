@@ -201,14 +201,16 @@ class ReplicatedDifference:
 
     @functools.cached_property
     def mde(self) -> float:
-        """The smallest true |A - B| with :meth:`power_at` 0.80 (scipy's brentq over (0, 1]; inf where no
-        difference within the score's range reaches it)."""
+        """The smallest true |A - B| with :meth:`power_at` 0.80 (scipy's brentq up to 60 power_se, at least 1, as
+        :func:`detectable` searches; inf where nothing there reaches it: df < 1, or the spread of a difference over
+        very few pairs growing as fast as the difference)."""
         from scipy.optimize import brentq
         if self.power_se <= 0:
             return 0.0
-        if self.power_at(1.0) < POWER:
+        top = max(1.0, 60.0 * self.power_se)
+        if self.power_at(top) < POWER:
             return math.inf
-        return float(brentq(lambda e: self.power_at(e) - POWER, 1e-9, 1.0, xtol=1e-5))
+        return float(brentq(lambda e: self.power_at(e) - POWER, 1e-9, top, xtol=1e-5))
 
     @functools.cached_property
     def plan(self) -> str:
@@ -269,7 +271,8 @@ class ReplicatedDifference:
         if self.significant:
             line = f"{head}: significant"
         else:
-            line = f"{head}: inconclusive: could detect |{a} - {b}| >= {self.mde:.3f}"
+            line = (f"{head}: inconclusive: could detect |{a} - {b}| >= {self.mde:.3f}" if math.isfinite(self.mde)
+                    else f"{head}: inconclusive: no difference would be detected with {POWER:.0%} power")
             if self.plan:
                 line += f"; {self.plan}"
         if self.p_a_beats_b is not None and self.p_a_beats_b_ci is not None:
