@@ -65,13 +65,11 @@ MIN_VERDICT_K = 3
 #: the spread over pairs of a real difference, as a share of it (see :meth:`ReplicatedDifference.se_at`): under
 #: a probit link the per-pair effect of a method shift is proportional to phi(Phi^-1(score)), whose coefficient of
 #: variation over the pairs of the calibration benchmark's world (pair log errors spread 0.45) is about 0.6; the
-#: median se at the truth grew there as if by 0.6-0.65 with 8 pairs and a small tuning sd. 0.4, not 0.6, because
-#: :attr:`ReplicatedDifference.power_se` already errs on the side of power where replicate parts on 2 df dominate
-#: (each part median-unbiased on its own df): over 14 verdict cells simulated to choose it (400-600 data sets
-#: each), 0.3 / 0.4 / 0.6 put the power at the median "could detect" figure in 0.74-0.89 / 0.77-0.90 / 0.79-0.96,
-#: and the calibration benchmark's own cells at 8 pairs reached 0.72 with 5 vs 5 at 0.35, 0.80-0.86 at 0.4. An
-#: assumption about how real differences spread over pairs: docs/statistics.md states it.
-EFFECT_CV = 0.4
+#: median se at the truth grew there as if by 0.4-0.65. Over 14 verdict cells simulated to choose it (400-600 data
+#: sets each, :meth:`ReplicatedDifference.df_at` included), 0.4 / 0.5 / 0.6 put the power at the median "could
+#: detect" figure in 0.75-0.85 / 0.75-0.86 / 0.75-0.88. An assumption about how real differences spread over
+#: pairs: docs/statistics.md states it.
+EFFECT_CV = 0.5
 #: the confidence level of the replicate term at which the df are computed (see ``_variance``)
 DF_BOUND = 0.40
 
@@ -174,30 +172,49 @@ class ReplicatedDifference:
           in mid-range more than pairs near 0 or 1 (a probit link: the effect on a pair is proportional to the
           slope phi(Phi^-1(score))), so the per-pair differences spread by about ``EFFECT_CV`` x effect and the
           pair part grows by (EFFECT_CV effect)^2 / N. Null data carry no trace of it (in the benchmark's world the
-          median se at the truth was 1.3x the null's with 8 test pairs and a small tuning sd);
+          median se at the truth was a third above the null's with 8 test pairs and a small tuning sd);
         - the side that falls by ``effect`` moves toward 0, where the same tuning shift moves the score less: its
           replicate part is scaled by the squared ratio of the probit slopes at its figure now and at the figure
-          minus ``effect`` (with a large tuning sd the median se fell to 0.87x the null's at the truth). Which
-          side falls: the lower one (B at a tie). A borrowed side (K = 1) keeps the part unscaled.
+          minus ``effect`` (with a large tuning sd the median se at the truth was 0.87 of the null's). Which side
+          falls: the lower one (B at a tie). A borrowed side (K = 1) keeps its part unscaled.
 
         At ``effect`` 0 it is :attr:`power_se`."""
+        return self._at(effect)[0]
+
+    def df_at(self, effect: float) -> float:
+        """The df the test would have at a true |A - B| of ``effect``: Welch-Satterthwaite's over the estimated
+        parts as :func:`_variance` forms them, with the pair part grown and the falling side's replicate part
+        scaled as in :meth:`se_at`. Why: the spread of a real difference raises the pair part's share, and with it
+        the test's df; power at the null's df under-promised where replicate parts on 2 df dominate (3 vs 3 at 8
+        pairs: 0.93 reached at the median figure against 0.80). ``df`` at ``effect`` 0."""
+        return self._at(effect)[1]
+
+    def _at(self, effect: float) -> tuple[float, float]:
         e = abs(effect)
         if not self.var_terms or e == 0:
-            return self.power_se
-        var = self.power_se ** 2 + (EFFECT_CV * e) ** 2 / max(self.pairs, 1)
-        if len(self.var_terms) == 3 and self.side_means:  # both sides measured: the falling side's part scales
+            return self.power_se, self.df
+        hetero = (EFFECT_CV * e) ** 2 / max(self.pairs, 1)
+        var = self.power_se ** 2 + hetero
+        rows = [(max(v, 0.0), d) for v, d in self.var_terms[:-1]]
+        if len(rows) == 2 and self.side_means:  # both sides measured: the falling side's part scales
             low = 1 if self.side_means[1] <= self.side_means[0] else 0
-            v, d = self.var_terms[low]
-            var -= max(v, 0.0) * median_unbiased(d) * (1.0 - _slope_ratio(self.side_means[low], e) ** 2)
-        return math.sqrt(max(var, 0.0))
+            v, d = rows[low]
+            shrink = _slope_ratio(self.side_means[low], e) ** 2
+            var -= v * median_unbiased(d) * (1.0 - shrink)
+            rows[low] = (v * shrink, d)
+        if min(self.replicates) < MIN_VERDICT_K:  # the bounded df of such comparisons (see ``_variance``)
+            rows = [(v * d / _chi2_quantile(DF_BOUND, d), d) for v, d in rows]
+        pair, dfp = self.var_terms[-1]
+        df = _welch([*rows, (max(pair, 0.0) + hetero, dfp)])[1]
+        return math.sqrt(max(var, 0.0)), df
 
     def power_at(self, effect: float) -> float:
-        """The power of this comparison's test (its df, at its alpha) when the true |A - B| is ``effect``, at
-        :meth:`se_at` (``effect``): what 'could detect' means (``power_at(mde)`` is 0.80)."""
-        se = self.se_at(effect)
+        """The power of this comparison's test (at its alpha) when the true |A - B| is ``effect``, at
+        :meth:`se_at` and :meth:`df_at` (``effect``): what 'could detect' means (``power_at(mde)`` is 0.80)."""
+        se, df = self._at(effect)
         if se <= 0:
             return 1.0 if effect else self.alpha
-        return power(abs(effect) / se, self.df, self.alpha)
+        return power(abs(effect) / se, df, self.alpha)
 
     @functools.cached_property
     def mde(self) -> float:
@@ -439,14 +456,18 @@ def replicated_maa_interval(scores, strata, *, alpha: float = 0.05, **_ignored) 
     scores, strata = _check(scores, strata)
     weighted = scores * scene_weights(strata)[None, :]
     iv = replicated_interval(weighted, strata, alpha=alpha)
-    # the df at most the pair part's own (the df of K = 1). Why: the model's df pools the replicate figures' K - 1
-    # df with the pair-effect part's, as if each were chi-square; near the ceiling the per-pair scores are skewed
-    # (a few low pairs among many at 1), so the pair variance from 4 pairs a scene is far less stable than
-    # chi-square on its df, and a df above it narrows the interval exactly where the figure is high by chance.
-    # Measured at 8 test pairs near mAA(10) 0.89 (600 simulated data sets per cell of the calibration benchmark's
-    # world): K = 5 covered 0.887-0.937 with the pooled df and 0.932-0.972 with the cap; K = 1 (df = the pair
-    # part's) 0.940-0.970 either way; at 30 pairs and more the cap rarely binds.
-    df = min(iv.df, pair_part(weighted.mean(axis=0), strata)[1])
+    # near a bound of the score (the figure above NEAR_CEILING or below 1 - NEAR_CEILING), the df at most the pair
+    # part's own (the df of K = 1). Why: the model's df pools the replicate figures' K - 1 df with the pair-effect
+    # part's, as if each were chi-square; near the ceiling the per-pair scores are skewed (a few low pairs among
+    # many at 1), so the pair variance from 4 pairs a scene is far less stable than chi-square on its df, and a df
+    # above it narrows the interval exactly where the figure is high by chance. Measured at 8 test pairs near
+    # mAA(10) 0.89 (600 simulated data sets per cell of the calibration benchmark's world): K = 5 covered
+    # 0.887-0.937 with the pooled df and 0.932-0.972 with the cap; K = 1 (df = the pair part's) 0.940-0.970.
+    # Mid-scale (mAA(10) 0.57) the scores are not skewed, the pooled df covered 0.93-0.98 and the cap took it to
+    # 0.99: not applied there.
+    df = iv.df
+    if not 1.0 - NEAR_CEILING <= iv.mean <= NEAR_CEILING:
+        df = min(df, pair_part(weighted.mean(axis=0), strata)[1])
     q = t_quantile(1 - alpha / 2, df)
     half = (iv.high - iv.mean) / t_quantile(1 - alpha / 2, iv.df) if iv.high > iv.mean else 0.0
     lo, hi = logit_interval(iv.mean, half, q)
