@@ -162,7 +162,7 @@ def test_could_detect_holds_at_8_pairs_on_maa_scores():
     """5 vs 5 replicates, 2 scenes x 4 test pairs, a small tuning sd, mAA(10) about 0.56; B another method with its
     own per-pair term. Truth at the median "could detect" figure: the replaced mde (the se of null data) reached
     0.695 here, because a real difference spreads over pairs and the se at the truth is larger than at the null;
-    now 0.76 (binomial sd 0.02 at 400 data sets; the band is the calibration benchmark's 0.74-0.88 with room for
+    now 0.785 (binomial sd 0.02 at 400 data sets; the band is the calibration benchmark's 0.74-0.88 with room for
     it). The truth is exact (sums of normal cdfs)."""
     rng = np.random.default_rng(8)
     scene_mu, tau = np.array([0.2, 0.9]), 0.022
@@ -185,10 +185,10 @@ def test_could_detect_holds_at_8_pairs_on_maa_scores():
     assert 0.74 <= float(np.mean(rejected)) <= 0.90, (target, float(np.mean(rejected)))
 
 
-def test_se_at_a_true_difference_grows_with_its_spread_and_shrinks_with_the_falling_side():
-    """Known values of the model of ``se_at``: at 0 it is ``power_se``; at a difference e it adds (EFFECT_CV e)^2 / N
-    to the variance and scales the lower side's replicate part by the squared ratio of normal densities at
-    Phi^-1(m) and Phi^-1(m - e) (scipy.stats.norm, not the module's formula)."""
+def test_se_and_df_at_a_true_difference_follow_its_spread_and_the_falling_side():
+    """Known values of the model of ``se_at`` and ``df_at``: at 0 they are ``power_se`` and ``df``; at a difference
+    e the variance gains (EFFECT_CV e)^2 / N and the lower side's replicate part is scaled by the squared ratio of
+    normal densities at Phi^-1(m) and Phi^-1(m - e) (scipy.stats.norm, not the module's formula)."""
     from scipy import stats
 
     from pipeline.metrics.replicates import EFFECT_CV, median_unbiased
@@ -202,6 +202,11 @@ def test_se_at_a_true_difference_grows_with_its_spread_and_shrinks_with_the_fall
     ratio = stats.norm.pdf(stats.norm.ppf(m_b - e)) / stats.norm.pdf(stats.norm.ppf(m_b))
     want = d.power_se**2 - rb * median_unbiased(db) * (1 - ratio**2) + (EFFECT_CV * e) ** 2 / 30
     assert d.se_at(e) == pytest.approx(math.sqrt(want), rel=1e-9)
+    # its df: Welch-Satterthwaite's (sum v)^2 / sum v^2 / df over the raw parts at e, written out here
+    pair, dfp = d.var_terms[-1]
+    parts = [(ra, da), (rb * ratio**2, db), (max(pair, 0.0) + (EFFECT_CV * e) ** 2 / 30, dfp)]
+    want_df = sum(v for v, _ in parts) ** 2 / sum(v * v / f for v, f in parts)
+    assert d.df_at(0.0) == d.df and d.df_at(e) == pytest.approx(want_df, rel=1e-9)
     assert d.power_at(d.mde) == pytest.approx(0.80, abs=2e-3)
 
 
