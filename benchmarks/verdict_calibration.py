@@ -34,6 +34,8 @@ beside power05), the coverage of the P(A > B) interval over the three scenarios 
 coverage from 8 pairs in 3 + 3 + 2 and in a world near the ceiling (``*_high``, true mAA(10) 0.88-0.90).
 
     python benchmarks/verdict_calibration.py --sims 400 --json          # 24 min on 2 shared cores
+    python benchmarks/verdict_calibration.py --sims 400 --json --verdicts-only --n-boot 0   # the 27 verdict cells
+    python benchmarks/verdict_calibration.py --from-json FILE --sections  # the sections docs/statistics.md includes
     python benchmarks/verdict_calibration.py --sims 2000 --json --out benchmarks/results/verdict_calibration.json
 """
 from __future__ import annotations
