@@ -536,6 +536,24 @@ def sections(saved: dict, source: str = "") -> str:
     return "\n".join(out)
 
 
+def mde_example(seed: int = 2) -> str:
+    """The ``mde-example`` section: the verdict line of one seeded synthetic comparison (30 pairs in 3 scenes, K = 3
+    per side, a tuning sd of 0.015, a pair x seed sd of 0.1, B worse by 0.01 on every pair), wrapped at 96 columns."""
+    import textwrap
+    rng = np.random.default_rng(seed)
+    strata = np.repeat(np.arange(3), 10)
+    pairs = rng.uniform(0.3, 0.9, 30)
+
+    def side(shift: float) -> np.ndarray:
+        return np.clip(pairs[None, :] - shift + rng.normal(0, 0.015, (3, 1)) + rng.normal(0, 0.1, (3, 30)), 0, 1)
+
+    line = replicated_difference(side(0.0), side(0.01), strata).verdict()
+    body = "\n".join("    " + x for x in textwrap.wrap(line, 92))
+    return ("<!-- --8<-- [start:mde-example] -->\n" + body + "\n\n(synthetic scores: 30 pairs in 3 scenes, K = 3 per "
+            "side, a tuning sd of 0.015 and a pair x seed sd of 0.1;\n`python benchmarks/verdict_calibration.py "
+            "--mde-example`).\n<!-- --8<-- [end:mde-example] -->")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sims", type=int, default=400, help="data sets per cell and scenario (default 400)")
@@ -551,9 +569,13 @@ def main(argv=None) -> int:
     ap.add_argument("--from-json", type=Path, help="print the table of a saved --json/--out file (no simulation)")
     ap.add_argument("--sections", action="store_true",
                     help="with --from-json: print the markdown sections docs/statistics.md includes")
+    ap.add_argument("--mde-example", action="store_true", help="print the docs' example of an inconclusive verdict")
     ap.add_argument("--figure-scales", action="store_true",
                     help="only compare the scales of the tuned figure's interval at 8 pairs (JSON rows)")
     a = ap.parse_args(argv)
+    if a.mde_example:
+        print(mde_example())
+        return 0
     if a.figure_scales:
         rows = figure_scales(a.sims, a.seed)
         text = json.dumps({"sims": a.sims, "seed": a.seed, "rows": rows}, indent=1)

@@ -57,7 +57,7 @@ PAB_DRAWS = 2000
 FEW_PAIRS = 10
 NEAR_CEILING = 0.7
 FEW_PAIRS_NOTE = ("fewer than 10 test pairs in a scene and a figure near the ceiling: intervals like this one "
-                  "covered as little as 0.87 for 0.95 in the calibration benchmark (scores near 1 are skewed); "
+                  "covered as little as 0.91 for 0.95 in the calibration benchmark (scores near 1 are skewed); "
                   "test on more pairs")
 #: the fewest replicates per side for a tuned verdict: K = 2 leaves the tuning variance one degree of freedom, and
 #: the calibration benchmark measured the interval of a K = 2 figure covering 0.89-0.91 where tuning dominates
