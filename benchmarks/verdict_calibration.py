@@ -485,6 +485,11 @@ def _span(values) -> str:
     return lo if lo == hi else f"{lo}-{hi}"
 
 
+def _signed_span(values) -> str:
+    vals = [v for v in values if v is not None]
+    return "-" if not vals else f"{min(vals):+.3f} to {max(vals):+.3f}"
+
+
 def sections(saved: dict, source: str = "") -> str:
     """The markdown sections `docs/statistics.md` includes, from a saved run (``source``: its file, named in each
     section): the power at the median "could detect" figure per verdict cell (``power-at-mde``), the tuned figure's
@@ -530,9 +535,23 @@ def sections(saved: dict, source: str = "") -> str:
             "`Phi(delta / sigma_1)` with `sigma_1^2` by Monte Carlo over pair sets), the interval covered",
             f"{_span([c.get('coverage_pab') for c in verdict])} in the {len(verdict)} verdict cells, over the null and",
             "true differences of 0.05 and 0.10; the mean error of the estimate at 0.05 and 0.10 was",
-            "{:+.3f} to {:+.3f}.".format(*(f(b for b in (c.get("bias_pab") for c in verdict) if b is not None)
-                                            for f in (min, max))),
-            "<!-- --8<-- [end:pab-coverage] -->"]
+            _signed_span([c.get("bias_pab") for c in verdict]) + ".",
+            "<!-- --8<-- [end:pab-coverage] -->", "", "<!-- --8<-- [start:verdict-ranges] -->",
+            f"Ranges over the {len(verdict)} verdict cells (K >= 3 on both sides) at {saved['sims']} data sets per cell"
+            f"{src}:", "",
+            "| what | range | target |", "|---|---|---|"]
+    for key, what, target in (
+            ("coverage_mean", "coverage of the tuned figure (4 + 4, 3 x 10, 4 x 50 pairs)", "0.93-0.97"),
+            ("coverage_mean_332", "the same from 3 + 3 + 2 pairs", "0.93-0.97"),
+            ("coverage_mean_high", "the same near the ceiling", "0.91-0.99"),
+            ("coverage_mean_332_high", "3 + 3 + 2 pairs near the ceiling", "0.91-0.99"),
+            ("coverage_diff", "coverage of the difference", "0.93-0.97"),
+            ("fp05", "false positives at .05", "0.035-0.065"), ("fp01", "false positives at .01", "<= 0.015"),
+            ("ks", "KS distance of null p-values from uniform", "small"),
+            ("power_at_mde", "power at the median \"could detect\" figure", "0.78-0.85"),
+            ("coverage_pab", "coverage of P(A > B)'s interval", "0.93-0.97")):
+        out.append(f"| {what} | {_span([c.get(key) for c in verdict])} | {target} |")
+    out.append("<!-- --8<-- [end:verdict-ranges] -->")
     return "\n".join(out)
 
 

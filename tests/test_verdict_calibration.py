@@ -113,4 +113,6 @@ def test_the_docs_sections_hold_each_verdict_cells_power_and_the_figure_ranges()
     assert "| 30 | small | - | - | 0.80 (0.200) |" in text
     assert "Over the 3 verdict cells: 0.774-0.812." in text
     assert "| 3 | 0.950 | 0.960 | 0.930 | 0.920 | - | - |" in text
-    assert text.count("[start:") == text.count("[end:") == 3
+    assert text.count("[start:") == text.count("[end:") == 4
+    assert "| false positives at .05 | - | 0.035-0.065 |" in text  # no fp05 in these cells: no range invented
+    assert "| power at the median \"could detect\" figure | 0.774-0.812 | 0.78-0.85 |" in text
