@@ -227,6 +227,8 @@ class ReplicatedDifference:
         top = max(1.0, 60.0 * self.power_se)
         if self.power_at(top) < POWER:
             return math.inf
+        if self.power_at(1e-9) >= POWER:  # a variance of ~0 (identical replicates): any difference is detected
+            return 0.0
         return float(brentq(lambda e: self.power_at(e) - POWER, 1e-9, top, xtol=1e-5))
 
     @functools.cached_property
