@@ -239,3 +239,15 @@ def test_a_comparison_that_can_detect_nothing_says_so_in_words():
     assert math.isinf(d.mde) and d.power_at(1.0) < 0.80
     line = d.verdict()
     assert "inf" not in line and "no difference would be detected with 80% power" in line
+
+
+def test_a_variance_of_about_zero_gives_a_detectable_difference_of_zero_not_an_error():
+    """B's two replicates with the same figure (up to rounding) and A's per-pair differences from them constant: the
+    variance is ~1e-24, the pair part below 0, and the spread of a difference over pairs alone would set the se
+    (the power then the same at every difference, so the root finder had no sign change): mde 0."""
+    b1 = np.array([0.3, 0.7, 0.4, 0.6, 0.5, 0.2, 0.8, 0.6])
+    alt = np.array([0.1, -0.1] * 4)
+    b = np.vstack([b1 + alt, b1 - alt + 1e-12])
+    d = replicated_difference((b1 + 0.1)[None, :], b, np.repeat([0, 1], 4))
+    assert 0 < d.power_se < 1e-9 and d.power_at(1e-9) > 0.8
+    assert d.mde == 0.0
