@@ -34,6 +34,8 @@ beside power05), the coverage of the P(A > B) interval over the three scenarios 
 coverage from 8 pairs in 3 + 3 + 2 and in a world near the ceiling (``*_high``, true mAA(10) 0.88-0.90).
 
     python benchmarks/verdict_calibration.py --sims 400 --json          # 24 min on 2 shared cores
+    python benchmarks/verdict_calibration.py --sims 400 --json --verdicts-only --n-boot 0   # the 27 verdict cells
+    python benchmarks/verdict_calibration.py --from-json FILE --sections  # the sections docs/statistics.md includes
     python benchmarks/verdict_calibration.py --sims 2000 --json --out benchmarks/results/verdict_calibration.json
 """
 from __future__ import annotations
@@ -184,14 +186,19 @@ def legacy_combine(se_p: float, se_b: float, k_min: int, alpha: float) -> float:
 
 def legacy_difference(a, b, strata, rng, n_boot: int = 2000, alpha: float = 0.05) -> tuple[float, float, float]:
     """(diff, half width, p) of the replaced replicated_difference: stratified pair bootstrap SD of the difference of
-    replicate-averaged scores, + s_between^2 / K per side, t with min(K) - 1 df, p a normal tail rescaled by z / q."""
+    replicate-averaged scores (``n_boot`` 0: the ideal bootstrap's SD, exactly; 2000 resamples vary by about 1.6%
+    around it, and drawing them took a third of the benchmark's time), + s_between^2 / K per side, t with min(K) - 1 df, p a normal tail rescaled by z / q."""
     per_pair = a.mean(axis=0) - b.mean(axis=0)
     n = per_pair.size
-    boot = np.zeros(n_boot)
-    for s in np.unique(strata):
-        g = per_pair[strata == s]
-        boot += g[rng.integers(0, g.size, (n_boot, g.size))].sum(axis=1)
-    se_p = float((boot / n).std(ddof=1))
+    if n_boot > 0:
+        boot = np.zeros(n_boot)
+        for s in np.unique(strata):
+            g = per_pair[strata == s]
+            boot += g[rng.integers(0, g.size, (n_boot, g.size))].sum(axis=1)
+        se_p = float((boot / n).std(ddof=1))
+    else:  # the ideal bootstrap (infinitely many resamples): a resampled stratum sum has variance n_s var_0(g)
+        se_p = math.sqrt(sum(float(np.sum(strata == s)) * float(np.var(per_pair[strata == s]))
+                             for s in np.unique(strata))) / n
     ka, kb = a.shape[0], b.shape[0]
     var_b = (a.mean(axis=1).var(ddof=1) / ka if ka > 1 else 0.0) + (b.mean(axis=1).var(ddof=1) / kb if kb > 1 else 0.0)
     se_b = math.sqrt(var_b)
@@ -320,7 +327,7 @@ def run_cell(args) -> list[dict]:
                 sig_null.append(new.significant)
                 iv = replicated_maa_interval(a, strata)
                 acc["new"]["cov_mean"].append(iv.low <= per["mu_a"] <= iv.high)
-                lo, hi = legacy_maa_interval(a, strata, n_boot)
+                lo, hi = legacy_maa_interval(a, strata, n_boot or 2000)
                 acc["old"]["cov_mean"].append(lo <= per["mu_a"] <= hi)
             else:
                 if dlt == DIFFS[0]:  # the power each comparison predicts for itself at the true difference
@@ -470,19 +477,124 @@ def table(cells: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def _span(values) -> str:
+    vals = [v for v in values if v is not None and not (isinstance(v, float) and math.isnan(v))]
+    if not vals:
+        return "-"
+    lo, hi = f"{min(vals):.3f}", f"{max(vals):.3f}"
+    return lo if lo == hi else f"{lo}-{hi}"
+
+
+def _signed_span(values) -> str:
+    vals = [v for v in values if v is not None]
+    return "-" if not vals else f"{min(vals):+.3f} to {max(vals):+.3f}"
+
+
+def sections(saved: dict, source: str = "") -> str:
+    """The markdown sections `docs/statistics.md` includes, from a saved run (``source``: its file, named in each
+    section): the power at the median "could detect" figure per verdict cell (``power-at-mde``), the tuned figure's
+    coverage ranges per K and design (``figure-coverage``) and P(A > B)'s coverage and mean error over the verdict
+    cells (``pab-coverage``). Printed by ``--from-json FILE --sections``: no figure typed by hand."""
+    new = [c for c in saved["cells"] if c["method"] == "new"]
+    cell = {(c["k_a"], c["k_b"], c["pairs"], c["tuning_sd"]): c for c in new}
+    pairs = sorted({c["pairs"] for c in new})
+    verdict = [c for c in new if c["claim"] == "verdict"]
+    kinds = sorted({(c["k_a"], c["k_b"]) for c in verdict})
+    src = f" (`{source}`)" if source else ""
+    out = ["<!-- --8<-- [start:power-at-mde] -->",
+           f"Measured in the calibration benchmark at {saved['sims']} simulated data sets per cell{src}: the power",
+           "reached with the truth at the median \"could detect\" figure (in brackets) of each verdict cell; B is",
+           "another method of equal quality in the data sets that give the median.", "",
+           "| pairs | tuning sd | " + " | ".join(f"{a} vs {b}" for a, b in kinds) + " |",
+           "|" + "---|" * (2 + len(kinds))]
+    for n in pairs:
+        for sd in TUNING_SD:
+            row = []
+            for a, b in kinds:
+                c = cell.get((a, b, n, sd))
+                pw = None if c is None else c.get("power_at_mde")
+                row.append("-" if pw is None else f"{pw:.2f} ({c['mde_median']:.3f})")
+            out.append(f"| {n} | {sd} | " + " | ".join(row) + " |")
+    out += ["", f"Over the {len(verdict)} verdict cells: {_span([c.get('power_at_mde') for c in verdict])}.",
+            "<!-- --8<-- [end:power-at-mde] -->", "", "<!-- --8<-- [start:figure-coverage] -->",
+            f"Coverage of the tuned figure's 95% interval in the calibration benchmark{src}, ranges over the cells",
+            f"of each K at {saved['sims']} data sets per cell (true mAA(10) about 0.57; near the ceiling 0.88-0.90).",
+            "At K = 1 the figure holds the pair part only, so with many pairs it covers less as the tuning variance",
+            "it cannot see takes over.", "",
+            "| K | 4 + 4 pairs | 3 + 3 + 2 | near the ceiling: 4 + 4 | 3 + 3 + 2 | 30, 200 pairs | near the ceiling |",
+            "|---|---|---|---|---|---|---|"]
+    for k in sorted({c["k_a"] for c in new}):
+        mine = [c for c in new if c["k_a"] == k]
+        eight = [c for c in mine if c["pairs"] == 8]
+        more = [c for c in mine if c["pairs"] > 8]
+        out.append(f"| {k} | " + " | ".join(_span([c.get(key) for c in grp]) for grp, key in (
+            (eight, "coverage_mean"), (eight, "coverage_mean_332"), (eight, "coverage_mean_high"),
+            (eight, "coverage_mean_332_high"), (more, "coverage_mean"), (more, "coverage_mean_high"))) + " |")
+    out += ["<!-- --8<-- [end:figure-coverage] -->", "", "<!-- --8<-- [start:pab-coverage] -->",
+            f"In the calibration benchmark{src}, {saved['sims']} data sets per cell and scenario (truth",
+            "`Phi(delta / sigma_1)` with `sigma_1^2` by Monte Carlo over pair sets), the interval covered",
+            f"{_span([c.get('coverage_pab') for c in verdict])} in the {len(verdict)} verdict cells, over the null and",
+            "true differences of 0.05 and 0.10; the mean error of the estimate at 0.05 and 0.10 was",
+            _signed_span([c.get("bias_pab") for c in verdict]) + ".",
+            "<!-- --8<-- [end:pab-coverage] -->", "", "<!-- --8<-- [start:verdict-ranges] -->",
+            f"Ranges over the {len(verdict)} verdict cells (K >= 3 on both sides) at {saved['sims']} data sets per cell"
+            f"{src}:", "",
+            "| what | range | target |", "|---|---|---|"]
+    for key, what, target in (
+            ("coverage_mean", "coverage of the tuned figure (4 + 4, 3 x 10, 4 x 50 pairs)", "0.93-0.97"),
+            ("coverage_mean_332", "the same from 3 + 3 + 2 pairs", "0.93-0.97"),
+            ("coverage_mean_high", "the same near the ceiling", "0.91-0.99"),
+            ("coverage_mean_332_high", "3 + 3 + 2 pairs near the ceiling", "0.91-0.99"),
+            ("coverage_diff", "coverage of the difference", "0.93-0.97"),
+            ("fp05", "false positives at .05", "0.035-0.065"), ("fp01", "false positives at .01", "<= 0.015"),
+            ("ks", "KS distance of null p-values from uniform", "small"),
+            ("power_at_mde", "power at the median \"could detect\" figure", "0.78-0.85"),
+            ("coverage_pab", "coverage of P(A > B)'s interval", "0.93-0.97")):
+        out.append(f"| {what} | {_span([c.get(key) for c in verdict])} | {target} |")
+    out.append("<!-- --8<-- [end:verdict-ranges] -->")
+    return "\n".join(out)
+
+
+def mde_example(seed: int = 2) -> str:
+    """The ``mde-example`` section: the verdict line of one seeded synthetic comparison (30 pairs in 3 scenes, K = 3
+    per side, a tuning sd of 0.015, a pair x seed sd of 0.1, B worse by 0.01 on every pair), wrapped at 96 columns."""
+    import textwrap
+    rng = np.random.default_rng(seed)
+    strata = np.repeat(np.arange(3), 10)
+    pairs = rng.uniform(0.3, 0.9, 30)
+
+    def side(shift: float) -> np.ndarray:
+        return np.clip(pairs[None, :] - shift + rng.normal(0, 0.015, (3, 1)) + rng.normal(0, 0.1, (3, 30)), 0, 1)
+
+    line = replicated_difference(side(0.0), side(0.01), strata).verdict()
+    body = "\n".join("    " + x for x in textwrap.wrap(line, 92))
+    return ("<!-- --8<-- [start:mde-example] -->\n" + body + "\n\n(synthetic scores: 30 pairs in 3 scenes, K = 3 per "
+            "side, a tuning sd of 0.015 and a pair x seed sd of 0.1;\n`python benchmarks/verdict_calibration.py "
+            "--mde-example`).\n<!-- --8<-- [end:mde-example] -->")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sims", type=int, default=400, help="data sets per cell and scenario (default 400)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the simulation (default 0)")
-    ap.add_argument("--n-boot", type=int, default=2000, help="bootstrap resamples of the replaced method (default 2000)")
+    ap.add_argument("--n-boot", type=int, default=2000, help="bootstrap resamples of the replaced method's difference (default 2000; 0: "
+                    "the ideal bootstrap, exactly)")
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="worker processes (default: all CPUs)")
     ap.add_argument("--json", action="store_true", help="print the table as JSON ({calibration, cells, ...})")
     ap.add_argument("--out", type=Path, help="also write the JSON there")
     ap.add_argument("--quick", action="store_true", help="only K in {1, 3} and 30 pairs (a smoke run)")
+    ap.add_argument("--verdicts-only", action="store_true",
+                    help="only the cells with a verdict (K >= 3 on both sides: 27 of 90, a third of the time)")
     ap.add_argument("--from-json", type=Path, help="print the table of a saved --json/--out file (no simulation)")
+    ap.add_argument("--sections", action="store_true",
+                    help="with --from-json: print the markdown sections docs/statistics.md includes")
+    ap.add_argument("--mde-example", action="store_true", help="print the docs' example of an inconclusive verdict")
     ap.add_argument("--figure-scales", action="store_true",
                     help="only compare the scales of the tuned figure's interval at 8 pairs (JSON rows)")
     a = ap.parse_args(argv)
+    if a.mde_example:
+        print(mde_example())
+        return 0
     if a.figure_scales:
         rows = figure_scales(a.sims, a.seed)
         text = json.dumps({"sims": a.sims, "seed": a.seed, "rows": rows}, indent=1)
@@ -495,6 +607,9 @@ def main(argv=None) -> int:
         return 0
     if a.from_json:
         saved = json.loads(a.from_json.read_text())
+        if a.sections:
+            print(sections(saved, str(a.from_json)))
+            return 0
         print(table(saved["cells"]))
         print(f"\n{len(saved['cells']) // 2} cells x {saved['sims']} data sets per scenario, {saved['seconds']} s")
         for key, what in (("outside_targets", "cells with a verdict outside the targets"),
@@ -515,6 +630,9 @@ def main(argv=None) -> int:
         for n_pairs in pairs:
             for ia, ka in enumerate(ks):
                 for kb in ks[ia:]:
+                    if a.verdicts_only and min(ka, kb) < MIN_VERDICT_K:
+                        i += 1  # the seeds of the full run's cells
+                        continue
                     jobs.append((ka, kb, n_pairs, sd_name, cal[sd_name], a.sims, a.seed * 100003 + i, a.n_boot))
                     i += 1
     cells: list[dict] = []

@@ -136,3 +136,118 @@ def test_tune_prints_the_few_pairs_note_in_lines_of_at_most_100_columns():
     assert "fewer than 10 test pairs in a scene" in flat and "test on more pairs" in flat
     note = text[text.index("note: fewer"):]
     assert max(len(line) for line in note.splitlines()) <= 100
+
+
+# -- scores bounded in [0, 1]: a real difference spreads over pairs, and a falling side compresses -----------------
+
+MAA_PAIR_SD, MAA_SEED_SD, MAA_METHOD_PAIR_SD = 0.45, 0.25, 0.10
+
+
+def _maa_side(rng, difficulty, k, tau, shift=0.0, v=None):
+    """K x N per-pair mAA(10) of one method: log10 errors = pair difficulty + shift + a tuning shift per replicate
+    + tuning x pair + seed noise (+ the method x pair term ``v``), all normal."""
+    n = difficulty.size
+    lat = (difficulty[None, :] + shift + rng.normal(0, tau, (k, 1)) + rng.normal(0, tau / 2, (k, n))
+           + rng.normal(0, MAA_SEED_SD, (k, n)))
+    return _scores(lat if v is None else lat + v[None, :])
+
+
+def _maa_truth(scene_mu, tau, shift, with_v):
+    sd = math.sqrt(MAA_PAIR_SD**2 + tau**2 + (tau / 2) ** 2 + MAA_SEED_SD**2
+                   + (MAA_METHOD_PAIR_SD**2 if with_v else 0.0))
+    return float(np.mean([_expected(m + shift, sd) for m in scene_mu]))
+
+
+def test_could_detect_holds_at_8_pairs_on_maa_scores():
+    """5 vs 5 replicates, 2 scenes x 4 test pairs, a small tuning sd, mAA(10) about 0.56; B another method with its
+    own per-pair term. Truth at the median "could detect" figure: the replaced mde (the se of null data) reached
+    0.695 here, because a real difference spreads over pairs and the se at the truth is larger than at the null;
+    now 0.785 (binomial sd 0.02 at 400 data sets; the band is the calibration benchmark's 0.74-0.88 with room for
+    it). The truth is exact (sums of normal cdfs)."""
+    rng = np.random.default_rng(8)
+    scene_mu, tau = np.array([0.2, 0.9]), 0.022
+    strata = np.repeat([0, 1], 4)
+    mu = np.repeat(scene_mu, 4)
+
+    def comparison(shift):
+        difficulty = rng.normal(mu, MAA_PAIR_SD)
+        a = _maa_side(rng, difficulty, 5, tau)
+        b = _maa_side(rng, difficulty, 5, tau, shift, rng.normal(0, MAA_METHOD_PAIR_SD, mu.size))
+        return replicated_difference(a, b, strata)
+
+    target = float(np.median([comparison(0.0).mde for _ in range(300)]))
+    base = _maa_truth(scene_mu, tau, 0.0, False)
+    lo, hi = 0.0, 2.0  # the shift of B's log errors whose true mAA difference is the target (bisection)
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if base - _maa_truth(scene_mu, tau, mid, True) < target else (lo, mid)
+    rejected = [(d.p_value < 0.05 and d.diff > 0) for d in (comparison(lo) for _ in range(400))]
+    assert 0.74 <= float(np.mean(rejected)) <= 0.90, (target, float(np.mean(rejected)))
+
+
+def test_se_and_df_at_a_true_difference_follow_its_spread_and_the_falling_side():
+    """Known values of the model of ``se_at`` and ``df_at``: at 0 they are ``power_se`` and ``df``; at a difference
+    e the variance gains (EFFECT_CV e)^2 / N and the lower side's replicate part is scaled by the squared ratio of
+    normal densities at Phi^-1(m) and Phi^-1(m - e) (scipy.stats.norm, not the module's formula)."""
+    from scipy import stats
+
+    from pipeline.metrics.replicates import EFFECT_CV, median_unbiased
+    rng = np.random.default_rng(5)
+    d = replicated_difference(np.clip(rng.normal(0.6, 0.1, (3, 30)), 0, 1),
+                              np.clip(rng.normal(0.5, 0.1, (3, 30)), 0, 1) + rng.normal(0, 0.03, (3, 1)), STRATA)
+    assert d.se_at(0.0) == d.power_se
+    (ra, da), (rb, db), _ = d.var_terms
+    m_b = d.side_means[1]
+    e = 0.2
+    ratio = stats.norm.pdf(stats.norm.ppf(m_b - e)) / stats.norm.pdf(stats.norm.ppf(m_b))
+    want = d.power_se**2 - rb * median_unbiased(db) * (1 - ratio**2) + (EFFECT_CV * e) ** 2 / 30
+    assert d.se_at(e) == pytest.approx(math.sqrt(want), rel=1e-9)
+    # its df: Welch-Satterthwaite's (sum v)^2 / sum v^2 / df over the raw parts at e, written out here
+    pair, dfp = d.var_terms[-1]
+    parts = [(ra, da), (rb * ratio**2, db), (max(pair, 0.0) + (EFFECT_CV * e) ** 2 / 30, dfp)]
+    want_df = sum(v for v, _ in parts) ** 2 / sum(v * v / f for v, f in parts)
+    assert d.df_at(0.0) == d.df and d.df_at(e) == pytest.approx(want_df, rel=1e-9)
+    assert d.power_at(d.mde) == pytest.approx(0.80, abs=2e-3)
+
+
+@pytest.mark.parametrize("sd_name,tau", [("small", 0.022), ("medium", 0.063)])
+def test_tuned_figure_with_5_replicates_from_8_pairs_near_the_ceiling_covers(sd_name, tau):
+    """K = 5, 3 + 3 + 2 test pairs, mAA(10) near 0.89: with the df pooled over the replicates and the pairs the
+    logit interval covered 0.895-0.90 here (the replicates' df narrowed an interval whose pair part, from skewed
+    scores, is less stable than its own df say); with the df at most the pair part's, 0.95-0.96 (binomial sd 0.011
+    at 400 data sets). The truth is exact."""
+    rng = np.random.default_rng(int(tau * 1000))
+    layout = (3, 3, 2)
+    scene_mu = np.linspace(-0.4, 0.1, 3)
+    strata = np.repeat(np.arange(3), layout)
+    mu = np.repeat(scene_mu, layout)
+    truth = _maa_truth(scene_mu, tau, 0.0, False)
+    hits = 0
+    for _ in range(400):
+        iv = replicated_maa_interval(_maa_side(rng, rng.normal(mu, MAA_PAIR_SD), 5, tau), strata)
+        hits += iv.low <= truth <= iv.high
+    assert 0.915 <= hits / 400 <= 0.985, hits / 400
+
+
+def test_a_comparison_that_can_detect_nothing_says_so_in_words():
+    """2 test pairs, 3 vs 3 replicates: the spread of a difference over 2 pairs grows as fast as the difference,
+    so no true difference reaches 80% power; the line says so instead of printing '>= inf'."""
+    rng = np.random.default_rng(0)
+    a = np.clip(rng.normal(0.5, 0.3, (3, 2)), 0, 1)
+    b = np.clip(rng.normal(0.5, 0.3, (3, 2)), 0, 1) + rng.normal(0, 0.1, (3, 1))
+    d = replicated_difference(a, b, np.zeros(2, int))
+    assert math.isinf(d.mde) and d.power_at(1.0) < 0.80
+    line = d.verdict()
+    assert "inf" not in line and "no difference would be detected with 80% power" in line
+
+
+def test_a_variance_of_about_zero_gives_a_detectable_difference_of_zero_not_an_error():
+    """B's two replicates with the same figure (up to rounding) and A's per-pair differences from them constant: the
+    variance is ~1e-24, the pair part below 0, and the spread of a difference over pairs alone would set the se
+    (the power then the same at every difference, so the root finder had no sign change): mde 0."""
+    b1 = np.array([0.3, 0.7, 0.4, 0.6, 0.5, 0.2, 0.8, 0.6])
+    alt = np.array([0.1, -0.1] * 4)
+    b = np.vstack([b1 + alt, b1 - alt + 1e-12])
+    d = replicated_difference((b1 + 0.1)[None, :], b, np.repeat([0, 1], 4))
+    assert 0 < d.power_se < 1e-9 and d.power_at(1e-9) > 0.8
+    assert d.mde == 0.0

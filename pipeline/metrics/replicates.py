@@ -57,11 +57,19 @@ PAB_DRAWS = 2000
 FEW_PAIRS = 10
 NEAR_CEILING = 0.7
 FEW_PAIRS_NOTE = ("fewer than 10 test pairs in a scene and a figure near the ceiling: intervals like this one "
-                  "covered as little as 0.87 for 0.95 in the calibration benchmark (scores near 1 are skewed); "
+                  "covered as little as 0.91 for 0.95 in the calibration benchmark (scores near 1 are skewed); "
                   "test on more pairs")
 #: the fewest replicates per side for a tuned verdict: K = 2 leaves the tuning variance one degree of freedom, and
 #: the calibration benchmark measured the interval of a K = 2 figure covering 0.89-0.91 where tuning dominates
 MIN_VERDICT_K = 3
+#: the spread over pairs of a real difference, as a share of it (see :meth:`ReplicatedDifference.se_at`): under
+#: a probit link the per-pair effect of a method shift is proportional to phi(Phi^-1(score)), whose coefficient of
+#: variation over the pairs of the calibration benchmark's world (pair log errors spread 0.45) is about 0.6; the
+#: median se at the truth grew there as if by 0.4-0.65. Over 14 verdict cells simulated to choose it (400-600 data
+#: sets each, :meth:`ReplicatedDifference.df_at` included), 0.4 / 0.5 / 0.6 put the power at the median "could
+#: detect" figure in 0.75-0.85 / 0.75-0.86 / 0.75-0.88. An assumption about how real differences spread over
+#: pairs: docs/statistics.md states it.
+EFFECT_CV = 0.5
 #: the confidence level of the replicate term at which the df are computed (see ``_variance``)
 DF_BOUND = 0.40
 
@@ -134,6 +142,9 @@ class ReplicatedDifference:
     #: the variance parts of ``se`` as (value, df): each replicate part (with its 1 / K coefficient) and the
     #: pair-effect part (possibly negative; see ``_variance``)
     var_terms: tuple = ()
+    #: the figures (plain means) of A and of B, in [0, 1] for mAA scores: :meth:`se_at` scales the lower one's
+    #: replicate part by the slope of the scale there
+    side_means: tuple = ()
 
     # computed on first use: each solves for a power or draws a bootstrap, which the many comparisons of a
     # simulation do not all need
@@ -151,16 +162,74 @@ class ReplicatedDifference:
         parts = [max(v, 0.0) * median_unbiased(d) for v, d in self.var_terms]
         return max(self.se, math.sqrt(sum(parts)))
 
+    def se_at(self, effect: float) -> float:
+        """The standard error the test would have if the true |A - B| were ``effect``: :attr:`power_se` (each part
+        median-unbiased) with two changes that a bounded score brings, both measured in the calibration benchmark
+        (``python benchmarks/verdict_calibration.py``; the truth at the median "could detect" figure reached 0.73
+        with 5 vs 5 replicates on 8 pairs and 0.90 with 3 vs 3 and a large tuning sd before them):
+
+        - a real difference is not the same on every pair: on a score bounded in [0, 1] a method shift moves pairs
+          in mid-range more than pairs near 0 or 1 (a probit link: the effect on a pair is proportional to the
+          slope phi(Phi^-1(score))), so the per-pair differences spread by about ``EFFECT_CV`` x effect and the
+          pair part grows by (EFFECT_CV effect)^2 / N. Null data carry no trace of it (in the benchmark's world the
+          median se at the truth was a third above the null's with 8 test pairs and a small tuning sd);
+        - the side that falls by ``effect`` moves toward 0, where the same tuning shift moves the score less: its
+          replicate part is scaled by the squared ratio of the probit slopes at its figure now and at the figure
+          minus ``effect`` (with a large tuning sd the median se at the truth was 0.87 of the null's). Which side
+          falls: the lower one (B at a tie). A borrowed side (K = 1) keeps its part unscaled.
+
+        At ``effect`` 0 it is :attr:`power_se`."""
+        return self._at(effect)[0]
+
+    def df_at(self, effect: float) -> float:
+        """The df the test would have at a true |A - B| of ``effect``: Welch-Satterthwaite's over the estimated
+        parts as :func:`_variance` forms them, with the pair part grown and the falling side's replicate part
+        scaled as in :meth:`se_at`. Why: the spread of a real difference raises the pair part's share, and with it
+        the test's df; power at the null's df under-promised where replicate parts on 2 df dominate (3 vs 3 at 8
+        pairs: 0.93 reached at the median figure against 0.80). ``df`` at ``effect`` 0."""
+        return self._at(effect)[1]
+
+    def _at(self, effect: float) -> tuple[float, float]:
+        e = abs(effect)
+        if not self.var_terms or e == 0:
+            return self.power_se, self.df
+        hetero = (EFFECT_CV * e) ** 2 / max(self.pairs, 1)
+        var = self.power_se ** 2 + hetero
+        rows = [(max(v, 0.0), d) for v, d in self.var_terms[:-1]]
+        if len(rows) == 2 and self.side_means:  # both sides measured: the falling side's part scales
+            low = 1 if self.side_means[1] <= self.side_means[0] else 0
+            v, d = rows[low]
+            shrink = _slope_ratio(self.side_means[low], e) ** 2
+            var -= v * median_unbiased(d) * (1.0 - shrink)
+            rows[low] = (v * shrink, d)
+        if min(self.replicates) < MIN_VERDICT_K:  # the bounded df of such comparisons (see ``_variance``)
+            rows = [(v * d / _chi2_quantile(DF_BOUND, d), d) for v, d in rows]
+        pair, dfp = self.var_terms[-1]
+        df = _welch([*rows, (max(pair, 0.0) + hetero, dfp)])[1]
+        return math.sqrt(max(var, 0.0)), df
+
     def power_at(self, effect: float) -> float:
-        """The power of this comparison's test (its df, at its alpha) when the true |A - B| is ``effect``, at
-        :attr:`power_se`: what 'could detect' means (``power_at(mde)`` is 0.80)."""
-        if self.power_se <= 0:
+        """The power of this comparison's test (at its alpha) when the true |A - B| is ``effect``, at
+        :meth:`se_at` and :meth:`df_at` (``effect``): what 'could detect' means (``power_at(mde)`` is 0.80)."""
+        se, df = self._at(effect)
+        if se <= 0:
             return 1.0 if effect else self.alpha
-        return power(abs(effect) / self.power_se, self.df, self.alpha)
+        return power(abs(effect) / se, df, self.alpha)
 
     @functools.cached_property
     def mde(self) -> float:
-        return detectable(self.power_se, self.df, self.alpha)
+        """The smallest true |A - B| with :meth:`power_at` 0.80 (scipy's brentq up to 60 power_se, at least 1, as
+        :func:`detectable` searches; inf where nothing there reaches it: df < 1, or the spread of a difference over
+        very few pairs growing as fast as the difference)."""
+        from scipy.optimize import brentq
+        if self.power_se <= 0:
+            return 0.0
+        top = max(1.0, 60.0 * self.power_se)
+        if self.power_at(top) < POWER:
+            return math.inf
+        if self.power_at(1e-9) >= POWER:  # a variance of ~0 (identical replicates): any difference is detected
+            return 0.0
+        return float(brentq(lambda e: self.power_at(e) - POWER, 1e-9, top, xtol=1e-5))
 
     @functools.cached_property
     def plan(self) -> str:
@@ -221,7 +290,8 @@ class ReplicatedDifference:
         if self.significant:
             line = f"{head}: significant"
         else:
-            line = f"{head}: inconclusive: could detect |{a} - {b}| >= {self.mde:.3f}"
+            line = (f"{head}: inconclusive: could detect |{a} - {b}| >= {self.mde:.3f}" if math.isfinite(self.mde)
+                    else f"{head}: inconclusive: no difference would be detected with {POWER:.0%} power")
             if self.plan:
                 line += f"; {self.plan}"
         if self.p_a_beats_b is not None and self.p_a_beats_b_ci is not None:
@@ -339,6 +409,15 @@ def _chi2_quantile(q: float, df: float) -> float:
     return float(special.chdtri(df, 1.0 - q))  # chdtri(df, y) is the chi-square quantile of upper tail y
 
 
+def _slope_ratio(m: float, effect: float) -> float:
+    """phi(Phi^-1(m - effect)) / phi(Phi^-1(m)): how much less (or more) a score at mean ``m`` moves per unit of a
+    latent shift after falling by ``effect``, under a probit link (both clipped into [1e-4, 1 - 1e-4])."""
+    lo, hi = 1e-4, 1 - 1e-4
+    z0 = float(special.ndtri(min(max(m, lo), hi)))
+    z1 = float(special.ndtri(min(max(m - effect, lo), hi)))
+    return math.exp(-0.5 * (z1 * z1 - z0 * z0))
+
+
 def median_unbiased(df: float) -> float:
     """The factor df / chi2_df(0.5) that makes a variance estimate on ``df`` df (s^2 ~ sigma^2 chi2_df / df)
     median-unbiased: 1.44 at 2 df, 1.19 at 4, 1.03 at 30, 1 at inf."""
@@ -377,12 +456,26 @@ def replicated_maa_interval(scores, strata, *, alpha: float = 0.05, **_ignored) 
     interval formed on the logit scale (:func:`logit_interval`). ``note``: :data:`FEW_PAIRS_NOTE` where a scene has
     fewer than FEW_PAIRS pairs and the figure is above NEAR_CEILING (where the benchmark measured it short)."""
     scores, strata = _check(scores, strata)
-    iv = replicated_interval(scores * scene_weights(strata)[None, :], strata, alpha=alpha)
-    q = t_quantile(1 - alpha / 2, iv.df)
-    lo, hi = logit_interval(iv.mean, (iv.high - iv.mean) / q if q > 0 else 0.0, q)
+    weighted = scores * scene_weights(strata)[None, :]
+    iv = replicated_interval(weighted, strata, alpha=alpha)
+    # near a bound of the score (the figure above NEAR_CEILING or below 1 - NEAR_CEILING), the df at most the pair
+    # part's own (the df of K = 1). Why: the model's df pools the replicate figures' K - 1 df with the pair-effect
+    # part's, as if each were chi-square; near the ceiling the per-pair scores are skewed (a few low pairs among
+    # many at 1), so the pair variance from 4 pairs a scene is far less stable than chi-square on its df, and a df
+    # above it narrows the interval exactly where the figure is high by chance. Measured at 8 test pairs near
+    # mAA(10) 0.89 (600 simulated data sets per cell of the calibration benchmark's world): K = 5 covered
+    # 0.887-0.937 with the pooled df and 0.932-0.972 with the cap; K = 1 (df = the pair part's) 0.940-0.970.
+    # Mid-scale (mAA(10) 0.57) the scores are not skewed, the pooled df covered 0.93-0.98 and the cap took it to
+    # 0.99: not applied there.
+    df = iv.df
+    if not 1.0 - NEAR_CEILING <= iv.mean <= NEAR_CEILING:
+        df = min(df, pair_part(weighted.mean(axis=0), strata)[1])
+    q = t_quantile(1 - alpha / 2, df)
+    half = (iv.high - iv.mean) / t_quantile(1 - alpha / 2, iv.df) if iv.high > iv.mean else 0.0
+    lo, hi = logit_interval(iv.mean, half, q)
     few = min(np.unique(strata, return_counts=True)[1]) < FEW_PAIRS and iv.mean > NEAR_CEILING
     return ReplicatedInterval(iv.mean, lo, hi, iv.replicates, iv.se_pairs, iv.se_between,
-                              iv.tuning_variance_measured, iv.df, FEW_PAIRS_NOTE if few else "")
+                              iv.tuning_variance_measured, df, FEW_PAIRS_NOTE if few else "")
 
 
 def logit_interval(mean: float, se: float, q: float) -> tuple[float, float]:
@@ -554,7 +647,8 @@ def replicated_difference(a, b, strata=None, *, alpha: float = 0.05, seed: int =
         strata=len(np.unique(strata)), assumption=assumption,
         components={"pairs": vp, "pairs_df": dfp, "pair_effects": pair_effects, "tuning_a": tune_a,
                     "tuning_b": tune_b, "interaction_a": res_a, "interaction_b": res_b},
-        row_terms=tuple(rows), seed=seed, plan_target=plan_target, var_terms=tuple(parts))
+        row_terms=tuple(rows), seed=seed, plan_target=plan_target, var_terms=tuple(parts),
+        side_means=(float(a.mean()), float(b.mean())))
 
 
 def difference_block(d: ReplicatedDifference, a: str = "A", b: str = "B", b_tuned: bool = True) -> dict:
