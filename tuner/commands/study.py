@@ -359,6 +359,8 @@ def settings_from_args(args):
     apply_task_defaults(args, [args.task])  # the reconstruction task's own defaults (COLMAP's SIFT)
     base = build_config(args, ratio=1.0, threshold=0.5, max_iters=1000,
                         seed=args.seed if args.seed is not None else 0)
+    from tuner.options import untuned_values
+    untuned = build_config(args, **untuned_values(args.task), seed=args.seed if args.seed is not None else 0)
     _check_strategy(args, base)
     from tuner.options import check_multiview_only, multiview_config
     check_multiview_only(args, [args.task])
@@ -366,7 +368,7 @@ def settings_from_args(args):
     mv = multiview_config(args, seed=args.seed if args.seed is not None else 0)
     data_root = resolve_data(args.data, download=True, quiet=quiet)
     return TuneSettings(
-        base=base, data_root=data_root, task=args.task, study_name=args.study,
+        base=base, untuned=untuned, data_root=data_root, task=args.task, study_name=args.study,
         storage=args.storage, studies_dir=_studies_dir(args), space_path=args.space,
         # imported (custom) matches skip the matcher: the ratio test and strategy are then not searched
         fixes=list(args.fix) + (["ratio=1.0", "strategy=both"] if getattr(args, "matches", None) else []),
