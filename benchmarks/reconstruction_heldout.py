@@ -60,7 +60,9 @@ def row_of(test: dict, a, command: str) -> dict:
             "difference": cmp.get("difference"), "ci": cmp.get("ci"), "p_value": cmp.get("p_value"),
             "paired": cmp.get("pairs"), "per_dataset": cmp.get("datasets"), "per_run": per_run,
             "validation_score": (test.get("validation") or {}).get("score"),
-            "params": test.get("params"), "study": test.get("study"), "command": command,
+            "params": test.get("params"), "study": test.get("study"), "command": command, "note": a.note,
+            "trials": a.n_trials, "submission": test.get("submission"), "defaults_first": a.defaults_first,
+            "folder": a.folder,
             "date": _dt.date.today().isoformat()}
 
 
@@ -81,22 +83,24 @@ def write_md(old: dict, mpath: Path) -> None:
     settings), ``commands``."""
     def short(names):
         return ", ".join(f"`{n}`" for n in names)
-    v = ["| validated on | tested on | mapper | frozen | reference | frozen - reference [95%] | p |",
-         "| --- | --- | --- | ---: | ---: | --- | ---: |"]
+    v = ["| validated on | tested on | mapper | trials | frozen | reference | frozen - reference [95%] | p |",
+         "| --- | --- | --- | ---: | ---: | ---: | --- | ---: |"]
     runs = ["| study | test dataset | frozen, run by run | reference, run by run |", "| --- | --- | --- | --- |"]
     frozen, cmds = [], []
     for r in old["rows"]:
         ci = r.get("ci")
         d = _f(r.get("difference"), "{:+.3f}") + (f" [{ci[0]:+.3f}, {ci[1]:+.3f}]" if ci else " (no interval)")
         p = "?" if r.get("p_value") is None else (f"{r['p_value']:.2g}")
-        v.append(f"| {short(r['validation'])} | {short(r['test'])} | {r['mapper']} | {_f(r['frozen'])} | "
+        v.append(f"| {short(r['validation'])} | {short(r['test'])} | {r['mapper']} | {r.get('trials', '?')}"
+                 f"{'' if r.get('defaults_first') else ' (no defaults trial)'} | {_f(r['frozen'])} | "
                  f"{_f(r['reference'])} | {d} | {p} |")
         for ds, pr in r["per_run"].items():
             runs.append(f"| {r['study']} | `{ds}` | {', '.join(_f(x) for x in pr['frozen'])} | "
                         f"{', '.join(_f(x) for x in pr['reference'])} |")
         ps = ", ".join(f"{k} {_f(x, '{:.4g}') if isinstance(x, float) else x}" for k, x in (r["params"] or {}).items())
         frozen.append(f"- {r['study']} (validation score {_f(r.get('validation_score'))}): {ps}.")
-        cmds.append(f"- {r['study']}, {r['date']}: `{r['command']}`")
+        cmds.append(f"- {r['study']}, {r['date']}: `{r['command']}`" + (f" ({r['note']})" if r.get("note") else "")
+                    + f"; the data folder holds {short(r.get('folder') or [])}")
     text = ["Reconstruction tuning, held out: each study is tuned on its validation datasets, frozen, and tested on "
             "datasets it never saw against COLMAP out of the box (`--reference colmap`), run by run at the same "
             "seeds; the interval is the task's Student t interval over datasets x runs (run-to-run noise only).", "",
@@ -122,6 +126,7 @@ def main(argv=None) -> int:
     ap.add_argument("--study", default=None, help="study name (default: tune's)")
     ap.add_argument("--label", default=None, help="the row's label in the results (default: val -> test (mapper))")
     ap.add_argument("--record-only", action="store_true", help="do not run: read the study's test.json")
+    ap.add_argument("--note", default=None, help="a remark recorded with the row (e.g. the code version it ran)")
     ap.add_argument("--write", action="store_true", help=f"merge the row into benchmarks/results/{NAME}.{{md,json}}")
     ap.add_argument("--render", action="store_true", help="only write the .md again from the recorded .json")
     a = ap.parse_args(argv)
@@ -146,6 +151,12 @@ def main(argv=None) -> int:
     if not path.is_file():
         print(f"no test result at {path}: run the study first (without --record-only)", file=sys.stderr)
         return 2
+    import optuna
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    st = optuna.load_study(study_name=a.study, storage=f"sqlite:///{Path(a.studies_dir) / 'optuna.db'}")
+    a.defaults_first = bool(st.trials) and st.trials[0].user_attrs.get("start") == "task defaults"
+    from pipeline.data import list_scenes
+    a.folder = list_scenes(a.data)
     row = row_of(json.loads(path.read_text()), a, command)
     print(f"{row['label']}: frozen {_f(row['frozen'])}, reference {_f(row['reference'])}, frozen - reference "
           f"{_f(row['difference'], '{:+.3f}')} {row['ci']} p {row['p_value']}")

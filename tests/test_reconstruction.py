@@ -239,6 +239,23 @@ def test_short_study_freezes_and_tests(tmp_path):
     ref_score = ref["mean"]["scenes"][DATASET]["score"]
     assert cmp["datasets"][DATASET] == pytest.approx(frozen_score - ref_score)
     assert cmp["difference"] == pytest.approx(frozen_score - ref_score) and cmp["pairs"] == 1
+    # submission.csv of the frozen settings' first run in the study's folder, scored alike by the independent metric
+    sub = Path(out["test"]["submission"])
+    assert sub.parent == frozen[0].parent and sub.name == "submission.csv"
+    with open(sub, newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert sorted(x["image"] for x in rows) == sorted(os.listdir(both / "real" / "train" / DATASET))
+    from tests import imc_reference_metric as ref_metric  # ``ref`` is the reference's section here
+    theirs = ref_metric.score(both / "real" / "train_labels.csv", sub, both / "real" / "train_thresholds.csv")
+    assert abs(theirs["score"] - out["test"]["runs"][0]["scenes"][DATASET]["score"]) < 1e-6
+    # the study's first trial was the task's defaults (the values docs/reconstruction.md gives; Gamma fixed here)
+    import optuna
+    st = optuna.load_study(study_name=fz["study"], storage=f"sqlite:///{tmp_path / 'studies' / 'optuna.db'}")
+    first = st.trials[0]
+    assert first.user_attrs.get("start") == "task defaults"
+    assert first.params == pytest.approx({"ratio": 0.85, "threshold": 1.0, "min_inliers": 15, "min_model_size": 3,
+                                          "init_min_num_inliers": 25, "abs_pose_min_num_inliers": 12,
+                                          "abs_pose_max_error": 12.0, "filter_max_reproj_error": 4.0})
 
 
 def test_each_image_is_in_one_cluster_only(monkeypatch):

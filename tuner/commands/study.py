@@ -557,6 +557,8 @@ def test_table(t: dict) -> str:
     if "reference" in t:
         from tuner.select import comparison_text
         tail.append(comparison_text(t.get("reference")))
+    if t.get("submission"):  # reconstruction: the frozen settings' first run, every test dataset
+        tail.append(f"submission.csv (run 1 of the frozen settings): {t['submission']}")
     from tuner.formatting import ground_truth_text
     origin = ground_truth_text((t.get("data") or {}).get("ground_truth"))
     tail.append(f"ground truth: {origin}" if origin else "ground truth: not recorded (a test.json written before imtune "
