@@ -8,8 +8,8 @@ It runs ``tune --task reconstruction --data D --scenes DATASET --no-test --sampl
 (the study's first trial is the task's defaults, ``Task.start_at_defaults``; the other N - 1 are drawn at random from
 ``search_spaces/reconstruction.yaml``), then reads the study: the score of the defaults, and the minimum, quartiles,
 maximum and standard deviation of the random trials' scores. A dataset whose random trials all score alike cannot
-rank settings. The importances are Optuna's default evaluator (fANOVA) over the random trials: with a dozen trials
-they are rough, and a parameter's importance means something only where the spread it explains is larger than the
+rank settings. The importances are Optuna's PED-ANOVA (what optuna-dashboard shows; fANOVA needs scikit-learn) over the
+random trials, at a target quantile of 0.3: with a dozen trials they are rough, and a parameter's importance means something only where the spread it explains is larger than the
 run-to-run noise of one configuration (docs/reconstruction.md). ``--write`` merges the dataset's row into
 ``benchmarks/results/reconstruction-spread.{md,json}``.
 """
@@ -29,29 +29,47 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 RESULTS = ROOT / "benchmarks" / "results"
 NAME = "reconstruction-spread"
+#: PED-ANOVA's target quantile: with about ten trials Optuna's 0.1 (the best trial alone) tells nothing apart
+TOP = 0.3
 
 
-def measure(a) -> dict:
+def measure(dataset: str, studies: list[tuple[str, str]]) -> dict:
+    """The dataset's score in every complete trial of ``studies`` ((studies dir, study name) pairs; a trial's
+    per-dataset score is its user attribute ``scenes``), one per distinct parameter set; the task's defaults
+    (the trial marked ``start``) apart."""
     import optuna
     from optuna.trial import TrialState
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    study = optuna.load_study(study_name=a.study, storage=f"sqlite:///{Path(a.studies_dir) / 'optuna.db'}")
-    done = [t for t in study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)) if t.value is not None]
-    defaults = [t for t in done if t.user_attrs.get("start") == "task defaults"]
-    rand = [t for t in done if t.user_attrs.get("start") != "task defaults"]
-    v = np.array([t.value for t in rand], float)
-    row = {"dataset": a.dataset, "n_random": len(rand),
-           "defaults": defaults[0].value if defaults else None,
+    seen: dict = {}
+    defaults = None
+    for sdir, name in studies:
+        study = optuna.load_study(study_name=name, storage=f"sqlite:///{Path(sdir) / 'optuna.db'}")
+        for t in study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
+            sc = (t.user_attrs.get("scenes") or {}).get(dataset)
+            if not sc or sc.get("score") is None:
+                continue
+            if t.user_attrs.get("start") == "task defaults":
+                defaults = float(sc["score"])
+                continue
+            seen.setdefault(tuple(sorted(t.params.items())), (float(sc["score"]), t))
+    v = np.array([x for x, _ in seen.values()], float)
+    if not len(v):
+        raise SystemExit(f"no trial of {dataset} in {studies}")
+    row = {"dataset": dataset, "n_random": len(v), "defaults": defaults,
            "min": float(v.min()), "q25": float(np.percentile(v, 25)), "median": float(np.median(v)),
            "q75": float(np.percentile(v, 75)), "max": float(v.max()), "sd": float(v.std(ddof=1)) if len(v) > 1 else None,
-           "zero": int((v == 0).sum())}
-    if len(rand) >= 4:
+           "zero": int((v == 0).sum()), "studies": [n for _, n in studies]}
+    if len(v) >= 4:
         sub = optuna.create_study(direction="maximize")
-        for t in rand:
-            sub.add_trial(t)
-        imp = optuna.importance.get_param_importances(sub, evaluator=optuna.importance.FanovaImportanceEvaluator(
-            seed=0))
+        for x, t in seen.values():
+            sub.add_trial(optuna.trial.create_trial(params=t.params, distributions=t.distributions, value=x))
+        import warnings
+        with warnings.catch_warnings(record=True) as caught:  # Optuna warns where it returns equal importances
+            warnings.simplefilter("always", UserWarning)
+            imp = optuna.importance.get_param_importances(
+                sub, evaluator=optuna.importance.PedAnovaImportanceEvaluator(target_quantile=TOP))
         row["importances"] = {k: float(x) for k, x in imp.items()}
+        row["importances_equal"] = any("will be equal" in str(w.message) for w in caught)
     return row
 
 
@@ -74,15 +92,17 @@ def write_md(old: dict, mpath: Path) -> None:
     for r in old["rows"]:
         s.append(f"| `{r['dataset']}` | {r['n_random']} | {_f(r['defaults'])} | {_f(r['min'])} | "
                  f"{_f(r['q25'])}, {_f(r['median'])}, {_f(r['q75'])} | {_f(r['max'])} | {_f(r['sd'])} | {r['zero']} |")
-        if r.get("importances"):
+        if r.get("importances") and r.get("importances_equal"):
+            imp.append(f"- `{r['dataset']}`: equal by construction (too few trials, or all alike).")
+        elif r.get("importances"):
             top = sorted(r["importances"].items(), key=lambda kv: -kv[1])
             imp.append(f"- `{r['dataset']}`: " + ", ".join(f"{k} {x:.2f}" for k, x in top) + ".")
         cmds.append(f"- `{r['dataset']}`, {r['date']}: `{r['command']}`")
     text = ["The IMC score of random configurations of `search_spaces/reconstruction.yaml` per dataset (2048 "
             "features, incremental mapper, one run each), beside the task's defaults.", "",
             "<!-- --8<-- [start:spread] -->", *s, "<!-- --8<-- [end:spread] -->", "",
-            "<!-- --8<-- [start:importances] -->", "Optuna's fANOVA importances over the random trials (they sum to 1; "
-            "a dozen trials: rough):", "", *imp, "<!-- --8<-- [end:importances] -->", "",
+            "<!-- --8<-- [start:importances] -->", "Optuna's PED-ANOVA importances over those trials (how much each "
+            "parameter decides reaching the best 30% of them; they sum to 1; about ten trials: rough):", "", *imp, "<!-- --8<-- [end:importances] -->", "",
             "<!-- --8<-- [start:commands] -->", "Commands (`benchmarks/reconstruction_spread.py`):", "", *cmds,
             "<!-- --8<-- [end:commands] -->", ""]
     mpath.write_text("\n".join(text))
@@ -95,23 +115,39 @@ def main(argv=None) -> int:
     ap.add_argument("--n", type=int, default=12, help="trials: the defaults, then N - 1 random ones")
     ap.add_argument("--num-features", type=int, default=2048)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--studies-dir", required=True, help="where the study is written (outside the checkout)")
+    ap.add_argument("--studies-dir", default=None, help="where the study is written (outside the checkout)")
     ap.add_argument("--record-only", action="store_true", help="do not run: read the study")
+    ap.add_argument("--studies", default=None, metavar="DIR:NAME,...",
+                    help="do not run: read the dataset's scores in the trials of these studies (a study validated on "
+                         "several datasets records each one's score)")
     ap.add_argument("--write", action="store_true", help=f"merge the row into benchmarks/results/{NAME}.{{md,json}}")
     a = ap.parse_args(argv)
     if a.n < 5:
         ap.error("--n must be at least 5 (the defaults and 4 random trials)")
     a.study = f"spread-{a.dataset}"
+    if not a.studies and not a.studies_dir:
+        ap.error("give --studies-dir (a new random study) or --studies (trials of studies already run)")
     args = ["--task", "reconstruction", "--data", a.data, "--scenes", a.dataset, "--no-test", "--sampler", "random",
             "--pruner", "none", "--n-trials", str(a.n), "--num-features", str(a.num_features), "--seed", str(a.seed),
             "--studies-dir", a.studies_dir, "--study", a.study]
+    if a.studies:
+        pairs = [tuple(x.rsplit(":", 1)) for x in a.studies.split(",")]
+        if any(len(x) != 2 for x in pairs):
+            ap.error("--studies takes DIR:NAME[,DIR:NAME...]")
+        row = measure(a.dataset, pairs)
+        row.update(command=f"python benchmarks/reconstruction_spread.py --data {a.data} --dataset {a.dataset} "
+                           f"--studies {a.studies}", date=_dt.date.today().isoformat())
+        print(json.dumps(row, indent=2))
+        if a.write:
+            write(row)
+        return 0
     if not a.record_only:
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
         rc = subprocess.call([sys.executable, "-m", "tuner", *args], env=env)
         if rc != 0:
             print(f"tune exited with {rc}", file=sys.stderr)
             return 1
-    row = measure(a)
+    row = measure(a.dataset, [(a.studies_dir, a.study)])
     row.update(command="tune " + " ".join(args), date=_dt.date.today().isoformat())
     print(json.dumps(row, indent=2))
     if a.write:

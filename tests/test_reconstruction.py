@@ -229,7 +229,8 @@ def test_short_study_freezes_and_tests(tmp_path):
     assert frozen, sorted(p.name for p in (tmp_path / "studies").rglob("*"))
     import yaml
     fz = yaml.safe_load(frozen[0].read_text())
-    assert fz["task"] == "reconstruction" and "mapper" in fz["config"]
+    # the mapper options are frozen parameters (the config's mapper section is left out at its defaults)
+    assert fz["task"] == "reconstruction" and {"min_inliers", "min_model_size"} <= set(fz["params"])
     assert fz["feature"] == "colmap-sift"  # the task's default feature (not typed)
     # the test compares with COLMAP out of the box (the task's default reference), per dataset and overall
     ref = out["test"]["reference"]
