@@ -62,7 +62,7 @@ def row_of(test: dict, a, command: str) -> dict:
             "validation_score": (test.get("validation") or {}).get("score"),
             "params": test.get("params"), "study": test.get("study"), "command": command, "note": a.note,
             "trials": a.n_trials, "submission": test.get("submission"), "defaults_first": a.defaults_first,
-            "folder": a.folder,
+            "folder": a.folder, "froze_defaults": a.froze_defaults,
             "date": _dt.date.today().isoformat()}
 
 
@@ -73,7 +73,11 @@ def _f(x, fmt="{:.3f}") -> str:
 def write(row: dict) -> None:
     jpath, mpath = RESULTS / f"{NAME}.json", RESULTS / f"{NAME}.md"
     old = json.loads(jpath.read_text()) if jpath.is_file() else {"rows": []}
-    old["rows"] = [r for r in old["rows"] if r["label"] != row["label"]] + [row]
+    labels = [r["label"] for r in old["rows"]]
+    if row["label"] in labels:  # a row measured again keeps its place
+        old["rows"][labels.index(row["label"])] = row
+    else:
+        old["rows"].append(row)
     jpath.write_text(json.dumps(old, indent=2) + "\n")
     write_md(old, mpath)
 
@@ -92,7 +96,8 @@ def write_md(old: dict, mpath: Path) -> None:
         d = _f(r.get("difference"), "{:+.3f}") + (f" [{ci[0]:+.3f}, {ci[1]:+.3f}]" if ci else " (no interval)")
         p = "?" if r.get("p_value") is None else (f"{r['p_value']:.2g}")
         v.append(f"| {short(r['validation'])} | {short(r['test'])} | {r['mapper']} | {r.get('trials', '?')}"
-                 f"{'' if r.get('defaults_first') else ' (no defaults trial)'} | {_f(r['frozen'])} | "
+                 f"{'' if r.get('defaults_first') else ' (no defaults trial)'}"
+                 f"{'; froze the defaults' if r.get('froze_defaults') else ''} | {_f(r['frozen'])} | "
                  f"{_f(r['reference'])} | {d} | {p} |")
         for ds, pr in r["per_run"].items():
             runs.append(f"| {r['study']} | `{ds}` | {', '.join(_f(x) for x in pr['frozen'])} | "
@@ -155,6 +160,8 @@ def main(argv=None) -> int:
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     st = optuna.load_study(study_name=a.study, storage=f"sqlite:///{Path(a.studies_dir) / 'optuna.db'}")
     a.defaults_first = bool(st.trials) and st.trials[0].user_attrs.get("start") == "task defaults"
+    trial = json.loads(path.read_text()).get("trial")
+    a.froze_defaults = isinstance(trial, int) and st.trials[trial].user_attrs.get("start") == "task defaults"
     from pipeline.data import list_scenes
     a.folder = list_scenes(a.data)
     row = row_of(json.loads(path.read_text()), a, command)
