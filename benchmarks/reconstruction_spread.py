@@ -86,7 +86,7 @@ def _f(x) -> str:
 
 
 def write_md(old: dict, mpath: Path) -> None:
-    s = ["| dataset | random trials | defaults | min | quartiles | max | sd | score 0 |",
+    s = ["| dataset | settings | defaults | min | quartiles | max | sd | score 0 |",
          "| --- | ---: | ---: | ---: | --- | ---: | ---: | ---: |"]
     imp, cmds = [], []
     for r in old["rows"]:
@@ -98,8 +98,10 @@ def write_md(old: dict, mpath: Path) -> None:
             top = sorted(r["importances"].items(), key=lambda kv: -kv[1])
             imp.append(f"- `{r['dataset']}`: " + ", ".join(f"{k} {x:.2f}" for k, x in top) + ".")
         cmds.append(f"- `{r['dataset']}`, {r['date']}: `{r['command']}`")
-    text = ["The IMC score of random configurations of `search_spaces/reconstruction.yaml` per dataset (2048 "
-            "features, incremental mapper, one run each), beside the task's defaults.", "",
+    text = ["The IMC score per dataset of settings drawn from `search_spaces/reconstruction.yaml` (2048 features, "
+            "incremental mapper, one run each), beside the task's defaults. With `--studies`, the settings are those "
+            "the named studies tried (random draws, then TPE's; studies at one sampler seed draw the same settings "
+            "but Gamma, which scales with each study's calibrated Gamma_max); without, a random-sampler study's.", "",
             "<!-- --8<-- [start:spread] -->", *s, "<!-- --8<-- [end:spread] -->", "",
             "<!-- --8<-- [start:importances] -->", "Optuna's PED-ANOVA importances over those trials (how much each "
             "parameter decides reaching the best 30% of them; they sum to 1; about ten trials: rough):", "", *imp, "<!-- --8<-- [end:importances] -->", "",
