@@ -294,3 +294,16 @@ def test_loads_the_imc2024_layout_with_intrinsics(tmp_path):
     sc = load_scene(tmp_path, "ds")
     assert len(sc.images) == 4 and np.allclose(sc.images["im2.jpg"].K[0, 0], 500)
     assert describe(tmp_path)[0]["intrinsics"] is True
+
+
+def test_join_submissions_keeps_one_header(tmp_path):
+    """The study's submission.csv of several test datasets: one header, every dataset's rows in order."""
+    from tuner.freeze import join_submissions
+    head = "dataset,scene,image,rotation_matrix,translation_vector"
+    a, b = tmp_path / "a.csv", tmp_path / "b.csv"
+    a.write_text(f"{head}\nd1,cluster0,x.png,1;0;0;0;1;0;0;0;1,0;0;0\n")
+    b.write_text(f"{head}\nd2,outliers,y.png,nan,nan\nd2,cluster0,z.png,1;0;0;0;1;0;0;0;1,1;2;3\n")
+    join_submissions([str(a), str(b)], tmp_path / "submission.csv")
+    assert (tmp_path / "submission.csv").read_text() == (
+        f"{head}\nd1,cluster0,x.png,1;0;0;0;1;0;0;0;1,0;0;0\nd2,outliers,y.png,nan,nan\n"
+        "d2,cluster0,z.png,1;0;0;0;1;0;0;0;1,1;2;3\n")
