@@ -229,7 +229,8 @@ def test_short_study_freezes_and_tests(tmp_path):
     assert frozen, sorted(p.name for p in (tmp_path / "studies").rglob("*"))
     import yaml
     fz = yaml.safe_load(frozen[0].read_text())
-    assert fz["task"] == "reconstruction" and "mapper" in fz["config"]
+    # the mapper options are frozen parameters (the config's mapper section is left out at its defaults)
+    assert fz["task"] == "reconstruction" and {"min_inliers", "min_model_size"} <= set(fz["params"])
     assert fz["feature"] == "colmap-sift"  # the task's default feature (not typed)
     # the test compares with COLMAP out of the box (the task's default reference), per dataset and overall
     ref = out["test"]["reference"]
@@ -239,6 +240,23 @@ def test_short_study_freezes_and_tests(tmp_path):
     ref_score = ref["mean"]["scenes"][DATASET]["score"]
     assert cmp["datasets"][DATASET] == pytest.approx(frozen_score - ref_score)
     assert cmp["difference"] == pytest.approx(frozen_score - ref_score) and cmp["pairs"] == 1
+    # submission.csv of the frozen settings' first run in the study's folder, scored alike by the independent metric
+    sub = Path(out["test"]["submission"])
+    assert sub.parent == frozen[0].parent and sub.name == "submission.csv"
+    with open(sub, newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert sorted(x["image"] for x in rows) == sorted(os.listdir(both / "real" / "train" / DATASET))
+    from tests import imc_reference_metric as ref_metric  # ``ref`` is the reference's section here
+    theirs = ref_metric.score(both / "real" / "train_labels.csv", sub, both / "real" / "train_thresholds.csv")
+    assert abs(theirs["score"] - out["test"]["runs"][0]["scenes"][DATASET]["score"]) < 1e-6
+    # the study's first trial was the task's defaults (the values docs/reconstruction.md gives; Gamma fixed here)
+    import optuna
+    st = optuna.load_study(study_name=fz["study"], storage=f"sqlite:///{tmp_path / 'studies' / 'optuna.db'}")
+    first = st.trials[0]
+    assert first.user_attrs.get("start") == "task defaults"
+    assert first.params == pytest.approx({"ratio": 0.85, "threshold": 1.0, "min_inliers": 15, "min_model_size": 3,
+                                          "init_min_num_inliers": 25, "abs_pose_min_num_inliers": 12,
+                                          "abs_pose_max_error": 12.0, "filter_max_reproj_error": 4.0})
 
 
 def test_each_image_is_in_one_cluster_only(monkeypatch):
@@ -276,3 +294,16 @@ def test_loads_the_imc2024_layout_with_intrinsics(tmp_path):
     sc = load_scene(tmp_path, "ds")
     assert len(sc.images) == 4 and np.allclose(sc.images["im2.jpg"].K[0, 0], 500)
     assert describe(tmp_path)[0]["intrinsics"] is True
+
+
+def test_join_submissions_keeps_one_header(tmp_path):
+    """The study's submission.csv of several test datasets: one header, every dataset's rows in order."""
+    from tuner.freeze import join_submissions
+    head = "dataset,scene,image,rotation_matrix,translation_vector"
+    a, b = tmp_path / "a.csv", tmp_path / "b.csv"
+    a.write_text(f"{head}\nd1,cluster0,x.png,1;0;0;0;1;0;0;0;1,0;0;0\n")
+    b.write_text(f"{head}\nd2,outliers,y.png,nan,nan\nd2,cluster0,z.png,1;0;0;0;1;0;0;0;1,1;2;3\n")
+    join_submissions([str(a), str(b)], tmp_path / "submission.csv")
+    assert (tmp_path / "submission.csv").read_text() == (
+        f"{head}\nd1,cluster0,x.png,1;0;0;0;1;0;0;0;1,0;0;0\nd2,outliers,y.png,nan,nan\n"
+        "d2,cluster0,z.png,1;0;0;0;1;0;0;0;1,1;2;3\n")

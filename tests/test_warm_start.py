@@ -125,3 +125,42 @@ def test_warm_start_carries_the_sources_fixed_values(tmp_path, data4):
     assert first.params == {"threshold": pytest.approx(src.trials[0].params["threshold"]), "ratio": 0.9,
                             "max_iters": 500}
     assert dst.user_attrs["warm_start"][0]["params"]["max_iters"] == 500
+
+
+def test_start_at_defaults_enqueues_the_base_values_first():
+    """A new reconstruction study's first trial is its base configuration's values of the searched parameters
+    (values chosen here, not the task's), clipped into the space; nothing with the grid sampler or once trials
+    exist. Optuna's own in-memory storage; no data."""
+    import dataclasses
+
+    import optuna
+
+    from pipeline.config import GeometryConfig, MapperConfig, MatchConfig, PipelineConfig
+    from pipeline.tasks import task_class
+    from tuner.space import Param, SearchSpace
+    from tuner.study import start_at_defaults
+    assert task_class("reconstruction").start_at_defaults and not task_class("stereo").start_at_defaults
+    space = SearchSpace(params={
+        "ratio": Param("ratio", "float", 0.6, 1.0),
+        "threshold": Param("threshold", "float", 0.1, 4.0, log=True),
+        "max_iters": Param("max_iters", "int", 1000, 20000, log=True),
+        "min_inliers": Param("min_inliers", "int", 10, 100, log=True),
+        "init_min_num_inliers": Param("init_min_num_inliers", "int", 15, 200, log=True)})
+    base = dataclasses.replace(PipelineConfig(), matching=MatchConfig(ratio=0.77),
+                               geometry=GeometryConfig(threshold=2.5, max_iters=50_000),
+                               mapper=MapperConfig(min_inliers=21, init_min_num_inliers=40))
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    study = optuna.create_study(direction="maximize")
+    said = []
+    got = start_at_defaults(study, space, base, "tpe", say=said.append)
+    want = {"ratio": 0.77, "threshold": 2.5, "max_iters": 20000, "min_inliers": 21, "init_min_num_inliers": 40}
+    assert got == want  # Gamma 50,000 clipped to the space's 20,000
+    t = study.ask()  # what the sampler hands the first trial for each searched parameter
+    drawn = {n: (t.suggest_int(n, p.low, p.high, log=p.log) if p.type == "int"
+                 else t.suggest_float(n, p.low, p.high, log=p.log)) for n, p in space.params.items()}
+    assert drawn == want and t.user_attrs["start"] == "task defaults"
+    assert study.user_attrs["start_at_defaults"] == want and "the task's defaults" in said[0]
+    study.tell(t, 0.5)
+    assert start_at_defaults(study, space, base, "tpe") is None  # a study with trials (a resume): nothing
+    fresh = optuna.create_study(direction="maximize")
+    assert start_at_defaults(fresh, space, base, "grid") is None and not fresh.get_trials()

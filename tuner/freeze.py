@@ -506,6 +506,9 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
         res = t.evaluate(vs.scene_objs, c, cache)
         f = t.figures(res)
         f.update(run=k, seed=int(c.geometry.seed), task_options=t.options())
+        subs = _submissions(res.records)
+        if subs:  # reconstruction: where each dataset's submission.csv of this run went
+            f["submissions"] = subs
         errors.append(sel.unit_errors(res.records))
         if errors[-1] is not None:  # [[scene, pair, err deg], ...] or multiview [[scene, size, bag, [errs]], ...]
             f[sel.errors_key(errors[-1])] = errors[-1]  # what the interval and paired comparisons read
@@ -522,6 +525,9 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
             res = t.evaluate(vs.scene_objs, c, cache)
             f = t.figures(res)
             f.update(run=k, seed=int(c.geometry.seed))
+            subs = _submissions(res.records)
+            if subs:
+                f["submissions"] = subs
             rerr.append(sel.unit_errors(res.records))
             if rerr[-1] is not None:
                 f[sel.errors_key(rerr[-1])] = rerr[-1]
@@ -557,6 +563,10 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
         "wall_seconds": time.perf_counter() - t_start,  # features, the runs and the reference's runs
         "identity": ident,
     })
+    if out_path is not None and results and results[0].get("submissions"):
+        sub = out_path.parent / "submission.csv"  # the frozen settings' first run, every test dataset in one file
+        join_submissions(list(results[0]["submissions"].values()), sub)
+        out["submission"] = str(sub)
     if out_path is not None:
         prev, _ = load_test_file(out_path, frozen["study"], refresh=False)
         if prev is not None and (prev.get("data") or {}).get("fingerprint") != vs.fingerprint:
@@ -567,6 +577,21 @@ def run_test(frozen: dict, data_root: Path | str, studies_dir: Path | str | None
                                    "fingerprint": (prev.get("data") or {}).get("fingerprint")}
         atomic_write(out_path, json.dumps(out, indent=2))
     return out
+
+
+def _submissions(records: list[dict]) -> dict:
+    """{dataset: submission.csv path} of a run's records (the reconstruction task writes one per dataset)."""
+    return {r["dataset"]: r["submission"] for r in records if r.get("submission") and r.get("dataset")}
+
+
+def join_submissions(paths: list[str], out: Path) -> None:
+    """One submission.csv of several datasets' files (the challenge's format: one header, a row per image, the
+    dataset in its first column), written atomically."""
+    lines: list[str] = []
+    for i, p in enumerate(paths):
+        text = Path(p).read_text().splitlines()
+        lines += text if i == 0 else text[1:]
+    atomic_write(out, "\n".join(lines) + "\n")
 
 
 def _refresh_std(result: dict, task) -> bool:

@@ -33,6 +33,10 @@ from tuner.argtypes import (
 DATA_HELP = ("data folder (else $IMTUNE_DATA, imtune.yaml, the download location $IMTUNE_DATA_HOME, then "
              "../shared/data beside the project; `tune data scenes` says which was found)")
 
+#: the searched options' values when a command runs untuned (`tune evaluate`'s defaults: the paper's protocol; a
+#: task's ``pipeline_defaults`` override them, :func:`untuned_values`)
+UNTUNED = {"ratio": 0.85, "min_confidence": 0.1, "threshold": 0.5, "max_iters": 50000}
+
 def add_pipeline_options(ap: argparse.ArgumentParser, tuning: bool = False, seed_help: str | None = None) -> None:
     """Options that define one pipeline configuration (and, for `tune`, the fixed part of a study: ``tuning``,
     whose --scenes are the validation scenes)."""
@@ -71,12 +75,12 @@ def add_pipeline_options(ap: argparse.ArgumentParser, tuning: bool = False, seed
     g.add_argument("--confidence", type=probability_float, default=0.999999,
                    help="RANSAC confidence tau (the protocol fixes 0.999999)")
     if not tuning:
-        g.add_argument("--ratio", type=ratio_float, default=0.85, help="ratio test r in (0, 1]; 1 = off")
-        g.add_argument("--min-confidence", type=nonnegative_float, default=0.1,
+        g.add_argument("--ratio", type=ratio_float, default=UNTUNED["ratio"], help="ratio test r in (0, 1]; 1 = off")
+        g.add_argument("--min-confidence", type=nonnegative_float, default=UNTUNED["min_confidence"],
                        help="--matcher lightglue: keep matches of confidence above this, in [0, 1) (LightGlue's "
                             "filter_threshold; takes r's place)")
-        g.add_argument("--threshold", type=positive_float, default=0.5, help="inlier threshold eta, px")
-        g.add_argument("--max-iters", type=iters_int, default=50000, help="RANSAC iteration cap Gamma")
+        g.add_argument("--threshold", type=positive_float, default=UNTUNED["threshold"], help="inlier threshold eta, px")
+        g.add_argument("--max-iters", type=iters_int, default=UNTUNED["max_iters"], help="RANSAC iteration cap Gamma")
     g.add_argument("--seed", type=seed_int, default=0, help=seed_help or f"random seed, 0 to {SEED_MAX}")
     d = ap.add_argument_group("data")
     d.add_argument("--data", default=None, help=DATA_HELP)
@@ -258,6 +262,14 @@ OPTION_FIELDS: dict[str, tuple[tuple[str, str], ...]] = {
     "ratio": (("matching", "ratio"),), "threshold": (("geometry", "threshold"),),
     "max_iters": (("geometry", "max_iters"),), "seed": (("geometry", "seed"),),
 }
+
+
+def untuned_values(task: str) -> dict:
+    """The values of the searched options an untuned run (`tune evaluate`) of ``task`` uses: :data:`UNTUNED` with the
+    task's own defaults (``Task.pipeline_defaults``) over it."""
+    from pipeline.tasks import task_class
+    decl = task_class(task).pipeline_defaults
+    return {k: decl.get(k, v) for k, v in UNTUNED.items()}
 
 
 def apply_task_defaults(args: argparse.Namespace, tasks: list[str]) -> list[str]:

@@ -59,7 +59,13 @@ from tuner.study_identity import (  # noqa: F401
     study_objective,
 )
 from tuner.version import code_version  # noqa: F401  (re-exported)
-from tuner.warm_start import WARM_START_BEST, check_warm_start_sources, project_params, warm_start  # noqa: F401
+from tuner.warm_start import (  # noqa: F401
+    WARM_START_BEST,
+    check_warm_start_sources,
+    project_params,
+    start_at_defaults,
+    warm_start,
+)
 
 DEFAULT_TRIALS = 50
 
@@ -70,6 +76,9 @@ class TuneSettings:
     fields are placeholders). Times in seconds; budgets are median estimator seconds per pair."""
     base: PipelineConfig
     data_root: Path
+    #: the configuration an untuned run of the task uses (the searched fields at their defaults): a new study of a
+    #: task with ``Task.start_at_defaults`` runs it first (None: no such first trial)
+    untuned: PipelineConfig | None = None
     task: str = "stereo"
     study_name: str | None = None
     storage: str | None = None
@@ -353,13 +362,17 @@ def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
     terminator = make_terminator(s.terminate, n_target, s.objective, seed=s.seed)  # an unknown mode: before any bar
     fail_stale_trials(study)  # trials of killed workers: FAIL, parameters re-enqueued once
     warm_start(study, ctx.storage, ctx.space, s.warm_start, say=s.say)  # a new study only
+    from pipeline.tasks import task_class
+    if task_class(s.task).start_at_defaults and s.untuned is not None:  # a new study without warm start only
+        start_at_defaults(study, ctx.space, s.untuned, s.sampler, say=s.say)
+    figure = s.objective if s.objective in AUC_OBJECTIVES else task_class(s.task).objective  # the progress bar's
     done0 = finished(study)
     bar = None
     if s.progress:
         from tqdm.auto import tqdm
         bar = tqdm(total=n_target, initial=min(done0, n_target), desc=f"{ctx.name}", unit="trial",
                    dynamic_ncols=True)
-        _set_postfix(bar, study)
+        _set_postfix(bar, study, figure)
 
     stop = [False]
 
@@ -367,7 +380,7 @@ def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
         done = finished(st)
         if bar is not None:
             bar.n = min(done, n_target)
-            _set_postfix(bar, st)
+            _set_postfix(bar, st, figure)
             bar.refresh()
         if done < n_target and terminator is not None and trial.state == TrialState.COMPLETE \
                 and should_terminate(terminator, st, say=s.say):
@@ -396,13 +409,13 @@ def optimize(ctx: StudyContext, s: TuneSettings) -> dict:
             "target": n_target, "stopped": reason}
 
 
-def _set_postfix(bar, study) -> None:
+def _set_postfix(bar, study, figure: str = "mAA10") -> None:
     b = best_feasible(study)
     c = trial_counts(study)
     parts = []
     if b is not None:
         from tuner.protocol import trial_value
-        parts.append(f"best mAA10={trial_value(b):.4f} (#{b.number})")
+        parts.append(f"best {figure}={trial_value(b):.4f} (#{b.number})")  # the task's figure (score: IMC)
     if c["pruned"]:
         parts.append(f"pruned={c['pruned']}")
     if c["infeasible"]:

@@ -108,3 +108,23 @@ def check_warm_start_sources(storage, study_name: str, sources) -> list:
         except ImtuneError as e:
             raise ImtuneError(f"--warm-start {name}: {e}") from None
     return srcs
+
+
+def start_at_defaults(study, space, base, sampler: str, say=None) -> dict | None:
+    """A new study of a task with ``Task.start_at_defaults`` (the reconstruction task) runs the task's defaults first:
+    every searched parameter at its value in ``base`` (the command line's configuration with the task's defaults),
+    projected into ``space`` (:func:`project_params`), enqueued with the user attribute ``start`` "task defaults".
+    Not with the grid sampler (its grid is the plan) nor for a study that already has trials (a resume, a warm
+    start). Returns the parameters enqueued (None if none), also recorded in the study's user attribute
+    ``start_at_defaults``."""
+    if sampler == "grid" or study.get_trials(deepcopy=False):
+        return None
+    from tuner.protocol import value_of
+    params = project_params({n: value_of(base, n) for n in space.params}, space)
+    if not params:
+        return None
+    study.enqueue_trial(params, user_attrs={"start": "task defaults"}, skip_if_exists=True)
+    study.set_user_attr("start_at_defaults", params)
+    if say is not None:
+        say("first trial: the task's defaults (" + ", ".join(f"{k} {v:g}" for k, v in params.items()) + ")")
+    return params

@@ -129,6 +129,9 @@ class Task(abc.ABC):
     pipeline_defaults: ClassVar[dict] = {}
     #: what ``--reference`` means by default: "paper" (the paper defaults) or "colmap" (:meth:`reference_task`)
     default_reference: ClassVar[str] = "paper"
+    #: a new study's first trial is the task's defaults (the searched parameters at their values in the study's base
+    #: configuration), so that a study freezes something worse on validation than the defaults only by their noise
+    start_at_defaults: ClassVar[bool] = False
 
     def reference_task(self) -> Task | None:
         """The task that runs the "colmap" reference (COLMAP's own pipeline on the same data), or None when this

@@ -359,6 +359,8 @@ def settings_from_args(args):
     apply_task_defaults(args, [args.task])  # the reconstruction task's own defaults (COLMAP's SIFT)
     base = build_config(args, ratio=1.0, threshold=0.5, max_iters=1000,
                         seed=args.seed if args.seed is not None else 0)
+    from tuner.options import untuned_values
+    untuned = build_config(args, **untuned_values(args.task), seed=args.seed if args.seed is not None else 0)
     _check_strategy(args, base)
     from tuner.options import check_multiview_only, multiview_config
     check_multiview_only(args, [args.task])
@@ -366,7 +368,7 @@ def settings_from_args(args):
     mv = multiview_config(args, seed=args.seed if args.seed is not None else 0)
     data_root = resolve_data(args.data, download=True, quiet=quiet)
     return TuneSettings(
-        base=base, data_root=data_root, task=args.task, study_name=args.study,
+        base=base, untuned=untuned, data_root=data_root, task=args.task, study_name=args.study,
         storage=args.storage, studies_dir=_studies_dir(args), space_path=args.space,
         # imported (custom) matches skip the matcher: the ratio test and strategy are then not searched
         fixes=list(args.fix) + (["ratio=1.0", "strategy=both"] if getattr(args, "matches", None) else []),
@@ -555,6 +557,8 @@ def test_table(t: dict) -> str:
     if "reference" in t:
         from tuner.select import comparison_text
         tail.append(comparison_text(t.get("reference")))
+    if t.get("submission"):  # reconstruction: the frozen settings' first run, every test dataset
+        tail.append(f"submission.csv (run 1 of the frozen settings): {t['submission']}")
     from tuner.formatting import ground_truth_text
     origin = ground_truth_text((t.get("data") or {}).get("ground_truth"))
     tail.append(f"ground truth: {origin}" if origin else "ground truth: not recorded (a test.json written before imtune "

@@ -1,0 +1,161 @@
+"""Which datasets can validate reconstruction settings (issue 44): the spread of the IMC score over random
+configurations of the search space, per dataset, and Optuna's parameter importances over those trials.
+
+    python benchmarks/reconstruction_spread.py --data /tmp/imc-all --dataset imc2023_heritage --n 12 \\
+        --studies-dir /tmp/spread-studies --write
+
+It runs ``tune --task reconstruction --data D --scenes DATASET --no-test --sampler random --pruner none --n-trials N``
+(the study's first trial is the task's defaults, ``Task.start_at_defaults``; the other N - 1 are drawn at random from
+``search_spaces/reconstruction.yaml``), then reads the study: the score of the defaults, and the minimum, quartiles,
+maximum and standard deviation of the random trials' scores. A dataset whose random trials all score alike cannot
+rank settings. The importances are Optuna's PED-ANOVA (what optuna-dashboard shows; fANOVA needs scikit-learn) over the
+random trials, at a target quantile of 0.3: with a dozen trials they are rough, and a parameter's importance means something only where the spread it explains is larger than the
+run-to-run noise of one configuration (docs/reconstruction.md). ``--write`` merges the dataset's row into
+``benchmarks/results/reconstruction-spread.{md,json}``.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+RESULTS = ROOT / "benchmarks" / "results"
+NAME = "reconstruction-spread"
+#: PED-ANOVA's target quantile: with about ten trials Optuna's 0.1 (the best trial alone) tells nothing apart
+TOP = 0.3
+
+
+def measure(dataset: str, studies: list[tuple[str, str]]) -> dict:
+    """The dataset's score in every complete trial of ``studies`` ((studies dir, study name) pairs; a trial's
+    per-dataset score is its user attribute ``scenes``), one per distinct parameter set; the task's defaults
+    (the trial marked ``start``) apart."""
+    import optuna
+    from optuna.trial import TrialState
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    seen: dict = {}
+    defaults = None
+    for sdir, name in studies:
+        study = optuna.load_study(study_name=name, storage=f"sqlite:///{Path(sdir) / 'optuna.db'}")
+        for t in study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
+            sc = (t.user_attrs.get("scenes") or {}).get(dataset)
+            if not sc or sc.get("score") is None:
+                continue
+            if t.user_attrs.get("start") == "task defaults":
+                defaults = float(sc["score"])
+                continue
+            seen.setdefault(tuple(sorted(t.params.items())), (float(sc["score"]), t))
+    v = np.array([x for x, _ in seen.values()], float)
+    if not len(v):
+        raise SystemExit(f"no trial of {dataset} in {studies}")
+    row = {"dataset": dataset, "n_random": len(v), "defaults": defaults,
+           "min": float(v.min()), "q25": float(np.percentile(v, 25)), "median": float(np.median(v)),
+           "q75": float(np.percentile(v, 75)), "max": float(v.max()), "sd": float(v.std(ddof=1)) if len(v) > 1 else None,
+           "zero": int((v == 0).sum()), "studies": [n for _, n in studies]}
+    if len(v) >= 4:
+        sub = optuna.create_study(direction="maximize")
+        for x, t in seen.values():
+            sub.add_trial(optuna.trial.create_trial(params=t.params, distributions=t.distributions, value=x))
+        import warnings
+        with warnings.catch_warnings(record=True) as caught:  # Optuna warns where it returns equal importances
+            warnings.simplefilter("always", UserWarning)
+            imp = optuna.importance.get_param_importances(
+                sub, evaluator=optuna.importance.PedAnovaImportanceEvaluator(target_quantile=TOP))
+        row["importances"] = {k: float(x) for k, x in imp.items()}
+        row["importances_equal"] = any("will be equal" in str(w.message) for w in caught)
+    return row
+
+
+def write(row: dict) -> None:
+    jpath, mpath = RESULTS / f"{NAME}.json", RESULTS / f"{NAME}.md"
+    old = json.loads(jpath.read_text()) if jpath.is_file() else {"rows": []}
+    old["rows"] = [r for r in old["rows"] if r["dataset"] != row["dataset"]] + [row]
+    jpath.write_text(json.dumps(old, indent=2) + "\n")
+    write_md(old, mpath)
+
+
+def _f(x) -> str:
+    return "?" if x is None else f"{x:.3f}"
+
+
+def write_md(old: dict, mpath: Path) -> None:
+    s = ["| dataset | settings | defaults | min | quartiles | max | sd | score 0 |",
+         "| --- | ---: | ---: | ---: | --- | ---: | ---: | ---: |"]
+    imp, cmds = [], []
+    for r in old["rows"]:
+        s.append(f"| `{r['dataset']}` | {r['n_random']} | {_f(r['defaults'])} | {_f(r['min'])} | "
+                 f"{_f(r['q25'])}, {_f(r['median'])}, {_f(r['q75'])} | {_f(r['max'])} | {_f(r['sd'])} | {r['zero']} |")
+        if r.get("importances") and r.get("importances_equal"):
+            imp.append(f"- `{r['dataset']}`: equal by construction (too few trials, or all alike).")
+        elif r.get("importances"):
+            top = sorted(r["importances"].items(), key=lambda kv: -kv[1])
+            imp.append(f"- `{r['dataset']}`: " + ", ".join(f"{k} {x:.2f}" for k, x in top) + ".")
+        cmds.append(f"- `{r['dataset']}`, {r['date']}: `{r['command']}`")
+    text = ["The IMC score per dataset of settings drawn from `search_spaces/reconstruction.yaml` (2048 features, "
+            "incremental mapper, one run each), beside the task's defaults. With `--studies`, the settings are those "
+            "the named studies tried (random draws, then TPE's; studies at one sampler seed draw the same settings "
+            "but Gamma, which scales with each study's calibrated Gamma_max); without, a random-sampler study's.", "",
+            "<!-- --8<-- [start:spread] -->", *s, "<!-- --8<-- [end:spread] -->", "",
+            "<!-- --8<-- [start:importances] -->", "Optuna's PED-ANOVA importances over those trials (how much each "
+            "parameter decides reaching the best 30% of them; they sum to 1; about ten trials: rough):", "", *imp, "<!-- --8<-- [end:importances] -->", "",
+            "<!-- --8<-- [start:commands] -->", "Commands (`benchmarks/reconstruction_spread.py`):", "", *cmds,
+            "<!-- --8<-- [end:commands] -->", ""]
+    mpath.write_text("\n".join(text))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", required=True, help="a folder of IMC-format datasets")
+    ap.add_argument("--dataset", required=True, help="the dataset measured")
+    ap.add_argument("--n", type=int, default=12, help="trials: the defaults, then N - 1 random ones")
+    ap.add_argument("--num-features", type=int, default=2048)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--studies-dir", default=None, help="where the study is written (outside the checkout)")
+    ap.add_argument("--record-only", action="store_true", help="do not run: read the study")
+    ap.add_argument("--studies", default=None, metavar="DIR:NAME,...",
+                    help="do not run: read the dataset's scores in the trials of these studies (a study validated on "
+                         "several datasets records each one's score)")
+    ap.add_argument("--write", action="store_true", help=f"merge the row into benchmarks/results/{NAME}.{{md,json}}")
+    a = ap.parse_args(argv)
+    if a.n < 5:
+        ap.error("--n must be at least 5 (the defaults and 4 random trials)")
+    a.study = f"spread-{a.dataset}"
+    if not a.studies and not a.studies_dir:
+        ap.error("give --studies-dir (a new random study) or --studies (trials of studies already run)")
+    args = ["--task", "reconstruction", "--data", a.data, "--scenes", a.dataset, "--no-test", "--sampler", "random",
+            "--pruner", "none", "--n-trials", str(a.n), "--num-features", str(a.num_features), "--seed", str(a.seed),
+            "--studies-dir", a.studies_dir, "--study", a.study]
+    if a.studies:
+        pairs = [tuple(x.rsplit(":", 1)) for x in a.studies.split(",")]
+        if any(len(x) != 2 for x in pairs):
+            ap.error("--studies takes DIR:NAME[,DIR:NAME...]")
+        row = measure(a.dataset, pairs)
+        row.update(command=f"python benchmarks/reconstruction_spread.py --data {a.data} --dataset {a.dataset} "
+                           f"--studies {a.studies}", date=_dt.date.today().isoformat())
+        print(json.dumps(row, indent=2))
+        if a.write:
+            write(row)
+        return 0
+    if not a.record_only:
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+        rc = subprocess.call([sys.executable, "-m", "tuner", *args], env=env)
+        if rc != 0:
+            print(f"tune exited with {rc}", file=sys.stderr)
+            return 1
+    row = measure(a.dataset, [(a.studies_dir, a.study)])
+    row.update(command="tune " + " ".join(args), date=_dt.date.today().isoformat())
+    print(json.dumps(row, indent=2))
+    if a.write:
+        write(row)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
