@@ -46,9 +46,11 @@ def register(sub) -> None:
                         "estimation on our inliers picks calibrated E, planar H or F)")
     r.add_argument("--shortlist", type=count_int, default=None,
                    help="partners per image matched above 30 images (default 20; 0: every pair)")
-    r.add_argument("--recon-pipeline", default=None, choices=["imtune", "colmap"],
-                   help="imtune (default) or colmap: COLMAP out of the box (its SIFT, exhaustive matching, "
-                        "verification, mapper), the reference `tune test` compares with")
+    r.add_argument("--recon-pipeline", default=None, choices=["imtune", "colmap", "imc2025-baseline"],
+                   help="imtune (default), colmap: COLMAP out of the box (its SIFT, exhaustive matching, "
+                        "verification, mapper), the reference `tune test` compares with, or imc2025-baseline: "
+                        "the IMC 2025 baseline (ALIKED + LightGlue at --num-features, COLMAP's verification "
+                        "and mapper)")
     ap.add_argument("--pairs", action="store_true", help="include every pair record in the JSON")
     ap.add_argument("--bag-records", action="store_true", help="include every multiview bag record in the JSON")
     ap.add_argument("--intermediate", action="store_true",
