@@ -82,3 +82,41 @@ def test_cli_bad_recon_pipeline_is_one_line_exit_2():
                         "--recon-pipeline", "imc2025"], capture_output=True, text=True, timeout=300)
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and "--recon-pipeline" in r.stderr, r.stderr
+
+
+def test_baseline_runs_lightglue_and_colmap_on_real_images(tmp_path):
+    """Three dioscuri views, 128 ALIKED keypoints at 320 px (a few CPU-seconds): LightGlue runs once per pair (a
+    counter), with the baseline's options whatever the configuration said, and the submission names every image
+    once. The scores of whole datasets are in benchmarks/results/imc2025-baseline.md."""
+    import csv
+    import dataclasses
+
+    from pipeline.cache import H5Cache
+    from pipeline.data import load_scene
+    from pipeline.tasks import prepare
+    from pipeline.tasks.reconstruction import ReconstructionTask
+    from tests.test_reconstruction_reference import _cut
+    data = _cut(tmp_path / "data", {"h3": (0, 3)})
+    labels = list(csv.DictReader(open(data / "train_labels.csv", newline="")))
+    keep = [r for r in labels if r["scene"] != "outliers"]  # the three views, no outlier
+    with open(data / "train_labels.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(keep[0]))
+        w.writeheader()
+        w.writerows(keep)
+    for r in labels:
+        if r["scene"] == "outliers":
+            (data / "train" / "h3" / r["image"]).unlink()
+    sc = load_scene(data, "h3")
+    conf = _conf()
+    conf = dataclasses.replace(conf, feature=dataclasses.replace(conf.feature, num_features=128, max_side=320))
+    before = prepare.COUNTERS["learned"]
+    res = ReconstructionTask({"pipeline": "imc2025-baseline"}, workers=1,
+                             submission=tmp_path / "sub.csv").evaluate([sc], conf, H5Cache(tmp_path / "c"))
+    assert prepare.COUNTERS["learned"] - before == 3  # every pair of three images, once
+    s = res.scenes["h3"]
+    assert s["pairs"] == 3 and s["mapper"] == "incremental"
+    ran = res.summary["baseline_config"]
+    assert ran["feature"]["name"] == "aliked" and ran["feature"]["num_features"] == 128
+    assert ran["matching"]["method"] == "lightglue"
+    rows = list(csv.DictReader(open(tmp_path / "sub.csv", newline="")))
+    assert sorted(r["image"] for r in rows) == sorted(sc.images)

@@ -746,13 +746,13 @@ class ReconstructionTask(Task):
                 tab, _ = pair_knn(cache, feats[a], feats[b], conf.matching)
                 m, _ = tentative_matches(tab, conf.matching, feats[a], feats[b], task="multiview")
                 tentative[(a, b)] = np.asarray(m, np.int64).reshape(-1, 2)
+            # the baseline: a pair with fewer LightGlue matches than the notebook's min_matches is not imported
+            few = BASELINE_MIN_MATCHES if baseline else 0
             verified = [{"pair": p, "NM": len(m), "NI": 0, "ransac_seconds": 0.0, "matches": None, "inliers": None,
-                         "F": None, "failure": None} for p, m in tentative.items()]
-            if baseline:  # the notebook's min_matches: a pair with fewer LightGlue matches is not imported
-                for r in verified:
-                    if r["NM"] < BASELINE_MIN_MATCHES:
-                        r["failure"] = f"fewer than {BASELINE_MIN_MATCHES} LightGlue matches ({r['NM']})"
-                tentative = {p: m for p, m in tentative.items() if len(m) >= BASELINE_MIN_MATCHES}
+                         "F": None,
+                         "failure": f"fewer than {few} LightGlue matches ({len(m)})" if len(m) < few else None}
+                        for p, m in tentative.items()]
+            tentative = {p: m for p, m in tentative.items() if len(m) >= few}
         else:
             verified = verify_all(cache, {n: sc.images[n] for n in names}, conf, pairs, workers,
                                   progress=self.progress, desc=f"{sc.name}: pairs")
