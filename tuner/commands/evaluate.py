@@ -236,7 +236,13 @@ def run(args) -> int:
                if any(is_timed(t) for t in task_list(args.task)) else "COLMAP's own RANSAC")
         match = (f"{c.matching.method} c>{c.matching.min_confidence:g}" if c.matching.learned
                  else f"r={c.matching.ratio} {c.matching.strategy}")
-        print(f"{c.feature.name} ({c.feature.num_features}) | {match} | {geo} | data {data}")
+        ran = (out.get("reconstruction") or {}).get("baseline_config")
+        if ran:  # --recon-pipeline imc2025-baseline: its own features and matcher, not the options above
+            print(f"IMC 2025 baseline: aliked ({ran['feature']['num_features']}) | lightglue "
+                  f"c>{ran['matching']['min_confidence']:g}, adaptive off | COLMAP's verification and mapper | "
+                  f"data {data}")
+        else:
+            print(f"{c.feature.name} ({c.feature.num_features}) | {match} | {geo} | data {data}")
         from tuner.formatting import ground_truth_text
         print(f"ground truth: {ground_truth_text(out.get('ground_truth'))}")
         for name in TASKS.names():
