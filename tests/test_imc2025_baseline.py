@@ -117,3 +117,13 @@ def test_baseline_runs_lightglue_and_colmap_on_real_images(tmp_path):
     assert ran["matching"]["method"] == "lightglue"
     rows = list(csv.DictReader(open(tmp_path / "sub.csv", newline="")))
     assert sorted(r["image"] for r in rows) == sorted(sc.images)
+
+
+def test_replicate_lines_name_lightglues_threshold():
+    """A LightGlue study's replicates froze c (min_confidence), not r: the replicate lines and the spread name it."""
+    from tuner.replicates import _param_text, param_spread
+    params = [{"min_confidence": 0.495, "threshold": 0.115, "max_iters": 110027},
+              {"min_confidence": 0.831, "threshold": 0.212, "max_iters": 45095}]
+    assert _param_text(params[0]) == "c 0.495, eta 0.115, Gamma 110027"
+    assert param_spread(params)["min_confidence"] == (0.495, 0.831) and "ratio" not in param_spread(params)
+    assert _param_text({"ratio": 0.85, "threshold": 0.5, "max_iters": 1000}) == "r 0.85, eta 0.5, Gamma 1000"
