@@ -39,7 +39,7 @@ from pipeline.errors import ImtuneError
 from pipeline.metrics.replicates import METHOD, NOT_MEASURED, ReplicatedInterval, replicated_maa_interval, scene_weights
 
 #: the frozen parameters whose spread over replicates is reported (r, eta, Gamma)
-SPREAD_PARAMS = ("ratio", "threshold", "max_iters")
+SPREAD_PARAMS = ("min_confidence", "ratio", "threshold", "max_iters")  # c: a learned matcher's r
 MAX_REPLICATES = 20
 REPLICATED_ATTR = "replicated"
 INTERVAL_METHOD = METHOD
@@ -269,11 +269,15 @@ def replicate_tests(studies_dir, name: str) -> list[dict] | None:
 
 # -- printing -------------------------------------------------------------------------------------------------
 
+#: the frozen settings a replicate line names, as the pages write them (LightGlue's c takes r's place)
+PARAM_LABELS = (("min_confidence", "c"), ("ratio", "r"), ("threshold", "eta"), ("max_iters", "Gamma"))
+
+
 def _param_text(p: dict | None) -> str:
     if not isinstance(p, dict):
         return "-"
     parts = []
-    for k, label in (("ratio", "r"), ("threshold", "eta"), ("max_iters", "Gamma")):
+    for k, label in PARAM_LABELS:
         if k in p:
             v = p[k]
             parts.append(f"{label} {v:.3g}" if isinstance(v, float) else f"{label} {v}")
@@ -293,7 +297,7 @@ def replicated_text(summary: dict) -> str:
             f"{summary['se_pairs']:.4f}, replicates se {summary['se_between']:.4f})")
     sp = summary.get("spread") or {}
     spread = "; ".join(f"{label} {_fmt(sp[k]['min'])} .. {_fmt(sp[k]['max'])}"
-                       for k, label in (("ratio", "r"), ("threshold", "eta"), ("max_iters", "Gamma")) if k in sp)
+                       for k, label in PARAM_LABELS if k in sp)
     out = [head, *lines]
     if spread:
         out.append(f"frozen settings over the replicates: {spread}")

@@ -247,36 +247,46 @@ def optimum_warnings(study, frozen: dict) -> list[str]:
 
 # ------------------------------------------------------------------------------------------ reference
 
+#: named reference pipelines a task may run (``Task.references``, ``Task.reference_task``)
+NAMED_REFERENCES = ("colmap", "imc2025-baseline")
+
+
 def reference_spec(value: str | None) -> str:
     """``--reference``: None = the task's default (``Task.default_reference``), "paper" = the paper defaults,
-    "colmap" = COLMAP's own pipeline (``Task.reference_task``), "none" = no comparison, else a file or study."""
+    "colmap" = COLMAP's own pipeline, "imc2025-baseline" = the IMC 2025 baseline (both ``Task.reference_task``),
+    "none" = no comparison, else a file or study."""
     if value is not None and not isinstance(value, str):
         return "given"  # a resolved configuration (Source or (config, label))
     if value is None or str(value).strip().lower() in ("", "default", "defaults"):
         return "default"
     low = str(value).strip().lower()
-    return low if low in ("none", "paper", "colmap") else str(value)
+    return low if low in ("none", "paper", *NAMED_REFERENCES) else str(value)
 
 
 def reference_kind(value, task) -> str:
-    """:func:`reference_spec` with the task's default resolved: "paper", "colmap", "none", "given" or a file /
-    study; "colmap" for a task without a COLMAP reference is a one-line ImtuneError."""
+    """:func:`reference_spec` with the task's default resolved: "paper", a named reference ("colmap",
+    "imc2025-baseline"), "none", "given" or a file / study; a named reference the task does not run is a one-line
+    ImtuneError."""
     kind = reference_spec(value)
     if kind == "default":
         kind = getattr(task, "default_reference", "paper") if task is not None else "paper"
     from pipeline.tasks.base import Task
     has = task is not None and (type(task).reference_task is not Task.reference_task if not isinstance(task, type)
                                 else task.reference_task is not Task.reference_task)
-    if kind == "colmap" and not has:
+    named = tuple(getattr(task, "references", ()) or ()) or (("colmap",) if has else ())
+    if kind in NAMED_REFERENCES and kind not in named:
         name = getattr(task, "name", "stereo")
-        raise ImtuneError(f"--reference colmap: COLMAP's own pipeline is the reconstruction task's reference, not the "
+        what = ("COLMAP's own pipeline" if kind == "colmap" else "the IMC 2025 baseline")
+        raise ImtuneError(f"--reference {kind}: {what} is the reconstruction task's reference, not the "
                           f"{name} task's (give paper, none, a config file or a study)")
     return kind
 
 
 def reference_task_of(value, task):
-    """The task the reference's runs use: :meth:`Task.reference_task` for "colmap", else ``task`` itself."""
-    return task.reference_task() if reference_kind(value, task) == "colmap" else task
+    """The task the reference's runs use: :meth:`Task.reference_task` for a named reference ("colmap",
+    "imc2025-baseline"), else ``task`` itself."""
+    kind = reference_kind(value, task)
+    return task.reference_task(kind) if kind in NAMED_REFERENCES else task
 
 
 def colmap_reference_label(num_features: int) -> str:
@@ -284,6 +294,15 @@ def colmap_reference_label(num_features: int) -> str:
     from pipeline.features.colmap_sift import _pycolmap_version
     return (f"COLMAP out of the box (pycolmap {_pycolmap_version()}: its SIFT at {num_features} features, exhaustive "
             "matching, default verification, incremental mapper, min_model_size 3, max_num_models 25)")
+
+
+def baseline_reference_label(num_features: int) -> str:
+    """What the "imc2025-baseline" reference runs, with pycolmap's and kornia's versions."""
+    from pipeline.features.colmap_sift import _pycolmap_version
+    from pipeline.features.kornia_base import package_version
+    return (f"IMC 2025 baseline (ALIKED at {num_features} keypoints + LightGlue, kornia "
+            f"{package_version('kornia')}; COLMAP's verification and incremental mapper, pycolmap "
+            f"{_pycolmap_version()}, min_model_size 3, max_num_models 25)")
 
 
 def reference_task_note(reference, task_name: str, flag: str = "--reference",
@@ -327,9 +346,14 @@ def reference_config(frozen: dict, spec, task=None):
     if kind == "colmap":  # the frozen configuration carries the feature count; the reference task ignores the rest
         base = pipeline_from_dict(frozen["config"])
         return base, colmap_reference_label(base.feature.num_features)
+    if kind == "imc2025-baseline":  # ALIKED + LightGlue at the frozen configuration's feature count
+        from pipeline.tasks.reconstruction import baseline_config
+        base = baseline_config(pipeline_from_dict(frozen["config"]))
+        return base, baseline_reference_label(base.feature.num_features)
     if kind != "paper":
         raise ImtuneError(f"reference {spec!r}: resolve a config file or study first "
-                          "(tuner.sources.resolve_source), or give 'paper', 'colmap' or 'none'")
+                          "(tuner.sources.resolve_source), or give 'paper', 'colmap', 'imc2025-baseline' or "
+                          "'none'")
     base = pipeline_from_dict(frozen["config"])
     values = {k: v for k, v in PAPER_DEFAULTS.items() if k in searchable(task, base)}
     return config_for(base, values), reference_label(values)

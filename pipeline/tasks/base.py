@@ -127,15 +127,19 @@ class Task(abc.ABC):
     #: pipeline options (command-line dests: feature, threshold, ...) this task runs with where the command line does
     #: not set them (the command-line defaults are the stereo protocol's)
     pipeline_defaults: ClassVar[dict] = {}
-    #: what ``--reference`` means by default: "paper" (the paper defaults) or "colmap" (:meth:`reference_task`)
+    #: what ``--reference`` means by default: "paper" (the paper defaults) or a named reference pipeline of
+    #: :attr:`references` ("colmap": :meth:`reference_task`)
     default_reference: ClassVar[str] = "paper"
     #: a new study's first trial is the task's defaults (the searched parameters at their values in the study's base
     #: configuration), so that a study freezes something worse on validation than the defaults only by their noise
     start_at_defaults: ClassVar[bool] = False
+    #: the named reference pipelines :meth:`reference_task` runs (the reconstruction task: "colmap",
+    #: "imc2025-baseline"); a task that overrides :meth:`reference_task` without naming them has "colmap"
+    references: ClassVar[tuple[str, ...]] = ()
 
-    def reference_task(self) -> Task | None:
-        """The task that runs the "colmap" reference (COLMAP's own pipeline on the same data), or None when this
-        task has none."""
+    def reference_task(self, kind: str = "colmap") -> Task | None:
+        """The task that runs the named reference ``kind`` (e.g. "colmap": COLMAP's own pipeline on the same data),
+        or None when this task has none."""
         return None
 
     @classmethod

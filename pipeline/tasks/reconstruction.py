@@ -47,7 +47,7 @@ from pipeline.metrics.imc_score import OUTLIERS, centre, score_dataset
 from pipeline.tasks.base import TASKS, Task, TaskResult
 
 MAPPERS = ("incremental", "global")
-PIPELINES = ("imtune", "colmap")
+PIPELINES = ("imtune", "colmap", "imc2025-baseline")
 VERIFIERS = ("ours", "colmap")
 TWO_VIEW = ("F", "colmap")
 #: verification runs per dataset (not served from the in-memory cache of a task): tests read it
@@ -80,7 +80,9 @@ class ReconstructionConfig:
     pipeline: "imtune" (our features, matcher and estimator; the mapper options of ``PipelineConfig.mapper``) or
         "colmap": COLMAP's own pipeline at its defaults, the reference an entrant runs (:func:`colmap_reference`):
         its SIFT at the configuration's ``num_features``, exhaustive matching, its two-view verification, the
-        incremental mapper at pycolmap's defaults with ``min_model_size`` 3 and ``max_num_models`` 25.
+        incremental mapper at pycolmap's defaults with ``min_model_size`` 3 and ``max_num_models`` 25; or
+        "imc2025-baseline": the IMC 2025 challenge's baseline (:func:`baseline_config`): ALIKED matched by LightGlue,
+        COLMAP's two-view verification at pycolmap's defaults, the same mapper as "colmap".
     verifier: "ours" (the configuration's estimator: r, eta, Gamma) or "colmap" (COLMAP's two-view verification of
         our tentative matches at pycolmap's defaults; eta and Gamma unused).
     two_view: what the database stores of a pair our estimator verified: "F" (its fundamental matrix and inliers, as
@@ -304,13 +306,20 @@ def map_dataset(workdir: Path, images: list, verified: list[dict], conf: Pipelin
                 threads: int = 1, tentative: dict | None = None) -> tuple[list, str | None, float]:
     """Write the database (cameras, keypoints, tentative matches, the verified pairs as two-view geometries) and
     run the mapper. ``rc.verifier`` "colmap": ``tentative`` ({pair: matches}) are written and COLMAP verifies them
-    (pycolmap's default two-view options) instead of ``verified``. Returns (reconstructions, failure or None,
+    (pycolmap's default two-view options) instead of ``verified``; ``rc.pipeline`` "imc2025-baseline": the same with
+    :func:`baseline_verification_options` and the reference's mapper (:func:`reference_mapper_options`). Returns (reconstructions, failure or None,
     mapping wall seconds)."""
     from pipeline import colmap_db as cdb
     pycolmap = cdb.import_pycolmap()
     cdb.quiet(3)
     workdir.mkdir(parents=True, exist_ok=True)
     db_path = workdir / "database.db"
+    baseline = rc.pipeline == "imc2025-baseline"
+    if baseline:  # the IMC 2025 baseline: LightGlue's matches, COLMAP's verification and mapper at its settings
+        cdb.write_database(db_path, images, tentative or {})
+        cdb.verify(db_path, baseline_verification_options(), num_threads=threads)
+        return run_mapper(workdir, db_path, reference_mapper_options(threads, rc.seed), "incremental",
+                          REFERENCE_MIN_MODEL_SIZE)
     if rc.verifier == "colmap":
         ids = cdb.write_database(db_path, images, tentative or {})
         o = pycolmap.TwoViewGeometryOptions()
@@ -434,6 +443,38 @@ def reference_database(cache: H5Cache, scene: Scene, num_features: int, threads:
     COUNTERS["reference_database"] += 1
     os.replace(tmp, db_path)
     return db_path
+
+
+# ------------------------------------------------------------------------------ the IMC 2025 baseline
+
+#: what the IMC 2025 challenge's baseline notebook runs (ALIKED + LightGlue, COLMAP's verification, the incremental
+#: mapper at min_model_size 3 and max_num_models 25), at the configuration's ``num_features`` (the notebook's 4096 is
+#: ``--num-features 4096``): ALIKED's detection threshold 0.01 and LightGlue with its adaptive depth and width off,
+#: as the notebook sets them; LightGlue's own filter_threshold (kornia's default, 0.1); a pair with fewer than 15
+#: LightGlue matches is not written to the database (the notebook's ``min_matches``)
+BASELINE_FEATURE_OPTIONS = (("detection_threshold", 0.01),)
+BASELINE_MATCHER_OPTIONS = (("depth_confidence", -1.0), ("width_confidence", -1.0))
+BASELINE_MIN_CONFIDENCE = 0.1
+BASELINE_MIN_MATCHES = 15
+
+
+def baseline_config(conf: PipelineConfig) -> PipelineConfig:
+    """The IMC 2025 baseline's features and matcher (:data:`BASELINE_FEATURE_OPTIONS`, ...) with ``conf``'s
+    ``num_features`` and ``max_side``; every other section of ``conf`` as it is (the baseline does not use the
+    estimator: COLMAP verifies). Idempotent."""
+    from pipeline.config import FeatureConfig, MatchConfig
+    f = FeatureConfig(name="aliked", num_features=conf.feature.num_features, max_side=conf.feature.max_side,
+                      options=tuple(sorted(BASELINE_FEATURE_OPTIONS)))
+    m = MatchConfig(method="lightglue", min_confidence=BASELINE_MIN_CONFIDENCE,
+                    matcher_options=tuple(sorted(BASELINE_MATCHER_OPTIONS)))
+    return dataclasses.replace(conf, feature=f, matching=m)
+
+
+def baseline_verification_options():
+    """The baseline's two-view verification: ``pycolmap.TwoViewGeometryOptions()`` as constructed (the notebook
+    calls ``pycolmap.match_exhaustive`` at its defaults on the imported matches); nothing is set."""
+    from pipeline import colmap_db as cdb
+    return cdb.import_pycolmap().TwoViewGeometryOptions()
 
 
 def clusters_from_models(models: list, names: list[str], min_size: int) -> dict[str, dict[str, tuple]]:
@@ -614,10 +655,15 @@ class ReconstructionTask(Task):
     def budget_seconds(self, summary: dict) -> float | None:
         return summary.get("ransac_seconds_median")
 
-    def reference_task(self) -> ReconstructionTask:
-        """The same task on COLMAP's own pipeline (``pipeline`` "colmap": :func:`reference_database`,
-        :func:`reference_mapper_options`)."""
-        return ReconstructionTask(dataclasses.replace(self.rc, pipeline="colmap", mapper="incremental"),
+    references = ("colmap", "imc2025-baseline")
+
+    def reference_task(self, kind: str = "colmap") -> ReconstructionTask:
+        """The same task on a named reference pipeline: ``kind`` "colmap", COLMAP's own pipeline
+        (:func:`reference_database`, :func:`reference_mapper_options`), or "imc2025-baseline", the IMC 2025
+        baseline (:func:`baseline_config`, :func:`baseline_verification_options`, the same mapper)."""
+        if kind not in self.references:
+            raise ImtuneError(f"unknown reference pipeline {kind!r} (choose {', '.join(self.references)})")
+        return ReconstructionTask(dataclasses.replace(self.rc, pipeline=kind, mapper="incremental"),
                                   workers=self.workers, submission=self.submission, progress=self.progress)
 
     @classmethod
@@ -683,7 +729,8 @@ class ReconstructionTask(Task):
         key = config_hash({"data": sc.name, "images": list(sc.images), "feature": conf.feature.__dict__,
                            "matching": conf.matching.__dict__, "geometry": conf.geometry.__dict__,
                            "min_inliers": conf.mapper.min_inliers,  # pairs below it are not verified
-                           "shortlist": [self.rc.shortlist, self.rc.exhaustive_up_to], "verifier": self.rc.verifier})
+                           "shortlist": [self.rc.shortlist, self.rc.exhaustive_up_to], "verifier": self.rc.verifier,
+                           "pipeline": self.rc.pipeline})
         hit = self._kept.get(key)
         if hit is not None:
             self._kept[key] = self._kept.pop(key)  # most recently used last
@@ -691,15 +738,23 @@ class ReconstructionTask(Task):
         names = list(sc.images)
         pairs = self.pairs_of(sc, feats)
         tentative = None
-        if self.rc.verifier == "colmap":  # COLMAP verifies while the database is written (map_dataset)
+        baseline = self.rc.pipeline == "imc2025-baseline"
+        if self.rc.verifier == "colmap" or baseline:  # COLMAP verifies while the database is written (map_dataset)
+            from tqdm.auto import tqdm
+
             from pipeline.tasks.prepare import pair_knn, tentative_matches
             tentative = {}
-            for a, b in pairs:
+            for a, b in tqdm(pairs, desc=f"{sc.name}: matching", disable=not self.progress, leave=False):
                 tab, _ = pair_knn(cache, feats[a], feats[b], conf.matching)
                 m, _ = tentative_matches(tab, conf.matching, feats[a], feats[b], task="multiview")
                 tentative[(a, b)] = np.asarray(m, np.int64).reshape(-1, 2)
+            # the baseline: a pair with fewer LightGlue matches than the notebook's min_matches is not imported
+            few = BASELINE_MIN_MATCHES if baseline else 0
             verified = [{"pair": p, "NM": len(m), "NI": 0, "ransac_seconds": 0.0, "matches": None, "inliers": None,
-                         "F": None, "failure": None} for p, m in tentative.items()]
+                         "F": None,
+                         "failure": f"fewer than {few} LightGlue matches ({len(m)})" if len(m) < few else None}
+                        for p, m in tentative.items()]
+            tentative = {p: m for p, m in tentative.items() if len(m) >= few}
         else:
             verified = verify_all(cache, {n: sc.images[n] for n in names}, conf, pairs, workers,
                                   progress=self.progress, desc=f"{sc.name}: pairs")
@@ -730,7 +785,11 @@ class ReconstructionTask(Task):
         from pipeline.tasks.prepare import image_features
         cache = cache if cache is not None else H5Cache()
         reference = self.rc.pipeline == "colmap"
-        if not reference and self.rc.verifier == "ours":
+        if self.rc.pipeline == "imc2025-baseline":  # its own features and matcher, whatever conf says
+            conf = baseline_config(conf)
+            from pipeline.matching.learned import get_learned_matcher
+            get_learned_matcher(conf.matching.method, conf.matching.matcher_options)  # no weights: one line, now
+        elif not reference and self.rc.verifier == "ours":
             get_estimator(conf.geometry.ransac)  # unknown / unavailable: one line, before any work
         for sc in scenes:
             why = self.check_scene(sc)
@@ -742,7 +801,8 @@ class ReconstructionTask(Task):
         secs = {"features": 0.0, "pairs": 0.0, "mapping": 0.0}
         for idx, sc in enumerate(scenes):
             names = list(sc.images)
-            min_size = REFERENCE_MIN_MODEL_SIZE if reference else conf.mapper.min_model_size
+            min_size = (REFERENCE_MIN_MODEL_SIZE if reference or self.rc.pipeline == "imc2025-baseline"
+                        else conf.mapper.min_model_size)
             tmp = Path(tempfile.mkdtemp(prefix="imtune-rec-"))
             try:
                 if reference:
@@ -788,7 +848,7 @@ class ReconstructionTask(Task):
                        "NI": float(np.mean([r["NI"] for r in verified])) if verified else 0.0,
                        "ransac_seconds_median": float(np.median(rs)) if rs else 0.0,
                        "map_seconds": map_dt, "excluded": len(sc.excluded or []),
-                       "mapper": "incremental" if reference else self.rc.mapper, "failure": failure,
+                       "mapper": "incremental" if reference or self.rc.pipeline != "imtune" else self.rc.mapper, "failure": failure,
                        "submission": str(path),
                        "ground_truth_scenes": {k: v.to_dict() for k, v in result.scenes.items()},
                        "outliers_registered": result.outliers_registered,
@@ -801,7 +861,9 @@ class ReconstructionTask(Task):
             if on_step is not None:
                 on_step(idx, len(scenes), _mean(per))
         summary = _mean(per)
-        summary["interval"] = WHY_NO_CI  # said where the other tasks give "ci"
+        summary["interval"] = WHY_NO_CI
+        if self.rc.pipeline == "imc2025-baseline":  # what ran (its own features and matcher)
+            summary["baseline_config"] = conf.to_dict()  # said where the other tasks give "ci"
         return TaskResult(summary=summary, scenes=per, records=records, seconds=secs, records_key=self.records_key)
 
 

@@ -46,9 +46,11 @@ def register(sub) -> None:
                         "estimation on our inliers picks calibrated E, planar H or F)")
     r.add_argument("--shortlist", type=count_int, default=None,
                    help="partners per image matched above 30 images (default 20; 0: every pair)")
-    r.add_argument("--recon-pipeline", default=None, choices=["imtune", "colmap"],
-                   help="imtune (default) or colmap: COLMAP out of the box (its SIFT, exhaustive matching, "
-                        "verification, mapper), the reference `tune test` compares with")
+    r.add_argument("--recon-pipeline", default=None, choices=["imtune", "colmap", "imc2025-baseline"],
+                   help="imtune (default), colmap: COLMAP out of the box (its SIFT, exhaustive matching, "
+                        "verification, mapper), the reference `tune test` compares with, or imc2025-baseline: "
+                        "the IMC 2025 baseline (ALIKED + LightGlue at --num-features, COLMAP's verification "
+                        "and mapper)")
     ap.add_argument("--pairs", action="store_true", help="include every pair record in the JSON")
     ap.add_argument("--bag-records", action="store_true", help="include every multiview bag record in the JSON")
     ap.add_argument("--intermediate", action="store_true",
@@ -234,7 +236,13 @@ def run(args) -> int:
                if any(is_timed(t) for t in task_list(args.task)) else "COLMAP's own RANSAC")
         match = (f"{c.matching.method} c>{c.matching.min_confidence:g}" if c.matching.learned
                  else f"r={c.matching.ratio} {c.matching.strategy}")
-        print(f"{c.feature.name} ({c.feature.num_features}) | {match} | {geo} | data {data}")
+        ran = (out.get("reconstruction") or {}).get("baseline_config")
+        if ran:  # --recon-pipeline imc2025-baseline: its own features and matcher, not the options above
+            print(f"IMC 2025 baseline: aliked ({ran['feature']['num_features']}) | lightglue "
+                  f"c>{ran['matching']['min_confidence']:g}, adaptive off | COLMAP's verification and mapper | "
+                  f"data {data}")
+        else:
+            print(f"{c.feature.name} ({c.feature.num_features}) | {match} | {geo} | data {data}")
         from tuner.formatting import ground_truth_text
         print(f"ground truth: {ground_truth_text(out.get('ground_truth'))}")
         for name in TASKS.names():

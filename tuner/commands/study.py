@@ -85,14 +85,18 @@ def _stereo_only_given(args) -> tuple:
 
 
 def resolve_reference(value: str | None, sdir):
-    """``--reference``: the task's default (None), "paper", "colmap", "none", or a config file / study resolved to
-    its Source."""
-    from tuner.select import reference_spec
+    """``--reference``: the task's default (None), "paper", "colmap", "imc2025-baseline", "none", or a config file /
+    study resolved to its Source."""
+    from tuner.select import NAMED_REFERENCES, reference_spec
     kind = reference_spec(value)
-    if kind in ("default", "paper", "colmap", "none"):
+    if kind in ("default", "paper", "none", *NAMED_REFERENCES):
         return None if kind == "default" else kind
+    from pipeline.errors import ImtuneError
     from tuner.sources import resolve_source
-    return resolve_source(kind, sdir)
+    try:
+        return resolve_source(kind, sdir)
+    except ImtuneError as e:  # a misspelt name reads as a missing study: say what the named references are
+        raise ImtuneError(f"--reference {e} (or give paper, {', '.join(NAMED_REFERENCES)} or none)") from None
 
 
 def _select_opts(g) -> None:
@@ -103,10 +107,11 @@ def _select_opts(g) -> None:
                         f"trials within one standard error of the best), smooth (best of the surface averaged over "
                         f"neighbouring trials), lower-bound (highest lower end of the validation 95%% interval); "
                         f"see the docs' Tuning page (default: the study's rule, else {DEFAULT_RULE})")
-    g.add_argument("--reference", default=None, metavar="FILE|STUDY|paper|colmap|none",
+    g.add_argument("--reference", default=None, metavar="FILE|STUDY|paper|colmap|imc2025-baseline|none",
                    help="configuration the test runs are compared with on the same pairs (paired bootstrap): a "
                         "config file or study, paper, colmap (COLMAP out of the box: the reconstruction task's "
-                        "default), none to skip (default: the paper defaults r 0.85 both, eta 0.5 px, "
+                        "default), imc2025-baseline (the IMC 2025 baseline: ALIKED + LightGlue, COLMAP's "
+                        "verification and mapper; reconstruction), none to skip (default: the paper defaults r 0.85 both, eta 0.5 px, "
                         "Gamma 50k with the study's feature and estimator)")
 
 
