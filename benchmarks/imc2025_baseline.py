@@ -85,10 +85,10 @@ def write(rows: list[dict]) -> None:
              "Written by `benchmarks/imc2025_baseline.py` (each row's command and date below); the challenge's "
              "score, mAA and clusterness; one evaluation each (no interval: see the Reconstruction page).", "",
              "<!-- --8<-- [start:scores] -->",
-             "| dataset | keypoints | pipeline | score | mAA | clusterness | registered | clusters |",
-             "| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: |"]
+             "| dataset | pipeline (keypoints) | score | mAA | clusterness | registered | clusters |",
+             "| --- | --- | ---: | ---: | ---: | ---: | ---: |"]
     for r in old["rows"]:
-        lines.append(f"| `{r['dataset']}` | {r['num_features']} | {r['label']} | {r['score']:.3f} | {r['mAA']:.3f} | "
+        lines.append(f"| `{r['dataset']}` | {r['label']} ({r['num_features']}) | {r['score']:.3f} | {r['mAA']:.3f} | "
                      f"{r['clusterness']:.3f} | {100 * r['registered']:.0f}% | {r['clusters']} |")
     lines += ["", "Commands and dates: " + "; ".join(sorted({f"`{r['command']}` ({r['date']})"
                                                            for r in old["rows"]})) + ".",

@@ -82,25 +82,30 @@ def write(row: dict) -> None:
     write_md(old, mpath)
 
 
+#: short names of datasets in the tables (the dataset's folder in ../shared/data)
+ALIASES = {"imc2023_theather_imc2024_church": "imc2025"}
+
+
 def write_md(old: dict, mpath: Path) -> None:
     """Sections: ``verdict`` (one line per study), ``runs`` (each test run's scores), ``frozen`` (the frozen
     settings), ``commands``."""
-    def short(names):
-        return ", ".join(f"`{n}`" for n in names)
-    v = ["| validated on | tested on | mapper | trials | frozen | reference | frozen - reference [95%] | p |",
-         "| --- | --- | --- | ---: | ---: | ---: | --- | ---: |"]
+    def short(names, code=True):  # imc2025's dataset by its folder's name; plain text in the verdict table: the
+        q = "`" if code else ""   # table fits a page's width
+        return ", ".join(f"{q}{ALIASES.get(n, n)}{q}" for n in names)
+    v = ["| validated on | tested on | mapper (trials) | frozen | reference | difference [95%] | p |",
+         "| --- | --- | --- | ---: | ---: | --- | ---: |"]
     runs = ["| study | test dataset | frozen, run by run | reference, run by run |", "| --- | --- | --- | --- |"]
     frozen, cmds = [], []
     for r in old["rows"]:
         ci = r.get("ci")
         d = _f(r.get("difference"), "{:+.3f}") + (f" [{ci[0]:+.3f}, {ci[1]:+.3f}]" if ci else " (no interval)")
         p = "?" if r.get("p_value") is None else (f"{r['p_value']:.2g}")
-        v.append(f"| {short(r['validation'])} | {short(r['test'])} | {r['mapper']} | {r.get('trials', '?')}"
-                 f"{'' if r.get('defaults_first') else ' (no defaults trial)'}"
-                 f"{'; froze the defaults' if r.get('froze_defaults') else ''} | {_f(r['frozen'])} | "
+        v.append(f"| {short(r['validation'])} | {short(r['test'])} | {r['mapper']} ({r.get('trials', '?')}"
+                 f"{'' if r.get('defaults_first') else '*'}) | {_f(r['frozen'])}"
+                 f"{' (defaults)' if r.get('froze_defaults') else ''} | "
                  f"{_f(r['reference'])} | {d} | {p} |")
         for ds, pr in r["per_run"].items():
-            runs.append(f"| {r['study']} | `{ds}` | {', '.join(_f(x) for x in pr['frozen'])} | "
+            runs.append(f"| {r['study']} | {short([ds])} | {', '.join(_f(x) for x in pr['frozen'])} | "
                         f"{', '.join(_f(x) for x in pr['reference'])} |")
         ps = ", ".join(f"{k} {_f(x, '{:.4g}') if isinstance(x, float) else x}" for k, x in (r["params"] or {}).items())
         frozen.append(f"- {r['study']} (validation score {_f(r.get('validation_score'))}): {ps}.")
@@ -108,7 +113,10 @@ def write_md(old: dict, mpath: Path) -> None:
                     + f"; the data folder holds {short(r.get('folder') or [])}")
     text = ["Reconstruction tuning, held out: each study is tuned on its validation datasets, frozen, and tested on "
             "datasets it never saw against COLMAP out of the box (`--reference colmap`), run by run at the same "
-            "seeds; the interval is the task's Student t interval over datasets x runs (run-to-run noise only).", "",
+            "seeds; the interval is the task's Student t interval over datasets x runs (run-to-run noise only). "
+            "`imc2025` is the dataset `imc2023_theather_imc2024_church` of `../shared/data/imc2025`. The difference is "
+            "frozen - reference; \"(defaults)\": the study froze the task's defaults; \"*\": a study whose first "
+            "trial was not the defaults.", "",
             "<!-- --8<-- [start:verdict] -->", *v, "<!-- --8<-- [end:verdict] -->", "",
             "<!-- --8<-- [start:runs] -->", *runs, "<!-- --8<-- [end:runs] -->", "",
             "<!-- --8<-- [start:frozen] -->", "Frozen settings:", "", *frozen, "<!-- --8<-- [end:frozen] -->", "",

@@ -85,12 +85,16 @@ def _f(x) -> str:
     return "?" if x is None else f"{x:.3f}"
 
 
+#: short names of datasets in the table, so that it fits a page (the dataset's folder in ../shared/data)
+ALIASES = {"imc2023_theather_imc2024_church": "imc2025"}
+
+
 def write_md(old: dict, mpath: Path) -> None:
     s = ["| dataset | settings | defaults | min | quartiles | max | sd | score 0 |",
          "| --- | ---: | ---: | ---: | --- | ---: | ---: | ---: |"]
     imp, cmds = [], []
     for r in old["rows"]:
-        s.append(f"| `{r['dataset']}` | {r['n_random']} | {_f(r['defaults'])} | {_f(r['min'])} | "
+        s.append(f"| `{ALIASES.get(r['dataset'], r['dataset'])}` | {r['n_random']} | {_f(r['defaults'])} | {_f(r['min'])} | "
                  f"{_f(r['q25'])}, {_f(r['median'])}, {_f(r['q75'])} | {_f(r['max'])} | {_f(r['sd'])} | {r['zero']} |")
         if r.get("importances") and r.get("importances_equal"):
             imp.append(f"- `{r['dataset']}`: equal by construction (too few trials, or all alike).")
@@ -101,7 +105,8 @@ def write_md(old: dict, mpath: Path) -> None:
     text = ["The IMC score per dataset of settings drawn from `search_spaces/reconstruction.yaml` (2048 features, "
             "incremental mapper, one run each), beside the task's defaults. With `--studies`, the settings are those "
             "the named studies tried (random draws, then TPE's; studies at one sampler seed draw the same settings "
-            "but Gamma, which scales with each study's calibrated Gamma_max); without, a random-sampler study's.", "",
+            "but Gamma, which scales with each study's calibrated Gamma_max); without, a random-sampler study's. "
+            "`imc2025` is the dataset `imc2023_theather_imc2024_church` of `../shared/data/imc2025`.", "",
             "<!-- --8<-- [start:spread] -->", *s, "<!-- --8<-- [end:spread] -->", "",
             "<!-- --8<-- [start:importances] -->", "Optuna's PED-ANOVA importances over those trials (how much each "
             "parameter decides reaching the best 30% of them; they sum to 1; about ten trials: rough):", "", *imp, "<!-- --8<-- [end:importances] -->", "",
