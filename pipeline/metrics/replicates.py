@@ -186,8 +186,10 @@ class ReplicatedDifference:
         :meth:`se_at` sums -- each at its median-unbiased value, the pair part grown and the falling side's
         replicate part scaled. Why: the spread of a real difference raises the pair part's share, and with it the
         test's df; power at the null's df under-promised where replicate parts on 2 df dominate (3 vs 3 at 8
-        pairs: 0.93 reached at the median figure against 0.80). Why the median-unbiased parts and not the raw
-        estimates: the power is stated at those parts, and their df must be theirs. With raw parts a K = 3 side
+        pairs: 0.93 reached at the median figure against 0.80).
+
+        Why the median-unbiased parts and not the raw estimates: the power is stated at those parts, and their df
+        must be theirs. With raw parts a K = 3 side
         (2 df, raised most by the correction) weighed too little in the df: with 3 vs 5 replicates, 30 pairs and a
         large tuning sd the df at the truth's median figure came out 6.4 where Welch's over the true parts is 5.0,
         and the power reached 0.69-0.71 for 0.80 (fresh seeds, 1000 data sets). ``df`` at ``effect`` 0 (the
