@@ -187,8 +187,9 @@ def test_could_detect_holds_at_8_pairs_on_maa_scores():
 
 def test_se_and_df_at_a_true_difference_follow_its_spread_and_the_falling_side():
     """Known values of the model of ``se_at`` and ``df_at``: at 0 they are ``power_se`` and ``df``; at a difference
-    e the variance gains (EFFECT_CV e)^2 / N and the lower side's replicate part is scaled by the squared ratio of
-    normal densities at Phi^-1(m) and Phi^-1(m - e) (scipy.stats.norm, not the module's formula)."""
+    e the variance gains (EFFECT_CV e)^2 / N and the lower side's replicate part is scaled by the ratio of normal
+    densities at Phi^-1(m) and Phi^-1(m - e) (scipy.stats.norm, not the module's formula), to its first power; the
+    df are Welch-Satterthwaite's over the same parts, each at its median-unbiased value."""
     from scipy import stats
 
     from pipeline.metrics.replicates import EFFECT_CV, median_unbiased
@@ -200,11 +201,16 @@ def test_se_and_df_at_a_true_difference_follow_its_spread_and_the_falling_side()
     m_b = d.side_means[1]
     e = 0.2
     ratio = stats.norm.pdf(stats.norm.ppf(m_b - e)) / stats.norm.pdf(stats.norm.ppf(m_b))
-    want = d.power_se**2 - rb * median_unbiased(db) * (1 - ratio**2) + (EFFECT_CV * e) ** 2 / 30
+    want = d.power_se**2 - rb * median_unbiased(db) * (1 - ratio) + (EFFECT_CV * e) ** 2 / 30
     assert d.se_at(e) == pytest.approx(math.sqrt(want), rel=1e-9)
-    # its df: Welch-Satterthwaite's (sum v)^2 / sum v^2 / df over the raw parts at e, written out here
+    # its df: Welch-Satterthwaite's (sum v)^2 / sum v^2 / df over the parts at e, written out here; the median-
+    # unbiased factor df / chi2_df(0.5) from scipy.stats.chi2
     pair, dfp = d.var_terms[-1]
-    parts = [(ra, da), (rb * ratio**2, db), (max(pair, 0.0) + (EFFECT_CV * e) ** 2 / 30, dfp)]
+
+    def mu(f):
+        return f / stats.chi2.ppf(0.5, f)
+    parts = [(ra * mu(da), da), (rb * ratio * mu(db), db), (max(pair, 0.0) * mu(dfp) + (EFFECT_CV * e) ** 2 / 30,
+                                                             dfp)]
     want_df = sum(v for v, _ in parts) ** 2 / sum(v * v / f for v, f in parts)
     assert d.df_at(0.0) == d.df and d.df_at(e) == pytest.approx(want_df, rel=1e-9)
     assert d.power_at(d.mde) == pytest.approx(0.80, abs=2e-3)
@@ -251,3 +257,47 @@ def test_a_variance_of_about_zero_gives_a_detectable_difference_of_zero_not_an_e
     d = replicated_difference((b1 + 0.1)[None, :], b, np.repeat([0, 1], 4))
     assert 0 < d.power_se < 1e-9 and d.power_at(1e-9) > 0.8
     assert d.mde == 0.0
+
+
+def test_the_plan_promises_the_power_that_could_detect_means():
+    """The plan line ("K = k and n test pairs would detect 0.05") at the power :meth:`power_at` states for a true
+    difference of 0.05, not at the null's se: at the planned n the power is at least 0.80 and at n - 1 below, with
+    the pair variance grown by (EFFECT_CV 0.05)^2 per pair and the lower side's replicate part scaled by the
+    normal-density ratio at its figure, df Welch's over the median-unbiased parts (scipy.stats's noncentral t,
+    written out here). Pair effects about 0 (B is A shifted on every pair): the null's se planned 76 pairs at K = 10
+    where 81 are needed."""
+    import re
+
+    from scipy import stats
+
+    from pipeline.metrics.replicates import EFFECT_CV
+    rng = np.random.default_rng(4)
+    pairs = rng.uniform(0.3, 0.9, 30)
+
+    def side(shift):
+        return np.clip(pairs - shift + rng.normal(0, 0.002, (3, 1)) + rng.normal(0, 0.2, (3, 30)), 0, 1)
+    d = replicated_difference(side(0.0), side(0.01), STRATA)
+    m = re.match(r"K = (\d+) and (\d+) test pairs would detect 0.05", d.plan)
+    assert m, d.plan
+    k, n_plan = int(m.group(1)), int(m.group(2))
+    assert n_plan > 30
+
+    def mu(f):
+        return f / stats.chi2.ppf(0.5, f)
+    c = d.components
+    pair_var = 30 * max(0.0, c["pair_effects"]) * mu(c["pairs_df"]) + (EFFECT_CV * 0.05) ** 2
+    tune = [c["tuning_a"] * mu(2), c["tuning_b"] * mu(2)]
+    res = [c["interaction_a"] * mu(2 * 29), c["interaction_b"] * mu(2 * 29)]
+    low = 1 if d.side_means[1] <= d.side_means[0] else 0
+    m_low = d.side_means[low]
+    ratio = stats.norm.pdf(stats.norm.ppf(m_low - 0.05)) / stats.norm.pdf(stats.norm.ppf(m_low))
+    scale = [ratio if i == low else 1.0 for i in (0, 1)]
+
+    def power_at(n):
+        parts = [(scale[i] * (tune[i] + res[i] / n) / k, k - 1) for i in (0, 1)] + [(pair_var / n, n - 3)]
+        var = sum(v for v, _ in parts)
+        df = var**2 / sum(v * v / f for v, f in parts if v > 0)
+        q = stats.t.ppf(0.975, df)
+        nc = 0.05 / math.sqrt(var)
+        return 1 - stats.nct.cdf(q, df, nc) + stats.nct.cdf(-q, df, nc)
+    assert power_at(n_plan) >= 0.80 > power_at(n_plan - 1)

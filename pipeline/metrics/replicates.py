@@ -173,20 +173,27 @@ class ReplicatedDifference:
           slope phi(Phi^-1(score))), so the per-pair differences spread by about ``EFFECT_CV`` x effect and the
           pair part grows by (EFFECT_CV effect)^2 / N. Null data carry no trace of it (in the benchmark's world the
           median se at the truth was a third above the null's with 8 test pairs and a small tuning sd);
-        - the side that falls by ``effect`` moves toward 0, where the same tuning shift moves the score less: its
-          replicate part is scaled by the squared ratio of the probit slopes at its figure now and at the figure
-          minus ``effect`` (with a large tuning sd the median se at the truth was 0.87 of the null's). Which side
-          falls: the lower one (B at a tie). A borrowed side (K = 1) keeps its part unscaled.
+        - the side that falls by ``effect`` moves toward 0, where its score varies less: its replicate part is
+          scaled by the ratio of the probit slopes at its figure now and at the figure minus ``effect``
+          (:func:`_slope_ratio`), to its first power, not the square a small shift would give (why: there). Which
+          side falls: the lower one (B at a tie). A borrowed side (K = 1) keeps its part unscaled.
 
         At ``effect`` 0 it is :attr:`power_se`."""
         return self._at(effect)[0]
 
     def df_at(self, effect: float) -> float:
-        """The df the test would have at a true |A - B| of ``effect``: Welch-Satterthwaite's over the estimated
-        parts as :func:`_variance` forms them, with the pair part grown and the falling side's replicate part
-        scaled as in :meth:`se_at`. Why: the spread of a real difference raises the pair part's share, and with it
-        the test's df; power at the null's df under-promised where replicate parts on 2 df dominate (3 vs 3 at 8
-        pairs: 0.93 reached at the median figure against 0.80). ``df`` at ``effect`` 0."""
+        """The df the test would have at a true |A - B| of ``effect``: Welch-Satterthwaite's over the very parts
+        :meth:`se_at` sums -- each at its median-unbiased value, the pair part grown and the falling side's
+        replicate part scaled. Why: the spread of a real difference raises the pair part's share, and with it the
+        test's df; power at the null's df under-promised where replicate parts on 2 df dominate (3 vs 3 at 8
+        pairs: 0.93 reached at the median figure against 0.80).
+
+        Why the median-unbiased parts and not the raw estimates: the power is stated at those parts, and their df
+        must be theirs. With raw parts a K = 3 side
+        (2 df, raised most by the correction) weighed too little in the df: with 3 vs 5 replicates, 30 pairs and a
+        large tuning sd the df at the truth's median figure came out 6.4 where Welch's over the true parts is 5.0,
+        and the power reached 0.69-0.71 for 0.80 (fresh seeds, 1000 data sets). ``df`` at ``effect`` 0 (the
+        test's own df). Comparisons with a side below MIN_VERDICT_K keep the bounded df of :func:`_variance`."""
         return self._at(effect)[1]
 
     def _at(self, effect: float) -> tuple[float, float]:
@@ -199,13 +206,16 @@ class ReplicatedDifference:
         if len(rows) == 2 and self.side_means:  # both sides measured: the falling side's part scales
             low = 1 if self.side_means[1] <= self.side_means[0] else 0
             v, d = rows[low]
-            shrink = _slope_ratio(self.side_means[low], e) ** 2
+            shrink = _slope_ratio(self.side_means[low], e)  # its first power: see _slope_ratio
             var -= v * median_unbiased(d) * (1.0 - shrink)
             rows[low] = (v * shrink, d)
+        pair, dfp = self.var_terms[-1]
         if min(self.replicates) < MIN_VERDICT_K:  # the bounded df of such comparisons (see ``_variance``)
             rows = [(v * d / _chi2_quantile(DF_BOUND, d), d) for v, d in rows]
-        pair, dfp = self.var_terms[-1]
-        df = _welch([*rows, (max(pair, 0.0) + hetero, dfp)])[1]
+            df = _welch([*rows, (max(pair, 0.0) + hetero, dfp)])[1]
+        else:  # the df of the very parts ``var`` sums: each at its median-unbiased value
+            df = _welch([*((v * median_unbiased(d), d) for v, d in rows),
+                         (max(pair, 0.0) * median_unbiased(dfp) + hetero, dfp)])[1]
         return math.sqrt(max(var, 0.0)), df
 
     def power_at(self, effect: float) -> float:
@@ -243,7 +253,8 @@ class ReplicatedDifference:
         return plan_text(self.pairs * max(0.0, c["pair_effects"]) * median_unbiased(c["pairs_df"]),
                          c["interaction_a"] * median_unbiased(dfr[0]), c["interaction_b"] * median_unbiased(dfr[1]),
                          c["tuning_a"] * median_unbiased(ka - 1), c["tuning_b"] * median_unbiased(kb - 1),
-                         alpha=self.alpha, target=self.plan_target, n_now=self.pairs, strata=self.strata)
+                         alpha=self.alpha, target=self.plan_target, n_now=self.pairs, strata=self.strata,
+                         side_means=self.side_means if self.assumption is None else ())
 
     @functools.cached_property
     def _pab(self) -> tuple[float, tuple[float, float]] | None:
@@ -411,7 +422,21 @@ def _chi2_quantile(q: float, df: float) -> float:
 
 def _slope_ratio(m: float, effect: float) -> float:
     """phi(Phi^-1(m - effect)) / phi(Phi^-1(m)): how much less (or more) a score at mean ``m`` moves per unit of a
-    latent shift after falling by ``effect``, under a probit link (both clipped into [1e-4, 1 - 1e-4])."""
+    latent shift after falling by ``effect``, under a probit link (both clipped into [1e-4, 1 - 1e-4]).
+
+    :meth:`ReplicatedDifference.se_at` scales the falling side's replicate part by this ratio, not by its square.
+    The square is the delta method: right when the noise that makes the part is small on the scale where the
+    link bends. The replicate part is the variance of a side's figure over replicates: its tuning shift plus, per
+    pair, seed and tuning x pair noise as wide as the spread of the pairs themselves, on a score that counts the
+    thresholds (a decade of pose error) an error passes. A pair's score then varies like a share of thresholds
+    passed, its variance like p (1 - p) at its level p, and p (1 - p) falls with the level like phi(Phi^-1(p)),
+    the first power of the slope (the two ratios agree within 10% for levels in 0.2..0.7). Measured in the
+    calibration benchmark's world (1000 data sets a cell, truth at the median "could detect" figure): the falling
+    side's mean replicate part was 0.87 / 0.91 / 0.92 of the null's (3 vs 5 at 30 pairs and a large tuning sd,
+    3 vs 3 at 8 pairs and a small one, 5 vs 5 at 30 and a large one), where this ratio gives 0.89 / 0.90 / 0.94
+    and its square 0.79 / 0.81 / 0.89. The square under-stated the se at the truth, and the power reached fell
+    to 0.70-0.75 where a large tuning sd dominates; the ratio itself gave 0.74-0.88 in all 27 verdict cells on
+    two fresh seeds (``benchmarks/verdict_power_probe.py``)."""
     lo, hi = 1e-4, 1 - 1e-4
     z0 = float(special.ndtri(min(max(m, lo), hi)))
     z1 = float(special.ndtri(min(max(m - effect, lo), hi)))
@@ -529,22 +554,36 @@ def detectable(se: float, df: float, alpha: float, target_power: float = POWER) 
 
 
 def _planned_se_df(k: int, n: int, strata: int, pair_var: float, res_a: float, res_b: float, tune_a: float,
-                   tune_b: float) -> tuple[float, float]:
-    """(se, df) of a difference at K replicates per side and n pairs, from the estimated components."""
-    rows = [((tune_a + res_a / n) / k, k - 1), ((tune_b + res_b / n) / k, k - 1)]
+                   tune_b: float, shrink: tuple[float, float] = (1.0, 1.0)) -> tuple[float, float]:
+    """(se, df) of a difference at K replicates per side and n pairs, from the estimated components: each side's
+    replicate part times its ``shrink`` (see :meth:`ReplicatedDifference.se_at`), the df Welch's over these
+    parts, as :meth:`ReplicatedDifference.df_at` forms them."""
+    rows = [(shrink[0] * (tune_a + res_a / n) / k, k - 1), (shrink[1] * (tune_b + res_b / n) / k, k - 1)]
     var, df = _welch([*rows, (pair_var / n, max(1, n - strata))])
     return math.sqrt(var), df
 
 
 def plan_text(pair_var: float, res_a: float, res_b: float, tune_a: float, tune_b: float, *, alpha: float,
-              target: float = PLAN_DIFFERENCE, n_now: int = 0, strata: int = 1, max_pairs: int = 20000) -> str:
+              target: float = PLAN_DIFFERENCE, n_now: int = 0, strata: int = 1, max_pairs: int = 20000,
+              side_means: tuple = ()) -> str:
     """What K (both sides, from ``PLAN_K``) and how many test pairs would detect ``target`` with 80% power at
     ``alpha``, from the estimated components (per pair: pair effects ``pair_var``, each side's interaction
     ``res_*``; tuning ``tune_*``), the df and power as :func:`power` computes them; the first K that reaches it
-    with at most ``max_pairs`` pairs, and at least the pairs there are now."""
+    with at most ``max_pairs`` pairs, and at least the pairs there are now.
+
+    The power is the one :meth:`ReplicatedDifference.power_at` states for a true difference of ``target``: the
+    per-pair variance grows by (EFFECT_CV target)^2 (a real difference spreads over pairs) and, given
+    ``side_means`` (A's and B's figures), the lower side's replicate part is scaled by :func:`_slope_ratio` at
+    ``target`` (it falls toward 0, where a bounded score varies less). With the null's se the plan promised 80%
+    at designs where the comparison's own "could detect" line, formed at the same design, promised less."""
+    hetero = (EFFECT_CV * target) ** 2
+    shrink = (1.0, 1.0)
+    if len(side_means) == 2:
+        s = _slope_ratio(min(side_means), target)
+        shrink = (s, 1.0) if side_means[0] < side_means[1] else (1.0, s)
     for k in PLAN_K:
         def ok(n: int, k: int = k) -> bool:
-            se, df = _planned_se_df(k, n, strata, pair_var, res_a, res_b, tune_a, tune_b)
+            se, df = _planned_se_df(k, n, strata, pair_var + hetero, res_a, res_b, tune_a, tune_b, shrink)
             return se == 0 or power(target / se, df, alpha) >= POWER
         if not ok(max_pairs):
             continue
