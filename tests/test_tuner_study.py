@@ -453,7 +453,10 @@ def test_two_sqlite_workers(tmp_path, tuner_cache):
     assert runs[0] and runs[1] and not (runs[0] & runs[1])  # both worked, no trial twice
     st, numbers = _finished_numbers(f"sqlite:///{tmp_path}/optuna.db", "shared")
     assert set(numbers) == runs[0] | runs[1]  # every trial recorded, none lost
-    assert 8 <= len(numbers) <= 9 and len(st.trials) == len(numbers)
+    assert len(numbers) == 8  # exactly the target (tuner/workers.py)
+    # a trial two workers created in the same instant is a surplus trial: failed unevaluated, no parameter
+    left = [t for t in st.trials if t.number not in set(numbers)]
+    assert all(t.state.name == "FAIL" and t.user_attrs.get("surplus") and not t.params for t in left), left
     assert len({t.number for t in st.trials}) == len(st.trials)
 
 
