@@ -45,3 +45,49 @@ def test_ctrl_c_before_the_objective_sees_its_trial_leaves_no_running_trial(tmp_
     states = [t.state for t in st.trials]
     assert states == [TrialState.COMPLETE, TrialState.COMPLETE, TrialState.FAIL], states
     assert st.trials[2].params == {}  # interrupted before the objective drew anything
+
+
+SWALLOWED = r"""
+import os, signal, sys, time, weakref
+from tuner import cli
+
+class Held:
+    pass
+
+def callback(_):
+    # what a real signal does when it lands while a weakref callback runs (SQLAlchemy's _collection_gced)
+    os.kill(os.getpid(), getattr(signal, sys.argv[1]))
+    time.sleep(5)  # the handler raises here, inside the callback: CPython drops it ("Exception ignored")
+
+def command(argv):
+    held = Held()
+    ref = weakref.ref(held, callback)  # noqa: F841 (kept, so its callback runs when `held` goes)
+    try:
+        del held
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 20:  # a study going on
+            sum(range(1000))
+    except KeyboardInterrupt as e:  # as cli._main does
+        print("interrupted")
+        return 143 if isinstance(e, cli.Terminated) else 130
+    print("went on")
+    return 0
+
+cli._main = command
+sys.exit(cli.main([]))
+"""
+
+
+@pytest.mark.parametrize("sig,code", [("SIGINT", 130), ("SIGTERM", 143)])
+def test_a_signal_dropped_inside_a_weakref_callback_still_stops_the_command(tmp_path, sig, code):
+    """A real Ctrl-C / SIGTERM whose KeyboardInterrupt CPython drops (raised inside a weakref callback, where it
+    cannot propagate) still stops the command, once, with its exit code and no "Exception ignored" text."""
+    import subprocess
+    import sys
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[1]
+    p = subprocess.run([sys.executable, "-c", SWALLOWED, sig], cwd=root, capture_output=True, text=True, timeout=60,
+                       env=dict(os.environ, PYTHONPATH=str(root)))
+    assert "went on" not in p.stdout and "interrupted" in p.stdout, (p.stdout, p.stderr)
+    assert p.returncode == code, (p.returncode, p.stderr)
+    assert "Exception ignored" not in p.stderr and "Traceback" not in p.stderr, p.stderr

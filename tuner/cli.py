@@ -245,8 +245,47 @@ def _sigterm_as_interrupt():
         signal.signal(signal.SIGTERM, old if old is not None else signal.SIG_DFL)  # None: a handler set from C
 
 
+@contextlib.contextmanager
+def _no_interrupt_swallowed():
+    """A Ctrl-C / SIGTERM that lands while the garbage collector runs a weakref callback or a ``__del__`` (e.g.
+    SQLAlchemy's ``_collection_gced``) raises its KeyboardInterrupt there, where CPython cannot propagate it: it
+    prints "Exception ignored" and drops it, and the study would go on. ``sys.unraisablehook`` is where CPython
+    reports such a drop; this hook delivers the signal again, so the interrupt is raised at the next bytecode of
+    the main thread, where the command's handlers see it. (No library does this; CPython documents the drop.)"""
+    old_hook = sys.unraisablehook
+    pending: list[threading.Timer] = []
+
+    def hook(unraisable):
+        if unraisable.exc_type is not None and issubclass(unraisable.exc_type, KeyboardInterrupt):
+            import _thread
+            signum = signal.SIGINT
+            if issubclass(unraisable.exc_type, Terminated):
+                signum = signal.SIGTERM
+                if threading.current_thread() is threading.main_thread():
+                    signal.signal(signal.SIGTERM, _raise_terminated)  # _raise_terminated had reset it to SIG_DFL
+            # not raised here: a signal handled inside this hook would be dropped the same way; 50 ms later the
+            # main thread is back in its own code (if it is in another such callback, this hook runs again)
+            t = threading.Timer(0.05, _thread.interrupt_main, args=(signum,))
+            t.daemon = True
+            t.start()
+            pending.append(t)
+            return
+        old_hook(unraisable)
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    sys.unraisablehook = hook
+    try:
+        yield
+    finally:
+        sys.unraisablehook = old_hook
+        for t in pending:  # the command has ended: nothing left to interrupt
+            t.cancel()
+
+
 def main(argv: list[str] | None = None) -> int:
-    with _sigterm_as_interrupt():
+    with _sigterm_as_interrupt(), _no_interrupt_swallowed():
         return _main(argv)
 
 
