@@ -470,10 +470,12 @@ def median_unbiased_factors(parts: list[tuple[float, float]]) -> list[float]:
     truth at its median, 3 vs 3 replicates on 200 pairs with a small tuning sd reached a power of 0.84-0.85 for 0.80
     on two 1000-data-set probes (``benchmarks/verdict_power_probe.py``) and 0.89 in a 400-data-set run; the normal
     model alone (chi-square parts, no bounded scores) gave 0.84-0.85 with the separate factors and 0.80-0.81 with
-    the joint one. Parts on equal df are exchangeable, so the Welch df of their sum (between d and 2 d) does not
-    depend on which of them was estimated low. Parts on different df keep their own factors: there the plug-in df
-    of a sum rises exactly when the few-df part is estimated low (the part that needs the correction most; see
-    ``_variance``), and the joint factor took 3 vs 5 replicates down to a power of 0.69-0.81."""
+    the joint one.
+
+    Parts on equal df are exchangeable, so the Welch df of their sum (between d and 2 d) does not depend on which
+    of them was estimated low. Parts on different df keep their own factors: there the plug-in df of a sum rises
+    exactly when the few-df part is estimated low (the part that needs the correction most; see ``_variance``),
+    and the joint factor took 3 vs 5 replicates down to a power of 0.69-0.81."""
     factors = [median_unbiased(d) for _, d in parts]
     for d in {d for _, d in parts}:
         same = [i for i, (_, di) in enumerate(parts) if di == d]
