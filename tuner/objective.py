@@ -7,7 +7,9 @@ one scene at a time); after each step the running objective is reported as an in
 can stop a hopeless trial early. A trial is also stopped once more than half of all its pairs took more than B (a
 proof: its median is over B whatever the rest take), and, to save time, once its running budget statistic exceeds
 ``prune_over_budget`` x B (a guess, like any pruner's: the pairs seen so far may be the slow ones; its
-``pruned_reason`` says so). A stopped trial is never frozen; its ``feasible`` and budget constraint are those of the
+``pruned_reason`` says so). A task that stops an evaluation at a bound it was given
+(:class:`pipeline.errors.EvaluationStopped`: the reconstruction task's ``--trial-timeout``) has its trial pruned
+with that reason. A stopped trial is never frozen; its ``feasible`` and budget constraint are those of the
 pairs it evaluated. Features and k-NN tables come from the cache (warmed once by
 :meth:`ValidationSet.prepare`).
 
@@ -220,7 +222,13 @@ class Objective:
                                                          "time: a guess, not a proof)")
                 raise optuna.TrialPruned()
 
-        res = task.evaluate(self.vs.scene_objs, conf, self.cache, on_step=None if self.pareto else on_step)
+        from pipeline.errors import EvaluationStopped
+        try:
+            res = task.evaluate(self.vs.scene_objs, conf, self.cache, on_step=None if self.pareto else on_step)
+        except EvaluationStopped as e:  # a bound the task was given (reconstruction: --trial-timeout): never frozen
+            trial.set_user_attr("pruned_reason", str(e))
+            trial.set_user_attr("timing", self._timing(0, 0.0, t0))
+            raise optuna.TrialPruned(str(e)) from None
         attrs = task.figures(res)
         sec = task.budget_seconds(res.summary)
         if sec is not None and self.budget is not None and not self.pareto:
