@@ -50,6 +50,35 @@ def test_trial_over_the_bound_is_pruned_with_the_reason(one, cache, tmp_path, mo
     why = t.user_attrs["pruned_reason"]
     assert why.startswith("trial timeout: mapping stopped over the bound of 0.001 s (--trial-timeout)"), why
     assert "at dataset hA (1 of 1)" in why and "incremental mapper ran beyond the bound" in why, why
+    assert t.user_attrs["trial_timeout"] == 0.001
+
+
+def test_auto_bound_is_ten_times_the_defaults_mapping_at_least_a_minute():
+    """`--trial-timeout auto` reads the completed defaults trial's mapping seconds: 10 x, at least 60 s; no bound
+    before that trial completes, and another trial's time is not the defaults'."""
+    import optuna
+    from optuna.distributions import FloatDistribution
+    from optuna.trial import TrialState, create_trial
+
+    from tuner.objective import auto_trial_timeout
+    optuna.logging.set_verbosity(optuna.logging.ERROR)
+
+    def add(study, secs, start=None, state=TrialState.COMPLETE):
+        attrs = {"timing": {"mapping_seconds": secs}, **({"start": start} if start else {})}
+        study.add_trial(create_trial(state=state, value=0.5 if state == TrialState.COMPLETE else None,
+                                     params={"ratio": 0.8}, distributions={"ratio": FloatDistribution(0.5, 1.0)},
+                                     user_attrs=attrs))
+
+    st = optuna.create_study(direction="maximize")
+    assert auto_trial_timeout(st) is None
+    add(st, 40.0)  # not the defaults
+    add(st, 30.0, "task defaults", TrialState.PRUNED)  # not completed
+    assert auto_trial_timeout(st) is None
+    add(st, 30.0, "task defaults")
+    assert auto_trial_timeout(st) == 300.0
+    st2 = optuna.create_study(direction="maximize")
+    add(st2, 1.1, "task defaults")
+    assert auto_trial_timeout(st2) == 60.0
 
 
 def test_mapping_within_the_bound_gives_the_unbounded_models(one, cache):
@@ -81,8 +110,10 @@ def test_test_runs_are_not_bounded(one):
     (["--task", "reconstruction", "--trial-timeout", "-3"], "argument --trial-timeout: must be > 0, got '-3'"),
     (["--task", "reconstruction", "--trial-timeout", "inf"], "argument --trial-timeout: must be a finite number"),
     (["--task", "reconstruction", "--trial-timeout", "ten"], "argument --trial-timeout: expected a number"),
+    (["--task", "reconstruction", "--trial-timeout", "Auto"], "argument --trial-timeout: expected a number"),
     (["--task", "stereo", "--trial-timeout", "5"], "--trial-timeout bounds a reconstruction trial's mapping; the "
                                                    "stereo task has none"),
+    (["--task", "stereo", "--trial-timeout", "auto"], "--trial-timeout bounds a reconstruction trial's mapping"),
 ])
 def test_bad_trial_timeout_is_one_line_exit_2(one, tmp_path, argv, says):
     r = subprocess.run([sys.executable, "-m", "tuner", *argv, "--data", str(one), "--studies-dir", str(tmp_path),

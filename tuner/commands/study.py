@@ -156,10 +156,11 @@ def register(sub) -> None:
                    help="stop this worker's search after this many seconds of trials, then freeze and test as usual "
                         "(default: 300 for a stereo study, the main job's bound; none for multiview and "
                         "reconstruction; 0 = no limit)")
-    t.add_argument("--trial-timeout", type=positive_float, default=None, metavar="SECONDS",
+    t.add_argument("--trial-timeout", type=_trial_timeout_arg, default=None, metavar="SECONDS|auto",
                    help="reconstruction: a trial whose mapping (all its validation datasets) runs longer than this "
-                        "is stopped and recorded as pruned, with the reason (default: no bound; test runs and the "
-                        "reference are never bounded)")
+                        "is stopped and recorded as pruned, with the reason; auto: 10 x the defaults trial's "
+                        "mapping seconds, at least 60 (default: no bound; test runs and the reference are never "
+                        "bounded)")
     t.add_argument("--terminate", default="off", choices=["off", "auto"],
                    help="auto: stop the study early when more trials cannot beat the incumbent by more than its "
                         "validation interval (Optuna's terminator: a GP regret bound, after min(20, n_trials / 2) "
@@ -339,7 +340,12 @@ def _max_pairs(args, data_root):
     return default_max_pairs(data_root)
 
 
-def _trial_timeout(args) -> float | None:
+def _trial_timeout_arg(s: str) -> float | str:
+    """``--trial-timeout``: seconds > 0 or ``auto``."""
+    return "auto" if s == "auto" else positive_float(s)
+
+
+def _trial_timeout(args) -> float | str | None:
     """``--trial-timeout``: a task that takes it (reconstruction), else a one-line error naming the option."""
     v = getattr(args, "trial_timeout", None)
     if v is None:
