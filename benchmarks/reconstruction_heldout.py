@@ -41,6 +41,8 @@ def tune_command(a) -> list[str]:
         cmd += ["--test-scenes", a.test]
     if a.study:
         cmd += ["--study", a.study]
+    if a.trial_timeout is not None:
+        cmd += ["--trial-timeout", str(a.trial_timeout)]
     return cmd
 
 
@@ -62,7 +64,8 @@ def row_of(test: dict, a, command: str) -> dict:
             "validation_score": (test.get("validation") or {}).get("score"),
             "params": test.get("params"), "study": test.get("study"), "command": command, "note": a.note,
             "trials": a.n_trials, "submission": test.get("submission"), "defaults_first": a.defaults_first,
-            "folder": a.folder, "froze_defaults": a.froze_defaults,
+            "folder": a.folder, "froze_defaults": a.froze_defaults, "trial_timeout": a.trial_timeout,
+            "pruned": a.pruned,
             "date": _dt.date.today().isoformat()}
 
 
@@ -137,6 +140,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--studies-dir", required=True, help="where the study is written (outside the checkout)")
     ap.add_argument("--study", default=None, help="study name (default: tune's)")
+    ap.add_argument("--trial-timeout", default=None, metavar="SECONDS|auto",
+                    help="tune's bound on a trial's mapping (pruned beyond it; default: none)")
     ap.add_argument("--label", default=None, help="the row's label in the results (default: val -> test (mapper))")
     ap.add_argument("--record-only", action="store_true", help="do not run: read the study's test.json")
     ap.add_argument("--note", default=None, help="a remark recorded with the row (e.g. the code version it ran)")
@@ -170,6 +175,7 @@ def main(argv=None) -> int:
     a.defaults_first = bool(st.trials) and st.trials[0].user_attrs.get("start") == "task defaults"
     trial = json.loads(path.read_text()).get("trial")
     a.froze_defaults = isinstance(trial, int) and st.trials[trial].user_attrs.get("start") == "task defaults"
+    a.pruned = {t.number: t.user_attrs.get("pruned_reason") for t in st.trials if t.state.name == "PRUNED"}
     from pipeline.data import list_scenes
     a.folder = list_scenes(a.data)
     row = row_of(json.loads(path.read_text()), a, command)

@@ -7,7 +7,9 @@ one scene at a time); after each step the running objective is reported as an in
 can stop a hopeless trial early. A trial is also stopped once more than half of all its pairs took more than B (a
 proof: its median is over B whatever the rest take), and, to save time, once its running budget statistic exceeds
 ``prune_over_budget`` x B (a guess, like any pruner's: the pairs seen so far may be the slow ones; its
-``pruned_reason`` says so). A stopped trial is never frozen; its ``feasible`` and budget constraint are those of the
+``pruned_reason`` says so). A task that stops an evaluation at a bound it was given
+(:class:`pipeline.errors.EvaluationStopped`: the reconstruction task's ``--trial-timeout``) has its trial pruned
+with that reason. A stopped trial is never frozen; its ``feasible`` and budget constraint are those of the
 pairs it evaluated. Features and k-NN tables come from the cache (warmed once by
 :meth:`ValidationSet.prepare`).
 
@@ -40,6 +42,10 @@ from pipeline.errors import ImtuneError
 from tuner.protocol import BUDGET_CONSTRAINT, config_for, within_budget
 
 MAX_FAILED_LISTED = 50
+#: ``--trial-timeout auto``: the bound is this multiple of the defaults trial's mapping seconds, and at least
+#: AUTO_TIMEOUT_FLOOR seconds (a few seconds of mapping measured on a loaded machine must not cut good trials)
+AUTO_TIMEOUT_FACTOR = 10.0
+AUTO_TIMEOUT_FLOOR = 60.0
 SINGLE = ("mAA10",)  # objectives: the task's objective figure, maximised
 PARETO = ("mAA10", "seconds")  # ... and the median estimator seconds per pair, minimised
 
@@ -134,6 +140,18 @@ def failed_units(records: list[dict], several_scenes: bool) -> list[str]:
     return out
 
 
+def auto_trial_timeout(study) -> float | None:
+    """``--trial-timeout auto``: :data:`AUTO_TIMEOUT_FACTOR` x the mapping seconds (``timing.mapping_seconds``) of the
+    study's completed trial at the task's defaults (user attribute ``start`` "task defaults"), at least
+    :data:`AUTO_TIMEOUT_FLOOR`; None (no bound yet) until that trial has completed."""
+    from optuna.trial import TrialState
+    for t in study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
+        secs = (t.user_attrs.get("timing") or {}).get("mapping_seconds")
+        if t.user_attrs.get("start") == "task defaults" and isinstance(secs, (int, float)):
+            return max(AUTO_TIMEOUT_FLOOR, AUTO_TIMEOUT_FACTOR * float(secs))
+    return None
+
+
 class Objective:
     """Callable for ``study.optimize``: one trial = one evaluation of the validation set by the study's task.
 
@@ -161,6 +179,7 @@ class Objective:
         self.prune_over_budget = prune_over_budget
         self.trials_run: list[int] = []
         self.sampler: str | None = None  # the --sampler of this worker (set by tuner.study.optimize), per trial
+        self.auto_trial_timeout = False  # --trial-timeout auto (:func:`auto_trial_timeout`)
 
     def config(self, params: dict) -> PipelineConfig:
         """The pipeline configuration of one trial: the base with the fixed, then the searched values."""
@@ -220,7 +239,17 @@ class Objective:
                                                          "time: a guess, not a proof)")
                 raise optuna.TrialPruned()
 
-        res = task.evaluate(self.vs.scene_objs, conf, self.cache, on_step=None if self.pareto else on_step)
+        from pipeline.errors import EvaluationStopped
+        if self.auto_trial_timeout and getattr(task, "trial_timeout", 0) is None:
+            task.trial_timeout = auto_trial_timeout(trial.study)
+        if getattr(task, "trial_timeout", None) is not None:
+            trial.set_user_attr("trial_timeout", float(task.trial_timeout))
+        try:
+            res = task.evaluate(self.vs.scene_objs, conf, self.cache, on_step=None if self.pareto else on_step)
+        except EvaluationStopped as e:  # a bound the task was given (reconstruction: --trial-timeout): never frozen
+            trial.set_user_attr("pruned_reason", str(e))
+            trial.set_user_attr("timing", self._timing(0, 0.0, t0))
+            raise optuna.TrialPruned(str(e)) from None
         attrs = task.figures(res)
         sec = task.budget_seconds(res.summary)
         if sec is not None and self.budget is not None and not self.pareto:

@@ -109,6 +109,8 @@ class TuneSettings:
     retest: bool = False
     multiview: object = None  # MultiviewConfig of task "multiview" (None: the protocol's bags)
     mapper: str | None = None  # task "reconstruction": "incremental" / "global" (None: the task's default)
+    # task "reconstruction": a trial's mapping bound in seconds, "auto" (tuner.objective.auto_trial_timeout), None
+    trial_timeout: float | str | None = None
     workers: int | None = None  # multiview: bag processes per trial (None: the task's default, all CPUs)
     jobs: int | None = None  # stereo: pair worker processes (None: every usable CPU); calibration uses as many
     warm_start: list = field(default_factory=list)  # studies (same storage) whose optimum + best trials go first
@@ -130,6 +132,7 @@ class TuneSettings:
         return make_task(self.task, min_covisibility=self.min_covisibility, max_pairs=self.max_pairs,
                          step_pairs=self.chunk_pairs, mv=self.multiview, workers=self.workers, jobs=self.jobs,
                          mapper=self.mapper,
+                         trial_timeout=None if self.trial_timeout == "auto" else self.trial_timeout,
                          **{"ci_resamples": self.ci_resamples, **extra})
 
     def say(self, msg: str) -> None:
@@ -306,6 +309,7 @@ def setup_study(s: TuneSettings) -> StudyContext:
     from tuner.objective import PARETO, SINGLE
     objective = Objective(task, base, resolved, vs, cache, budget=float(stored["budget"]["seconds_per_pair"]),
                           objectives=PARETO if pareto else SINGLE)
+    objective.auto_trial_timeout = s.trial_timeout == "auto"
     return StudyContext(study=study, storage=storage, name=name, space=resolved, vs=vs, objective=objective,
                         attrs=stored, cache=cache, created=created)
 

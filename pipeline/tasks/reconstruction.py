@@ -42,7 +42,7 @@ import numpy as np
 from pipeline.cache import H5Cache
 from pipeline.config import PipelineConfig
 from pipeline.data.scene import Scene
-from pipeline.errors import ImtuneError
+from pipeline.errors import EvaluationStopped, ImtuneError
 from pipeline.metrics.imc_score import OUTLIERS, centre, score_dataset
 from pipeline.tasks.base import TASKS, Task, TaskResult
 
@@ -303,12 +303,13 @@ def _write_two_view(db, ids: dict, verified: list[dict], conf: PipelineConfig, r
 
 
 def map_dataset(workdir: Path, images: list, verified: list[dict], conf: PipelineConfig, rc: ReconstructionConfig,
-                threads: int = 1, tentative: dict | None = None) -> tuple[list, str | None, float]:
+                threads: int = 1, tentative: dict | None = None,
+                timeout: float | None = None) -> tuple[list, str | None, float]:
     """Write the database (cameras, keypoints, tentative matches, the verified pairs as two-view geometries) and
     run the mapper. ``rc.verifier`` "colmap": ``tentative`` ({pair: matches}) are written and COLMAP verifies them
     (pycolmap's default two-view options) instead of ``verified``; ``rc.pipeline`` "imc2025-baseline": the same with
     :func:`baseline_verification_options` and the reference's mapper (:func:`reference_mapper_options`). Returns (reconstructions, failure or None,
-    mapping wall seconds)."""
+    mapping wall seconds); ``timeout``: the mapping's bound in seconds (:func:`run_mapper`)."""
     from pipeline import colmap_db as cdb
     pycolmap = cdb.import_pycolmap()
     cdb.quiet(3)
@@ -319,7 +320,7 @@ def map_dataset(workdir: Path, images: list, verified: list[dict], conf: Pipelin
         cdb.write_database(db_path, images, tentative or {})
         cdb.verify(db_path, baseline_verification_options(), num_threads=threads)
         return run_mapper(workdir, db_path, reference_mapper_options(threads, rc.seed), "incremental",
-                          REFERENCE_MIN_MODEL_SIZE)
+                          REFERENCE_MIN_MODEL_SIZE, timeout=timeout)
     if rc.verifier == "colmap":
         ids = cdb.write_database(db_path, images, tentative or {})
         o = pycolmap.TwoViewGeometryOptions()
@@ -336,29 +337,112 @@ def map_dataset(workdir: Path, images: list, verified: list[dict], conf: Pipelin
         finally:
             db.close()
     return run_mapper(workdir, db_path, _mapper_options(rc.mapper, conf, rc, threads), rc.mapper,
-                      conf.mapper.min_model_size)
+                      conf.mapper.min_model_size, timeout=timeout)
 
 
-def run_mapper(workdir: Path, db_path: Path, opts, mapper: str, min_model_size: int) -> tuple[list, str | None, float]:
+def run_mapper(workdir: Path, db_path: Path, opts, mapper: str, min_model_size: int,
+               timeout: float | None = None) -> tuple[list, str | None, float]:
     """pycolmap's ``mapper`` on ``db_path`` with ``opts``; the models of at least ``min_model_size`` images, largest
-    first, a failure reason or None, and the mapping wall seconds."""
+    first, a failure reason or None, and the mapping wall seconds. ``timeout`` (seconds): the mapper runs in a child
+    process (:func:`_map_in_child`), killed when it runs longer, and :class:`MappingTimeout` is raised (pycolmap's
+    global mapper takes no cancellation token, and its incremental one stops only between images)."""
     from pipeline import colmap_db as cdb
     pycolmap = cdb.import_pycolmap()
     out = workdir / "sparse"
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    try:
-        if mapper == "incremental":
-            recs = pycolmap.incremental_mapping(str(db_path), str(workdir), str(out), opts)
-        else:
-            recs = pycolmap.global_mapping(str(db_path), str(workdir), str(out), opts)
-    except Exception as e:
-        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        return [], f"mapper failed: {msg}", time.perf_counter() - t0
+    if timeout is not None:
+        recs, failure = _map_in_child(db_path, workdir, out, opts, mapper, timeout)
+        if failure is not None:
+            return [], failure, time.perf_counter() - t0
+    else:
+        try:
+            if mapper == "incremental":
+                recs = pycolmap.incremental_mapping(str(db_path), str(workdir), str(out), opts)
+            else:
+                recs = pycolmap.global_mapping(str(db_path), str(workdir), str(out), opts)
+        except Exception as e:
+            msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            return [], f"mapper failed: {msg}", time.perf_counter() - t0
     dt = time.perf_counter() - t0
     models = [r for r in (recs or {}).values() if r.num_reg_images() >= min_model_size]
     models.sort(key=lambda r: -r.num_reg_images())
     return models, (None if models else "the mapper registered no model"), dt
+
+
+class MappingTimeout(EvaluationStopped):
+    """The mapper ran longer than its bound and was stopped (``seconds``: how long it ran)."""
+
+    def __init__(self, msg: str, seconds: float):
+        super().__init__(msg)
+        self.seconds = seconds
+
+
+def _mapper_child(db_path: str, workdir: str, out: str, opts, mapper: str, models: str, conn) -> None:
+    """The child process of :func:`_map_in_child`: map, write every model to ``models/<k>``, send None or the
+    failure's first line."""
+    from pipeline import colmap_db as cdb
+    from pipeline.tasks.pool import ignore_sigint_here
+    ignore_sigint_here()  # Ctrl-C is the parent's: it kills this process
+    pycolmap = cdb.import_pycolmap()
+    cdb.quiet(3)
+    try:
+        if mapper == "incremental":
+            recs = pycolmap.incremental_mapping(db_path, workdir, out, opts)
+        else:
+            recs = pycolmap.global_mapping(db_path, workdir, out, opts)
+        for k, rec in enumerate((recs or {}).values()):
+            d = Path(models) / str(k)
+            d.mkdir(parents=True, exist_ok=True)
+            rec.write(str(d))
+        conn.send(None)
+    except Exception as e:
+        conn.send(f"mapper failed: {str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__}")
+    finally:
+        conn.close()
+
+
+def _map_in_child(db_path: Path, workdir: Path, out: Path, opts, mapper: str, timeout: float) -> tuple[dict, str | None]:
+    """The mapper in a spawned child process given ``timeout`` wall seconds: its reconstructions read back from disk
+    ({k: Reconstruction}) and None, or ({}, failure) when it failed or died; :class:`MappingTimeout` when it ran out
+    of time (the child is killed first)."""
+    import multiprocessing as mp
+
+    from pipeline import colmap_db as cdb
+    pycolmap = cdb.import_pycolmap()
+    models = workdir / "child-models"
+    ctx = mp.get_context("spawn")
+    recv, send = ctx.Pipe(duplex=False)
+    p = ctx.Process(target=_mapper_child, args=(str(db_path), str(workdir), str(out), opts, mapper, str(models), send),
+                    daemon=True)
+    from pipeline.tasks.pool import sigint_held
+    t0 = time.perf_counter()
+    with sigint_held():
+        p.start()
+    send.close()
+    try:
+        ready = recv.poll(max(0.0, float(timeout)))
+        dt = time.perf_counter() - t0
+        if not ready:
+            raise MappingTimeout(f"the {mapper} mapper ran beyond the bound of {float(timeout):g} s and was stopped "
+                                 f"after {dt:.1f} s", dt)
+        try:
+            failure = recv.recv()
+        except EOFError:  # the child died without a word (a crash inside COLMAP)
+            p.join(5)
+            return {}, f"mapper failed: its process ended with exit code {p.exitcode}"
+        p.join()
+    finally:
+        if p.is_alive():
+            p.kill()
+            p.join()
+        recv.close()
+    if failure is not None:
+        return {}, failure
+    recs = {}
+    for d in sorted(models.iterdir(), key=lambda d: int(d.name)) if models.is_dir() else []:
+        recs[int(d.name)] = pycolmap.Reconstruction(str(d))
+    return recs, None
 
 
 # ------------------------------------------------------------------------------------ the COLMAP reference
@@ -598,7 +682,7 @@ class ReconstructionTask(Task):
     def __init__(self, rc: ReconstructionConfig | dict | None = None, mapper: str | None = None,
                  workers: int | None = None, submission: str | Path | None = None, progress: bool = False,
                  pipeline: str | None = None, verifier: str | None = None, two_view: str | None = None,
-                 shortlist: int | None = None):
+                 shortlist: int | None = None, trial_timeout: float | None = None):
         if isinstance(rc, dict):
             unknown = sorted(set(rc) - {f.name for f in dataclasses.fields(ReconstructionConfig)})
             if unknown:
@@ -613,6 +697,13 @@ class ReconstructionTask(Task):
         self.workers = workers
         self.submission = submission
         self.progress = progress
+        if trial_timeout is not None and not (isinstance(trial_timeout, (int, float)) and math.isfinite(trial_timeout)
+                                              and trial_timeout > 0):
+            raise ImtuneError(f"trial timeout {trial_timeout!r}: expected a number of seconds > 0")
+        #: a bound on the wall seconds of one evaluation's mapping, all its datasets together (a study's trials:
+        #: ``--trial-timeout``); beyond it the mapper is stopped and :class:`EvaluationStopped` raised. Not passed on
+        #: by :meth:`for_run` / :meth:`reference_task`: a test run measures the frozen settings whatever they take
+        self.trial_timeout = None if trial_timeout is None else float(trial_timeout)
 
     def options(self) -> dict:
         return dataclasses.asdict(self.rc)
@@ -827,9 +918,20 @@ class ReconstructionTask(Task):
                         K = None if im.K is None else scaled_K(im.K, f.sx, f.sy)
                         images.append((n, cdb.make_camera(f.width, f.height, K, self.rc.intrinsics, im.path),
                                        f.keypoints))
+                    left = None if self.trial_timeout is None else self.trial_timeout - secs["mapping"]
                     t0 = time.perf_counter()
-                    models, failure, map_dt = map_dataset(tmp, images, verified, conf, self.rc,
-                                                          threads=max(1, workers), tentative=tentative)
+                    try:
+                        if left is not None and left <= 0:
+                            raise MappingTimeout("no time was left for it", 0.0)
+                        models, failure, map_dt = map_dataset(tmp, images, verified, conf, self.rc,
+                                                              threads=max(1, workers), tentative=tentative,
+                                                              timeout=left)
+                    except MappingTimeout as e:
+                        spent = secs["mapping"] + e.seconds
+                        raise EvaluationStopped(
+                            f"trial timeout: mapping stopped over the bound of {self.trial_timeout:g} s "
+                            f"(--trial-timeout) at dataset {sc.name} ({idx + 1} of {len(scenes)}), after "
+                            f"{spent:.1f} s of mapping in all: {e}") from None
                     secs["mapping"] += time.perf_counter() - t0
                 clusters = clusters_from_models(models, names, min_size)
             finally:

@@ -123,6 +123,7 @@ RUN_LESS_USED = [
     "--covisibility", "--cache", "--warm-start", "--startup-trials", "--test-budget", "--chunk-pairs", "--heartbeat",
     "--test-wait",
     "--calibration-pairs", "--recalibrate", "--retest", "--verbose", "--reference", "--pareto-span", "--terminate",
+    "--trial-timeout",
     "--bags", "--bag-min-points", "--bag-seed", "--mv-intrinsics", "--workers", "--keep-models", "--gt-dir", "--ci",
     "--ci-resamples",
 ]
@@ -155,6 +156,11 @@ def register(sub) -> None:
                    help="stop this worker's search after this many seconds of trials, then freeze and test as usual "
                         "(default: 300 for a stereo study, the main job's bound; none for multiview and "
                         "reconstruction; 0 = no limit)")
+    t.add_argument("--trial-timeout", type=_trial_timeout_arg, default=None, metavar="SECONDS|auto",
+                   help="reconstruction: a trial whose mapping (all its validation datasets) runs longer than this "
+                        "is stopped and recorded as pruned, with the reason; auto: 10 x the defaults trial's "
+                        "mapping seconds, at least 60 (default: no bound; test runs and the reference are never "
+                        "bounded)")
     t.add_argument("--terminate", default="off", choices=["off", "auto"],
                    help="auto: stop the study early when more trials cannot beat the incumbent by more than its "
                         "validation interval (Optuna's terminator: a GP regret bound, after min(20, n_trials / 2) "
@@ -334,6 +340,24 @@ def _max_pairs(args, data_root):
     return default_max_pairs(data_root)
 
 
+def _trial_timeout_arg(s: str) -> float | str:
+    """``--trial-timeout``: seconds > 0 or ``auto``."""
+    return "auto" if s == "auto" else positive_float(s)
+
+
+def _trial_timeout(args) -> float | str | None:
+    """``--trial-timeout``: a task that takes it (reconstruction), else a one-line error naming the option."""
+    v = getattr(args, "trial_timeout", None)
+    if v is None:
+        return None
+    from pipeline.errors import ImtuneError
+    from pipeline.tasks import TASKS, task_class
+    if args.task in TASKS and not task_class(args.task).takes("trial_timeout"):
+        raise ImtuneError(f"--trial-timeout bounds a reconstruction trial's mapping; the {args.task} task has none "
+                          "(add --task reconstruction, or drop --trial-timeout)")
+    return v
+
+
 def _timeout(args) -> float | None:
     """``--timeout`` (0 = no limit), else the task's ``search_seconds`` (stereo: a bound that keeps the main job's
     wall time stable whatever trials the sampler draws; None for tasks whose one evaluation takes minutes)."""
@@ -385,7 +409,8 @@ def settings_from_args(args):
         test_wait=args.test_wait,
         calibration_pairs=args.calibration_pairs, recalibrate=args.recalibrate, progress=not quiet,
         test=not args.no_test, test_runs=args.test_runs, retest=args.retest, multiview=mv, workers=args.workers,
-        mapper=getattr(args, "mapper", None), jobs=args.jobs, warm_start=list(args.warm_start),
+        mapper=getattr(args, "mapper", None), trial_timeout=_trial_timeout(args), jobs=args.jobs,
+        warm_start=list(args.warm_start),
         gt_dir=args.gt_dir, objective=args.objective,
         pareto_span=PARETO_SPAN if args.pareto_span is None else args.pareto_span, select=args.select,
         reference=resolve_reference(args.reference, _studies_dir(args)), ci_resamples=ci_resamples(args),
