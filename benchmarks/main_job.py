@@ -116,6 +116,10 @@ def report(data: dict) -> str:
         lines.append(f"test mAA(10), bounded - unbounded (replicated comparison, K = {c['replicates']}): "
                      f"{c['difference']:+.3f} [{c['ci'][0]:+.3f}, {c['ci'][1]:+.3f}], p {c['p_value']:.3f}, "
                      f"{c['pairs']} pairs")
+        worse = c["significant"] and c["difference"] < 0
+        mde = c.get("mde")
+        could = f"; it could detect |bounded - unbounded| >= {mde:.3f} with 80% power" if mde is not None else ""
+        lines.append(("significantly worse" if worse else "not significantly worse") + could)
     return "\n".join(lines)
 
 
@@ -126,9 +130,19 @@ def main(argv=None) -> int:
     ap.add_argument("--data", default=None, help="the data set (default: the main job's)")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "main-job.json"))
     ap.add_argument("--from-json", default=None, help="print the report of a file written by --out")
+    ap.add_argument("--merge", nargs="+", default=None, metavar="JSON",
+                    help="runs of several files written by --out (e.g. seeds run apart) into --out, with the summary")
     a = ap.parse_args(argv)
     if a.from_json:
         print(report(json.loads(Path(a.from_json).read_text())))
+        return 0
+    if a.merge:
+        files = [json.loads(Path(f).read_text()) for f in a.merge]
+        runs = [r for d in files for r in d["runs"]]
+        data = {"command": files[0]["command"], "date": ", ".join(sorted({d["date"] for d in files})),
+                "cpus": files[0]["cpus"], "runs": runs, "summary": summary(runs)}
+        Path(a.out).write_text(json.dumps(data, indent=1))
+        print(report(data))
         return 0
     runs: list = []
     for seed in a.seeds:

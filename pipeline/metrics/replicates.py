@@ -790,7 +790,8 @@ def replicated_records_comparison(recs_a, recs_b, tau: int = 10, level: float = 
     b = np.array([mb[k] for k in keys]).T * w
     d = replicated_difference(b, a, strata, alpha=1 - level, seed=seed)
     return {"difference": d.diff, "ci": [d.low, d.high], "p_value": d.p_value, "significant": d.significant,
-            "pairs": len(keys), "replicates": [a.shape[0], b.shape[0]], "verdict_allowed": d.verdict_allowed}
+            "pairs": len(keys), "replicates": [a.shape[0], b.shape[0]], "verdict_allowed": d.verdict_allowed,
+            "mde": d.mde}
 
 
 METHOD = ("variance components of a replicates x pairs crossed design (pair part: scene-stratified variance of the "
