@@ -8,7 +8,9 @@ It is what `tune evaluate --feature aliked [--matcher lightglue] --ransac degens
 (both through ``tuner.evaluate.evaluate_config``), compared on the same pairs by `tune compare`'s paired test
 (``tuner.compare.compare_records``). ``--max-pairs N``: N pairs evenly spread over the scene (the stereo task's own
 subset), for a machine where LightGlue at 8000 keypoints on every pair does not fit; both sides see those pairs.
-``--write`` merges the row into ``benchmarks/results/lightglue-acceptance.{md,json}``.
+``--write`` merges the row into ``benchmarks/results/lightglue-acceptance.{md,json}``; ``--render`` only writes the
+.md again from the .json, whose ``checks`` list (the acceptance's other checks, each with its command, date and
+result, entered by hand) is rendered below the rows.
 """
 from __future__ import annotations
 
@@ -34,7 +36,11 @@ def main(argv=None) -> int:
     ap.add_argument("--max-pairs", type=int, default=None)
     ap.add_argument("--cache", default=None)
     ap.add_argument("--write", action="store_true")
+    ap.add_argument("--render", action="store_true", help="only write the .md again from the recorded .json")
     a = ap.parse_args(argv)
+    if a.render:
+        write(None)
+        return 0
 
     from pipeline.config import GeometryConfig, MatchConfig, PipelineConfig
     from tuner.compare import compare_records
@@ -69,13 +75,15 @@ def main(argv=None) -> int:
     return 0
 
 
-def write(row: dict) -> None:
+def write(row: dict | None) -> None:
+    """Merge ``row`` into the .json (None: keep it as it is) and write the .md from the .json."""
     jpath, mpath = RESULTS / "lightglue-acceptance.json", RESULTS / "lightglue-acceptance.md"
     old = json.loads(jpath.read_text()) if jpath.is_file() else {"rows": []}
-    keep = [r for r in old["rows"] if (r["scene"], r["num_features"], r["max_pairs"]) !=
-            (row["scene"], row["num_features"], row["max_pairs"])]
-    old["rows"] = sorted(keep + [row], key=lambda r: (r["scene"], r["num_features"], r["max_pairs"] or 10**9))
-    jpath.write_text(json.dumps(old, indent=2) + "\n")
+    if row is not None:
+        keep = [r for r in old["rows"] if (r["scene"], r["num_features"], r["max_pairs"]) !=
+                (row["scene"], row["num_features"], row["max_pairs"])]
+        old["rows"] = sorted(keep + [row], key=lambda r: (r["scene"], r["num_features"], r["max_pairs"] or 10**9))
+        jpath.write_text(json.dumps(old, indent=2) + "\n")
     lines = ["# Acceptance check: ALIKED + LightGlue against ALIKED + the ratio test at its defaults", "",
              "Written by `benchmarks/lightglue_acceptance.py`; DEGENSAC eta 0.5 px, Gamma 50k; mAA(10) with its 95% "
              "interval (bootstrap over pairs), the difference by the paired test of `tune compare`.", "",
@@ -95,6 +103,10 @@ def write(row: dict) -> None:
         for s in r["sides"]:
             lines.append(f"| {r['scene']} | {r['num_features']} | {s['label']} | {s['NM']:.0f} | {s['NI']:.0f} | "
                          f"{s['match_seconds']:.2f} |")
+    if old.get("checks"):
+        lines += ["", "The acceptance's other checks (each run's command, date and result):", ""]
+        for c in old["checks"]:
+            lines.append(f"- {c['check']}: `{c['command']}` ({c['date']}): {c['result']}")
     mpath.write_text("\n".join(lines) + "\n")
 
 
