@@ -15,7 +15,6 @@ result, entered by hand) is rendered below the rows.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import datetime as _dt
 import json
 import sys
@@ -42,13 +41,12 @@ def main(argv=None) -> int:
         write(None)
         return 0
 
-    from pipeline.config import GeometryConfig, MatchConfig, PipelineConfig
     from tuner.compare import compare_records
     from tuner.evaluate import evaluate_config
-    base = PipelineConfig(feature=FeatureConfig(name="aliked", num_features=a.num_features),
-                          matching=MatchConfig(), geometry=GeometryConfig(ransac="degensac"))
-    sides = [("ratio test (r 0.85 mutual)", base),
-             ("LightGlue (c 0.1)", dataclasses.replace(base, matching=MatchConfig(method="lightglue")))]
+    common = ["--feature", "aliked", "--ransac", "degensac", "--num-features", str(a.num_features)]
+    sides = [("ratio test (r 0.85 mutual)", evaluate_config_of(common)),
+             ("LightGlue (c 0.1)", evaluate_config_of([*common, "--matcher", "lightglue"]))]
+    assert sides[0][1].matching.ratio == 0.85 and sides[1][1].matching.min_confidence == 0.1, sides
     out = []
     for label, conf in sides:
         t0 = time.perf_counter()
@@ -73,6 +71,17 @@ def main(argv=None) -> int:
                "difference": cmp["difference"], "ci": cmp["ci"], "p_value": cmp["p_value"]}
         write(row)
     return 0
+
+
+def evaluate_config_of(argv: list[str]):
+    """The configuration `tune evaluate ARGV` runs, built by that command's own parser (its defaults: r 0.85
+    mutual, c 0.1, eta 0.5 px, Gamma 50k, long side 1024 px). Building it by hand from the dataclasses' defaults
+    compared LightGlue with mutual nearest neighbours and no ratio test (``MatchConfig.ratio`` defaults to 1)."""
+    from tuner.commands.evaluate import config_of, register
+    ap = argparse.ArgumentParser()
+    register(ap.add_subparsers(dest="command"))
+    conf, _ = config_of(ap.parse_args(["evaluate", *argv]))
+    return conf
 
 
 def write(row: dict | None) -> None:
