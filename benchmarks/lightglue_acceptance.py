@@ -107,11 +107,12 @@ def write(row: dict | None) -> None:
                      f"[{r['ci'][0]:+.3f}, {r['ci'][1]:+.3f}] | {r['p_value']:.3g} |")
     lines += ["", "Commands and dates: " + "; ".join(f"`{r['command']}` ({r['date']})" for r in old["rows"]) + ".",
               "<!-- --8<-- [end:check] -->", "", "Matches, inliers and matching seconds per pair (a shared machine):",
-              "", "| scene | keypoints | side | NM | NI | matching s / pair |", "| --- | ---: | --- | ---: | ---: | ---: |"]
+              "", "| scene | keypoints | pairs | side | NM | NI | matching s / pair |",
+              "| --- | ---: | ---: | --- | ---: | ---: | ---: |"]
     for r in old["rows"]:
         for s in r["sides"]:
-            lines.append(f"| {r['scene']} | {r['num_features']} | {s['label']} | {s['NM']:.0f} | {s['NI']:.0f} | "
-                         f"{s['match_seconds']:.2f} |")
+            lines.append(f"| {r['scene']} | {r['num_features']} | {s['pairs']} | {s['label']} | {s['NM']:.0f} | "
+                         f"{s['NI']:.0f} | {s['match_seconds']:.2f} |")
     if old.get("checks"):
         lines += ["", "The acceptance's other checks (each run's command, date and result):", ""]
         for c in old["checks"]:
