@@ -8,12 +8,13 @@ It is what `tune evaluate --feature aliked [--matcher lightglue] --ransac degens
 (both through ``tuner.evaluate.evaluate_config``), compared on the same pairs by `tune compare`'s paired test
 (``tuner.compare.compare_records``). ``--max-pairs N``: N pairs evenly spread over the scene (the stereo task's own
 subset), for a machine where LightGlue at 8000 keypoints on every pair does not fit; both sides see those pairs.
-``--write`` merges the row into ``benchmarks/results/lightglue-acceptance.{md,json}``.
+``--write`` merges the row into ``benchmarks/results/lightglue-acceptance.{md,json}``; ``--render`` only writes the
+.md again from the .json, whose ``checks`` list (the acceptance's other checks, each with its command, date and
+result, entered by hand) is rendered below the rows.
 """
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import datetime as _dt
 import json
 import sys
@@ -34,15 +35,18 @@ def main(argv=None) -> int:
     ap.add_argument("--max-pairs", type=int, default=None)
     ap.add_argument("--cache", default=None)
     ap.add_argument("--write", action="store_true")
+    ap.add_argument("--render", action="store_true", help="only write the .md again from the recorded .json")
     a = ap.parse_args(argv)
+    if a.render:
+        write(None)
+        return 0
 
-    from pipeline.config import GeometryConfig, MatchConfig, PipelineConfig
     from tuner.compare import compare_records
     from tuner.evaluate import evaluate_config
-    base = PipelineConfig(feature=FeatureConfig(name="aliked", num_features=a.num_features),
-                          matching=MatchConfig(), geometry=GeometryConfig(ransac="degensac"))
-    sides = [("ratio test (r 0.85 mutual)", base),
-             ("LightGlue (c 0.1)", dataclasses.replace(base, matching=MatchConfig(method="lightglue")))]
+    common = ["--feature", "aliked", "--ransac", "degensac", "--num-features", str(a.num_features)]
+    sides = [("ratio test (r 0.85 mutual)", evaluate_config_of(common)),
+             ("LightGlue (c 0.1)", evaluate_config_of([*common, "--matcher", "lightglue"]))]
+    assert sides[0][1].matching.ratio == 0.85 and sides[1][1].matching.min_confidence == 0.1, sides
     out = []
     for label, conf in sides:
         t0 = time.perf_counter()
@@ -69,13 +73,26 @@ def main(argv=None) -> int:
     return 0
 
 
-def write(row: dict) -> None:
+def evaluate_config_of(argv: list[str]):
+    """The configuration `tune evaluate ARGV` runs, built by that command's own parser (its defaults: r 0.85
+    mutual, c 0.1, eta 0.5 px, Gamma 50k, long side 1024 px). Building it by hand from the dataclasses' defaults
+    compared LightGlue with mutual nearest neighbours and no ratio test (``MatchConfig.ratio`` defaults to 1)."""
+    from tuner.commands.evaluate import config_of, register
+    ap = argparse.ArgumentParser()
+    register(ap.add_subparsers(dest="command"))
+    conf, _ = config_of(ap.parse_args(["evaluate", *argv]))
+    return conf
+
+
+def write(row: dict | None) -> None:
+    """Merge ``row`` into the .json (None: keep it as it is) and write the .md from the .json."""
     jpath, mpath = RESULTS / "lightglue-acceptance.json", RESULTS / "lightglue-acceptance.md"
     old = json.loads(jpath.read_text()) if jpath.is_file() else {"rows": []}
-    keep = [r for r in old["rows"] if (r["scene"], r["num_features"], r["max_pairs"]) !=
-            (row["scene"], row["num_features"], row["max_pairs"])]
-    old["rows"] = sorted(keep + [row], key=lambda r: (r["scene"], r["num_features"], r["max_pairs"] or 10**9))
-    jpath.write_text(json.dumps(old, indent=2) + "\n")
+    if row is not None:
+        keep = [r for r in old["rows"] if (r["scene"], r["num_features"], r["max_pairs"]) !=
+                (row["scene"], row["num_features"], row["max_pairs"])]
+        old["rows"] = sorted(keep + [row], key=lambda r: (r["scene"], r["num_features"], r["max_pairs"] or 10**9))
+        jpath.write_text(json.dumps(old, indent=2) + "\n")
     lines = ["# Acceptance check: ALIKED + LightGlue against ALIKED + the ratio test at its defaults", "",
              "Written by `benchmarks/lightglue_acceptance.py`; DEGENSAC eta 0.5 px, Gamma 50k; mAA(10) with its 95% "
              "interval (bootstrap over pairs), the difference by the paired test of `tune compare`.", "",
@@ -90,11 +107,16 @@ def write(row: dict) -> None:
                      f"[{r['ci'][0]:+.3f}, {r['ci'][1]:+.3f}] | {r['p_value']:.3g} |")
     lines += ["", "Commands and dates: " + "; ".join(f"`{r['command']}` ({r['date']})" for r in old["rows"]) + ".",
               "<!-- --8<-- [end:check] -->", "", "Matches, inliers and matching seconds per pair (a shared machine):",
-              "", "| scene | keypoints | side | NM | NI | matching s / pair |", "| --- | ---: | --- | ---: | ---: | ---: |"]
+              "", "| scene | keypoints | pairs | side | NM | NI | matching s / pair |",
+              "| --- | ---: | ---: | --- | ---: | ---: | ---: |"]
     for r in old["rows"]:
         for s in r["sides"]:
-            lines.append(f"| {r['scene']} | {r['num_features']} | {s['label']} | {s['NM']:.0f} | {s['NI']:.0f} | "
-                         f"{s['match_seconds']:.2f} |")
+            lines.append(f"| {r['scene']} | {r['num_features']} | {s['pairs']} | {s['label']} | {s['NM']:.0f} | "
+                         f"{s['NI']:.0f} | {s['match_seconds']:.2f} |")
+    if old.get("checks"):
+        lines += ["", "The acceptance's other checks (each run's command, date and result):", ""]
+        for c in old["checks"]:
+            lines.append(f"- {c['check']}: `{c['command']}` ({c['date']}): {c['result']}")
     mpath.write_text("\n".join(lines) + "\n")
 
 
