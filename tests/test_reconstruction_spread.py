@@ -1,5 +1,5 @@
 """benchmarks/reconstruction_spread.py reads a real Optuna study (sqlite, as `tune` writes it): the defaults' trial
-apart, pruned trials counted and never scored, one row per dataset and mapper, the table saying both; bad options
+apart, pruned trials counted and never scored, one row per dataset, mapper and search space, the table saying each (in that order); bad options
 are one line with exit 2. Figures expected here are computed by hand from the trials written."""
 from __future__ import annotations
 
@@ -56,15 +56,18 @@ def test_rows_are_kept_per_dataset_and_mapper(tmp_path):
     mod = _load()
     base = {"dataset": "d", "n_random": 4, "defaults": 0.9, "min": 0.0, "q25": 0.15, "median": 0.3, "q75": 0.45,
             "max": 0.6, "sd": 0.258, "zero": 1, "command": "c", "date": "2026-12-07"}
-    old = {"rows": [dict(base), dict(base, mapper="global", pruned=2)]}  # the first: an old row, no mapper nor count
+    old = {"rows": [dict(base), dict(base, mapper="global", pruned=2),  # the first: an old row, no mapper nor count
+                    dict(base, mapper="global", pruned=0, space="search_spaces/g.yaml")]}
     md = tmp_path / "t.md"
     mod.write_md(old, md)
     lines = [x for x in md.read_text().splitlines() if x.startswith("| `d`")]
-    assert lines == ["| `d`, incremental | 4 | ? | 0.900 | 0.000 (1) | 0.150, 0.300, 0.450 | 0.600 | 0.258 |",
-                     "| `d`, global | 4 | 2 | 0.900 | 0.000 (1) | 0.150, 0.300, 0.450 | 0.600 | 0.258 |"]
+    assert lines == ["| `d`, global | 4 | 2 | 0.900 | 0.000 (1) | 0.150, 0.300, 0.450 | 0.600 | 0.258 |",
+                     "| `d`, global (`g.yaml`) | 4 | 0 | 0.900 | 0.000 (1) | 0.150, 0.300, 0.450 | 0.600 | 0.258 |",
+                     "| `d`, incremental | 4 | ? | 0.900 | 0.000 (1) | 0.150, 0.300, 0.450 | 0.600 | 0.258 |"]
 
 
-@pytest.mark.parametrize("bad", [["--trial-timeout", "soon"], ["--trial-timeout", "-5"], ["--mapper", "glomap"]])
+@pytest.mark.parametrize("bad", [["--trial-timeout", "soon"], ["--trial-timeout", "-5"], ["--mapper", "glomap"],
+                                 ["--space", "no-such.yaml"]])
 def test_bad_options_are_one_line_and_exit_2(tmp_path, bad):
     p = subprocess.run([sys.executable, str(SCRIPT), "--data", str(tmp_path), "--dataset", "d",
                         "--studies-dir", str(tmp_path), *bad], capture_output=True, text=True)
