@@ -159,6 +159,7 @@ def main(argv=None) -> int:
     ap.add_argument("--studies", default=None, metavar="DIR:NAME,...",
                     help="do not run: read the dataset's scores in the trials of these studies (a study validated on "
                          "several datasets records each one's score)")
+    ap.add_argument("--note", default=None, help="a remark recorded after the row's command (e.g. a study stopped early)")
     ap.add_argument("--write", action="store_true", help=f"merge the row into benchmarks/results/{NAME}.{{md,json}}")
     a = ap.parse_args(argv)
     if a.n < 5:
@@ -201,9 +202,14 @@ def main(argv=None) -> int:
             return 1
     row = measure(a.dataset, [(a.studies_dir, a.study)], a.mapper, a.space)
     # the command that reproduces the row (without --record-only, which only re-reads the study)
-    own = " ".join(x for x in (sys.argv[1:] if argv is None else argv) if x != "--record-only")
+    given = list(sys.argv[1:] if argv is None else argv)
+    if "--note" in given:
+        del given[given.index("--note"):given.index("--note") + 2]
+    own = " ".join(x for x in given if x != "--record-only" and not x.startswith("--note="))
     row.update(command=f"python benchmarks/reconstruction_spread.py {own} (runs: tune {' '.join(args)})",
                date=_dt.date.today().isoformat())
+    if a.note:
+        row["note"] = a.note
     print(json.dumps(row, indent=2))
     if a.write:
         write(row)
