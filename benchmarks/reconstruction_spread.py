@@ -101,6 +101,19 @@ def _mapper(r: dict) -> str:
     return r.get("mapper", "incremental") + (f" (`{Path(r['space']).name}`)" if r.get("space") else "")
 
 
+def _span(rows: list) -> str:
+    """How many trials in how many dimensions the importances of ``rows`` come from ("7 to 19 trials in 7 to 9
+    dimensions")."""
+    rows = [r for r in rows if r.get("importances")]
+    if not rows:
+        return "no row has enough trials"
+
+    def rng(xs):
+        return f"{min(xs)}" if min(xs) == max(xs) else f"{min(xs)} to {max(xs)}"
+    return (f"{rng([r['n_random'] for r in rows])} trials in {rng([len(r['importances']) for r in rows])} "
+            "dimensions")
+
+
 def write_md(old: dict, mpath: Path) -> None:
     s = ["| dataset, mapper | scored | pruned | defaults | min (# at 0) | quartiles | max | sd |",
          "| --- | ---: | ---: | ---: | ---: | --- | ---: | ---: |"]
@@ -120,8 +133,8 @@ def write_md(old: dict, mpath: Path) -> None:
         why = "; ".join(r.get("pruned_reasons") or [])
         cmds.append(f"- `{r['dataset']}`, {_mapper(r)}, {r['date']}: `{r['command']}`"
                     + (f" (pruned: {why})" if why else "") + (f" ({r['note']})" if r.get("note") else ""))
-    text = ["The IMC score per dataset and mapper of settings drawn from `search_spaces/reconstruction.yaml` (2048 "
-            "features, one run each), beside the task's defaults. With `--studies`, the settings are those "
+    text = ["The IMC score per dataset and mapper of settings drawn from `search_spaces/reconstruction.yaml`, or "
+            "the space the row names in `search_spaces/` (2048 features, one run each), beside the task's defaults. With `--studies`, the settings are those "
             "the named studies tried (random draws, then TPE's; studies at one sampler seed draw the same settings "
             "but Gamma, which scales with each study's calibrated Gamma_max); without, a random-sampler study's "
             "(the defaults, then random draws). `scored`: distinct settings with a score, the defaults apart; "
@@ -132,7 +145,7 @@ def write_md(old: dict, mpath: Path) -> None:
             "`imc2025` is the dataset `imc2023_theather_imc2024_church` of `../shared/data/imc2025`.", "",
             "<!-- --8<-- [start:spread] -->", *s, "<!-- --8<-- [end:spread] -->", "",
             "<!-- --8<-- [start:importances] -->", "Optuna's PED-ANOVA importances over those trials (how much each "
-            "parameter decides reaching the best 30% of them; they sum to 1; 7 to 19 trials in nine dimensions: rough). "
+            f"parameter decides reaching the best 30% of them; they sum to 1; {_span(old['rows'])}: rough). "
             "The global mapper does not read the incremental mapper's four thresholds (`init_min_num_inliers`, "
             "`abs_pose_min_num_inliers`, `abs_pose_max_error`, `filter_max_reproj_error`): whatever importance "
             "they get in a global row, with the default space, is what these few trials give to a parameter that "
