@@ -1,15 +1,15 @@
 """Which datasets can validate reconstruction settings (issue 44): the spread of the IMC score over random
 configurations of the search space, per dataset, and Optuna's parameter importances over those trials.
 
-    python benchmarks/reconstruction_spread.py --data /tmp/imc-all --dataset imc2023_heritage --n 12 \\
-        --studies-dir /tmp/spread-studies --write
+    python benchmarks/reconstruction_spread.py --data /tmp/imc-all --dataset imc2023_heritage --n 20 \\
+        --studies-dir /tmp/spread-studies --trial-timeout 120 --write   # --mapper global, --space FILE
 
 It runs ``tune --task reconstruction --data D --scenes DATASET --no-test --sampler random --pruner none --n-trials N``
 (the study's first trial is the task's defaults, ``Task.start_at_defaults``; the other N - 1 are drawn at random from
 ``search_spaces/reconstruction.yaml``), then reads the study: the score of the defaults, and the minimum, quartiles,
 maximum and standard deviation of the random trials' scores. A dataset whose random trials all score alike cannot
 rank settings. The importances are Optuna's PED-ANOVA (what optuna-dashboard shows; fANOVA needs scikit-learn) over the
-random trials, at a target quantile of 0.3: with a dozen trials they are rough, and a parameter's importance means something only where the spread it explains is larger than the
+random trials, at a target quantile of 0.3: with 20 trials they are rough, and a parameter's importance means something only where the spread it explains is larger than the
 run-to-run noise of one configuration (docs/reconstruction.md). ``--write`` merges the dataset's row into
 ``benchmarks/results/reconstruction-spread.{md,json}``.
 """
