@@ -104,12 +104,12 @@ class Task(abc.ABC):
     records and what a resumed study must match)."""
 
     name: ClassVar[str] = ""
-    uses: ClassVar[tuple[str, ...]] = ()
+    uses: tuple[str, ...] = ()  # an instance may narrow it and space_file (the reconstruction task: by its mapper)
     summary_keys: ClassVar[tuple[str, ...]] = ("mAA5", "mAA10")
     std_keys: ClassVar[tuple[str, ...]] = ("mAA5", "mAA10")
     columns: ClassVar[tuple[str, ...]] = ("mAA5", "mAA10")
     objective: ClassVar[str] = "mAA10"
-    space_file: ClassVar[str | None] = None
+    space_file: str | None = None
     records_key: ClassVar[str] = "records"
     note: ClassVar[str] = ""  # one line printed above the task's tables (units, what the figures mean)
     timed: ClassVar[bool] = False  # True: it times an estimator of ours per pair (a time budget applies)

@@ -243,6 +243,12 @@ def verify_all(cache: H5Cache, infos: dict, conf: PipelineConfig, pairs: list[tu
 
 # ------------------------------------------------------------------------------------------- mapping
 
+#: mapper options only the incremental mapper reads, and only the global one (:func:`_mapper_options`)
+INCREMENTAL_ONLY = ("max_num_models", "init_min_num_inliers", "abs_pose_min_num_inliers", "abs_pose_max_error",
+                    "filter_max_reproj_error")
+GLOBAL_ONLY = ("global_max_rotation_error", "global_max_angular_error")
+
+
 def _mapper_options(kind: str, conf: PipelineConfig, rc: ReconstructionConfig, threads: int):
     """pycolmap's options of ``kind`` ("incremental" / "global") with ``conf.mapper``'s values set on them."""
     from pipeline import colmap_db as cdb
@@ -647,7 +653,7 @@ class ReconstructionTask(Task):
     per configuration under the cache); ``progress``: tqdm bars."""
 
     name = "reconstruction"
-    uses = ("ratio", "strategy", "threshold", "max_iters", "min_confidence", "min_inliers", "min_model_size",
+    uses: tuple[str, ...] = ("ratio", "strategy", "threshold", "max_iters", "min_confidence", "min_inliers", "min_model_size",
             "max_num_models", "init_min_num_inliers", "abs_pose_min_num_inliers", "abs_pose_max_error",
             "filter_max_reproj_error", "global_max_rotation_error", "global_max_angular_error")
     summary_keys = RECON_KEYS
@@ -704,6 +710,11 @@ class ReconstructionTask(Task):
         #: ``--trial-timeout``); beyond it the mapper is stopped and :class:`EvaluationStopped` raised. Not passed on
         #: by :meth:`for_run` / :meth:`reference_task`: a test run measures the frozen settings whatever they take
         self.trial_timeout = None if trial_timeout is None else float(trial_timeout)
+        # each mapper reads its own options (_mapper_options): a study searches and records only those of its mapper,
+        # from its mapper's search space (the incremental thresholds were inert, searched, in a global study)
+        skip = INCREMENTAL_ONLY if rc.mapper == "global" else GLOBAL_ONLY
+        self.uses = tuple(p for p in type(self).uses if p not in skip)
+        self.space_file = "reconstruction-global.yaml" if rc.mapper == "global" else type(self).space_file
 
     def options(self) -> dict:
         return dataclasses.asdict(self.rc)
