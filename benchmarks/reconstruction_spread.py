@@ -59,6 +59,9 @@ def measure(dataset: str, studies: list[tuple[str, str]], mapper: str = "increme
     v = np.array([x for x, _ in seen.values()], float)
     if not len(v):
         raise SystemExit(f"no trial of {dataset} in {studies}")
+    if space is None:  # the task's own file for that mapper, named: it has changed (the global mapper's, 7 Dec 2026)
+        from pipeline.tasks.reconstruction import ReconstructionTask
+        space = f"search_spaces/{ReconstructionTask(mapper=mapper).space_file}"
     row = {"dataset": dataset, "mapper": mapper, "space": space, "n_random": len(v), "defaults": defaults,
            "pruned": len(pruned), "pruned_reasons": sorted(pruned.values()),
            "min": float(v.min()), "q25": float(np.percentile(v, 25)), "median": float(np.median(v)),
@@ -82,7 +85,7 @@ def write(row: dict) -> None:
     jpath, mpath = RESULTS / f"{NAME}.json", RESULTS / f"{NAME}.md"
     old = json.loads(jpath.read_text()) if jpath.is_file() else {"rows": []}
     def key(r):
-        return r["dataset"], r.get("mapper", "incremental"), r.get("space")
+        return r["dataset"], r.get("mapper", "incremental"), Path(r.get("space") or "reconstruction.yaml").name
     old["rows"] = [r for r in old["rows"] if key(r) != key(row)] + [row]
     jpath.write_text(json.dumps(old, indent=2) + "\n")
     write_md(old, mpath)
@@ -97,8 +100,10 @@ ALIASES = {"imc2023_theather_imc2024_church": "imc2025"}
 
 
 def _mapper(r: dict) -> str:
-    """The row's mapper, and its search space where not the task's default."""
-    return r.get("mapper", "incremental") + (f" (`{Path(r['space']).name}`)" if r.get("space") else "")
+    """The row's mapper, and its search space where it is not `reconstruction.yaml` (every row's space before the
+    global mapper had its own file; a row without one was searched in it)."""
+    name = Path(r["space"]).name if r.get("space") else "reconstruction.yaml"
+    return r.get("mapper", "incremental") + (f" (`{name}`)" if name != "reconstruction.yaml" else "")
 
 
 def _span(rows: list) -> str:
@@ -148,7 +153,7 @@ def write_md(old: dict, mpath: Path) -> None:
             f"parameter decides reaching the best 30% of them; they sum to 1; {_span(old['rows'])}: rough). "
             "The global mapper does not read the incremental mapper's four thresholds (`init_min_num_inliers`, "
             "`abs_pose_min_num_inliers`, `abs_pose_max_error`, `filter_max_reproj_error`): whatever importance "
-            "they get in a global row, with the default space, is what these few trials give to a parameter that "
+            "they get in a global row, searched in `reconstruction.yaml`, is what these few trials give to a parameter that "
             "does nothing.", "", *imp, "<!-- --8<-- [end:importances] -->", "",
             "<!-- --8<-- [start:commands] -->", "Commands (`benchmarks/reconstruction_spread.py`):", "", *cmds,
             "<!-- --8<-- [end:commands] -->", ""]
