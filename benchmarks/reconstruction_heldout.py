@@ -21,14 +21,22 @@ import argparse
 import datetime as _dt
 import json
 import os
+import resource
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 RESULTS = ROOT / "benchmarks" / "results"
 NAME = "reconstruction-heldout"
+
+
+def _children_cpu() -> float:
+    """CPU seconds (user + system) of the finished child processes so far."""
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
 
 
 def tune_command(a) -> list[str]:
@@ -65,7 +73,8 @@ def row_of(test: dict, a, command: str) -> dict:
             "params": test.get("params"), "study": test.get("study"), "command": command, "note": a.note,
             "trials": a.n_trials, "submission": test.get("submission"), "defaults_first": a.defaults_first,
             "folder": a.folder, "froze_defaults": a.froze_defaults, "trial_timeout": a.trial_timeout,
-            "pruned": a.pruned,
+            "pruned": a.pruned, "wall_seconds": a.wall_seconds, "cpu_seconds": a.cpu_seconds,
+            "trial_seconds": a.trial_seconds, "search_seconds": a.search_seconds,
             "date": _dt.date.today().isoformat()}
 
 
@@ -114,6 +123,7 @@ def write_md(old: dict, mpath: Path) -> None:
         frozen.append(f"- {r['study']} (validation score {_f(r.get('validation_score'))}): {ps}.")
         cmds.append(f"- {r['study']}, {r['date']}: `{r['command']}`" + (f" ({r['note']})" if r.get("note") else "")
                     + f"; the data folder holds {short(r.get('folder') or [])}")
+    times = study_times(old["rows"])
     text = ["Reconstruction tuning, held out: each study is tuned on its validation datasets, frozen, and tested on "
             "datasets it never saw against COLMAP out of the box (`--reference colmap`), run by run at the same "
             "seeds; the interval is the task's Student t interval over datasets x runs (run-to-run noise only). "
@@ -123,9 +133,46 @@ def write_md(old: dict, mpath: Path) -> None:
             "<!-- --8<-- [start:verdict] -->", *v, "<!-- --8<-- [end:verdict] -->", "",
             "<!-- --8<-- [start:runs] -->", *runs, "<!-- --8<-- [end:runs] -->", "",
             "<!-- --8<-- [start:frozen] -->", "Frozen settings:", "", *frozen, "<!-- --8<-- [end:frozen] -->", "",
+            *times,
             "<!-- --8<-- [start:commands] -->", "Commands (`benchmarks/reconstruction_heldout.py` records the "
             "study's test.json):", "", *cmds, "<!-- --8<-- [end:commands] -->", ""]
     mpath.write_text("\n".join(text))
+
+
+def before_seconds(datasets: list[str]) -> float | None:
+    """Seconds of one evaluation of ``datasets`` at the configuration before issue 44 (features cached), summed
+    from ``results/reconstruction-speed.json``; None unless every dataset was measured there."""
+    path = RESULTS / "reconstruction-speed.json"
+    rows = json.loads(path.read_text()).get("datasets", {}) if path.is_file() else {}
+    if not datasets or any(ds not in rows for ds in datasets):
+        return None
+    return sum(rows[ds]["before issue 44"]["seconds"] for ds in datasets)
+
+
+def study_times(rows: list[dict]) -> list[str]:
+    """Section ``times``: a timed study's wall time (tune's whole run: features, calibration, search, test runs),
+    its search, its trials, beside the search before issue 44 modelled as trials x that configuration's measured
+    seconds per evaluation of the same validation datasets (no bound: a trial then ran to its end)."""
+    timed = [r for r in rows if r.get("wall_seconds")]
+    if not timed:
+        return []
+    out = ["<!-- --8<-- [start:times] -->",
+           "| study | trials | complete / pruned | median trial (s) | search (min) | whole run (min) | "
+           "before issue 44, search (min) |", "| --- | ---: | --- | ---: | ---: | ---: | ---: |"]
+    for r in timed:
+        ts = sorted(r.get("trial_seconds") or [])
+        med = ts[len(ts) // 2] if ts else None
+        before = before_seconds(r["validation"])
+        n_pruned = len(r.get("pruned") or {})
+        out.append(f"| {r['study']} | {r['trials']} | {len(ts) - n_pruned} / {n_pruned} | {_f(med, '{:.0f}')} | "
+                   f"{_f(r.get('search_seconds') and r['search_seconds'] / 60, '{:.1f}')} | "
+                   f"{r['wall_seconds'] / 60:.1f} | "
+                   f"{_f(before and before * r['trials'] / 60, '{:.0f}')} |")
+    out += ["", "The last column is a model, not a run: the trial count times one evaluation of the same "
+            "validation datasets at the defaults before issue 44, features cached, as "
+            "`benchmarks/reconstruction_speed.py` measured it (`reconstruction-speed.md`); a draw that maps for "
+            "long makes the real figure larger still.", "<!-- --8<-- [end:times] -->", ""]
+    return out
 
 
 def main(argv=None) -> int:
@@ -154,11 +201,15 @@ def main(argv=None) -> int:
     for k in ("n_trials", "test_runs", "num_features"):
         if getattr(a, k) < 1:
             ap.error(f"--{k.replace('_', '-')} must be at least 1")
+    a.wall_seconds = a.cpu_seconds = None
     args = tune_command(a)
     command = "tune " + " ".join(args)
     if not a.record_only:
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+        t0, c0 = time.perf_counter(), _children_cpu()
         rc = subprocess.call([sys.executable, "-m", "tuner", *args], env=env)
+        a.wall_seconds, a.cpu_seconds = time.perf_counter() - t0, _children_cpu() - c0
+        print(f"tune took {a.wall_seconds / 60:.1f} min wall, {a.cpu_seconds:.0f} CPU-s", flush=True)
         if rc != 0:
             print(f"tune exited with {rc}", file=sys.stderr)
             return 1
@@ -176,6 +227,10 @@ def main(argv=None) -> int:
     trial = json.loads(path.read_text()).get("trial")
     a.froze_defaults = isinstance(trial, int) and st.trials[trial].user_attrs.get("start") == "task defaults"
     a.pruned = {t.number: t.user_attrs.get("pruned_reason") for t in st.trials if t.state.name == "PRUNED"}
+    ended = [t for t in st.trials if t.datetime_start and t.datetime_complete]
+    a.trial_seconds = [round((t.datetime_complete - t.datetime_start).total_seconds(), 1) for t in ended]
+    a.search_seconds = (round((max(t.datetime_complete for t in ended) - min(t.datetime_start for t in ended))
+                              .total_seconds(), 1) if ended else None)
     from pipeline.data import list_scenes
     a.folder = list_scenes(a.data)
     row = row_of(json.loads(path.read_text()), a, command)
