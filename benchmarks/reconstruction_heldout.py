@@ -51,6 +51,8 @@ def tune_command(a) -> list[str]:
         cmd += ["--study", a.study]
     if a.trial_timeout is not None:
         cmd += ["--trial-timeout", str(a.trial_timeout)]
+    if a.replicates > 1:
+        cmd += ["--replicates", str(a.replicates)]
     return cmd
 
 
@@ -75,6 +77,7 @@ def row_of(test: dict, a, command: str) -> dict:
             "folder": a.folder, "froze_defaults": a.froze_defaults, "trial_timeout": a.trial_timeout,
             "pruned": a.pruned, "wall_seconds": a.wall_seconds, "cpu_seconds": a.cpu_seconds,
             "trial_seconds": a.trial_seconds, "search_seconds": a.search_seconds,
+            "replicated": test.get("replicated"), "replicates": test.get("replicates"),
             "date": _dt.date.today().isoformat()}
 
 
@@ -94,6 +97,8 @@ def write(row: dict) -> None:
     write_md(old, mpath)
 
 
+#: the 76-image dataset of ../shared/data/imc2025
+QUOTED_TEST = "imc2023_theather_imc2024_church"
 #: short names of datasets in the tables (the dataset's folder in ../shared/data)
 ALIASES = {"imc2023_theather_imc2024_church": "imc2025"}
 
@@ -124,6 +129,7 @@ def write_md(old: dict, mpath: Path) -> None:
         cmds.append(f"- {r['study']}, {r['date']}: `{r['command']}`" + (f" ({r['note']})" if r.get("note") else "")
                     + f"; the data folder holds {short(r.get('folder') or [])}")
     times = study_times(old["rows"])
+    replicated = replicated_section(old["rows"])
     text = ["Reconstruction tuning, held out: each study is tuned on its validation datasets, frozen, and tested on "
             "datasets it never saw against COLMAP out of the box (`--reference colmap`), run by run at the same "
             "seeds; the interval is the task's Student t interval over datasets x runs (run-to-run noise only). "
@@ -133,7 +139,7 @@ def write_md(old: dict, mpath: Path) -> None:
             "<!-- --8<-- [start:verdict] -->", *v, "<!-- --8<-- [end:verdict] -->", "",
             "<!-- --8<-- [start:runs] -->", *runs, "<!-- --8<-- [end:runs] -->", "",
             "<!-- --8<-- [start:frozen] -->", "Frozen settings:", "", *frozen, "<!-- --8<-- [end:frozen] -->", "",
-            *times,
+            *times, *replicated,
             "<!-- --8<-- [start:commands] -->", "Commands (`benchmarks/reconstruction_heldout.py` records the "
             "study's test.json):", "", *cmds, "<!-- --8<-- [end:commands] -->", ""]
     mpath.write_text("\n".join(text))
@@ -175,6 +181,35 @@ def study_times(rows: list[dict]) -> list[str]:
     return out
 
 
+def replicated_section(rows: list[dict]) -> list[str]:
+    """Section ``replicated``: rows run with ``--replicates K`` (K studies at independent seeds, each tuned, frozen
+    and tested beside the reference): the figure and frozen - reference over the replicates
+    (``tuner.replicates.dataset_replicated_summary``: t over the K replicates, tuning and run noise together)."""
+    reps = [r for r in rows if isinstance(r.get("replicated"), dict)]
+    if not reps:
+        return []
+    out = ["<!-- --8<-- [start:replicated] -->",
+           "| validated on | tested on | K x runs | frozen [95%] | reference | frozen - reference [95%] | p |",
+           "| --- | --- | --- | --- | ---: | --- | ---: |"]
+    notes = []
+    for r in reps:
+        b = r["replicated"]
+        obj = b.get("objective", "score")
+        ref = b.get("reference") or {}
+        ci, dci = b.get(f"{obj}_ci"), ref.get("ci")
+        runs = {x.get("runs") for x in b.get("replicates") or []}
+        out.append(f"| {', '.join(ALIASES.get(n, n) for n in r['validation'])} | "
+                   f"{', '.join(ALIASES.get(n, n) for n in r['test'])} | {b['K']} x {'/'.join(map(str, runs))} | "
+                   f"{_f(b.get(obj))}" + (f" [{ci[0]:.3f}, {ci[1]:.3f}]" if ci else "") + f" | {_f(ref.get(obj))} | "
+                   + _f(ref.get("difference"), "{:+.3f}") + (f" [{dci[0]:+.3f}, {dci[1]:+.3f}]" if dci else "")
+                   + f" | {'?' if ref.get('p_value') is None else format(ref['p_value'], '.2g')} |")
+        per = ", ".join(f"{x['study']} {_f(x.get(obj))}" for x in b.get("replicates") or [])
+        diffs = ", ".join(_f(x, "{:+.3f}") for x in ref.get("per_replicate") or [])
+        notes.append(f"- {r['study']}: {ref.get('verdict', 'no reference')}. Replicates: {per}; frozen - reference "
+                     f"by replicate: {diffs}.")
+    return out + ["", *notes, "<!-- --8<-- [end:replicated] -->", ""]
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", required=True, help="a folder of IMC-format datasets")
@@ -189,6 +224,8 @@ def main(argv=None) -> int:
     ap.add_argument("--study", default=None, help="study name (default: tune's)")
     ap.add_argument("--trial-timeout", default=None, metavar="SECONDS|auto",
                     help="tune's bound on a trial's mapping (pruned beyond it; default: none)")
+    ap.add_argument("--replicates", type=int, default=1, metavar="K",
+                    help="tune --replicates K: K studies, the verdict over them (recorded in the section replicated)")
     ap.add_argument("--label", default=None, help="the row's label in the results (default: val -> test (mapper))")
     ap.add_argument("--record-only", action="store_true", help="do not run: read the study's test.json")
     ap.add_argument("--note", default=None, help="a remark recorded with the row (e.g. the code version it ran)")
@@ -198,7 +235,7 @@ def main(argv=None) -> int:
     if a.render:
         write_md(json.loads((RESULTS / f"{NAME}.json").read_text()), RESULTS / f"{NAME}.md")
         return 0
-    for k in ("n_trials", "test_runs", "num_features"):
+    for k in ("n_trials", "test_runs", "num_features", "replicates"):
         if getattr(a, k) < 1:
             ap.error(f"--{k.replace('_', '-')} must be at least 1")
     a.wall_seconds = a.cpu_seconds = None

@@ -30,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import textwrap
 from pathlib import Path
 
@@ -80,11 +81,11 @@ def tune_replicates(s, replicates: int) -> dict:
     if not 1 <= k_max <= MAX_REPLICATES:
         raise ImtuneError(f"--replicates {replicates}: give 1 to {MAX_REPLICATES}")
     name = study_name(s)
-    if k_max > 1:
-        from pipeline.tasks import task_class
-        if task_class(s.task).unit != "pairs":  # before any tuning: the replicated figure pairs test pairs
-            raise ImtuneError(f"--replicates {k_max}: the {s.task} task is measured on {task_class(s.task).unit}, and "
-                              "replicates are combined over stereo test pairs so far; drop --replicates")
+    from pipeline.tasks import task_class
+    unit = task_class(s.task).unit
+    if k_max > 1 and unit not in ("pairs", "datasets"):  # before any tuning: what the replicates are combined over
+        raise ImtuneError(f"--replicates {k_max}: the {s.task} task is measured on {unit}, and replicates are "
+                          "combined over stereo test pairs or reconstruction datasets so far; drop --replicates")
     if k_max > 1 and s.warm_start:
         raise ImtuneError("--warm-start with --replicates: every replicate would start from the same trials and the "
                           "replicates would not be independent tunings; drop one of them")
@@ -95,7 +96,13 @@ def tune_replicates(s, replicates: int) -> dict:
             s.say(f"replicate {k}/{k_max}: study {sk.study_name}, seed {sk.seed}")
         outs.append(tune(sk))
     out = {"study": name, "replicates": outs, "replicated": None}
-    if all(o.get("test") for o in outs):
+    if all(o.get("test") for o in outs) and unit == "datasets":
+        summary = dataset_replicated_summary([o["test"] for o in outs],
+                                             [replicate_seed(s.seed, k) for k in range(1, k_max + 1)])
+        record_replicated(s.studies_dir, name, summary)
+        _store_attr(s, name, summary)
+        out["replicated"] = summary
+    elif all(o.get("test") for o in outs):
         summary = replicated_summary([o["test"] for o in outs], [replicate_seed(s.seed, k) for k in range(1, k_max + 1)],
                                      n_boot=s.ci_resamples or 2000)
         record_replicated(s.studies_dir, name, summary)
@@ -164,6 +171,82 @@ def replicated_summary(tests: list[dict], seeds: list, *, tau: int = 10, n_boot:
             "spread": spread, "pairs": int(scores.shape[1]), "method": INTERVAL_METHOD, "level": 0.95,
             "reference": reference_comparison(tests, tau=tau, n_boot=n_boot,
                                               tuned=(scores * scene_weights(strata)[None, :], strata))}
+
+
+def dataset_replicated_summary(tests: list[dict], seeds: list, *, alpha: float = 0.05) -> dict:
+    """The ``replicated`` block of a task measured on datasets (reconstruction: the challenge's score per dataset,
+    no per-pair errors). Replicate k's figure y_k is its test's mean over datasets and runs; its reference (COLMAP
+    out of the box, run beside it at replicate k's seeds) r_k; d_k = y_k - r_k. The K replicates are independent
+    draws of the whole procedure (tuning, then test runs at new seeds), so the figure is mean(y) with a Student t
+    interval on K - 1 df, and frozen - reference is scipy's one-sample t test of the d_k (K - 1 df). Both hold the
+    tuning variance and the run-to-run noise, conditional on the test datasets (they are not a sample of datasets).
+    "Could detect" is the difference the test reaches with 80% power at the median-unbiased variance
+    (:func:`pipeline.metrics.replicates.detectable`). Why not the pair model of :func:`replicated_summary`: there are
+    no pairs, only datasets, and one test dataset is common. A verdict needs K >= 3 (as for pairs)."""
+    from scipy import stats
+
+    from pipeline.metrics.replicates import POWER, detectable, median_unbiased
+    k = len(tests)
+    named = tests[0].get("objective")  # test.json's {"name": ...}; the reference block names it as a string
+    candidates = [(tests[0].get("reference") or {}).get("objective"),
+                  named.get("name") if isinstance(named, dict) else named, "score"]
+    objective = next((c for c in candidates if isinstance(c, str) and c in (tests[0].get("mean") or {})), "score")
+    y = np.array([float((t.get("mean") or {})[objective]) for t in tests])
+    datasets = list((tests[0].get("data") or {}).get("scenes") or [])
+    if any(list((t.get("data") or {}).get("scenes") or []) != datasets for t in tests):
+        raise ImtuneError(f"study {tests[0].get('study')}: its replicates were tested on different datasets; rerun "
+                          "them with the same --test-scenes")
+    reps = [{"study": t.get("study"), "seed": seed, "trial": t.get("trial"), "params": t.get("params"),
+             objective: float(v), "runs": len(t.get("runs") or [])} for t, seed, v in zip(tests, seeds, y)]
+
+    def t_interval(x: np.ndarray) -> tuple[list | None, float | None, float | None]:
+        if len(x) < 2:
+            return None, None, None
+        se = float(x.std(ddof=1) / math.sqrt(len(x)))
+        if se == 0:
+            return [float(x.mean())] * 2, 0.0, (1.0 if x.mean() == 0 else 0.0)
+        half = float(stats.t.ppf(1 - alpha / 2, len(x) - 1)) * se
+        return [float(x.mean()) - half, float(x.mean()) + half], se, float(stats.ttest_1samp(x, 0.0).pvalue)
+
+    ci, se_y, _ = t_interval(y)
+    out = {"unit": "datasets", "objective": objective, "replicates": reps, "K": k, objective: float(y.mean()),
+           f"{objective}_ci": ci, "se_between": se_y, "datasets": datasets, "tuning_variance_measured": k >= 2,
+           "note": "" if k >= 2 else "the tuning variance was not measured (1 replicate)",
+           "spread": {p: {"min": lo, "max": hi} for p, (lo, hi) in param_spread([r["params"] for r in reps]).items()},
+           "method": "replicates as independent draws: Student t interval on K - 1 df of the replicates' figures; "
+                     "frozen - reference by the one-sample t test of the K differences", "level": 1 - alpha,
+           "reference": None}
+    refs = [t.get("reference") for t in tests]
+    if all(isinstance(r, dict) and (r.get("mean") or {}).get(objective) is not None for r in refs):
+        r_k = np.array([float(r["mean"][objective]) for r in refs])  # type: ignore[index]
+        d = y - r_k
+        dci, se_d, p = t_interval(d)
+        per_ds = {}
+        for ds in datasets:
+            vals = [_dataset_mean(t, ds, objective) - _dataset_mean(r, ds, objective) for t, r in zip(tests, refs)]
+            if all(v is not None for v in vals):
+                per_ds[ds] = float(np.mean(vals))
+        mde = (detectable(se_d * math.sqrt(median_unbiased(k - 1)), k - 1, alpha) if se_d else None)
+        if k < 3:
+            verdict = f"K = {k}: no verdict (a verdict about tuning needs --replicates 3 or more)"
+        elif p is not None and p < alpha:
+            verdict = f"significant: the tuned configuration {'beats' if d.mean() > 0 else 'loses to'} the reference"
+        else:
+            verdict = "inconclusive" + (f": could detect |difference| >= {mde:.3f} ({POWER:.0%} power)"
+                                        if mde is not None and math.isfinite(mde) else "")
+        out["reference"] = {"label": refs[0].get("label"), objective: float(r_k.mean()),  # type: ignore[union-attr]
+                            "difference": float(d.mean()), "ci": dci, "p_value": p, "se": se_d, "df": k - 1,
+                            "detectable": mde, "verdict": verdict, "datasets": per_ds,
+                            "per_replicate": [float(x) for x in d]}
+    return out
+
+
+def _dataset_mean(test: dict, ds: str, objective: str) -> float | None:
+    """A test's (or reference's) mean ``objective`` on dataset ``ds`` over its runs; None where a run lacks it."""
+    vals = [((r.get("scenes") or {}).get(ds) or {}).get(objective) for r in test.get("runs") or []]
+    if not vals or any(v is None for v in vals):
+        return None
+    return float(np.mean([float(v) for v in vals]))
 
 
 def param_spread(params: list) -> dict:
@@ -286,6 +369,8 @@ def _param_text(p: dict | None) -> str:
 
 def replicated_text(summary: dict) -> str:
     """Each replicate's figure, the replicated interval and the spread of the frozen settings, one line each."""
+    if summary.get("unit") == "datasets":
+        return _dataset_replicated_text(summary)
     lines = []
     for r in summary["replicates"]:
         ci = r.get("mAA10_ci")
@@ -314,10 +399,34 @@ def replicated_text(summary: dict) -> str:
     return "\n".join(out)
 
 
+def _dataset_replicated_text(summary: dict) -> str:
+    """:func:`replicated_text` of a task measured on datasets (:func:`dataset_replicated_summary`)."""
+    obj = summary["objective"]
+    out = []
+    ci = summary.get(f"{obj}_ci")
+    out.append(f"replicated test {obj} over {summary['K']} replicate{'s' if summary['K'] != 1 else ''} on "
+               f"{', '.join(summary['datasets'])}: {summary[obj]:.4f}"
+               + (f" [{ci[0]:.4f}, {ci[1]:.4f}] (95%, t over replicates)" if ci else ""))
+    for r in summary["replicates"]:
+        out.append(f"  {r['study']} (seed {r['seed']}): trial #{r['trial']}, {obj} {r[obj]:.4f} over "
+                   f"{r['runs']} run{'s' if r['runs'] != 1 else ''}")
+    ref = summary.get("reference")
+    if ref:
+        line = f"frozen - reference ({ref.get('label')}, {obj} {ref[obj]:.4f}): {ref['difference']:+.4f}"
+        if ref.get("ci"):
+            line += f" [{ref['ci'][0]:+.4f}, {ref['ci'][1]:+.4f}], p = {ref['p_value']:.3g}"
+        out.append(line + f"; {ref['verdict']}")
+        if len(ref.get("datasets") or {}) > 1:
+            out.append("  per dataset: " + ", ".join(f"{k} {v:+.4f}" for k, v in ref["datasets"].items()))
+    if summary.get("note"):
+        out.append(f"note: {summary['note']}; rerun with --replicates 3 to measure it")
+    return "\n".join(textwrap.fill(x, 100, subsequent_indent="    ") for x in out)
+
+
 def _fmt(v) -> str:
     return f"{v:.3g}" if isinstance(v, float) else str(v)
 
 
-__all__ = ["MAX_REPLICATES", "load_replicated", "param_spread", "record_replicated", "replicate_name", "replicate_seed",
+__all__ = ["MAX_REPLICATES", "dataset_replicated_summary", "load_replicated", "param_spread", "record_replicated", "replicate_name", "replicate_seed",
            "replicate_settings", "replicate_tests", "replicated_block", "replicated_summary", "replicated_text",
            "score_matrix", "tune_replicates"]

@@ -470,7 +470,7 @@ def results_rows(studies: list[StudyInfo], fmt: str = "markdown", studies_dir: P
     # mean over replicates, its interval the replicated one); the others are not rows of their own
     from tuner.replicates import load_replicated
     replicated = {s.name: load_replicated(studies_dir, s.name) for s in tested} if studies_dir is not None else {}
-    replicated = {k: v for k, v in replicated.items() if v}
+    replicated = {k: v for k, v in replicated.items() if v and v.get("unit", "pairs") == "pairs"}  # mAA tables
     members = {r["study"] for v in replicated.values() for r in v["replicates"][1:]}
     tested = [s for s in tested if s.name not in members]
     ests = _estimators(tested)
