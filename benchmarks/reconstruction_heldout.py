@@ -228,6 +228,9 @@ def main(argv=None) -> int:
                     help="tune --replicates K: K studies, the verdict over them (recorded in the section replicated)")
     ap.add_argument("--label", default=None, help="the row's label in the results (default: val -> test (mapper))")
     ap.add_argument("--record-only", action="store_true", help="do not run: read the study's test.json")
+    ap.add_argument("--wall-seconds", type=float, default=None,
+                    help="with --record-only: the wall seconds this script printed when it ran the study")
+    ap.add_argument("--cpu-seconds", type=float, default=None, help="with --record-only: the CPU seconds it printed")
     ap.add_argument("--note", default=None, help="a remark recorded with the row (e.g. the code version it ran)")
     ap.add_argument("--write", action="store_true", help=f"merge the row into benchmarks/results/{NAME}.{{md,json}}")
     ap.add_argument("--render", action="store_true", help="only write the .md again from the recorded .json")
@@ -238,7 +241,8 @@ def main(argv=None) -> int:
     for k in ("n_trials", "test_runs", "num_features", "replicates"):
         if getattr(a, k) < 1:
             ap.error(f"--{k.replace('_', '-')} must be at least 1")
-    a.wall_seconds = a.cpu_seconds = None
+    if not a.record_only:
+        a.wall_seconds = a.cpu_seconds = None
     args = tune_command(a)
     command = "tune " + " ".join(args)
     if not a.record_only:

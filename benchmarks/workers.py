@@ -300,7 +300,40 @@ def report(o: dict) -> str:
               "|---|" + "---|" * len(o["model"]),
               f"| {one['target']} trials | " + " | ".join(f"{r['speedup']:.2f}" for r in o["model"]) + " |",
               "| many trials | " + " | ".join(f"{r['speedup_large_n']:.1f}" for r in o["model"]) + " |"]
-    return "\n".join(lines)
+    return "\n".join(lines + ["", *page_section(o)])
+
+
+def page_section(o: dict) -> list[str]:
+    """The section the Many machines page includes (``measured``), every figure read from ``o``."""
+    one, two, killed = o["runs"]
+    c, ov = o["storage_seconds_per_trial"], o["overshoot"]
+    T, cost = one["mean_trial_seconds"], c["claim"]
+    at_n = next((r for r in o["model"] if r["machines"] >= 2 * one["target"]), o["model"][-1])
+    return ["## As the Many machines page quotes it", "", "<!-- --8<-- [start:measured] -->",
+            f"Measured on {o['date']} (`{o['command'].strip()}`: {o['feature']} {o['num_features']}, {o['ransac']}, "
+            f"{o['pairs']} {o['scenes']} pairs per trial, eta and Gamma pinned, {one['target']} trials; "
+            f"{o['cpus']} cores, load average {o['load_before']:.1f} before the run):", "",
+            "| setting | finished / target | trials/min | vs 1 worker |", "|---|---|---|---|",
+            f"| 1 worker | {one['finished']} / {one['target']} | {one['trials_per_minute']:.1f} | 1.00 x |",
+            f"| 2 workers | {two['finished']} / {two['target']} | {two['trials_per_minute']:.1f} | "
+            f"{o['ratio_two']:.2f} x |",
+            f"| 2 workers, one killed by `kill -9` | {killed['finished']} / {killed['target']} ({killed['trials']} "
+            f"trials: {killed['failed']} FAIL, its retry) | {killed['trials_per_minute']:.1f} | "
+            f"{o['ratio_killed']:.2f} x |", "",
+            f"In the killed run the dead worker's trial was marked {killed['killed_state']} after the grace period "
+            f"(3 heartbeats of {o['heartbeat']} s) and retried "
+            f"{'with its parameters' if killed['retry_same_params'] else 'WITH OTHER PARAMETERS'} by the other "
+            f"worker; {killed['running']} trials were left RUNNING and {len(killed['completed_lost'])} completed "
+            f"trials were lost. With {ov['workers']} workers and a target of {ov['target']} (a 0.2 s objective, "
+            f"{len(ov['claim'])} studies each), Optuna's `MaxTrialsCallback` alone finished "
+            f"{', '.join(map(str, ov['optuna']))} trials; the claim loop {', '.join(map(str, ov['claim']))}.", "",
+            f"A trial costs the storage and the client {cost * 1000:.0f} ms besides its evaluation (an instant "
+            f"objective through the claim loop, {c['plain'] * 1000:.0f} ms through plain `study.optimize`). Taking "
+            f"that cost as fully serialised at the database, trials of {T:.1f} s scale to about ({T:.1f} + "
+            f"{cost:.2f}) / {cost:.2f} = {(T + cost) / cost:.0f} machines; below that the speed-up is the number of "
+            f"machines, less the last round's idle workers when the trial count is not a multiple of it "
+            f"({one['target']} trials on {at_n['machines']} machines: {at_n['speedup']:.1f} x).",
+            "<!-- --8<-- [end:measured] -->"]
 
 
 if __name__ == "__main__":

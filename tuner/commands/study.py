@@ -168,8 +168,9 @@ def register(sub) -> None:
     t.add_argument("--replicates", type=positive_int, default=1, metavar="K",
                    help="K independent tunings of this configuration (studies NAME, NAME-r2, ...; each its own sampler "
                         "and estimator seed derived from --seed, all sharing the cache), each frozen and tested on "
-                        "the same pairs; the test figure is their mean with an interval holding the tuning variance "
-                        "(default 1: the tuning variance is not measured); a rerun resumes them")
+                        "the same pairs (reconstruction: datasets); the test figure is their mean with an interval "
+                        "holding the tuning variance (default 1: the tuning variance is not measured); a rerun "
+                        "resumes them")
     t.add_argument("--sampler", default="tpe", choices=list(SAMPLERS), help=f"{' | '.join(SAMPLERS)} (default tpe)")
     t.add_argument("--pruner", default=DEFAULT_PRUNER, choices=list(PRUNERS),
                    help=f"{' | '.join(PRUNERS)}: Optuna's median, successive-halving or Hyperband pruner over the "
@@ -437,8 +438,12 @@ def run(args) -> int:
         print_outcome(out)
         if out.get("test"):
             from pipeline.metrics.replicates import NOT_MEASURED
+            from pipeline.tasks import task_class
             from tuner.formatting import fit_text
-            print(fit_text(f"tuning: 1 replicate: {NOT_MEASURED}; the verdict against the reference is about this "
+            unit = task_class(out["test"].get("task") or "stereo").unit
+            what = NOT_MEASURED if unit == "pairs" else (
+                f"the tuning variance was not measured (1 replicate): the interval covers the test {unit}' runs only")
+            print(fit_text(f"tuning: 1 replicate: {what}; the verdict against the reference is about this "
                            "frozen setting, not about tuning at another seed (--replicates 3 measures it)"))
     return 0
 
