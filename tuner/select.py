@@ -22,6 +22,9 @@ Selection rules (``--select``), all over the study's COMPLETE trials within the 
   ``SMOOTH_K`` nearest neighbours (Euclidean, normalised (log eta, r, log Gamma) space); the trial with the
   highest average is frozen (ties: the higher own value). A lucky trial surrounded by poor ones loses to one in a
   good neighbourhood.
+- ``confirmed``: the highest mean over each candidate's own value and its runs at more seeds, after ``tune
+  --confirm N`` re-evaluated the N best trials (and the task's defaults) (:mod:`tuner.confirm`); the best trial
+  when the study holds no confirmation.
 - ``lower-bound``: the highest lower end of the trial's validation 95% interval (the scene-stratified pair
   bootstrap every trial stores as ``mAA10_ci``; ties: the higher value, then the earlier trial). A trial whose
   value is high because a few pairs happened to succeed has a wide interval and a low lower end; one that is good
@@ -48,6 +51,9 @@ import numpy as np
 from pipeline.errors import ImtuneError
 
 RULES = ("best", "one-se", "smooth", "lower-bound")
+#: the rule of a study whose best trials were re-evaluated at more seeds (``tune --confirm N``, :mod:`tuner.confirm`)
+CONFIRMED = "confirmed"
+ALL_RULES = RULES + (CONFIRMED,)
 DEFAULT_RULE = "best"  # benchmarks/selection_rules.py: no rule beats it measurably (benchmarks/results/default-split-and-freeze-rules.md)
 SMOOTH_K = 5
 Z95 = 1.959963984540054  # normal quantile of 0.975: SE = half-width / Z95
@@ -62,8 +68,8 @@ PARAM_LABEL = {"threshold": ("eta", "px"), "ratio": ("r", ""), "max_iters": ("Ga
 
 def check_rule(rule: str | None) -> str:
     rule = DEFAULT_RULE if rule is None else str(rule)
-    if rule not in RULES:
-        raise ImtuneError(f"unknown selection rule {rule!r} (choose {', '.join(RULES)})")
+    if rule not in ALL_RULES:
+        raise ImtuneError(f"unknown selection rule {rule!r} (choose {', '.join(ALL_RULES)})")
     return rule
 
 
@@ -152,6 +158,14 @@ def select_trial(study, rule: str | None = None, objective: str = "mAA10", k: in
     if best is None or rule == "best":
         info["note"] = f"the highest validation value{within}"
         return best, info
+    if rule == CONFIRMED:
+        from tuner.confirm import pick
+        got = pick(study)
+        if got is None:
+            info["note"] = "no confirmation stored (tune --confirm N): the best trial"
+            return best, info
+        info.update(got[1])
+        return got[0], info
     cands = feasible_trials(study)
     X = coordinates(cands, spec)
     values = np.array([_value(t) for t in cands])

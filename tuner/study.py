@@ -120,6 +120,8 @@ class TuneSettings:
     verbose: bool = False  # Optuna's own INFO log lines
     objective: str = "mAA10"  # "mAA10" | "pareto" (OBJECTIVES)
     pareto_span: float = PARETO_SPAN  # pareto: Gamma searched up to Gamma_max(span x B), the front crosses B
+    confirm: int = 0  # tuner.confirm: the N best trials re-evaluated at more seeds before freezing (0: none)
+    confirm_seeds: int = 2  # more seeds per confirmed candidate
     select: str | None = None  # tuner.select rule freezing the study (best | one-se | smooth; None: recorded/default)
     reference: str | None = None  # test runs compared with: None = paper defaults, "none", a config file or study
     ci_resamples: int = 2000  # bootstrap resamples of every mAA's 95% interval (0 = none)
@@ -468,6 +470,10 @@ def tune(s: TuneSettings) -> dict:
 def _freeze_into(out: dict, ctx: StudyContext, s: TuneSettings) -> dict:
     """Freeze the study (``<studies dir>/<study>/frozen.yaml``), say the optimum's warnings; returns the frozen dict."""
     from tuner.freeze import freeze
+    if s.confirm:  # tuner.confirm: the best trials at more seeds; the "confirmed" rule freezes the best mean
+        from tuner.confirm import confirm_candidates
+        s.say(f"confirming the {s.confirm} best trials at {s.confirm_seeds} more seeds each")
+        confirm_candidates(ctx, s.confirm, s.confirm_seeds, say=s.say)
     frozen, path = freeze(ctx.study, s.studies_dir, select=s.select)
     out["frozen"], out["frozen_path"] = frozen, str(path)
     from tuner.diagnostics import optimum_warnings  # on a bound, Gamma_max at the ceiling, every trial 0

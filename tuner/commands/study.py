@@ -101,11 +101,12 @@ def resolve_reference(value: str | None, sdir):
 
 def _select_opts(g) -> None:
     """``--select`` (which trial is frozen: tuner.select) and ``--reference`` (what test runs are compared with)."""
-    from tuner.select import DEFAULT_RULE, RULES
-    g.add_argument("--select", default=None, choices=list(RULES),
+    from tuner.select import ALL_RULES, DEFAULT_RULE
+    g.add_argument("--select", default=None, choices=list(ALL_RULES),
                    help=f"which feasible trial is frozen: best (highest validation mAA), one-se (the centre of the "
                         f"trials within one standard error of the best), smooth (best of the surface averaged over "
-                        f"neighbouring trials), lower-bound (highest lower end of the validation 95%% interval); "
+                        f"neighbouring trials), lower-bound (highest lower end of the validation 95%% interval), "
+                        f"confirmed (highest mean over more seeds, after --confirm); "
                         f"see the docs' Tuning page (default: the study's rule, else {DEFAULT_RULE})")
     g.add_argument("--reference", default=None, metavar="FILE|STUDY|paper|colmap|imc2025-baseline|none",
                    help="configuration the test runs are compared with on the same pairs (paired bootstrap): a "
@@ -165,6 +166,13 @@ def register(sub) -> None:
                    help="auto: stop the study early when more trials cannot beat the incumbent by more than its "
                         "validation interval (Optuna's terminator: a GP regret bound, after min(20, n_trials / 2) "
                         "trials); off (default): run every trial")
+    t.add_argument("--confirm", type=int, default=0, metavar="N",
+                   help="before freezing, evaluate the N best trials (and the task's defaults, when the study started "
+                        "from them) at --confirm-seeds more seeds on the validation data and freeze the highest mean "
+                        "(--select confirmed); against the winner's curse where runs are noisy (reconstruction) "
+                        "(default 0: none)")
+    t.add_argument("--confirm-seeds", type=int, default=2, metavar="S",
+                   help="more seeds per confirmed candidate (default 2)")
     t.add_argument("--replicates", type=positive_int, default=1, metavar="K",
                    help="K independent tunings of this configuration (studies NAME, NAME-r2, ...; each its own sampler "
                         "and estimator seed derived from --seed, all sharing the cache), each frozen and tested on "
@@ -372,6 +380,7 @@ def settings_from_args(args):
     """TuneSettings from the `tune run` options."""
     from tuner.study import TuneSettings
     from tuner.study_identity import PARETO_SPAN
+    select = _select(args)  # before the data: a contradiction in the options is said first
     if args.startup_trials is not None and args.sampler in ("random", "grid"):  # it was ignored, unsaid
         raise ImtuneError(f"--startup-trials {args.startup_trials} applies to the tpe and cmaes samplers (random trials "
                           f"before they model): --sampler {args.sampler} has none; drop --startup-trials")
@@ -413,9 +422,23 @@ def settings_from_args(args):
         mapper=getattr(args, "mapper", None), trial_timeout=_trial_timeout(args), jobs=args.jobs,
         warm_start=list(args.warm_start),
         gt_dir=args.gt_dir, objective=args.objective,
-        pareto_span=PARETO_SPAN if args.pareto_span is None else args.pareto_span, select=args.select,
+        pareto_span=PARETO_SPAN if args.pareto_span is None else args.pareto_span, select=select,
+        confirm=args.confirm, confirm_seeds=args.confirm_seeds,
         reference=resolve_reference(args.reference, _studies_dir(args)), ci_resamples=ci_resamples(args),
         unused_options=_stereo_only_given(args), terminate=getattr(args, "terminate", "off"))
+
+
+def _select(args) -> str | None:
+    """--select, made "confirmed" by --confirm N (N > 0); one-line exit 2 for a contradiction or a bad count."""
+    from tuner.confirm import check
+    from tuner.select import CONFIRMED
+    check(args.confirm, args.confirm_seeds)
+    if args.confirm and args.select not in (None, CONFIRMED):
+        raise ImtuneError(f"--confirm {args.confirm} with --select {args.select}: confirmation freezes by the "
+                          "confirmed mean; drop one of them")
+    if args.select == CONFIRMED and not args.confirm:
+        raise ImtuneError("--select confirmed needs --confirm N (how many of the best trials to confirm)")
+    return CONFIRMED if args.confirm else args.select
 
 
 def run(args) -> int:
