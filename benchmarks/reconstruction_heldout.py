@@ -53,6 +53,8 @@ def tune_command(a) -> list[str]:
         cmd += ["--trial-timeout", str(a.trial_timeout)]
     if a.replicates > 1:
         cmd += ["--replicates", str(a.replicates)]
+    if a.confirm:
+        cmd += ["--confirm", str(a.confirm), "--confirm-seeds", str(a.confirm_seeds)]
     return cmd
 
 
@@ -75,6 +77,7 @@ def row_of(test: dict, a, command: str) -> dict:
             "params": test.get("params"), "study": test.get("study"), "command": command, "note": a.note,
             "trials": a.n_trials, "submission": test.get("submission"), "defaults_first": a.defaults_first,
             "folder": a.folder, "froze_defaults": a.froze_defaults, "trial_timeout": a.trial_timeout,
+            "confirm": a.confirm, "confirmation": a.confirmation,
             "pruned": a.pruned, "wall_seconds": a.wall_seconds, "cpu_seconds": a.cpu_seconds,
             "trial_seconds": a.trial_seconds, "search_seconds": a.search_seconds,
             "replicated": test.get("replicated"), "replicates": test.get("replicates"),
@@ -118,7 +121,7 @@ def write_md(old: dict, mpath: Path) -> None:
         d = _f(r.get("difference"), "{:+.3f}") + (f" [{ci[0]:+.3f}, {ci[1]:+.3f}]" if ci else " (no interval)")
         p = "?" if r.get("p_value") is None else (f"{r['p_value']:.2g}")
         v.append(f"| {short(r['validation'])} | {short(r['test'])} | {r['mapper']} ({r.get('trials', '?')}"
-                 f"{'' if r.get('defaults_first') else '*'}) | {_f(r['frozen'])}"
+                 f"{'' if r.get('defaults_first') else '*'}{', confirmed' if r.get('confirm') else ''}) | {_f(r['frozen'])}"
                  f"{' (defaults)' if r.get('froze_defaults') else ''} | "
                  f"{_f(r['reference'])} | {d} | {p} |")
         for ds, pr in r["per_run"].items():
@@ -226,6 +229,9 @@ def main(argv=None) -> int:
                     help="tune's bound on a trial's mapping (pruned beyond it; default: none)")
     ap.add_argument("--replicates", type=int, default=1, metavar="K",
                     help="tune --replicates K: K studies, the verdict over them (recorded in the section replicated)")
+    ap.add_argument("--confirm", type=int, default=0, metavar="N",
+                    help="tune --confirm N: the N best trials confirmed at more seeds before freezing")
+    ap.add_argument("--confirm-seeds", type=int, default=2, metavar="S")
     ap.add_argument("--label", default=None, help="the row's label in the results (default: val -> test (mapper))")
     ap.add_argument("--record-only", action="store_true", help="do not run: read the study's test.json")
     ap.add_argument("--wall-seconds", type=float, default=None,
@@ -267,6 +273,7 @@ def main(argv=None) -> int:
     a.defaults_first = bool(st.trials) and st.trials[0].user_attrs.get("start") == "task defaults"
     trial = json.loads(path.read_text()).get("trial")
     a.froze_defaults = isinstance(trial, int) and st.trials[trial].user_attrs.get("start") == "task defaults"
+    a.confirmation = st.user_attrs.get("confirmation") if a.confirm else None
     a.pruned = {t.number: t.user_attrs.get("pruned_reason") for t in st.trials if t.state.name == "PRUNED"}
     ended = [t for t in st.trials if t.datetime_start and t.datetime_complete]
     a.trial_seconds = [round((t.datetime_complete - t.datetime_start).total_seconds(), 1) for t in ended]

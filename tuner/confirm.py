@@ -84,8 +84,12 @@ def confirm_candidates(ctx, n: int, seeds: int, say=None) -> dict | None:
 
 
 def pick(study) -> tuple[object, dict] | None:
-    """(trial, info) of the candidate with the highest confirmed mean (ties: the higher own value, then the
-    earlier trial), or None when the study holds no confirmation."""
+    """(trial, info) of the confirmed rule, or None when the study holds no confirmation: the candidate with the
+    highest confirmed mean (ties: the higher own value, then the earlier trial), unless the task's defaults are a
+    candidate and that lead over them is within one standard error of the paired differences (same seeds) -- then
+    the defaults. Why: the defaults were chosen on evidence (for reconstruction, COLMAP's own settings measured
+    cause by cause); a setting replaces them on a measured difference, not on a lead the seeds' noise explains (the
+    one-standard-error rule, ESL 7.10, with the defaults as the simpler model)."""
     block = study.user_attrs.get(ATTR)
     if not isinstance(block, dict) or not block.get("trials"):
         return None
@@ -95,9 +99,22 @@ def pick(study) -> tuple[object, dict] | None:
         return None
     num, best = max(rows, key=lambda kv: (round(kv[1]["mean"], 12), kv[1]["values"][0], -kv[0]))
     others = ", ".join(f"#{k} {v['mean']:.3f}" for k, v in sorted(rows, key=lambda kv: -kv[1]["mean"]))
-    info = {"confirmed_mean": best["mean"], "confirmed_values": best["values"],
-            "note": f"the highest mean over its own value and {block['seeds']} more seeds among {len(rows)} "
-                    f"candidates ({others})"}
+    note = (f"the highest mean over its own value and {block['seeds']} more seeds among {len(rows)} candidates "
+            f"({others})")
+    info: dict = {}
+    defaults = [(k, v) for k, v in rows if v.get("defaults")]
+    if defaults and defaults[0][0] != num:
+        dnum, dv = defaults[0]
+        d = np.asarray(best["values"], float) - np.asarray(dv["values"], float)
+        se = float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("inf")
+        info.update(lead_over_defaults=float(d.mean()), lead_se=se)
+        if not d.mean() > se:
+            num, best = dnum, dv
+            note = (f"the task's defaults (#{dnum}): the best confirmed mean led them by {d.mean():+.3f}, within one "
+                    f"standard error ({se:.3f}) of the paired differences over {len(d)} seeds; candidates {others}")
+        else:
+            note += f"; it leads the defaults by {d.mean():+.3f} (se {se:.3f})"
+    info.update(confirmed_mean=best["mean"], confirmed_values=best["values"], note=note)
     return by_number[num], info
 
 
