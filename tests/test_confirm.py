@@ -145,3 +145,14 @@ def test_bad_confirm_options_are_one_line_exit_2(args, msg, tmp_path):
                        capture_output=True, text=True)
     assert r.returncode == 2, r.stderr
     assert msg in r.stderr and "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+@pytest.mark.parametrize("task, select, want_confirm, want_select", [
+    ("reconstruction", None, 3, "confirmed"),      # the task's default: its runs are noisy
+    ("reconstruction", "one-se", 0, "one-se"),     # another rule asked for: no confirmation
+    ("stereo", None, 0, None),                     # stereo keeps its recorded / default rule
+])
+def test_the_tasks_default_confirmation(task, select, want_confirm, want_select):
+    from tuner.commands.study import _select
+    args = SimpleNamespace(task=task, confirm=None, confirm_seeds=2, select=select)
+    assert _select(args) == want_select and args.confirm == want_confirm

@@ -232,6 +232,7 @@ def test_short_study_freezes_and_tests(tmp_path):
     # the mapper options are frozen parameters (the config's mapper section is left out at its defaults)
     assert fz["task"] == "reconstruction" and {"min_inliers", "min_model_size"} <= set(fz["params"])
     assert fz["feature"] == "colmap-sift"  # the task's default feature (not typed)
+    assert fz["selection"]["rule"] == "confirmed"  # the task's default: the best trials confirmed at more seeds
     # the test compares with COLMAP out of the box (the task's default reference), per dataset and overall
     ref = out["test"]["reference"]
     assert ref["label"].startswith("COLMAP out of the box") and ref["spec"] == "colmap"

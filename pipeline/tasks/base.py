@@ -133,6 +133,9 @@ class Task(abc.ABC):
     #: a new study's first trial is the task's defaults (the searched parameters at their values in the study's base
     #: configuration), so that a study freezes something worse on validation than the defaults only by their noise
     start_at_defaults: ClassVar[bool] = False
+    #: ``tune --confirm``'s default: how many of the best trials are re-evaluated at more seeds before freezing
+    #: (tuner.confirm; 0: none). A task whose runs are as noisy as its good settings are apart sets it
+    confirm_default: ClassVar[int] = 0
     #: the named reference pipelines :meth:`reference_task` runs (the reconstruction task: "colmap",
     #: "imc2025-baseline"); a task that overrides :meth:`reference_task` without naming them has "colmap"
     references: ClassVar[tuple[str, ...]] = ()

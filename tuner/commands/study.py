@@ -166,11 +166,11 @@ def register(sub) -> None:
                    help="auto: stop the study early when more trials cannot beat the incumbent by more than its "
                         "validation interval (Optuna's terminator: a GP regret bound, after min(20, n_trials / 2) "
                         "trials); off (default): run every trial")
-    t.add_argument("--confirm", type=int, default=0, metavar="N",
+    t.add_argument("--confirm", type=int, default=None, metavar="N",
                    help="before freezing, evaluate the N best trials (and the task's defaults, when the study started "
                         "from them) at --confirm-seeds more seeds on the validation data and freeze the highest mean "
-                        "(--select confirmed); against the winner's curse where runs are noisy (reconstruction) "
-                        "(default 0: none)")
+                        "(--select confirmed); against the winner's curse where runs are noisy (default: 3 for the "
+                        "reconstruction task, else 0: none)")
     t.add_argument("--confirm-seeds", type=int, default=2, metavar="S",
                    help="more seeds per confirmed candidate (default 2)")
     t.add_argument("--replicates", type=positive_int, default=1, metavar="K",
@@ -430,8 +430,12 @@ def settings_from_args(args):
 
 def _select(args) -> str | None:
     """--select, made "confirmed" by --confirm N (N > 0); one-line exit 2 for a contradiction or a bad count."""
+    from pipeline.tasks import task_class
     from tuner.confirm import check
     from tuner.select import CONFIRMED
+    if args.confirm is None:  # the task's default (tuner.confirm), unless another rule was asked for
+        given = args.select not in (None, CONFIRMED)
+        args.confirm = 0 if given else task_class(args.task).confirm_default
     check(args.confirm, args.confirm_seeds)
     if args.confirm and args.select not in (None, CONFIRMED):
         raise ImtuneError(f"--confirm {args.confirm} with --select {args.select}: confirmation freezes by the "
