@@ -53,7 +53,7 @@ def tune_command(a) -> list[str]:
         cmd += ["--trial-timeout", str(a.trial_timeout)]
     if a.replicates > 1:
         cmd += ["--replicates", str(a.replicates)]
-    if a.confirm:
+    if a.confirm is not None:  # None: tune's default (the reconstruction task confirms its 3 best)
         cmd += ["--confirm", str(a.confirm), "--confirm-seeds", str(a.confirm_seeds)]
     return cmd
 
@@ -229,8 +229,9 @@ def main(argv=None) -> int:
                     help="tune's bound on a trial's mapping (pruned beyond it; default: none)")
     ap.add_argument("--replicates", type=int, default=1, metavar="K",
                     help="tune --replicates K: K studies, the verdict over them (recorded in the section replicated)")
-    ap.add_argument("--confirm", type=int, default=0, metavar="N",
-                    help="tune --confirm N: the N best trials confirmed at more seeds before freezing")
+    ap.add_argument("--confirm", type=int, default=None, metavar="N",
+                    help="tune --confirm N: the N best trials confirmed at more seeds before freezing (default: "
+                         "tune's, 3 for reconstruction)")
     ap.add_argument("--confirm-seeds", type=int, default=2, metavar="S")
     ap.add_argument("--label", default=None, help="the row's label in the results (default: val -> test (mapper))")
     ap.add_argument("--record-only", action="store_true", help="do not run: read the study's test.json")
@@ -273,7 +274,8 @@ def main(argv=None) -> int:
     a.defaults_first = bool(st.trials) and st.trials[0].user_attrs.get("start") == "task defaults"
     trial = json.loads(path.read_text()).get("trial")
     a.froze_defaults = isinstance(trial, int) and st.trials[trial].user_attrs.get("start") == "task defaults"
-    a.confirmation = st.user_attrs.get("confirmation") if a.confirm else None
+    a.confirmation = st.user_attrs.get("confirmation")  # what the study did, whatever the options said
+    a.confirm = (a.confirmation or {}).get("n", 0) if a.confirm is None else a.confirm
     a.pruned = {t.number: t.user_attrs.get("pruned_reason") for t in st.trials if t.state.name == "PRUNED"}
     ended = [t for t in st.trials if t.datetime_start and t.datetime_complete]
     a.trial_seconds = [round((t.datetime_complete - t.datetime_start).total_seconds(), 1) for t in ended]

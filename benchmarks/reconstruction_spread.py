@@ -195,7 +195,7 @@ def main(argv=None) -> int:
     if not a.studies and not a.studies_dir:
         ap.error("give --studies-dir (a new random study) or --studies (trials of studies already run)")
     args = ["--task", "reconstruction", "--data", a.data, "--scenes", a.dataset, "--no-test", "--sampler", "random",
-            "--pruner", "none", "--n-trials", str(a.n), "--num-features", str(a.num_features), "--seed", str(a.seed),
+            "--pruner", "none", "--confirm", "0", "--n-trials", str(a.n), "--num-features", str(a.num_features), "--seed", str(a.seed),
             "--studies-dir", a.studies_dir, "--study", a.study, "--mapper", a.mapper]
     if a.trial_timeout is not None:
         args += ["--trial-timeout", a.trial_timeout]
