@@ -117,6 +117,10 @@ def write_md(old: dict, mpath: Path) -> None:
     runs = ["| study | test dataset | frozen, run by run | reference, run by run |", "| --- | --- | --- | --- |"]
     frozen, cmds = [], []
     for r in old["rows"]:
+        if isinstance(r.get("replicated"), dict):  # its replicates' verdict is the section replicated; its command
+            cmds.append(f"- {r['study']} (K = {r['replicated'].get('K')}), {r['date']}: `{r['command']}`"
+                        + f"; the data folder holds {short(r.get('folder') or [])}")
+            continue
         ci = r.get("ci")
         d = _f(r.get("difference"), "{:+.3f}") + (f" [{ci[0]:+.3f}, {ci[1]:+.3f}]" if ci else " (no interval)")
         p = "?" if r.get("p_value") is None else (f"{r['p_value']:.2g}")
@@ -162,7 +166,9 @@ def study_times(rows: list[dict]) -> list[str]:
     """Section ``times``: a timed study's wall time (tune's whole run: features, calibration, search, test runs),
     its search, its trials, beside the search before issue 44 modelled as trials x that configuration's measured
     seconds per evaluation of the same validation datasets (no bound: a trial then ran to its end)."""
-    timed = [r for r in rows if r.get("wall_seconds")]
+    # a study's own search, timed: not a resumed study's confirmation nor a replicated command (their wall time is
+    # in the replicated section's notes; the trials' figures would be those of another run)
+    timed = [r for r in rows if r.get("wall_seconds") and not r.get("confirm") and not r.get("replicated")]
     if not timed:
         return []
     out = ["<!-- --8<-- [start:times] -->",
@@ -200,16 +206,19 @@ def replicated_section(rows: list[dict]) -> list[str]:
         obj = b.get("objective", "score")
         ref = b.get("reference") or {}
         ci, dci = b.get(f"{obj}_ci"), ref.get("ci")
-        runs = {x.get("runs") for x in b.get("replicates") or []}
+        listed = r.get("replicates") or b.get("replicates") or []  # test.json keeps the list beside the block
+        runs = sorted({x.get("runs") for x in listed if x.get("runs")})
         out.append(f"| {', '.join(ALIASES.get(n, n) for n in r['validation'])} | "
                    f"{', '.join(ALIASES.get(n, n) for n in r['test'])} | {b['K']} x {'/'.join(map(str, runs))} | "
                    f"{_f(b.get(obj))}" + (f" [{ci[0]:.3f}, {ci[1]:.3f}]" if ci else "") + f" | {_f(ref.get(obj))} | "
                    + _f(ref.get("difference"), "{:+.3f}") + (f" [{dci[0]:+.3f}, {dci[1]:+.3f}]" if dci else "")
                    + f" | {'?' if ref.get('p_value') is None else format(ref['p_value'], '.2g')} |")
-        per = ", ".join(f"{x['study']} {_f(x.get(obj))}" for x in b.get("replicates") or [])
+        per = ", ".join(f"{x['study']} (trial #{x.get('trial')}) {_f(x.get(obj))}" for x in listed)
         diffs = ", ".join(_f(x, "{:+.3f}") for x in ref.get("per_replicate") or [])
+        took = (f" The command took {r['wall_seconds'] / 60:.1f} min ({r['note']})." if r.get("wall_seconds")
+                and r.get("note") else "")
         notes.append(f"- {r['study']}: {ref.get('verdict', 'no reference')}. Replicates: {per}; frozen - reference "
-                     f"by replicate: {diffs}.")
+                     f"by replicate: {diffs}.{took}")
     return out + ["", *notes, "<!-- --8<-- [end:replicated] -->", ""]
 
 

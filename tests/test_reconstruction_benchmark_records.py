@@ -60,11 +60,13 @@ def test_heldout_study_time_models_the_search_before(tmp_path):
 def test_heldout_replicated_section_reads_the_replicated_block(tmp_path):
     mod = _load("reconstruction_heldout", tmp_path)
     block = {"objective": "score", "K": 3, "score": 0.4, "score_ci": [0.3, 0.5],
-             "replicates": [{"study": f"s{k}", "score": 0.4, "runs": 2} for k in range(3)],
+             "replicates": [{"study": f"s{k}", "trial": k, "score": 0.4, "runs": 2} for k in range(3)],
              "reference": {"score": 0.36, "difference": 0.04, "ci": [-0.01, 0.09], "p_value": 0.071,
                            "verdict": "inconclusive", "per_replicate": [0.03, 0.04, 0.05]}}
+    listed = block.pop("replicates")  # test.json holds the list beside the block, as record_replicated writes it
     lines = mod.replicated_section([{"study": "s0", "validation": ["v"], "test": [mod.QUOTED_TEST],
-                                     "replicated": block}, {"study": "other"}])
+                                     "replicated": block, "replicates": listed}, {"study": "other"}])
     assert "| v | imc2025 | 3 x 2 | 0.400 [0.300, 0.500] | 0.360 | +0.040 [-0.010, +0.090] | 0.071 |" in lines
-    assert any(x.startswith("- s0: inconclusive.") and "+0.030, +0.040, +0.050" in x for x in lines)
+    assert any(x.startswith("- s0: inconclusive.") and "+0.030, +0.040, +0.050" in x and "s2 (trial #2) 0.400" in x
+               for x in lines)
     assert mod.replicated_section([{"study": "other"}]) == []
