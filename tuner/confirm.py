@@ -22,8 +22,9 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.errors import ImtuneError
+from tuner.select import CONFIRMATION_ATTR as ATTR
+from tuner.select import pick_confirmed as pick
 
-ATTR = "confirmation"
 MAX_CANDIDATES = 20
 MAX_SEEDS = 10
 
@@ -61,7 +62,7 @@ def confirm_candidates(ctx, n: int, seeds: int, say=None) -> dict | None:
             and sorted(int(k) for k in stored.get("trials", {})) == wanted:
         return stored
     from tuner.select import _value
-    trials = {}
+    trials: dict = {}
     for i, t in enumerate(cands, 1):
         conf = obj.config(dict(t.params))
         values = [float(_value(t) or 0.0)]  # a feasible completed trial has a value
@@ -81,41 +82,6 @@ def confirm_candidates(ctx, n: int, seeds: int, say=None) -> dict | None:
                        f"{seeds}); the mean decides"}
     study.set_user_attr(ATTR, block)
     return block
-
-
-def pick(study) -> tuple[object, dict] | None:
-    """(trial, info) of the confirmed rule, or None when the study holds no confirmation: the candidate with the
-    highest confirmed mean (ties: the higher own value, then the earlier trial), unless the task's defaults are a
-    candidate and that lead over them is within one standard error of the paired differences (same seeds) -- then
-    the defaults. Why: the defaults were chosen on evidence (for reconstruction, COLMAP's own settings measured
-    cause by cause); a setting replaces them on a measured difference, not on a lead the seeds' noise explains (the
-    one-standard-error rule, ESL 7.10, with the defaults as the simpler model)."""
-    block = study.user_attrs.get(ATTR)
-    if not isinstance(block, dict) or not block.get("trials"):
-        return None
-    by_number = {t.number: t for t in study.get_trials(deepcopy=False)}
-    rows = [(int(k), v) for k, v in block["trials"].items() if int(k) in by_number]
-    if not rows:
-        return None
-    num, best = max(rows, key=lambda kv: (round(kv[1]["mean"], 12), kv[1]["values"][0], -kv[0]))
-    others = ", ".join(f"#{k} {v['mean']:.3f}" for k, v in sorted(rows, key=lambda kv: -kv[1]["mean"]))
-    note = (f"the highest mean over its own value and {block['seeds']} more seeds among {len(rows)} candidates "
-            f"({others})")
-    info: dict = {}
-    defaults = [(k, v) for k, v in rows if v.get("defaults")]
-    if defaults and defaults[0][0] != num:
-        dnum, dv = defaults[0]
-        d = np.asarray(best["values"], float) - np.asarray(dv["values"], float)
-        se = float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("inf")
-        info.update(lead_over_defaults=float(d.mean()), lead_se=se)
-        if not d.mean() > se:
-            num, best = dnum, dv
-            note = (f"the task's defaults (#{dnum}): the best confirmed mean led them by {d.mean():+.3f}, within one "
-                    f"standard error ({se:.3f}) of the paired differences over {len(d)} seeds; candidates {others}")
-        else:
-            note += f"; it leads the defaults by {d.mean():+.3f} (se {se:.3f})"
-    info.update(confirmed_mean=best["mean"], confirmed_values=best["values"], note=note)
-    return by_number[num], info
 
 
 __all__ = ["ATTR", "candidates", "check", "confirm_candidates", "pick"]

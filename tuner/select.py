@@ -54,6 +54,8 @@ RULES = ("best", "one-se", "smooth", "lower-bound")
 #: the rule of a study whose best trials were re-evaluated at more seeds (``tune --confirm N``, :mod:`tuner.confirm`)
 CONFIRMED = "confirmed"
 ALL_RULES = RULES + (CONFIRMED,)
+#: the study's user attribute holding the confirmation (tuner.confirm.confirm_candidates)
+CONFIRMATION_ATTR = "confirmation"
 DEFAULT_RULE = "best"  # benchmarks/selection_rules.py: no rule beats it measurably (benchmarks/results/default-split-and-freeze-rules.md)
 SMOOTH_K = 5
 Z95 = 1.959963984540054  # normal quantile of 0.975: SE = half-width / Z95
@@ -159,8 +161,7 @@ def select_trial(study, rule: str | None = None, objective: str = "mAA10", k: in
         info["note"] = f"the highest validation value{within}"
         return best, info
     if rule == CONFIRMED:
-        from tuner.confirm import pick
-        got = pick(study)
+        got = pick_confirmed(study)
         if got is None:
             info["note"] = "no confirmation stored (tune --confirm N): the best trial"
             return best, info
@@ -204,6 +205,41 @@ def select_trial(study, rule: str | None = None, objective: str = "mAA10", k: in
     info.update(k=kk, smoothed_value=float(sm[pick]),
                 note=f"the best value averaged with its {kk} nearest trials in {where}")
     return cands[pick], info
+
+
+def pick_confirmed(study) -> tuple[object, dict] | None:
+    """(trial, info) of the confirmed rule, or None when the study holds no confirmation: the candidate with the
+    highest confirmed mean (ties: the higher own value, then the earlier trial), unless the task's defaults are a
+    candidate and that lead over them is within one standard error of the paired differences (same seeds) -- then
+    the defaults. Why: the defaults were chosen on evidence (for reconstruction, COLMAP's own settings measured
+    cause by cause); a setting replaces them on a measured difference, not on a lead the seeds' noise explains (the
+    one-standard-error rule, ESL 7.10, with the defaults as the simpler model)."""
+    block = study.user_attrs.get(CONFIRMATION_ATTR)
+    if not isinstance(block, dict) or not block.get("trials"):
+        return None
+    by_number = {t.number: t for t in study.get_trials(deepcopy=False)}
+    rows = [(int(k), v) for k, v in block["trials"].items() if int(k) in by_number]
+    if not rows:
+        return None
+    num, best = max(rows, key=lambda kv: (round(kv[1]["mean"], 12), kv[1]["values"][0], -kv[0]))
+    others = ", ".join(f"#{k} {v['mean']:.3f}" for k, v in sorted(rows, key=lambda kv: -kv[1]["mean"]))
+    note = (f"the highest mean over its own value and {block['seeds']} more seeds among {len(rows)} candidates "
+            f"({others})")
+    info: dict = {}
+    defaults = [(k, v) for k, v in rows if v.get("defaults")]
+    if defaults and defaults[0][0] != num:
+        dnum, dv = defaults[0]
+        d = np.asarray(best["values"], float) - np.asarray(dv["values"], float)
+        se = float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("inf")
+        info.update(lead_over_defaults=float(d.mean()), lead_se=se)
+        if not d.mean() > se:
+            num, best = dnum, dv
+            note = (f"the task's defaults (#{dnum}): the best confirmed mean led them by {d.mean():+.3f}, within one "
+                    f"standard error ({se:.3f}) of the paired differences over {len(d)} seeds; candidates {others}")
+        else:
+            note += f"; it leads the defaults by {d.mean():+.3f} (se {se:.3f})"
+    info.update(confirmed_mean=best["mean"], confirmed_values=best["values"], note=note)
+    return by_number[num], info
 
 
 # ------------------------------------------------------------------------------------------ robustness
