@@ -157,7 +157,8 @@ def run_scenes(args) -> int:
         print(json.dumps({"data": str(root), "rule": loc.rule, "detail": loc.detail, "scenes": scenes,
                           "max_pairs": cap, "other_data_sets": others}, indent=2))
         return 0
-    from tuner.formatting import fit_text
+    # every line within TERMINAL_WIDTH columns, into a pipe too (a terminal, a log, the docs read it alike)
+    from tuner.formatting import TERMINAL_WIDTH, fit_text
     print(f"data: {root}  (found by {loc.describe()})")  # the one place the folder's path is said
     for s in scenes:
         print(f"{s['scene']}\t{s['split']}")
@@ -166,19 +167,20 @@ def run_scenes(args) -> int:
             print(fit_text(f"  IMC dataset: {d['images']} images; scenes "
                            + ", ".join(f"{k} ({v})" for k, v in d["scenes"].items())
                            + f"; outliers {d['outliers']}; intrinsics {'known' if d['intrinsics'] else 'unknown'}"
-                           + (f"; {d['unlabelled']} image(s) in no label row (left out)" if d["unlabelled"] else "")))
+                           + (f"; {d['unlabelled']} image(s) in no label row (left out)" if d["unlabelled"] else ""),
+                           width=TERMINAL_WIDTH))
     if cap is not None:
         print(fit_text(f"pairs: the main job uses at most {cap} pairs per scene here (evenly spread; --max-pairs N "
-                       "to change)"))
+                       "to change)", width=TERMINAL_WIDTH))
     if not splits.get("test"):
         print(fit_text("note: no test split in this folder: the main job needs --test-scenes NAME[,...] (or "
-                       "--no-test), or a splits.yaml beside the scenes"))
+                       "--no-test), or a splits.yaml beside the scenes", width=TERMINAL_WIDTH))
     by_folder: dict[str, list[dict]] = {}
     for o in others:  # each folder's path once, its data sets by name
         by_folder.setdefault(str(Path(o["path"]).parent), []).append(o)
     for folder, sets in by_folder.items():
-        print(fit_text(f"also in {folder} ({sets[0]['rule']}): {', '.join(o['name'] for o in sets)}; use one with "
-                       f"--data {folder}/NAME"))
+        print(fit_text(f"also in {folder} ({sets[0]['rule']}), each usable as --data: "
+                       f"{', '.join(o['name'] for o in sets)}", width=TERMINAL_WIDTH))
     return 0
 
 
