@@ -166,9 +166,10 @@ def study_times(rows: list[dict]) -> list[str]:
     """Section ``times``: a timed study's wall time (tune's whole run: features, calibration, search, test runs),
     its search, its trials, beside the search before issue 44 modelled as trials x that configuration's measured
     seconds per evaluation of the same validation datasets (no bound: a trial then ran to its end)."""
-    # a study's own search, timed: not a resumed study's confirmation nor a replicated command (their wall time is
-    # in the replicated section's notes; the trials' figures would be those of another run)
-    timed = [r for r in rows if r.get("wall_seconds") and not r.get("confirm") and not r.get("replicated")]
+    # a study's search timed by the run that did it: not a replicated command (its wall time is in the replicated
+    # section's notes) nor a resumed study whose search ran before (a run shorter than its study's search)
+    timed = [r for r in rows if r.get("wall_seconds") and not r.get("replicated")
+             and r["wall_seconds"] >= (r.get("search_seconds") or 0)]
     if not timed:
         return []
     out = ["<!-- --8<-- [start:times] -->",
