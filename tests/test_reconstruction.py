@@ -125,7 +125,8 @@ def test_data_scenes_lists_the_real_dataset():
     assert info["scenes"] == {"church": 50, "kyiv-puppet-theater": 26}
     assert info["outliers"] == 0 and info["intrinsics"] is False
     r = tune("data", "scenes", "--data", str(IMC))
-    assert "church (50), kyiv-puppet-theater (26); outliers 0; intrinsics unknown" in r.stdout
+    assert "  IMC dataset: 76 images; outliers 0; intrinsics unknown\n" in r.stdout
+    assert "  scenes: church (50), kyiv-puppet-theater (26)\n" in r.stdout
 
 
 def test_to_imc_writes_a_strecha_mix_that_loads(tmp_path):

@@ -164,10 +164,11 @@ def run_scenes(args) -> int:
         print(f"{s['scene']}\t{s['split']}")
         d = s.get("imc")
         if d:
-            print(fit_text(f"  IMC dataset: {d['images']} images; scenes "
-                           + ", ".join(f"{k} ({v})" for k, v in d["scenes"].items())
-                           + f"; outliers {d['outliers']}; intrinsics {'known' if d['intrinsics'] else 'unknown'}"
+            print(fit_text(f"  IMC dataset: {d['images']} images; outliers {d['outliers']}; intrinsics "
+                           f"{'known' if d['intrinsics'] else 'unknown'}"
                            + (f"; {d['unlabelled']} image(s) in no label row (left out)" if d["unlabelled"] else ""),
+                           width=TERMINAL_WIDTH))
+            print(fit_text("  scenes: " + ", ".join(f"{k} ({v})" for k, v in d["scenes"].items()),
                            width=TERMINAL_WIDTH))
     if cap is not None:
         print(fit_text(f"pairs: the main job uses at most {cap} pairs per scene here (evenly spread; --max-pairs N "
