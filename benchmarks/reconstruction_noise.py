@@ -42,13 +42,10 @@ def evaluate(a, seed: int, config: str | None) -> float:
 
 
 def paired(a: list[float], b: list[float]) -> dict:
-    """mean of a - b over seeds, its 95% Student t interval and the t test's p (scipy)."""
-    from scipy import stats
-    d = np.asarray(a) - np.asarray(b)
-    se = float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan")
-    half = float(stats.t.ppf(0.975, len(d) - 1)) * se if len(d) > 1 else float("nan")
-    p = float(stats.ttest_1samp(d, 0.0).pvalue) if len(d) > 1 and se > 0 else None
-    return {"difference": float(d.mean()), "ci": [float(d.mean() - half), float(d.mean() + half)], "p_value": p}
+    """mean of a - b over seeds, its 95% Student t interval and the t test's p."""
+    from pipeline.metrics.replicates import one_sample_t
+    mean, ci, _, p = one_sample_t(np.asarray(a) - np.asarray(b))
+    return {"difference": mean, "ci": ci, "p_value": p}
 
 
 def render(rows: list[dict]) -> str:

@@ -23,6 +23,7 @@ import numpy as np
 
 from pipeline.errors import ImtuneError
 from tuner.select import CONFIRMATION_ATTR as ATTR
+from tuner.select import _value, feasible_trials
 from tuner.select import pick_confirmed as pick
 
 MAX_CANDIDATES = 20
@@ -39,7 +40,6 @@ def check(n: int, seeds: int) -> None:
 def candidates(study, n: int) -> list:
     """The ``n`` best feasible completed trials by value (ties: the earlier), and the task's defaults trial (user
     attribute ``start`` "task defaults") when it is feasible and not among them."""
-    from tuner.select import _value, feasible_trials
     feas = feasible_trials(study)
     best = sorted(feas, key=lambda t: (-(_value(t) or 0.0), t.number))[:n]
     defaults = [t for t in feas if t.user_attrs.get("start") == "task defaults" and t not in best]
@@ -61,7 +61,6 @@ def confirm_candidates(ctx, n: int, seeds: int, say=None) -> dict | None:
     if isinstance(stored, dict) and stored.get("n") == n and stored.get("seeds") == seeds \
             and sorted(int(k) for k in stored.get("trials", {})) == wanted:
         return stored
-    from tuner.select import _value
     trials: dict = {}
     for i, t in enumerate(cands, 1):
         conf = obj.config(dict(t.params))

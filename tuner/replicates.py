@@ -96,15 +96,10 @@ def tune_replicates(s, replicates: int) -> dict:
             s.say(f"replicate {k}/{k_max}: study {sk.study_name}, seed {sk.seed}")
         outs.append(tune(sk))
     out = {"study": name, "replicates": outs, "replicated": None}
-    if all(o.get("test") for o in outs) and unit == "datasets":
-        summary = dataset_replicated_summary([o["test"] for o in outs],
-                                             [replicate_seed(s.seed, k) for k in range(1, k_max + 1)])
-        record_replicated(s.studies_dir, name, summary)
-        _store_attr(s, name, summary)
-        out["replicated"] = summary
-    elif all(o.get("test") for o in outs):
-        summary = replicated_summary([o["test"] for o in outs], [replicate_seed(s.seed, k) for k in range(1, k_max + 1)],
-                                     n_boot=s.ci_resamples or 2000)
+    if all(o.get("test") for o in outs):
+        tests, seeds = [o["test"] for o in outs], [replicate_seed(s.seed, k) for k in range(1, k_max + 1)]
+        summary = (dataset_replicated_summary(tests, seeds) if unit == "datasets"
+                   else replicated_summary(tests, seeds, n_boot=s.ci_resamples or 2000))
         record_replicated(s.studies_dir, name, summary)
         _store_attr(s, name, summary)
         out["replicated"] = summary
@@ -183,9 +178,7 @@ def dataset_replicated_summary(tests: list[dict], seeds: list, *, alpha: float =
     "Could detect" is the difference the test reaches with 80% power at the median-unbiased variance
     (:func:`pipeline.metrics.replicates.detectable`). Why not the pair model of :func:`replicated_summary`: there are
     no pairs, only datasets, and one test dataset is common. A verdict needs K >= 3 (as for pairs)."""
-    from scipy import stats
-
-    from pipeline.metrics.replicates import POWER, detectable, median_unbiased
+    from pipeline.metrics.replicates import POWER, detectable, median_unbiased, one_sample_t
     k = len(tests)
     named = tests[0].get("objective")  # test.json's {"name": ...}; the reference block names it as a string
     candidates = [(tests[0].get("reference") or {}).get("objective"),
@@ -199,16 +192,7 @@ def dataset_replicated_summary(tests: list[dict], seeds: list, *, alpha: float =
     reps = [{"study": t.get("study"), "seed": seed, "trial": t.get("trial"), "params": t.get("params"),
              objective: float(v), "runs": len(t.get("runs") or [])} for t, seed, v in zip(tests, seeds, y)]
 
-    def t_interval(x: np.ndarray) -> tuple[list | None, float | None, float | None]:
-        if len(x) < 2:
-            return None, None, None
-        se = float(x.std(ddof=1) / math.sqrt(len(x)))
-        if se == 0:
-            return [float(x.mean())] * 2, 0.0, (1.0 if x.mean() == 0 else 0.0)
-        half = float(stats.t.ppf(1 - alpha / 2, len(x) - 1)) * se
-        return [float(x.mean()) - half, float(x.mean()) + half], se, float(stats.ttest_1samp(x, 0.0).pvalue)
-
-    ci, se_y, _ = t_interval(y)
+    _, ci, se_y, _ = one_sample_t(y, alpha)
     out = {"unit": "datasets", "objective": objective, "replicates": reps, "K": k, objective: float(y.mean()),
            f"{objective}_ci": ci, "se_between": se_y, "datasets": datasets, "tuning_variance_measured": k >= 2,
            "note": "" if k >= 2 else "the tuning variance was not measured (1 replicate)",
@@ -220,12 +204,12 @@ def dataset_replicated_summary(tests: list[dict], seeds: list, *, alpha: float =
     if all(isinstance(r, dict) and (r.get("mean") or {}).get(objective) is not None for r in refs):
         r_k = np.array([float(r["mean"][objective]) for r in refs])  # type: ignore[index]
         d = y - r_k
-        dci, se_d, p = t_interval(d)
+        _, dci, se_d, p = one_sample_t(d, alpha)
         per_ds = {}
         for ds in datasets:
-            vals = [_dataset_mean(t, ds, objective) - _dataset_mean(r, ds, objective) for t, r in zip(tests, refs)]
-            if all(v is not None for v in vals):
-                per_ds[ds] = float(np.mean(vals))
+            pairs = [(_dataset_mean(t, ds, objective), _dataset_mean(r, ds, objective)) for t, r in zip(tests, refs)]
+            if all(a is not None and b is not None for a, b in pairs):  # a run without the dataset: no figure
+                per_ds[ds] = float(np.mean([a - b for a, b in pairs]))  # type: ignore[operator]
         mde = (detectable(se_d * math.sqrt(median_unbiased(k - 1)), k - 1, alpha) if se_d else None)
         if k < 3:
             verdict = f"K = {k}: no verdict (a verdict about tuning needs --replicates 3 or more)"

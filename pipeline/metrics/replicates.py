@@ -570,6 +570,22 @@ def t_quantile(p: float, df: float) -> float:
     return float(special.stdtrit(df, p))
 
 
+def one_sample_t(x, alpha: float = 0.05) -> tuple[float, list[float] | None, float | None, float | None]:
+    """(mean, its 1 - alpha Student t interval, se, the two-sided one-sample t test's p against 0) of ``x`` (scipy).
+    One value: no interval, se or p. Every value equal: the interval is the point, se 0, p 1 at 0 and 0 elsewhere.
+    The one place frozen - reference over runs, over replicates and over seeds is computed."""
+    from scipy import stats
+    x = np.asarray(x, float)
+    mean = float(x.mean())
+    if len(x) < 2:
+        return mean, None, None, None
+    se = float(x.std(ddof=1) / math.sqrt(len(x)))
+    if se == 0:
+        return mean, [mean, mean], 0.0, (1.0 if mean == 0 else 0.0)
+    half = float(stats.t.ppf(1 - alpha / 2, len(x) - 1)) * se
+    return mean, [mean - half, mean + half], se, float(stats.ttest_1samp(x, 0.0).pvalue)
+
+
 def t_two_sided_p(t: float, df: float) -> float:
     return float(min(1.0, 2.0 * special.stdtr(df, -abs(t))))
 

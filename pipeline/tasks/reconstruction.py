@@ -777,7 +777,7 @@ class ReconstructionTask(Task):
         seeds), their mean over datasets and runs, a 95% Student t interval over those differences and the two-sided
         one-sample t test's p (scipy). It treats datasets and runs as independent draws; with one dataset the
         interval holds the run-to-run (seed) variation only, and with one run of one dataset there is none."""
-        from scipy import stats
+        from pipeline.metrics.replicates import one_sample_t
         diffs: dict[str, list[float]] = {}
         for r, f in zip(ref_runs, runs):
             for ds, s in (f.get("scenes") or {}).items():
@@ -787,15 +787,7 @@ class ReconstructionTask(Task):
         d = np.array([x for v in diffs.values() for x in v], float)
         if not len(d):
             return None
-        mean = float(d.mean())
-        if len(d) > 1 and float(d.std(ddof=1)) > 0:
-            half = float(stats.t.ppf(0.975, len(d) - 1) * d.std(ddof=1) / math.sqrt(len(d)))
-            p = float(stats.ttest_1samp(d, 0.0).pvalue)
-            ci = [mean - half, mean + half]
-        elif len(d) > 1:  # every difference equal: no spread measured
-            ci, p = [mean, mean], (1.0 if mean == 0 else 0.0)
-        else:
-            ci, p = None, None
+        mean, ci, _, p = one_sample_t(d)
         return {"difference": mean, "ci": ci, "p_value": p, "pairs": int(len(d)), "units": "dataset runs",
                 "datasets": {k: float(np.mean(v)) for k, v in diffs.items()},
                 "method": "score(frozen) - score(reference) per dataset and run (the k-th seeds of both); 95% "
