@@ -91,3 +91,58 @@ def test_a_signal_dropped_inside_a_weakref_callback_still_stops_the_command(tmp_
     assert "went on" not in p.stdout and "interrupted" in p.stdout, (p.stdout, p.stderr)
     assert p.returncode == code, (p.returncode, p.stderr)
     assert "Exception ignored" not in p.stderr and "Traceback" not in p.stderr, p.stderr
+
+
+HEARTBEAT_WINDOW = r"""
+import argparse, os, signal, sys, threading, time
+import optuna
+from optuna.storages._heartbeat import HeartbeatThread
+from tuner import cli
+
+optuna.logging.set_verbosity(optuna.logging.ERROR)
+start = HeartbeatThread.start
+
+def start_then_sigint(self):
+    start(self)  # the heartbeat thread runs now
+    os.kill(os.getpid(), signal.SIGINT)  # a real Ctrl-C before __enter__ returns: Optuna never calls __exit__
+    time.sleep(20)
+
+HeartbeatThread.start = start_then_sigint
+if sys.argv[2] == "no-stop":  # the watchdog alone
+    cli.stop_stray_heartbeats = lambda wait=5.0: 0
+    cli.EXIT_GRACE = 3.0
+
+def command(argv):
+    storage = optuna.storages.RDBStorage(f"sqlite:///{sys.argv[1]}/hb.db", heartbeat_interval=1, grace_period=2)
+    study = optuna.create_study(storage=storage)
+    try:
+        study.optimize(lambda t: t.suggest_float("x", 0, 1), n_trials=3)
+    except KeyboardInterrupt as e:
+        code = cli._interrupted(e, argparse.Namespace())
+        alive = [t for t in threading.enumerate() if getattr(t, "_target", None) is HeartbeatThread._record_heartbeat]
+        print("heartbeat threads alive:", len(alive), flush=True)
+        return code
+    print("went on")
+    return 0
+
+cli._main = command
+sys.exit(cli.main())
+"""
+
+
+@pytest.mark.parametrize("mode", ["stop", "no-stop"])
+def test_ctrl_c_inside_optunas_heartbeat_start_still_exits(tmp_path, mode):
+    """A real Ctrl-C landing in Optuna's ``HeartbeatThread.__enter__`` after its (non-daemon) thread started: Optuna
+    never stops that thread, and the program printed "interrupted" and hung at exit (CI, test_ctrl_c_keeps_completed
+    _trials). ``stop``: the interruption stops the stray thread, so none is alive after it. ``no-stop``: with that
+    switched off, the program still exits with 130 (the exit watchdog), where it used to hang forever."""
+    import subprocess
+    import sys
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[1]
+    p = subprocess.run([sys.executable, "-c", HEARTBEAT_WINDOW, str(tmp_path), mode], cwd=root, capture_output=True,
+                       text=True, timeout=120, env=dict(os.environ, PYTHONPATH=str(root)))
+    assert "went on" not in p.stdout and "interrupted" in p.stderr, (p.stdout, p.stderr)
+    assert p.returncode == 130, (p.returncode, p.stderr)
+    assert f"heartbeat threads alive: {0 if mode == 'stop' else 1}" in p.stdout, p.stdout
+    assert "Traceback" not in p.stderr, p.stderr

@@ -285,8 +285,18 @@ def _no_interrupt_swallowed():
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The ``tune`` program (``argv`` None: the command line). An interrupted program exits within
+    :data:`EXIT_GRACE` seconds whatever a library left running (:func:`exit_within`); a call with ``argv``
+    (from Python) never ends its caller's process."""
     with _sigterm_as_interrupt(), _no_interrupt_swallowed():
-        return _main(argv)
+        code = _main(argv)
+    if argv is None and code in (130, 128 + signal.SIGTERM):
+        exit_within(EXIT_GRACE, code)
+    return code
+
+
+#: seconds an interrupted command's exit may take before it is forced (:func:`exit_within`)
+EXIT_GRACE = 30.0
 
 
 def _interrupted(e: KeyboardInterrupt, args) -> int:
@@ -296,11 +306,12 @@ def _interrupted(e: KeyboardInterrupt, args) -> int:
     _stop_children()
     note = getattr(args, "on_interrupt", None)
     kept = f"; {note}" if note else ""
+    code = 128 + signal.SIGTERM if isinstance(e, Terminated) else 130
     if isinstance(e, Terminated):
         print(f"tune: terminated (SIGTERM){kept}", file=sys.stderr)
-        return 128 + signal.SIGTERM
-    print(f"tune: interrupted{kept}", file=sys.stderr)
-    return 130
+    else:
+        print(f"tune: interrupted{kept}", file=sys.stderr)
+    return code
 
 
 def _stop_children() -> None:
@@ -312,6 +323,45 @@ def _stop_children() -> None:
     from pipeline.tasks.pool import kill_processes, quiet_exit_wakeups
     kill_processes(mp.active_children())
     quiet_exit_wakeups()
+    stop_stray_heartbeats()
+
+
+def stop_stray_heartbeats(wait: float = 5.0) -> int:
+    """Stop Optuna's heartbeat threads that nothing will stop; returns how many were stopped.
+
+    Optuna 5.1 starts a trial's heartbeat thread (not a daemon) in ``HeartbeatThread.__enter__`` and stops it in
+    ``__exit__``. A Ctrl-C that lands inside ``__enter__`` once the thread has started (``Thread.start`` waits for
+    it: a likely place for the signal) skips ``__exit__``: the thread records heartbeats forever and the
+    interpreter's exit waits for it, so ``tune`` printed "interrupted" and never exited (once in CI). The thread's
+    stop event is its third argument (``_record_heartbeat(trial_id, heartbeat, stop_event)``); setting it ends the
+    thread at its next wait. Hand-written: Optuna offers no handle on a thread whose ``__exit__`` never ran."""
+    from optuna.storages._heartbeat import HeartbeatThread
+    stopped = []
+    for t in threading.enumerate():
+        target, args = getattr(t, "_target", None), getattr(t, "_args", ())
+        if target is HeartbeatThread._record_heartbeat and len(args) == 3 and hasattr(args[2], "set"):
+            args[2].set()
+            stopped.append(t)
+    for t in stopped:
+        t.join(wait)
+    return len(stopped)
+
+
+def exit_within(seconds: float, code: int) -> None:
+    """After an interruption: if the interpreter's exit has not ended ``seconds`` from now (a thread or a pool's
+    queue that some library left waiting), end the process with ``code`` anyway. Everything a run keeps is in
+    the storage by then (the interrupted trial is marked failed before the message); only buffered output is
+    left, and it is flushed first. A daemon timer: a normal exit ends it with the process."""
+    def force():
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except Exception:  # noqa: BLE001 - a closed pipe
+                pass
+        os._exit(code)
+    t = threading.Timer(seconds, force)
+    t.daemon = True
+    t.start()
 
 
 def _user_error(e: ImtuneError, args, url: str | None) -> int:
