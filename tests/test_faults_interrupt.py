@@ -100,6 +100,12 @@ def test_the_trial_interrupted_while_recorded_is_failed_not_left_running(tmp_pat
     _masked(tmp_path, signal.SIGINT, got)
     plain = optuna.load_study(study_name="s", storage=f"sqlite:///{tmp_path / 'optuna.db'}")
     assert [t.state for t in plain.trials] == [TrialState.RUNNING]  # what Optuna leaves
+    x = plain.trials[0].params["x"]
     assert fail_interrupted_trials(plain, [5, 0]) == [0]  # only this process's numbers, only RUNNING ones
-    assert [t.state for t in plain.trials] == [TrialState.FAIL]
+    # failed, and its parameters enqueued once for the next run (Optuna's retry record names the trial retried)
+    assert [t.state for t in plain.trials] == [TrialState.FAIL, TrialState.WAITING]
+    assert plain.trials[1].params == {"x": x} and plain.trials[1].system_attrs["retry_history"] == [0]
     assert fail_interrupted_trials(plain, [0]) == []
+    plain.optimize(lambda t: t.suggest_float("x", 0, 1), n_trials=1)  # a resume evaluates the retry first
+    assert [t.state for t in plain.trials] == [TrialState.FAIL, TrialState.COMPLETE]
+    assert plain.trials[1].params == {"x": x}

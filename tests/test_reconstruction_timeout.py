@@ -53,9 +53,10 @@ def test_trial_over_the_bound_is_pruned_with_the_reason(one, cache, tmp_path, mo
     assert t.user_attrs["trial_timeout"] == 0.001
 
 
-def test_auto_bound_is_ten_times_the_defaults_mapping_at_least_a_minute():
-    """`--trial-timeout auto` reads the completed defaults trial's mapping seconds: 10 x, at least 60 s; no bound
-    before that trial completes, and another trial's time is not the defaults'."""
+def test_auto_bound_is_ten_times_the_median_mapping_at_least_a_minute():
+    """`--trial-timeout auto` reads the completed trials' mapping seconds: 10 x their median, at least 60 s; no
+    bound before a trial completes; pruned trials and non-finite times do not count; one slow measurement among
+    many does not move it (it set the whole study's bound when the defaults trial alone was read)."""
     import optuna
     from optuna.distributions import FloatDistribution
     from optuna.trial import TrialState, create_trial
@@ -71,14 +72,19 @@ def test_auto_bound_is_ten_times_the_defaults_mapping_at_least_a_minute():
 
     st = optuna.create_study(direction="maximize")
     assert auto_trial_timeout(st) is None
-    add(st, 40.0)  # not the defaults
-    add(st, 30.0, "task defaults", TrialState.PRUNED)  # not completed
+    add(st, 500.0, "task defaults", TrialState.PRUNED)  # not completed
+    add(st, float("nan"))  # no time
     assert auto_trial_timeout(st) is None
     add(st, 30.0, "task defaults")
     assert auto_trial_timeout(st) == 300.0
+    add(st, 10.0)
+    assert auto_trial_timeout(st) == 200.0  # median of 30 and 10
     st2 = optuna.create_study(direction="maximize")
-    add(st2, 1.1, "task defaults")
-    assert auto_trial_timeout(st2) == 60.0
+    add(st2, 31.0, "task defaults")  # the defaults timed on a loaded machine
+    assert auto_trial_timeout(st2) == 310.0
+    for secs in (2.3, 2.4, 2.2, 2.5):
+        add(st2, secs)
+    assert auto_trial_timeout(st2) == 60.0  # 10 x 2.4, the floor
 
 
 def test_mapping_within_the_bound_gives_the_unbounded_models(one, cache):

@@ -576,11 +576,11 @@ def test_ctrl_c_keeps_completed_trials(tmp_path, tuner_cache):
     while time.time() < deadline and p.poll() is None:
         time.sleep(0.2)
         try:
-            _, done = _finished_numbers(storage, "interrupted")
+            st, done = _finished_numbers(storage, "interrupted")
         except Exception:  # noqa: BLE001 - not created yet
             continue
-        if len(done) >= 2:
-            break
+        if len(done) >= 2 and any(t.state == TrialState.RUNNING and t.params for t in st.trials):
+            break  # a trial is under way with its parameters drawn (tests/test_interrupt_window.py: before that)
     p.send_signal(signal.SIGINT)  # one Ctrl-C: also one landing in a weakref callback stops it (tuner/cli.py)
     _, err = p.communicate(timeout=60)
     assert p.returncode == 130 and "interrupted" in err and "Traceback" not in err, (p.returncode, err[-2000:])
@@ -588,3 +588,16 @@ def test_ctrl_c_keeps_completed_trials(tmp_path, tuner_cache):
     st, after = _finished_numbers(storage, "interrupted")
     assert set(done) <= set(after)
     assert not [t for t in st.trials if t.state == TrialState.RUNNING]  # the interrupted trial is FAIL, not RUNNING
+    # the interrupted trial's parameters are the resume's first trial
+    failed = [t for t in st.trials if t.state == TrialState.FAIL]
+    waiting = [t for t in st.trials if t.state == TrialState.WAITING]
+    assert len(failed) == 1 and failed[0].params, [(t.number, t.state, t.params) for t in st.trials]
+    assert [(t.params, t.system_attrs.get("retry_history")) for t in waiting] == [(failed[0].params, [failed[0].number])]
+    resume = [a if a != "50" else str(len(after) + 1) for a in args]
+    r = subprocess.run([sys.executable, "-m", "tuner", *resume, "--quiet"], cwd=ROOT, env=env,
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    st, again = _finished_numbers(storage, "interrupted")
+    assert len(again) == len(after) + 1
+    retry = st.trials[waiting[0].number]
+    assert retry.state == TrialState.COMPLETE and retry.params == failed[0].params

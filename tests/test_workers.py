@@ -113,6 +113,28 @@ def _kill(p, sig):
     return p.communicate(timeout=120)
 
 
+def _kill_mid_trial(p, storage, name, sig, timeout=300):
+    """Send ``sig`` to worker ``p`` (its process group) while it evaluates a trial; returns (that trial, the numbers
+    complete then, the worker's output). The worker is frozen (SIGSTOP) before the trial's state is read again, so
+    a trial that ended between the first read and the signal (a short trial on a loaded machine: seen in CI) is not
+    taken for a killed one; the worker then goes on (SIGCONT) to its next trial."""
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        trial, _ = _wait_running_in(p, storage, name, timeout=max(1.0, deadline - time.time()))
+        os.killpg(p.pid, signal.SIGSTOP)
+        try:  # a worker stopped inside a write may hold the storage's lock: then read again after it goes on
+            ts = _trials(storage, name)
+        except Exception:  # noqa: BLE001
+            ts = []
+        now = next((t for t in ts if t.number == trial.number), None)
+        if now is not None and now.state.name == "RUNNING":
+            os.killpg(p.pid, sig)
+            os.killpg(p.pid, signal.SIGCONT)  # a stopped process handles SIGTERM once continued (SIGKILL at once)
+            return now, {t.number for t in ts if t.state.name == "COMPLETE"}, p.communicate(timeout=120)
+        os.killpg(p.pid, signal.SIGCONT)
+    raise AssertionError(f"worker {p.pid} was never caught inside a trial")
+
+
 def _finish(procs):
     outs = []
     for p in procs:
@@ -149,8 +171,7 @@ def test_three_workers_one_killed(pg, data, cache, tmp_path):
         procs.append(_start(_args(data, d, name, n), env))
     victim = procs[1]
     try:
-        killed, complete_before = _wait_running_in(victim, pg.url, name)
-        so, se = _kill(victim, signal.SIGKILL)
+        killed, complete_before, (so, se) = _kill_mid_trial(victim, pg.url, name, signal.SIGKILL)
         assert victim.returncode == -signal.SIGKILL
         outs = _finish([procs[0], procs[2]])
     finally:
@@ -194,8 +215,7 @@ def test_sigterm_worker_exact_count_and_test_phase_takeover(pg, data, cache, tmp
     pa = _start(_args(data, a, name, n), env)
     pb = _start(_args(data, b, name, n), env)
     try:
-        _wait_running_in(pa, pg.url, name)
-        _, se = _kill(pa, signal.SIGTERM)
+        _, _, (_, se) = _kill_mid_trial(pa, pg.url, name, signal.SIGTERM)
         assert pa.returncode == 128 + signal.SIGTERM, se[-2000:]
         (so, se), = _finish([pb])
     finally:
@@ -206,6 +226,11 @@ def test_sigterm_worker_exact_count_and_test_phase_takeover(pg, data, cache, tmp
     assert pb.returncode == 0, se[-3000:]
     ts = _check_study(pg.url, name, n)
     assert any(t.state.name == "FAIL" for t in ts)
+    # the terminated trial's parameters, when it had drawn them, were queued and evaluated by the live worker
+    for f in (t for t in ts if t.state.name == "FAIL" and t.params):
+        again = [t for t in ts if (t.system_attrs.get("retry_history") or [None])[-1] == f.number]
+        assert [t.params for t in again] == [f.params], [(t.number, t.state) for t in ts]
+        assert again[0].state.name in ("COMPLETE", "PRUNED"), again[0].state
     assert _test_files(a) == [] and len(_test_files(b)) == 1
 
     # the test phase taken over: 2 test runs is another phase (its options differ)
@@ -250,8 +275,7 @@ def test_stale_running_trial_failed_and_retried_on_resume(data, cache, tmp_path,
     env = _env(cache)
     p = _start(args, env)
     try:
-        killed, before = _wait_running_in(p, storage, "resume")
-        _kill(p, signal.SIGKILL)
+        killed, before, _ = _kill_mid_trial(p, storage, "resume", signal.SIGKILL)
     finally:
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)

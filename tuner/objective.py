@@ -42,8 +42,8 @@ from pipeline.errors import ImtuneError
 from tuner.protocol import BUDGET_CONSTRAINT, config_for, within_budget
 
 MAX_FAILED_LISTED = 50
-#: ``--trial-timeout auto``: the bound is this multiple of the defaults trial's mapping seconds, and at least
-#: AUTO_TIMEOUT_FLOOR seconds (a few seconds of mapping measured on a loaded machine must not cut good trials)
+#: ``--trial-timeout auto``: the bound is this multiple of the completed trials' median mapping seconds, and at
+#: least AUTO_TIMEOUT_FLOOR seconds (a few seconds of mapping measured on a loaded machine must not cut good trials)
 AUTO_TIMEOUT_FACTOR = 10.0
 AUTO_TIMEOUT_FLOOR = 60.0
 SINGLE = ("mAA10",)  # objectives: the task's objective figure, maximised
@@ -141,15 +141,18 @@ def failed_units(records: list[dict], several_scenes: bool) -> list[str]:
 
 
 def auto_trial_timeout(study) -> float | None:
-    """``--trial-timeout auto``: :data:`AUTO_TIMEOUT_FACTOR` x the mapping seconds (``timing.mapping_seconds``) of the
-    study's completed trial at the task's defaults (user attribute ``start`` "task defaults"), at least
-    :data:`AUTO_TIMEOUT_FLOOR`; None (no bound yet) until that trial has completed."""
+    """``--trial-timeout auto``: :data:`AUTO_TIMEOUT_FACTOR` x the median mapping seconds
+    (``timing.mapping_seconds``) of the study's completed trials, at least :data:`AUTO_TIMEOUT_FLOOR`; None (no
+    bound yet) until a trial has completed (the first is the task's defaults). Read again before every trial: one
+    mapping timed on a loaded machine (31 s where the same setting took 2.3 s, seen in a replicated study) set the
+    bound for a whole study when it was read from the defaults trial alone."""
     from optuna.trial import TrialState
-    for t in study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
-        secs = (t.user_attrs.get("timing") or {}).get("mapping_seconds")
-        if t.user_attrs.get("start") == "task defaults" and isinstance(secs, (int, float)):
-            return max(AUTO_TIMEOUT_FLOOR, AUTO_TIMEOUT_FACTOR * float(secs))
-    return None
+    secs = [float(s) for t in study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
+            if isinstance(s := (t.user_attrs.get("timing") or {}).get("mapping_seconds"), (int, float))
+            and np.isfinite(s)]
+    if not secs:
+        return None
+    return max(AUTO_TIMEOUT_FLOOR, AUTO_TIMEOUT_FACTOR * float(np.median(secs)))
 
 
 class Objective:
@@ -240,7 +243,7 @@ class Objective:
                 raise optuna.TrialPruned()
 
         from pipeline.errors import EvaluationStopped
-        if self.auto_trial_timeout and getattr(task, "trial_timeout", 0) is None:
+        if self.auto_trial_timeout and hasattr(task, "trial_timeout"):
             task.trial_timeout = auto_trial_timeout(trial.study)
         if getattr(task, "trial_timeout", None) is not None:
             trial.set_user_attr("trial_timeout", float(task.trial_timeout))

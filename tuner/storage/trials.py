@@ -36,12 +36,17 @@ def track_created_trials(storage) -> list[int]:
 
 
 def fail_interrupted_trials(study, numbers, trial_ids=()) -> list[int]:
-    """Mark FAIL the trials of this process still RUNNING after an interruption: those among ``numbers`` (the
-    objective's) and among ``trial_ids`` (storage ids, see :func:`track_created_trials`: a trial interrupted
-    before the objective saw it). One interrupted while Optuna recorded it (see :func:`interrupt_in_chain`) is
-    left RUNNING too, and would wait for the heartbeat's grace period before a resume could see it stale. Best
-    effort (the storage may be the thing that failed); returns the numbers marked."""
+    """Mark FAIL the trials of this process still RUNNING after an interruption, and retry once those that had
+    drawn their parameters (:func:`retry_failed`: the next run of the study, in any worker, evaluates the same
+    parameters first, as it does a dead worker's trial). The trials are those among ``numbers`` (the objective's)
+    and among ``trial_ids`` (storage ids, see :func:`track_created_trials`: a trial interrupted before the objective
+    saw it, which has no parameters to retry). One interrupted while Optuna recorded it (see
+    :func:`interrupt_in_chain`) is left RUNNING too, and would wait for the heartbeat's grace period before a
+    resume could see it stale. Best effort (the storage may be the thing that failed); returns the numbers
+    marked."""
     from optuna.trial import TrialState
+
+    from tuner.workers import SURPLUS_ATTR
     marked = []
     try:
         numbers = set(numbers)
@@ -52,6 +57,13 @@ def fail_interrupted_trials(study, numbers, trial_ids=()) -> list[int]:
             if n in running:
                 study.tell(n, state=TrialState.FAIL)
                 marked.append(n)
+        # the interrupted trial, failed here or by Optuna (whose _run_trial fails a trial on KeyboardInterrupt)
+        trials = study.get_trials(deepcopy=False)
+        retried = {int(h[-1]) for t in trials if (h := t.system_attrs.get("retry_history"))}
+        for t in trials:
+            if t.number in numbers and t.state == TrialState.FAIL and t.params and t.number not in retried \
+                    and not t.user_attrs.get(SURPLUS_ATTR):  # a surplus trial was never evaluated
+                retry_failed(study, study._storage.get_trial(t._trial_id))
     except Exception:  # noqa: BLE001 - the interruption is what gets reported
         pass
     return marked
