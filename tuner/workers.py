@@ -32,8 +32,7 @@ import threading
 import time
 from collections.abc import Callable
 
-#: trial user attribute of a trial created in a race and never evaluated
-SURPLUS_ATTR = "surplus"
+from tuner.storage.trials import SURPLUS_ATTR  # a trial created in a race and never evaluated
 
 #: seconds a just-failed trial keeps its place while its retry is enqueued (the dead-trial check fails the trial,
 #: then enqueues the retry: two storage writes; a worker counting in between would otherwise take the place)

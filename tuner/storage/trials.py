@@ -1,6 +1,9 @@
 """Trials left RUNNING by an interruption or a dead worker: tracked, failed, re-enqueued once."""
 from __future__ import annotations
 
+#: trial user attribute of a trial created in a race and never evaluated (:mod:`tuner.workers`)
+SURPLUS_ATTR = "surplus"
+
 
 def track_created_trials(storage) -> list[int]:
     """The ids of the trials this process creates on ``storage`` (or takes from its waiting queue), appended as
@@ -45,8 +48,6 @@ def fail_interrupted_trials(study, numbers, trial_ids=()) -> list[int]:
     resume could see it stale. Best effort (the storage may be the thing that failed); returns the numbers
     marked."""
     from optuna.trial import TrialState
-
-    from tuner.workers import SURPLUS_ATTR
     marked = []
     try:
         numbers = set(numbers)
