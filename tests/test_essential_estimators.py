@@ -38,10 +38,16 @@ def test_recovers_the_pose_on_clean_correspondences(name, outliers):
     to < 0.1 deg (measured: 1e-6 to 0.06 deg; poselib-e and colmap-e are the largest at 50% outliers, where one
     random outlier falls within 1 px of its epipolar line and enters their final refinement)."""
     K1, K2, R, t, x1, x2, _ = synthetic_two_view(n=600, outliers=outliers, noise=0.0)
-    R_est, t_est, res = _pose(name, x1.astype(float), x2.astype(float), K1, K2)
-    assert R_est is not None, res
-    err = pose_error_deg(R, t, R_est, t_est)[0]
-    assert err < 0.1, err
+    # an estimator that takes no seed (SupeRANSAC) differs run to run, and at 50% outliers about 1 run in 150 ends
+    # on a wrong model of ~40 inliers (measured: 2 of 300 runs; once in CI): the run of median error of 3 is
+    # judged, so the test checks our wrapper, not the library's rare miss (2 misses in 3: p ~ 1.5e-4)
+    runs = []
+    for _ in range(1 if get_estimator(name).seedable else 3):
+        R_est, t_est, res = _pose(name, x1.astype(float), x2.astype(float), K1, K2)
+        assert R_est is not None, res
+        runs.append((pose_error_deg(R, t, R_est, t_est)[0], res))
+    err, res = sorted(runs, key=lambda r: r[0])[len(runs) // 2]
+    assert err < 0.1, [e for e, _ in runs]
     n_out = int(outliers * 600)
     assert res.inliers[n_out:].mean() > 0.99  # every true inlier kept
     assert res.inliers[:n_out].mean() < 0.02 if n_out else True  # the outliers rejected
@@ -53,7 +59,11 @@ def test_threshold_is_in_pixels(name):
     precision >= 0.97) and the pose is right. A threshold read as normalised (1.0 ~ 700 px) would accept the
     outliers; one divided twice by the focal length would keep almost nothing."""
     K1, K2, R, t, x1, x2, truth = _portrait_two_view(seed=3)
-    R_est, t_est, res = _pose(name, x1, x2, K1, K2, eta=1.0, sizes=((640, 1024), (640, 1024)))
+    # no seed (SupeRANSAC): its rare wrong model (see above; 1 run in 40 of this test) is not our wrapper's fault:
+    # the run with the median inlier count of 3 is judged
+    runs = [_pose(name, x1, x2, K1, K2, eta=1.0, sizes=((640, 1024), (640, 1024)))
+            for _ in range(1 if get_estimator(name).seedable else 3)]
+    R_est, t_est, res = sorted(runs, key=lambda r: int(r[2].inliers.sum()))[len(runs) // 2]
     assert res.ok
     inl = res.inliers
     assert inl[truth].mean() >= 0.8, inl[truth].mean()
