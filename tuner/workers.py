@@ -32,7 +32,7 @@ import threading
 import time
 from collections.abc import Callable
 
-from tuner.storage.trials import SURPLUS_ATTR  # a trial created in a race and never evaluated
+from tuner.storage.trials import SURPLUS_ATTR, retried_numbers  # SURPLUS_ATTR: created in a race, never evaluated
 
 #: seconds a just-failed trial keeps its place while its retry is enqueued (the dead-trial check fails the trial,
 #: then enqueues the retry: two storage writes; a worker counting in between would otherwise take the place)
@@ -57,16 +57,6 @@ def _finished(t) -> bool:
     return t.state.name in ("COMPLETE", "PRUNED")
 
 
-def _retried_numbers(trials) -> set[int]:
-    """Numbers of the trials some later trial retries (Optuna's retry history ends with the trial retried)."""
-    out = set()
-    for t in trials:
-        hist = t.system_attrs.get("retry_history")
-        if isinstance(hist, list) and hist:
-            out.add(int(hist[-1]))
-    return out
-
-
 def places(trials, now: _dt.datetime | None = None) -> list:
     """The trials that hold one of the study's places: finished, running, waiting, and a failed trial that is
     about to be retried (failed less than :data:`RETRY_SETTLE_S` ago, not itself a retry, no retry yet, not a
@@ -74,7 +64,7 @@ def places(trials, now: _dt.datetime | None = None) -> list:
     time ahead of this worker's clock (another time zone) holds no place, so no place is ever held for long."""
     from tuner.storage.trials import MAX_RETRY
     now = now or _dt.datetime.now()
-    retried = _retried_numbers(trials)
+    retried = retried_numbers(trials)
     out = []
     for t in trials:
         s = t.state.name

@@ -5,6 +5,16 @@ from __future__ import annotations
 SURPLUS_ATTR = "surplus"
 
 
+def retried_numbers(trials) -> set[int]:
+    """Numbers of the trials some later trial retries (Optuna's retry history ends with the trial retried)."""
+    out = set()
+    for t in trials:
+        hist = t.system_attrs.get("retry_history")
+        if isinstance(hist, list) and hist:
+            out.add(int(hist[-1]))
+    return out
+
+
 def track_created_trials(storage) -> list[int]:
     """The ids of the trials this process creates on ``storage`` (or takes from its waiting queue), appended as
     the storage hands them out; the same list on every call for one storage object.
@@ -60,7 +70,7 @@ def fail_interrupted_trials(study, numbers, trial_ids=()) -> list[int]:
                 marked.append(n)
         # the interrupted trial, failed here or by Optuna (whose _run_trial fails a trial on KeyboardInterrupt)
         trials = study.get_trials(deepcopy=False)
-        retried = {int(h[-1]) for t in trials if (h := t.system_attrs.get("retry_history"))}
+        retried = retried_numbers(trials)
         for t in trials:
             if t.number in numbers and t.state == TrialState.FAIL and t.params and t.number not in retried \
                     and not t.user_attrs.get(SURPLUS_ATTR):  # a surplus trial was never evaluated
